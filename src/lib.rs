@@ -1,0 +1,31 @@
+//! `persist`: predict and flag image persistence in HAWAII-2RG arrays (SPHEREx).
+//!
+//! The data take one straight path, each step one module:
+//!
+//! ```text
+//! product::read -> fluence -> model::Model::step -> product::write -> checkpoint
+//!                               (predict, flag, early release, decay, respond)
+//! ```
+//!
+//! - [`model`] is the pure core (no files, no clock, no HDF5); everything else reuses it.
+//! - [`product`] is the only code that knows the HDF5 layout of the ICD
+//!   (`../shared/ICD.md`) and checks files against the JSON Schemas in `schemas/`.
+//! - [`checkpoint`] keeps each detector's state, keyed by (detector, exposure index).
+//! - [`stage`] runs detectors' histories through the model.
+//!
+//! Invariants: NaN or Inf never enters the model state; an output is published (renamed
+//! into place) only after it validates, and before the checkpoint that includes it; the
+//! same inputs and model give byte-identical `/persistence` datasets.
+//!
+//! Units: seconds, electrons, electrons per second; names carry them (`t_exposure_s`).
+
+pub mod error;
+pub mod flags;
+pub mod model;
+pub mod product;
+pub mod units;
+
+pub use error::{Error, ErrorKind, Result};
+
+/// The software version recorded in outputs.
+pub const VERSION: &str = env!("CARGO_PKG_VERSION");

@@ -1,0 +1,15 @@
+use clap::Parser;
+use std::process::ExitCode;
+
+mod cli;
+
+fn main() -> ExitCode {
+    let args = cli::Cli::parse();
+    match cli::run(args) {
+        Ok(code) => code,
+        Err(e) => {
+            eprintln!("persist: {e}");
+            ExitCode::from(2)
+        }
+    }
+}

@@ -1,0 +1,18 @@
+//! The persistence model core: pure array code (ndarray + rayon), no files, no clock,
+//! no HDF5. The stage, the simulator's checks, the fitter and the diagnostics all reach
+//! the model through [`Model::step`].
+//!
+//! Units: amplitudes `A_n` in electrons, `C_n` in 1/s, currents in e-/s, times in s.
+
+pub mod decay;
+pub mod params;
+pub mod reference;
+pub mod response;
+pub mod state;
+pub mod step;
+
+pub use decay::ExpSum;
+pub use params::{EarlyRelease, Knot, ModelParams, Term, Thresholds};
+pub use response::Response;
+pub use state::State;
+pub use step::{FlagBits, Input, Model, Output, StepSummary};

@@ -1,0 +1,423 @@
+//! One exposure through the model, fused into one pass over the state.
+//!
+//! For each pixel, in this order (ARCHITECTURE "The path of one exposure"):
+//! 1. **predict** `i_p(t_meas) = sum_n A_n C_n exp(-t_meas/tau_n)` from the state left by
+//!    the previous exposure, `t_meas = t_slew + 0.5 t_exposure` after its reset;
+//! 2. **flag**: above the high / low thresholds (strictly greater). A pixel whose
+//!    previous response used the maximum amplitude (unknown fluence) is flagged high
+//!    whatever the prediction, and marked `MAX_AMPLITUDE`;
+//! 3. **early release**: a pixel flagged high whose measured current is finite and below
+//!    the early-release threshold counts one more; at `consecutive` it is released: its
+//!    amplitudes become zero, it is not flagged in this exposure, it is marked
+//!    `RELEASED`. A non-finite measurement or an unflagged pixel resets the count;
+//! 4. **decay** the amplitudes over `t_elapsed = t_reset(k+1) - t_reset(k)`;
+//! 5. **respond**: add this exposure's `A_k` to every term.
+//!
+//! What enters the state (so that NaN, Inf or negative currents never do):
+//! - `NONFUNC` pixels add nothing (a dead pixel collects no charge);
+//! - `TRANSIENT` or `SUR_ERROR` pixels, and pixels whose current is NaN or infinite, have
+//!   an unknown fluence: they add the maximum amplitude of the knot table (conservative,
+//!   as the paper does for transients), and the next exposure flags them;
+//! - a negative current counts as zero fluence (it is noise about zero);
+//! - otherwise the fluence is `current * t_illuminated` (ICD "Timing").
+//!
+//! `/persistence/current` holds the prediction of step 1 for every pixel, released or
+//! not. The arithmetic is identical, operation for operation, to the plain multi-pass
+//! [`crate::model::reference`] implementation, so the two agree bit for bit.
+
+use super::decay::ExpSum;
+use super::params::ModelParams;
+use super::response::Response;
+use super::state::{State, PENDING_MAX_AMPLITUDE};
+use crate::error::{Error, ErrorKind};
+use crate::flags::{bits, pbits};
+use ndarray::{Array2, ArrayView2};
+use rayon::prelude::*;
+
+/// The on-board flag values the model acts on (the ICD's by default).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct FlagBits {
+    pub transient: u32,
+    pub sur_error: u32,
+    pub nonfunc: u32,
+    pub persist: u32,
+}
+
+impl Default for FlagBits {
+    fn default() -> Self {
+        FlagBits {
+            transient: bits::TRANSIENT,
+            sur_error: bits::SUR_ERROR,
+            nonfunc: bits::NONFUNC,
+            persist: bits::PERSIST,
+        }
+    }
+}
+
+/// A validated model, ready to step.
+#[derive(Debug, Clone)]
+pub struct Model {
+    params: ModelParams,
+    sum: ExpSum,
+    response: Response,
+    identity: String,
+    bits: FlagBits,
+}
+
+impl Model {
+    pub fn new(params: ModelParams) -> Result<Self, Error> {
+        params
+            .validate()
+            .map_err(|m| Error::new(ErrorKind::Model, m))?;
+        Ok(Model {
+            sum: ExpSum::new(&params.terms),
+            response: Response::new(&params.amplitude_knots),
+            identity: params.identity(),
+            params,
+            bits: FlagBits::default(),
+        })
+    }
+
+    pub fn with_flag_bits(mut self, bits: FlagBits) -> Self {
+        self.bits = bits;
+        self
+    }
+
+    pub fn params(&self) -> &ModelParams {
+        &self.params
+    }
+    pub fn identity(&self) -> &str {
+        &self.identity
+    }
+    pub fn exp_sum(&self) -> &ExpSum {
+        &self.sum
+    }
+    pub fn response(&self) -> &Response {
+        &self.response
+    }
+    pub fn flag_bits(&self) -> FlagBits {
+        self.bits
+    }
+    pub fn n_terms(&self) -> usize {
+        self.sum.len()
+    }
+
+    pub fn new_state(&self, ny: usize, nx: usize) -> State {
+        State::zeros(ny, nx, self.n_terms())
+    }
+
+    /// Run one exposure: see the module documentation. Nothing is changed on error.
+    pub fn step(
+        &self,
+        state: &mut State,
+        input: &Input<'_>,
+        out: &mut Output<'_>,
+    ) -> Result<StepSummary, Error> {
+        let k = self.prepare(state, input, out)?;
+        let (ny, nx) = state.shape();
+        let n = k.n;
+        let image = input.image_e_per_s.as_standard_layout();
+        let image = image.as_slice().expect("standard layout");
+        let amps = state.amplitudes_e.as_slice_mut().expect("owned state");
+        let count = state.release_count.as_slice_mut().expect("owned state");
+        let pending = state.pending.as_slice_mut().expect("owned state");
+        let flags = contiguous(out.flags);
+        let current = contiguous(out.current_e_per_s);
+        let pflags = contiguous(out.pflags);
+        debug_assert_eq!(amps.len(), ny * nx * n);
+        let mut summary = (
+            amps.par_chunks_mut(nx * n),
+            count.par_chunks_mut(nx),
+            pending.par_chunks_mut(nx),
+            image.par_chunks(nx),
+            flags.par_chunks_mut(nx),
+            current.par_chunks_mut(nx),
+            pflags.par_chunks_mut(nx),
+        )
+            .into_par_iter()
+            .map(|(a, c, p, img, f, cur, pf)| k.row(a, c, p, img, f, cur, pf))
+            .reduce(StepSummary::default, StepSummary::add);
+        summary.t_meas_s = k.t_meas_s;
+        summary.previous_index = state.last_index;
+        state.t_reset_unix_s = Some(input.t_start_unix_s + input.t_exposure_s);
+        state.last_index = Some(input.exposure_index);
+        Ok(summary)
+    }
+
+    /// Check the input against the state and precompute the per-exposure factors.
+    pub(crate) fn prepare(
+        &self,
+        state: &State,
+        input: &Input<'_>,
+        out: &Output<'_>,
+    ) -> Result<Kernel<'_>, Error> {
+        let seq = |field: &str, msg: String| {
+            Error::new(ErrorKind::Sequence, msg)
+                .field(field)
+                .exposure(input.exposure_index)
+        };
+        let shape = state.shape();
+        if state.n_terms() != self.n_terms() {
+            return Err(Error::new(
+                ErrorKind::Checkpoint,
+                format!(
+                    "state has {} terms, the model {}",
+                    state.n_terms(),
+                    self.n_terms()
+                ),
+            ));
+        }
+        if input.image_e_per_s.dim() != shape {
+            return Err(Error::invalid(
+                "image",
+                format!(
+                    "shape {:?} differs from the detector's state {:?}",
+                    input.image_e_per_s.dim(),
+                    shape
+                ),
+            ));
+        }
+        for (name, dim) in [
+            ("flags", out.flags.dim()),
+            ("persistence/current", out.current_e_per_s.dim()),
+            ("persistence/flags", out.pflags.dim()),
+        ] {
+            if dim != shape {
+                return Err(Error::invalid(
+                    name,
+                    format!("shape {dim:?} differs from {shape:?}"),
+                ));
+            }
+        }
+        if !(input.t_exposure_s.is_finite() && input.t_exposure_s > 0.0) {
+            return Err(Error::invalid(
+                "t_exposure_s",
+                format!("must be finite and > 0, got {}", input.t_exposure_s),
+            ));
+        }
+        let t_illum = input.t_illuminated_s;
+        if !(t_illum.is_finite() && t_illum > 0.0 && t_illum <= input.t_exposure_s) {
+            return Err(Error::invalid(
+                "t_illuminated_s",
+                format!("must be in (0, t_exposure_s], got {t_illum}"),
+            ));
+        }
+        if !input.t_start_unix_s.is_finite() {
+            return Err(Error::invalid("t_start_utc", "not a finite time"));
+        }
+        if let Some(last) = state.last_index {
+            if input.exposure_index <= last {
+                return Err(seq(
+                    "exposure_index",
+                    format!(
+                        "{} does not follow the last processed index {last}",
+                        input.exposure_index
+                    ),
+                ));
+            }
+        }
+        let (w, decay, t_meas_s) = match state.t_reset_unix_s {
+            None => (vec![0.0; self.n_terms()], vec![1.0; self.n_terms()], None),
+            Some(t_reset) => {
+                let t_slew = input.t_start_unix_s - t_reset;
+                if t_slew < 0.0 {
+                    return Err(seq(
+                        "t_start_utc",
+                        format!(
+                            "starts {:.6} s before the reset ending the previous exposure",
+                            -t_slew
+                        ),
+                    ));
+                }
+                let t_meas = t_slew + 0.5 * input.t_exposure_s;
+                let t_elapsed = t_slew + input.t_exposure_s;
+                (
+                    self.sum.weights_at(t_meas),
+                    self.sum.decay_over(t_elapsed),
+                    Some(t_meas),
+                )
+            }
+        };
+        let er = &self.params.early_release;
+        Ok(Kernel {
+            n: self.n_terms(),
+            w,
+            decay,
+            t_meas_s,
+            high: self.params.thresholds.high_e_per_s,
+            low: self.params.thresholds.low_e_per_s,
+            er_enabled: er.enabled,
+            er_threshold: er.threshold_e_per_s,
+            er_consecutive: er.consecutive,
+            response: &self.response,
+            a_max: self.response.max_e(),
+            t_illuminated_s: t_illum,
+            history: if input.history_incomplete {
+                pbits::HISTORY_INCOMPLETE
+            } else {
+                0
+            },
+            bits: self.bits,
+        })
+    }
+}
+
+fn contiguous<T: Clone>(a: &mut Array2<T>) -> &mut [T] {
+    if !a.is_standard_layout() {
+        *a = a.as_standard_layout().into_owned();
+    }
+    a.as_slice_mut().expect("standard layout")
+}
+
+/// One exposure's data as the model needs it.
+#[derive(Debug, Clone)]
+pub struct Input<'a> {
+    /// Line-fit current, e-/s. `[ny, nx]`
+    pub image_e_per_s: ArrayView2<'a, f32>,
+    pub exposure_index: u64,
+    /// Start of the integration, seconds since the Unix epoch.
+    pub t_start_unix_s: f64,
+    pub t_exposure_s: f64,
+    pub t_illuminated_s: f64,
+    /// Set bit `HISTORY_INCOMPLETE` on every pixel of this exposure.
+    pub history_incomplete: bool,
+}
+
+/// Where the step writes. `flags` holds the on-board flags on entry; on return the
+/// `PERSIST` bit is set exactly where `pflags` has `HIGH` (any upstream `PERSIST` is
+/// cleared). The buffers may be reused from exposure to exposure.
+pub struct Output<'a> {
+    pub flags: &'a mut Array2<u32>,
+    pub current_e_per_s: &'a mut Array2<f32>,
+    pub pflags: &'a mut Array2<u8>,
+}
+
+/// Counts of one exposure, for logs and the per-exposure summary.
+#[derive(Debug, Clone, Copy, Default, PartialEq, serde::Serialize)]
+pub struct StepSummary {
+    pub pixels: u64,
+    pub above_high: u64,
+    pub above_low: u64,
+    pub released: u64,
+    pub max_amplitude: u64,
+    /// Time after the previous reset the prediction was made at (None: first exposure).
+    pub t_meas_s: Option<f64>,
+    pub previous_index: Option<u64>,
+}
+
+impl StepSummary {
+    fn add(self, o: StepSummary) -> StepSummary {
+        StepSummary {
+            pixels: self.pixels + o.pixels,
+            above_high: self.above_high + o.above_high,
+            above_low: self.above_low + o.above_low,
+            released: self.released + o.released,
+            max_amplitude: self.max_amplitude + o.max_amplitude,
+            t_meas_s: self.t_meas_s.or(o.t_meas_s),
+            previous_index: self.previous_index.or(o.previous_index),
+        }
+    }
+}
+
+/// Everything the per-pixel loop needs, computed once per exposure.
+pub(crate) struct Kernel<'m> {
+    pub n: usize,
+    /// `C_n exp(-t_meas/tau_n)`; zeros for a first exposure.
+    pub w: Vec<f64>,
+    /// `exp(-t_elapsed/tau_n)`; ones for a first exposure.
+    pub decay: Vec<f64>,
+    pub t_meas_s: Option<f64>,
+    pub high: f64,
+    pub low: f64,
+    pub er_enabled: bool,
+    pub er_threshold: f64,
+    pub er_consecutive: u8,
+    pub response: &'m Response,
+    pub a_max: f64,
+    pub t_illuminated_s: f64,
+    pub history: u8,
+    pub bits: FlagBits,
+}
+
+impl Kernel<'_> {
+    /// `A_k` for one pixel and whether it was the maximum for an unknown fluence.
+    #[inline]
+    pub fn response_of(&self, current: f32, flags: u32) -> (f64, bool) {
+        if flags & self.bits.nonfunc != 0 {
+            (0.0, false)
+        } else if flags & (self.bits.transient | self.bits.sur_error) != 0 || !current.is_finite() {
+            (self.a_max, true)
+        } else {
+            let fluence_e = f64::from(current.max(0.0)) * self.t_illuminated_s;
+            (self.response.amplitude_e(fluence_e), false)
+        }
+    }
+
+    #[allow(clippy::too_many_arguments)]
+    #[inline]
+    fn row(
+        &self,
+        amps: &mut [f64],
+        count: &mut [u8],
+        pending: &mut [u8],
+        image: &[f32],
+        flags: &mut [u32],
+        current: &mut [f32],
+        pflags: &mut [u8],
+    ) -> StepSummary {
+        let n = self.n;
+        let mut s = StepSummary {
+            pixels: image.len() as u64,
+            ..Default::default()
+        };
+        for (x, a) in amps.chunks_exact_mut(n).enumerate() {
+            // 1. predict
+            let mut pred = 0.0f64;
+            for (aj, wj) in a.iter().zip(&self.w) {
+                pred += aj * wj;
+            }
+            // 2. flag
+            let max_prev = pending[x] & PENDING_MAX_AMPLITUDE != 0;
+            let mut high = pred > self.high || max_prev;
+            let mut low = pred > self.low || high;
+            // 3. early release
+            let m = image[x];
+            let mut released = false;
+            if self.er_enabled && high {
+                if m.is_finite() && f64::from(m) < self.er_threshold {
+                    count[x] = count[x].saturating_add(1);
+                } else {
+                    count[x] = 0;
+                }
+                if count[x] >= self.er_consecutive {
+                    a.fill(0.0);
+                    count[x] = 0;
+                    high = false;
+                    low = false;
+                    released = true;
+                }
+            } else {
+                count[x] = 0;
+            }
+            // 4 + 5. decay to this exposure's reset and add its response
+            let f = flags[x];
+            let (ak, max_used) = self.response_of(m, f);
+            for (aj, dj) in a.iter_mut().zip(&self.decay) {
+                *aj = *aj * dj + ak;
+            }
+            pending[x] = if max_used { PENDING_MAX_AMPLITUDE } else { 0 };
+            current[x] = pred as f32;
+            pflags[x] = (high as u8 * pbits::HIGH)
+                | (low as u8 * pbits::LOW)
+                | (max_prev as u8 * pbits::MAX_AMPLITUDE)
+                | (released as u8 * pbits::RELEASED)
+                | self.history;
+            flags[x] = (f & !self.bits.persist) | if high { self.bits.persist } else { 0 };
+            s.above_high += high as u64;
+            s.above_low += low as u64;
+            s.released += released as u64;
+            s.max_amplitude += max_prev as u64;
+        }
+        s
+    }
+}

@@ -1,0 +1,78 @@
+//! One Level-1 exposure product in memory (ICD "Input"), and the persistence planes
+//! the stage appends to it (ICD "Output").
+
+use crate::units::{DetectorId, ExposureIndex, Seconds, UtcSeconds};
+use ndarray::{Array1, Array2, Array3};
+
+pub use crate::flags::{bits, pbits};
+
+pub const PRODUCT_L1: &str = "spherex.l1.exposure";
+pub const SCHEMA_VERSION: &str = "1.0";
+
+/// Root attributes of an exposure product.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ExposureMeta {
+    pub detector: DetectorId,
+    pub exposure_index: ExposureIndex,
+    /// Exactly as written in the file (carried through unchanged).
+    pub t_start_utc: String,
+    /// `t_start_utc` parsed.
+    pub t_start: UtcSeconds,
+    pub t_exposure_s: f64,
+    pub focal_plane_temp_k: Option<f64>,
+    pub t_illuminated_s: Option<f64>,
+}
+
+impl ExposureMeta {
+    /// The reset that ends this exposure: `t_start + t_exposure` (ICD "Timing").
+    pub fn t_reset(&self) -> UtcSeconds {
+        self.t_start.plus(Seconds(self.t_exposure_s))
+    }
+
+    /// Seconds of illumination used for the extrapolated fluence (ICD "Timing").
+    pub fn t_illuminated_s(&self) -> f64 {
+        self.t_illuminated_s.unwrap_or(self.t_exposure_s)
+    }
+}
+
+/// A whole input product.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Exposure {
+    pub meta: ExposureMeta,
+    /// Line-fit current, e-/s; NaN where no value. [ny, nx]
+    pub image: Array2<f32>,
+    /// On-board flag bits. [ny, nx]
+    pub flags: Array2<u32>,
+    /// Sample-up-the-ramp charge, electrons [nsamp, ny, nx] (laboratory data only).
+    pub ramp: Option<Array3<f32>>,
+    /// Sample times after the reset that started the integration, seconds [nsamp].
+    pub ramp_times_s: Option<Array1<f64>>,
+}
+
+/// What the stage adds to an output product.
+#[derive(Debug, Clone, PartialEq)]
+pub struct PersistencePlanes {
+    /// Predicted persistence current at `t_meas`, e-/s. [ny, nx]
+    pub current_e_per_s: Array2<f32>,
+    /// `pbits` per pixel. [ny, nx]
+    pub flags: Array2<u8>,
+}
+
+/// Attributes of `/persistence` in an output product (ICD "Output").
+#[derive(Debug, Clone, PartialEq)]
+pub struct PersistenceAttrs {
+    /// SHA-256 (hex) of the model file in canonical form.
+    pub model_id: String,
+    pub model_name: String,
+    pub threshold_high_e_per_s: f64,
+    pub threshold_low_e_per_s: f64,
+    /// Time after the previous reset at which the prediction was evaluated; NaN when
+    /// there is no previous exposure.
+    pub t_meas_s: f64,
+    /// The previous exposure index whose state was used, or -1 for none.
+    pub previous_exposure_index: i64,
+    pub software_version: String,
+    /// UTC time of processing. Excluded from byte-identity comparisons by construction:
+    /// tests compare the datasets; the stage can pin it with `--processing-time`.
+    pub processed_utc: String,
+}
