@@ -2,6 +2,7 @@
 
 use clap::{Parser, Subcommand};
 use persist::model::ModelParams;
+use std::path::PathBuf;
 use std::process::ExitCode;
 
 #[derive(Parser, Debug)]
@@ -22,6 +23,14 @@ pub enum Command {
         #[command(subcommand)]
         action: ModelAction,
     },
+    /// Check files against the ICD and their schemas: input and output products,
+    /// checkpoints (`.h5`), model files (`.json`). Prints `ok <kind> <path>` per valid
+    /// file and every error on stderr; exits 1 if any file failed.
+    Validate {
+        /// Files to check (all are checked, whatever fails).
+        #[arg(required = true)]
+        files: Vec<PathBuf>,
+    },
 }
 
 #[derive(Subcommand, Debug)]
@@ -38,5 +47,28 @@ pub fn run(cli: Cli) -> persist::Result<ExitCode> {
                 Ok(ExitCode::SUCCESS)
             }
         },
+        Command::Validate { files } => Ok(validate(&files)),
+    }
+}
+
+/// `persist validate FILE...`: every file is checked; exit 1 if any failed.
+fn validate(files: &[PathBuf]) -> ExitCode {
+    let mut failed = false;
+    for path in files {
+        match persist::product::validate_path(path) {
+            Ok(kind) => println!("ok {kind} {}", path.display()),
+            Err(errors) => {
+                failed = true;
+                for e in errors {
+                    // Every error names its file; make sure of it.
+                    eprintln!("{}", e.path(path));
+                }
+            }
+        }
+    }
+    if failed {
+        ExitCode::from(1)
+    } else {
+        ExitCode::SUCCESS
     }
 }
