@@ -31,6 +31,14 @@ pub enum Command {
         #[command(subcommand)]
         action: ModelAction,
     },
+    /// Check files against the ICD and their schemas: input and output products,
+    /// checkpoints (`.h5`), model files (`.json`). Prints `ok <kind> <path>` per valid
+    /// file and every error on stderr; exits 1 if any file failed.
+    Validate {
+        /// Files to check (all are checked, whatever fails).
+        #[arg(required = true)]
+        files: Vec<PathBuf>,
+    },
     /// The main job on a built-in default: run the stage on the committed fixtures.
     Demo {
         /// Where to write outputs and checkpoints (replaced if it exists).
@@ -113,7 +121,30 @@ pub fn run(cli: Cli) -> persist::Result<ExitCode> {
                 Ok(ExitCode::SUCCESS)
             }
         },
+        Command::Validate { files } => Ok(validate(&files)),
         Command::Demo { out } => demo(&out),
+    }
+}
+
+/// `persist validate FILE...`: every file is checked; exit 1 if any failed.
+fn validate(files: &[PathBuf]) -> ExitCode {
+    let mut failed = false;
+    for path in files {
+        match persist::product::validate_path(path) {
+            Ok(kind) => println!("ok {kind} {}", path.display()),
+            Err(errors) => {
+                failed = true;
+                for e in errors {
+                    // Every error names its file; make sure of it.
+                    eprintln!("{}", e.path(path));
+                }
+            }
+        }
+    }
+    if failed {
+        ExitCode::from(1)
+    } else {
+        ExitCode::SUCCESS
     }
 }
 
