@@ -93,9 +93,13 @@ fn parse_checkpoint_key(s: &str) -> Result<(DetectorId, u64), String> {
     let (d, i) = s
         .split_once(':')
         .ok_or_else(|| format!("`{s}`: expected DETECTOR:INDEX, e.g. 3:120"))?;
-    let d: i64 = d.parse().map_err(|_| format!("`{d}`: not a detector number"))?;
+    let d: i64 = d
+        .parse()
+        .map_err(|_| format!("`{d}`: not a detector number"))?;
     let det = DetectorId::new(d).ok_or_else(|| format!("detector {d}: must be 1..=6"))?;
-    let i = i.parse().map_err(|_| format!("`{i}`: not an exposure index"))?;
+    let i = i
+        .parse()
+        .map_err(|_| format!("`{i}`: not an exposure index"))?;
     Ok((det, i))
 }
 
@@ -208,7 +212,10 @@ fn print_summary(report: &RunReport) {
 
 fn finish(report: &RunReport) -> ExitCode {
     for p in &report.ignored_copies {
-        eprintln!("persist: {}: identical copy of a queued product, ignored", p.display());
+        eprintln!(
+            "persist: {}: identical copy of a queued product, ignored",
+            p.display()
+        );
     }
     for e in &report.errors {
         eprintln!("persist: error: {e}");

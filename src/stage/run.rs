@@ -69,6 +69,16 @@ pub struct RunReport {
 pub struct Bookkeeping {
     /// Mark outputs "history incomplete" while their mid-exposure time is before this.
     pub history_incomplete_until_unix_s: Option<f64>,
+    /// Inclusive ranges of exposure indices the history crossed without them (missing
+    /// or rejected): a product for one of them that turns up later is late.
+    #[serde(default)]
+    pub crossed: Vec<(u64, u64)>,
+}
+
+impl Bookkeeping {
+    pub fn was_crossed(&self, index: u64) -> bool {
+        self.crossed.iter().any(|&(a, b)| (a..=b).contains(&index))
+    }
 }
 
 /// The processing time to record: `SOURCE_DATE_EPOCH` (reproducible runs) or now.
@@ -152,15 +162,15 @@ impl<'a> Detector<'a> {
     fn start(&self) -> Result<Option<(State, Bookkeeping)>> {
         let cfg = self.cfg;
         let path = match cfg.from_checkpoint {
-            Some((d, index)) if d == self.det => Some(
-                checkpoint::find(&cfg.checkpoints, d, index).ok_or_else(|| {
+            Some((d, index)) if d == self.det => {
+                Some(checkpoint::find(&cfg.checkpoints, d, index).ok_or_else(|| {
                     Error::new(
                         ErrorKind::Checkpoint,
                         format!("no checkpoint for detector {d} at exposure {index}"),
                     )
                     .path(&cfg.checkpoints)
-                })?,
-            ),
+                })?)
+            }
             _ => checkpoint::list(&cfg.checkpoints, self.det)?
                 .pop()
                 .map(|(_, p)| p),
@@ -214,13 +224,13 @@ impl<'a> Detector<'a> {
             let index = entry.meta.exposure_index;
             let last = state.as_ref().and_then(|s| s.last_index);
             if let Some(l) = last.filter(|&l| index <= l) {
-                if !self.output_path(&entry.path).exists() {
-                    // Not published, yet its place in the history has passed.
+                if book.was_crossed(index) {
+                    // Its place in the history was passed as missing or rejected.
                     self.errors.push(
                         Error::new(
                             ErrorKind::Sequence,
                             format!(
-                                "arrived after exposure {l} was processed: refused (late product)"
+                                "arrived after its gap was crossed (exposure {l} already processed): refused (late product)"
                             ),
                         )
                         .path(&entry.path)
@@ -229,12 +239,19 @@ impl<'a> Detector<'a> {
                         .exposure(index),
                     );
                 }
-                continue;
+                continue; // otherwise already part of the state we resumed from
             }
             if last.is_some_and(|l| index != l + 1) {
                 gap_before = true;
             }
-            match self.one(entry, &mut state, &mut book, &mut buffers, gap_before, reprocess) {
+            match self.one(
+                entry,
+                &mut state,
+                &mut book,
+                &mut buffers,
+                gap_before,
+                reprocess,
+            ) {
                 Ok(report) => {
                     gap_before = false;
                     (self.on_exposure)(&report);
@@ -308,7 +325,10 @@ impl<'a> Detector<'a> {
         if gap_before {
             let t_cross = model
                 .exp_sum()
-                .crossing_time_s(model.response().max_e(), model.params().thresholds.low_e_per_s)
+                .crossing_time_s(
+                    model.response().max_e(),
+                    model.params().thresholds.low_e_per_s,
+                )
                 .unwrap_or(f64::INFINITY);
             let until = meta.t_start.0 + t_cross;
             book.history_incomplete_until_unix_s = Some(
@@ -341,6 +361,12 @@ impl<'a> Detector<'a> {
             )
             .map_err(Failure::Input)?;
         exposure.flags = flags;
+        if let Some(prev) = summary
+            .previous_index
+            .filter(|&p| meta.exposure_index > p + 1)
+        {
+            book.crossed.push((prev + 1, meta.exposure_index - 1));
+        }
         let out_path = self.output_path(&entry.path);
         let written = if out_path.exists() && !reprocess {
             false
@@ -370,9 +396,7 @@ impl<'a> Detector<'a> {
     }
 
     fn output_path(&self, input: &Path) -> PathBuf {
-        self.cfg
-            .output
-            .join(input.file_name().unwrap_or_default())
+        self.cfg.output.join(input.file_name().unwrap_or_default())
     }
 
     fn save(&self, state: &State, book: &Bookkeeping) -> Result<()> {
