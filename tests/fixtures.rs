@@ -16,7 +16,11 @@ fn committed_fixtures_are_reproducible() {
         let name = p.file_name().unwrap();
         let want = std::fs::read(committed.join(name)).unwrap();
         let got = std::fs::read(&p).unwrap();
-        assert!(want == got, "{}: differs from its generator's output", name.to_string_lossy());
+        assert!(
+            want == got,
+            "{}: differs from its generator's output",
+            name.to_string_lossy()
+        );
     }
 }
 
