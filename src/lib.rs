@@ -28,6 +28,7 @@ pub mod flags;
 pub mod h5io;
 pub mod model;
 pub mod model_file;
+pub mod plot;
 pub mod product;
 pub mod stage;
 pub mod units;
