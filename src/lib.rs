@@ -23,6 +23,7 @@ pub mod error;
 pub mod flags;
 pub mod model;
 pub mod product;
+pub mod sim;
 pub mod units;
 
 pub use error::{Error, ErrorKind, Result};
