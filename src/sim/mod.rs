@@ -20,6 +20,7 @@ pub mod effects;
 pub mod engine;
 pub mod lab;
 pub mod rng;
+pub mod sky;
 pub mod traps;
 
 use crate::product::{Exposure, ExposureMeta};
