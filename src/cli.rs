@@ -1,14 +1,21 @@
 //! The command line: parse, call the library, map the outcome to an exit code.
+//! Exit codes: 0 all went well; 1 some input or output failed (the rest was processed,
+//! every failure reported); 2 the command could not run at all.
 
-use clap::{Parser, Subcommand};
-use persist::model::ModelParams;
+use clap::{Args, Parser, Subcommand};
+use persist::checkpoint::Retention;
+use persist::model::{Model, ModelParams};
+use persist::stage::{self, ExposureReport, RunConfig, RunReport};
+use persist::units::DetectorId;
+use persist::{Error, ErrorKind};
+use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
 #[derive(Parser, Debug)]
 #[command(
     name = "persist",
     version,
-    about = "Predict and flag image persistence in H2RG arrays"
+    about = "Predict and flag image persistence in HAWAII-2RG arrays (SPHEREx)"
 )]
 pub struct Cli {
     #[command(subcommand)]
@@ -17,26 +24,231 @@ pub struct Cli {
 
 #[derive(Subcommand, Debug)]
 pub enum Command {
-    /// Model files: print the default, check one, show its identity.
+    /// Flag persistence in every Level-1 product of a directory.
+    Run(RunArgs),
+    /// Model files: print the default, check one, print its identity.
     Model {
         #[command(subcommand)]
         action: ModelAction,
     },
+    /// Check files against the ICD and their schemas: input and output products,
+    /// checkpoints (`.h5`), model files (`.json`). Prints `ok <kind> <path>` per valid
+    /// file and every error on stderr; exits 1 if any file failed.
+    Validate {
+        /// Files to check (all are checked, whatever fails).
+        #[arg(required = true)]
+        files: Vec<PathBuf>,
+    },
+    /// The main job on a built-in default: run the stage on the committed fixtures.
+    Demo {
+        /// Where to write outputs and checkpoints (replaced if it exists).
+        #[arg(long, default_value = "demo-out")]
+        out: PathBuf,
+    },
+}
+
+#[derive(Args, Debug)]
+pub struct RunArgs {
+    /// Directory of Level-1 exposure products (`*.h5`, searched recursively).
+    #[arg(long)]
+    pub input: PathBuf,
+    /// Directory for the output products.
+    #[arg(long)]
+    pub output: PathBuf,
+    /// Directory for the checkpoints.
+    #[arg(long)]
+    pub checkpoints: PathBuf,
+    /// Model file (JSON); the built-in default (the paper's constants) if absent.
+    #[arg(long)]
+    pub model: Option<PathBuf>,
+    /// Reprocess one detector from its checkpoint at an exposure: `DETECTOR:INDEX`.
+    #[arg(long, value_parser = parse_checkpoint_key)]
+    pub from_checkpoint: Option<(DetectorId, u64)>,
+    /// Continue from checkpoints made with a different model.
+    #[arg(long)]
+    pub allow_model_change: bool,
+    /// Write a checkpoint every N exposures (and always at the end).
+    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u64).range(1..))]
+    pub checkpoint_every: u64,
+    /// Keep this many newest checkpoints per detector (plus one per hour of data).
+    #[arg(long, default_value_t = 20)]
+    pub keep_latest: usize,
+    /// Do not keep one checkpoint per hour of data beyond the newest ones.
+    #[arg(long)]
+    pub no_hourly_checkpoints: bool,
+    /// Print nothing per exposure.
+    #[arg(long, short)]
+    pub quiet: bool,
 }
 
 #[derive(Subcommand, Debug)]
 pub enum ModelAction {
     /// Print the default model file (the paper's constants).
     Default,
+    /// Check a model file and print its identity (SHA-256 of its canonical form).
+    Id { file: PathBuf },
+}
+
+fn parse_checkpoint_key(s: &str) -> Result<(DetectorId, u64), String> {
+    let (d, i) = s
+        .split_once(':')
+        .ok_or_else(|| format!("`{s}`: expected DETECTOR:INDEX, e.g. 3:120"))?;
+    let d: i64 = d.parse().map_err(|_| format!("`{d}`: not a detector number"))?;
+    let det = DetectorId::new(d).ok_or_else(|| format!("detector {d}: must be 1..=6"))?;
+    let i = i.parse().map_err(|_| format!("`{i}`: not an exposure index"))?;
+    Ok((det, i))
+}
+
+fn load_model(path: Option<&Path>) -> persist::Result<Model> {
+    let params = match path {
+        Some(p) => persist::model_file::load(p)?,
+        None => ModelParams::default(),
+    };
+    Model::new(params)
 }
 
 pub fn run(cli: Cli) -> persist::Result<ExitCode> {
     match cli.command {
+        Command::Run(args) => run_stage(&args),
         Command::Model { action } => match action {
             ModelAction::Default => {
                 println!("{}", ModelParams::default().to_json_pretty());
                 Ok(ExitCode::SUCCESS)
             }
+            ModelAction::Id { file } => {
+                let m = load_model(Some(&file))?;
+                println!("{}  {}", m.identity(), m.params().name);
+                Ok(ExitCode::SUCCESS)
+            }
         },
+        Command::Validate { files } => Ok(validate(&files)),
+        Command::Demo { out } => demo(&out),
     }
+}
+
+/// `persist validate FILE...`: every file is checked; exit 1 if any failed.
+fn validate(files: &[PathBuf]) -> ExitCode {
+    let mut failed = false;
+    for path in files {
+        match persist::product::validate_path(path) {
+            Ok(kind) => println!("ok {kind} {}", path.display()),
+            Err(errors) => {
+                failed = true;
+                for e in errors {
+                    // Every error names its file; make sure of it.
+                    eprintln!("{}", e.path(path));
+                }
+            }
+        }
+    }
+    if failed {
+        ExitCode::from(1)
+    } else {
+        ExitCode::SUCCESS
+    }
+}
+
+fn run_stage(args: &RunArgs) -> persist::Result<ExitCode> {
+    let cfg = RunConfig {
+        input: args.input.clone(),
+        output: args.output.clone(),
+        checkpoints: args.checkpoints.clone(),
+        model: load_model(args.model.as_deref())?,
+        from_checkpoint: args.from_checkpoint,
+        allow_model_change: args.allow_model_change,
+        checkpoint_every: args.checkpoint_every,
+        retention: Retention {
+            keep_latest: args.keep_latest,
+            keep_one_per_hour: !args.no_hourly_checkpoints,
+        },
+        processed_utc: stage::processing_time(),
+    };
+    let report = stage::run(&cfg, &|_| {});
+    if !args.quiet {
+        print_summary(&report);
+    }
+    Ok(finish(&report))
+}
+
+/// Per-exposure table, sorted by (detector, exposure), then the errors.
+fn print_summary(report: &RunReport) {
+    let mut rows: Vec<&ExposureReport> = report.exposures.iter().collect();
+    rows.sort_by_key(|r| (r.detector, r.exposure_index));
+    println!(
+        "{:>3} {:>8} {:>10} {:>9} {:>7} {:>9} {:>7} {:>8}  notes",
+        "det", "exposure", "t_meas_s", ">0.1e/s", "%", ">0.01e/s", "%", "released"
+    );
+    for r in rows {
+        let s = &r.summary;
+        let pct = |n: u64| 100.0 * n as f64 / s.pixels.max(1) as f64;
+        let mut notes = Vec::new();
+        if s.max_amplitude > 0 {
+            notes.push(format!("{} at max amplitude", s.max_amplitude));
+        }
+        if r.history_incomplete {
+            notes.push("history incomplete".to_string());
+        }
+        if !r.written {
+            notes.push("already published".to_string());
+        }
+        println!(
+            "{:>3} {:>8} {:>10} {:>9} {:>7.2} {:>9} {:>7.2} {:>8}  {}",
+            r.detector,
+            r.exposure_index,
+            s.t_meas_s.map_or("-".to_string(), |t| format!("{t:.1}")),
+            s.above_high,
+            pct(s.above_high),
+            s.above_low,
+            pct(s.above_low),
+            s.released,
+            notes.join("; ")
+        );
+    }
+}
+
+fn finish(report: &RunReport) -> ExitCode {
+    for p in &report.ignored_copies {
+        eprintln!("persist: {}: identical copy of a queued product, ignored", p.display());
+    }
+    for e in &report.errors {
+        eprintln!("persist: error: {e}");
+    }
+    if report.errors.is_empty() {
+        ExitCode::SUCCESS
+    } else {
+        eprintln!(
+            "persist: {} exposure(s) processed, {} error(s)",
+            report.exposures.len(),
+            report.errors.len()
+        );
+        ExitCode::from(1)
+    }
+}
+
+fn demo(out: &Path) -> persist::Result<ExitCode> {
+    let fixtures = Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures");
+    if out.exists() {
+        std::fs::remove_dir_all(out).map_err(|e| Error::io(out, e))?;
+    }
+    let args = RunArgs {
+        input: fixtures,
+        output: out.join("output"),
+        checkpoints: out.join("checkpoints"),
+        model: None,
+        from_checkpoint: None,
+        allow_model_change: false,
+        checkpoint_every: 1,
+        keep_latest: 20,
+        no_hourly_checkpoints: false,
+        quiet: false,
+    };
+    if !args.input.is_dir() {
+        return Err(Error::new(ErrorKind::Usage, "fixtures directory not found").path(&args.input));
+    }
+    println!(
+        "persist demo: default model on {} -> {}",
+        args.input.display(),
+        out.display()
+    );
+    run_stage(&args)
 }

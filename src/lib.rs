@@ -19,11 +19,15 @@
 //!
 //! Units: seconds, electrons, electrons per second; names carry them (`t_exposure_s`).
 
+pub mod checkpoint;
 pub mod error;
 pub mod flags;
+pub mod h5io;
 pub mod model;
+pub mod model_file;
 pub mod product;
 pub mod sim;
+pub mod stage;
 pub mod units;
 
 pub use error::{Error, ErrorKind, Result};

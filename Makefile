@@ -1,0 +1,22 @@
+# The two commands of the README: `make demo` (main job on a built-in default) and
+# `make test` (the test suite). Both install what a fresh Debian 12 machine lacks.
+.PHONY: demo test bootstrap lint bench fixtures
+
+bootstrap:
+	@bash scripts/bootstrap.sh
+
+demo: bootstrap
+	cargo run --release --quiet -- demo
+
+test: bootstrap
+	cargo test
+
+lint: bootstrap
+	cargo fmt --check
+	cargo clippy --all-targets -- -D warnings
+
+bench: bootstrap
+	cargo bench
+
+fixtures: bootstrap
+	cargo run --example make_fixtures -- fixtures

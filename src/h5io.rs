@@ -1,0 +1,197 @@
+//! Low-level HDF5 helpers shared by products ([`crate::product`]) and checkpoints
+//! ([`crate::checkpoint`]): deterministic file creation, scalar attributes, dataset
+//! layouts, and the atomic publication of a file.
+//!
+//! Invariants:
+//! - **Byte determinism.** Files are created with object modification times turned off
+//!   (`obj_track_times = false` on the file creation list, which covers the root group,
+//!   and on every group and dataset created here), so the same content written the same
+//!   way gives the same bytes.
+//! - **Atomic publication.** [`publish`] writes under `.NAME.part` in the destination
+//!   directory (a name watchers ignore), closes, re-opens and validates the temporary
+//!   file, `fsync`s it, renames it into place and `fsync`s the directory. On any failure
+//!   the temporary file is removed: a file under its final name is always complete and
+//!   valid.
+//! - Errors name the file (the final name, not the temporary one).
+
+use crate::error::{Error, ErrorKind, Result};
+use hdf5::types::VarLenUnicode;
+use ndarray::{ArrayView, Dimension};
+use std::path::{Path, PathBuf};
+
+/// Largest accepted size of any axis of any dataset (an H2RG is 2048 x 2048).
+pub const MAX_AXIS: usize = 8192;
+
+/// Deflate level of the compressed flag planes (mostly zeros: level 1 already gives
+/// most of the gain at a fraction of the time).
+pub const FLAG_DEFLATE_LEVEL: u8 = 1;
+
+/// Target size of one chunk of a compressed plane, bytes.
+const CHUNK_BYTES: usize = 256 * 1024;
+
+/// The temporary name `path` is written under: `.NAME.part` in the same directory.
+pub fn temp_path(path: &Path) -> PathBuf {
+    let name = path
+        .file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_default();
+    path.with_file_name(format!(".{name}.part"))
+}
+
+/// Is this file name a temporary one (`.*` or `*.part`)?
+pub fn is_temp_name(name: &str) -> bool {
+    name.starts_with('.') || name.ends_with(".part")
+}
+
+/// Open an HDF5 file for reading; errors name the file (a file still being written
+/// by another process gives [`ErrorKind::NotReady`]).
+pub fn open(path: &Path) -> Result<hdf5::File> {
+    if let Err(e) = std::fs::metadata(path) {
+        return Err(Error::io(path, e));
+    }
+    hdf5::File::open(path).map_err(|e| Error::from(e).path(path))
+}
+
+/// Create (truncate) an HDF5 file with object times off. (No path in the error: the
+/// caller names the file, usually the final name of a temporary file.)
+pub fn create(path: &Path) -> hdf5::Result<hdf5::File> {
+    hdf5::File::with_options()
+        .with_fcpl(|p| p.obj_track_times(false))
+        .create(path)
+}
+
+/// Open `tmp` for validation; errors name `name`.
+pub fn open_as(tmp: &Path, name: &Path) -> Result<hdf5::File> {
+    hdf5::File::open(tmp).map_err(|e| Error::from(e).path(name))
+}
+
+/// Create a group with object times off.
+pub fn create_group(parent: &hdf5::Group, name: &str) -> hdf5::Result<hdf5::Group> {
+    parent
+        .create_group_builder()
+        .obj_track_times(false)
+        .create(name)
+}
+
+/// Write a contiguous, uncompressed dataset (images, currents, state).
+pub fn write_plain<T, D>(
+    parent: &hdf5::Group,
+    name: &str,
+    data: ArrayView<'_, T, D>,
+) -> hdf5::Result<()>
+where
+    T: hdf5::H5Type + Clone,
+    D: Dimension,
+{
+    let data = data.as_standard_layout();
+    parent
+        .new_dataset_builder()
+        .obj_track_times(false)
+        .with_data(&data)
+        .create(name)?;
+    Ok(())
+}
+
+/// Write a flag plane `[ny, nx]`, chunked by rows, shuffled then deflated.
+pub fn write_flags<T>(
+    parent: &hdf5::Group,
+    name: &str,
+    data: ArrayView<'_, T, ndarray::Ix2>,
+) -> hdf5::Result<()>
+where
+    T: hdf5::H5Type + Clone,
+{
+    let (ny, nx) = data.dim();
+    let rows = (CHUNK_BYTES / (nx.max(1) * std::mem::size_of::<T>()).max(1)).clamp(1, ny.max(1));
+    let data = data.as_standard_layout();
+    parent
+        .new_dataset_builder()
+        .obj_track_times(false)
+        .chunk((rows, nx.max(1)))
+        .shuffle()
+        .deflate(FLAG_DEFLATE_LEVEL)
+        .with_data(&data)
+        .create(name)?;
+    Ok(())
+}
+
+pub fn attr_str(loc: &hdf5::Location, name: &str, value: &str) -> Result<()> {
+    let v: VarLenUnicode = value
+        .parse()
+        .map_err(|e| Error::invalid(name, format!("cannot be stored as an HDF5 string: {e}")))?;
+    loc.new_attr::<VarLenUnicode>()
+        .create(name)
+        .and_then(|a| a.write_scalar(&v))
+        .map_err(|e| Error::from(e).field(name))
+}
+
+pub fn attr_f64(loc: &hdf5::Location, name: &str, value: f64) -> Result<()> {
+    loc.new_attr::<f64>()
+        .create(name)
+        .and_then(|a| a.write_scalar(&value))
+        .map_err(|e| Error::from(e).field(name))
+}
+
+pub fn attr_i64(loc: &hdf5::Location, name: &str, value: i64) -> Result<()> {
+    loc.new_attr::<i64>()
+        .create(name)
+        .and_then(|a| a.write_scalar(&value))
+        .map_err(|e| Error::from(e).field(name))
+}
+
+/// Check that a 2-D plane about to be written has sane dimensions.
+pub fn check_plane(field: &str, dim: (usize, usize)) -> Result<()> {
+    check_axes(field, &[dim.0, dim.1])
+}
+
+/// Every axis in 1..=[`MAX_AXIS`].
+pub fn check_axes(field: &str, shape: &[usize]) -> Result<()> {
+    if let Some((k, n)) = shape
+        .iter()
+        .enumerate()
+        .find(|(_, &n)| n == 0 || n > MAX_AXIS)
+    {
+        return Err(Error::invalid(
+            field,
+            format!(
+                "absurd dimensions {shape:?}: axis {k} is {n}, every axis must be 1..={MAX_AXIS}"
+            ),
+        ));
+    }
+    Ok(())
+}
+
+/// Write `path` atomically (module docs): `write` fills the temporary file it is given,
+/// `validate` checks the closed temporary file (errors should name `path`).
+pub fn publish(
+    path: &Path,
+    write: impl FnOnce(&Path) -> Result<()>,
+    validate: impl FnOnce(&Path) -> Result<()>,
+) -> Result<()> {
+    let tmp = temp_path(path);
+    let result = (|| {
+        write(&tmp).map_err(|e| e.path(path))?;
+        validate(&tmp).map_err(|e| e.path(path))?;
+        let f = std::fs::File::open(&tmp).map_err(|e| Error::io(path, e))?;
+        f.sync_all().map_err(|e| Error::io(path, e))?;
+        drop(f);
+        std::fs::rename(&tmp, path).map_err(|e| Error::io(path, e))?;
+        sync_dir(path)
+    })();
+    if result.is_err() {
+        // Best effort: the temporary file may not exist (failed before creation).
+        let _ = std::fs::remove_file(&tmp);
+    }
+    result
+}
+
+/// `fsync` the directory holding `path`, so that a rename into it is durable.
+pub fn sync_dir(path: &Path) -> Result<()> {
+    let dir = match path.parent() {
+        Some(d) if !d.as_os_str().is_empty() => d,
+        _ => Path::new("."),
+    };
+    std::fs::File::open(dir)
+        .and_then(|d| d.sync_all())
+        .map_err(|e| Error::new(ErrorKind::Io, format!("fsync of directory: {e}")).path(dir))
+}

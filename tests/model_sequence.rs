@@ -1,0 +1,356 @@
+//! The model step against hand-worked arithmetic, and the fused step against the
+//! plain reference implementation.
+
+use ndarray::{array, Array2};
+use persist::flags::{bits, pbits};
+use persist::model::{
+    reference, EarlyRelease, Input, Knot, Model, ModelParams, Output, State, StepSummary, Term,
+    Thresholds,
+};
+use proptest::prelude::*;
+
+/// A two-term model small enough to follow by hand:
+/// `C = [0.1, 0.01] /s`, rates `[0.1, 0.001] /s` (tau 10 s and 1000 s);
+/// knots (1e5 e-, 100 e-), (2e5 e-, 1000 e-): `A_k = F/1000` below 1e5 e-,
+/// `100 + 9 (F - 1e5)/1000` up to 2e5 e-, 1000 beyond (the maximum);
+/// thresholds 0.1 / 0.01 e-/s; early release below 0.5 e-/s three times running.
+fn hand_model() -> Model {
+    Model::new(ModelParams {
+        name: "hand".into(),
+        terms: vec![
+            Term {
+                c_per_s: 0.1,
+                rate_per_s: 0.1,
+            },
+            Term {
+                c_per_s: 0.01,
+                rate_per_s: 0.001,
+            },
+        ],
+        amplitude_knots: vec![
+            Knot {
+                fluence_e: 1e5,
+                amplitude_e: 100.0,
+            },
+            Knot {
+                fluence_e: 2e5,
+                amplitude_e: 1000.0,
+            },
+        ],
+        thresholds: Thresholds {
+            high_e_per_s: 0.1,
+            low_e_per_s: 0.01,
+        },
+        early_release: EarlyRelease {
+            enabled: true,
+            threshold_e_per_s: 0.5,
+            consecutive: 3,
+        },
+        ..ModelParams::default()
+    })
+    .unwrap()
+}
+
+struct Run {
+    model: Model,
+    state: State,
+    current: Array2<f32>,
+    pflags: Array2<u8>,
+}
+
+impl Run {
+    fn new(model: Model, ny: usize, nx: usize) -> Self {
+        let state = model.new_state(ny, nx);
+        Run {
+            model,
+            state,
+            current: Array2::zeros((ny, nx)),
+            pflags: Array2::zeros((ny, nx)),
+        }
+    }
+
+    fn step(
+        &mut self,
+        index: u64,
+        t_start: f64,
+        image: Array2<f32>,
+        mut flags: Array2<u32>,
+    ) -> (StepSummary, Array2<u32>) {
+        let input = Input {
+            image_e_per_s: image.view(),
+            exposure_index: index,
+            t_start_unix_s: t_start,
+            t_exposure_s: 100.0,
+            t_illuminated_s: 100.0,
+            history_incomplete: false,
+        };
+        let mut out = Output {
+            flags: &mut flags,
+            current_e_per_s: &mut self.current,
+            pflags: &mut self.pflags,
+        };
+        let s = self.model.step(&mut self.state, &input, &mut out).unwrap();
+        (s, flags)
+    }
+
+    fn amps(&self, x: usize) -> [f64; 2] {
+        [
+            self.state.amplitudes_e[(0, x, 0)],
+            self.state.amplitudes_e[(0, x, 1)],
+        ]
+    }
+}
+
+fn close(got: f64, want: f64) {
+    let tol = 1e-6 * want.abs().max(1e-12);
+    assert!((got - want).abs() <= tol, "got {got}, want {want}");
+}
+
+/// Pixel P (x = 0) is lit three times, then dark, and is released early; pixel Q
+/// (x = 1) has a transient, is flagged at the maximum amplitude, then released.
+/// Exposures are 100 s; starts 0, 120, 250, 1350 (a 1000 s slew), 1460, 1570.
+#[test]
+fn hand_worked_sequence() {
+    let mut r = Run::new(hand_model(), 1, 2);
+    let none = || array![[0u32, 0]];
+
+    // E0 (first exposure, no previous state): prediction 0 everywhere.
+    // P: 1000 e-/s x 100 s = 1e5 e- -> A_k = 100 -> A = [100, 100].  Q: dark -> A = 0.
+    let (s, _) = r.step(0, 0.0, array![[1000.0, 0.0]], none());
+    assert_eq!(s.t_meas_s, None);
+    assert_eq!(r.current, array![[0.0f32, 0.0]]);
+    assert_eq!(r.amps(0), [100.0, 100.0]);
+    assert_eq!(r.amps(1), [0.0, 0.0]);
+
+    // E1: reset(E0) = 100 s; slew = 120 - 100 = 20 s; t_meas = 20 + 50 = 70 s;
+    // t_elapsed = 220 - 100 = 120 s.
+    // P: pred = 100*0.1*e^-7 + 100*0.01*e^-0.07 = 0.0091188 + 0.9323938 = 0.9415126 -> HIGH.
+    //    decay: A = [100 e^-12 + 100, 100 e^-0.12 + 100] = [100.000614421, 188.692043672].
+    // Q: TRANSIENT -> A_k = max knot = 1000 -> A = [1000, 1000], pending.
+    let (s, flags) = r.step(
+        1,
+        120.0,
+        array![[1000.0, 0.0]],
+        array![[0, bits::TRANSIENT]],
+    );
+    assert_eq!(s.t_meas_s, Some(70.0));
+    close(r.current[(0, 0)] as f64, 0.9415126395614934);
+    assert_eq!(r.pflags[(0, 0)], pbits::HIGH | pbits::LOW);
+    assert_eq!(flags[(0, 0)], bits::PERSIST);
+    assert_eq!(
+        flags[(0, 1)],
+        bits::TRANSIENT,
+        "Q not yet flagged: its prediction is 0"
+    );
+    close(r.amps(0)[0], 100.00061442123533);
+    close(r.amps(0)[1], 188.69204367171574);
+    assert_eq!(r.amps(1), [1000.0, 1000.0]);
+
+    // E2: reset(E1) = 220 s; slew 30 s; t_meas = 80 s; t_elapsed = 130 s.
+    // P: pred = 100.000614*0.1*e^-8 + 188.692044*0.01*e^-0.08 = 0.0033546 + 1.7418471 = 1.7452017.
+    //    Third bright exposure: A = [100.000614 e^-13 + 100, 188.692044 e^-0.13 + 100]
+    //                             = [100.000226034, 265.689621399].
+    // Q: pred = 1000*0.1*e^-8 + 1000*0.01*e^-0.08 = 0.0335463 + 9.2311635 = 9.2647097;
+    //    flagged with MAX_AMPLITUDE; measured 0.2 < 0.5 -> count 1;
+    //    fluence 0.2*100 = 20 e- -> A_k = 0.02; A = [1000 e^-13 + 0.02, 1000 e^-0.13 + 0.02].
+    let (s, flags) = r.step(2, 250.0, array![[1000.0, 0.2]], none());
+    assert_eq!(s.t_meas_s, Some(80.0));
+    close(r.current[(0, 0)] as f64, 1.745201746355179);
+    close(r.current[(0, 1)] as f64, 9.264709726656609);
+    assert_eq!(
+        r.pflags[(0, 1)],
+        pbits::HIGH | pbits::LOW | pbits::MAX_AMPLITUDE
+    );
+    assert_eq!(flags[(0, 1)], bits::PERSIST);
+    assert_eq!(r.state.release_count[(0, 1)], 1);
+    close(r.amps(0)[0], 100.00022603432949);
+    close(r.amps(0)[1], 265.6896213991966);
+    close(r.amps(1)[0], 0.022260329406981055);
+    close(r.amps(1)[1], 878.1154309205613);
+
+    // E3: a long slew. reset(E2) = 350 s; start 1350 -> slew 1000 s; t_meas = 1050 s;
+    // t_elapsed = 1100 s. P now dark (0.1 e-/s -> 10 e- -> A_k = 0.01).
+    // P: pred = 100.000226*0.1*e^-105 + 265.689621*0.01*e^-1.05 = 0 + 0.9297483; count 1.
+    //    A = [~0 + 0.01, 265.689621 e^-1.1 + 0.01] = [0.01, 88.450392202].
+    // Q: pred = 0.0222603*0.1*e^-105 + 878.115431*0.01*e^-1.05 = 3.0728574; count 2.
+    let (s, _) = r.step(3, 1350.0, array![[0.1, 0.2]], none());
+    assert_eq!(s.t_meas_s, Some(1050.0));
+    close(r.current[(0, 0)] as f64, 0.9297482807462991);
+    close(r.current[(0, 1)] as f64, 3.0728573735611344);
+    assert_eq!(
+        r.pflags[(0, 1)],
+        pbits::HIGH | pbits::LOW,
+        "MAX_AMPLITUDE only once"
+    );
+    assert_eq!(r.state.release_count[(0, 0)], 1);
+    assert_eq!(r.state.release_count[(0, 1)], 2);
+    close(r.amps(0)[1], 88.45039220248304);
+
+    // E4: slew 10 s; t_meas = 60 s; t_elapsed = 110 s.
+    // P: pred = 0.01*0.1*e^-6 + 88.450392*0.01*e^-0.06 = 0.8329969; count 2.
+    // Q: pred = 0.02*0.1*e^-6 + 292.319235*0.01*e^-0.06 = 2.7529638 but third low
+    //    measurement -> RELEASED: not flagged, amplitudes zeroed, then A_k = 0.02 added.
+    let (s, flags) = r.step(4, 1460.0, array![[0.1, 0.2]], none());
+    close(r.current[(0, 0)] as f64, 0.8329969023313297);
+    close(r.current[(0, 1)] as f64, 2.7529638385447694);
+    assert_eq!(r.pflags[(0, 1)], pbits::RELEASED);
+    assert_eq!(flags[(0, 1)], 0);
+    // (0.2 is an f32 in the image: 0.2000000030 e-/s.)
+    close(r.amps(1)[0], 0.02);
+    close(r.amps(1)[1], 0.02);
+    assert_eq!(s.released, 1);
+
+    // E5: P's third low measurement: pred 0.7463215 -> RELEASED, A = [0.01, 0.01].
+    // Q: pred = 0.02*0.1*e^-6 + 0.02*0.01*e^-0.06 = 0.0001933 -> not flagged.
+    let (s, flags) = r.step(5, 1570.0, array![[0.1, 0.2]], none());
+    close(r.current[(0, 0)] as f64, 0.7463214944007951);
+    close(r.current[(0, 1)] as f64, 0.00019331041107018245);
+    assert_eq!(r.pflags, array![[pbits::RELEASED, 0]]);
+    assert_eq!(flags, array![[0, 0]]);
+    close(r.amps(0)[0], 0.01);
+    close(r.amps(0)[1], 0.01);
+    assert_eq!((s.released, s.above_high, s.above_low), (1, 0, 0));
+}
+
+#[test]
+fn out_of_order_and_early_start_are_refused_without_change() {
+    let mut r = Run::new(hand_model(), 1, 2);
+    r.step(0, 0.0, array![[1000.0, 0.0]], array![[0, 0]]);
+    let before = r.state.clone();
+    let image = array![[1.0f32, 1.0]];
+    let mut flags = array![[0u32, 0]];
+    for (index, start, field) in [(0, 200.0, "exposure_index"), (1, 99.0, "t_start_utc")] {
+        let input = Input {
+            image_e_per_s: image.view(),
+            exposure_index: index,
+            t_start_unix_s: start,
+            t_exposure_s: 100.0,
+            t_illuminated_s: 100.0,
+            history_incomplete: false,
+        };
+        let mut out = Output {
+            flags: &mut flags,
+            current_e_per_s: &mut r.current,
+            pflags: &mut r.pflags,
+        };
+        let e = r.model.step(&mut r.state, &input, &mut out).unwrap_err();
+        assert_eq!(e.context.field.as_deref(), Some(field), "{e}");
+        assert_eq!(r.state, before);
+    }
+}
+
+#[test]
+fn nan_inf_and_negative_never_enter_the_state() {
+    let model = Model::new(ModelParams::default()).unwrap();
+    let mut r = Run::new(model, 1, 5);
+    let image = array![[f32::NAN, f32::INFINITY, f32::NEG_INFINITY, -50.0, f32::NAN]];
+    let flags = array![[0, 0, 0, 0, bits::NONFUNC]];
+    r.step(0, 0.0, image, flags);
+    let a = |x: usize| r.state.amplitudes_e[(0, x, 0)];
+    // NaN / +Inf / -Inf: unknown fluence -> maximum amplitude (878 e-); negative -> 0;
+    // NONFUNC -> 0 even with NaN.
+    assert_eq!(
+        [a(0), a(1), a(2), a(3), a(4)],
+        [878.0, 878.0, 878.0, 0.0, 0.0]
+    );
+    assert!(r.state.check().is_ok());
+    // The next exposure flags the unknown-fluence pixels with MAX_AMPLITUDE.
+    r.step(
+        1,
+        130.0,
+        array![[1.0, 1.0, 1.0, 1.0, 1.0]],
+        array![[0, 0, 0, 0, 0]],
+    );
+    assert_eq!(
+        r.pflags.mapv(|p| p & pbits::MAX_AMPLITUDE != 0),
+        array![[true, true, true, false, false]]
+    );
+}
+
+/// One random exposure for the property test.
+#[derive(Debug, Clone)]
+struct Exp {
+    slew_s: f64,
+    t_exposure_s: f64,
+    image: Vec<f32>,
+    flags: Vec<u32>,
+    gap: bool,
+}
+
+fn exp_strategy(npix: usize) -> impl Strategy<Value = Exp> {
+    let value = prop_oneof![
+        8 => 0.0f32..50.0,
+        3 => 50.0f32..20_000.0,
+        1 => Just(f32::NAN),
+        1 => Just(f32::INFINITY),
+        1 => -5.0f32..0.0,
+    ];
+    let flag = prop_oneof![
+        10 => Just(0u32),
+        1 => Just(bits::TRANSIENT),
+        1 => Just(bits::SUR_ERROR),
+        1 => Just(bits::NONFUNC),
+        1 => Just(bits::OVERFLOW | bits::PERSIST),
+    ];
+    (
+        0.0f64..5000.0,
+        1.0f64..700.0,
+        prop::collection::vec(value, npix),
+        prop::collection::vec(flag, npix),
+        prop::bool::weighted(0.1),
+    )
+        .prop_map(|(slew_s, t_exposure_s, image, flags, gap)| Exp {
+            slew_s,
+            t_exposure_s,
+            image,
+            flags,
+            gap,
+        })
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig::with_cases(64))]
+
+    /// Random action sequences: the fused step and the reference agree bit for bit on
+    /// every output and on the state, and the state stays finite and >= 0.
+    #[test]
+    fn fused_step_matches_reference(seq in prop::collection::vec(exp_strategy(12), 1..25)) {
+        let mut params = ModelParams::default();
+        params.early_release.threshold_e_per_s = 5.0; // let releases happen often
+        let model = Model::new(params).unwrap();
+        let (ny, nx) = (3, 4);
+        let mut a = model.new_state(ny, nx);
+        let mut b = model.new_state(ny, nx);
+        let mut t = 1.0e9;
+        for (k, e) in seq.iter().enumerate() {
+            t += e.slew_s;
+            let image = Array2::from_shape_vec((ny, nx), e.image.clone()).unwrap();
+            let flags0 = Array2::from_shape_vec((ny, nx), e.flags.clone()).unwrap();
+            let input = Input {
+                image_e_per_s: image.view(),
+                exposure_index: k as u64 * 2,
+                t_start_unix_s: t,
+                t_exposure_s: e.t_exposure_s,
+                t_illuminated_s: e.t_exposure_s,
+                history_incomplete: e.gap,
+            };
+            let (mut fa, mut ca, mut pa) = (flags0.clone(), Array2::zeros((ny, nx)), Array2::zeros((ny, nx)));
+            let (mut fb, mut cb, mut pb) = (flags0.clone(), Array2::zeros((ny, nx)), Array2::zeros((ny, nx)));
+            let sa = model.step(&mut a, &input, &mut Output { flags: &mut fa, current_e_per_s: &mut ca, pflags: &mut pa }).unwrap();
+            let sb = reference::step(&model, &mut b, &input, &mut Output { flags: &mut fb, current_e_per_s: &mut cb, pflags: &mut pb }).unwrap();
+            prop_assert_eq!(sa, sb);
+            prop_assert_eq!(ca.mapv(f32::to_bits), cb.mapv(f32::to_bits));
+            prop_assert_eq!(&pa, &pb);
+            prop_assert_eq!(&fa, &fb);
+            prop_assert_eq!(a.amplitudes_e.mapv(f64::to_bits), b.amplitudes_e.mapv(f64::to_bits));
+            prop_assert_eq!(&a.release_count, &b.release_count);
+            prop_assert_eq!(&a.pending, &b.pending);
+            prop_assert!(a.check().is_ok());
+            // PERSIST exactly where HIGH.
+            for (f, p) in fa.iter().zip(pa.iter()) {
+                prop_assert_eq!(f & bits::PERSIST != 0, p & pbits::HIGH != 0);
+            }
+            t += e.t_exposure_s;
+        }
+    }
+}
