@@ -18,7 +18,9 @@ pub const N: usize = 64;
 pub const EXPOSURES: u64 = 12;
 const T_EXPOSURE_S: f64 = 112.0;
 /// Slews between exposures, seconds: mostly 30 s, one long one (exposure 6).
-const SLEWS_S: [f64; 12] = [0.0, 30.0, 28.0, 35.0, 30.0, 32.0, 900.0, 30.0, 31.0, 29.0, 30.0, 33.0];
+const SLEWS_S: [f64; 12] = [
+    0.0, 30.0, 28.0, 35.0, 30.0, 32.0, 900.0, 30.0, 31.0, 29.0, 30.0, 33.0,
+];
 
 fn exposure(det: u8, k: u64, t_start: f64) -> Exposure {
     let mut rng = ChaCha8Rng::seed_from_u64(1000 * u64::from(det) + k);
@@ -84,7 +86,9 @@ fn exposure(det: u8, k: u64, t_start: f64) -> Exposure {
 /// Write all fixtures into `dir`; returns the paths written.
 pub fn write_all(dir: &Path) -> persist::Result<Vec<PathBuf>> {
     std::fs::create_dir_all(dir).map_err(|e| persist::Error::io(dir, e))?;
-    let t0 = UtcSeconds::parse("2026-03-01T00:00:00Z").expect("valid time").0;
+    let t0 = UtcSeconds::parse("2026-03-01T00:00:00Z")
+        .expect("valid time")
+        .0;
     let mut paths = Vec::new();
     for det in [1u8, 2] {
         let mut t = t0 + f64::from(det) * 7.5;

@@ -21,7 +21,10 @@ fn config(input: &Path, root: &Path, from: Option<(DetectorId, u64)>) -> RunConf
         from_checkpoint: from,
         allow_model_change: false,
         checkpoint_every: 1,
-        retention: Retention { keep_latest: 1000, keep_one_per_hour: true },
+        retention: Retention {
+            keep_latest: 1000,
+            keep_one_per_hour: true,
+        },
         processed_utc: "2026-03-02T00:00:00.000000Z".into(),
     }
 }
@@ -50,7 +53,11 @@ fn output(root: &Path, det: u8, k: u64) -> PathBuf {
 /// `/persistence/current` (as bits) and `/persistence/flags` of an output.
 fn persistence(path: &Path) -> (Vec<u32>, Vec<u8>) {
     let f = hdf5::File::open(path).unwrap();
-    let c: Vec<f32> = f.dataset("persistence/current").unwrap().read_raw().unwrap();
+    let c: Vec<f32> = f
+        .dataset("persistence/current")
+        .unwrap()
+        .read_raw()
+        .unwrap();
     let p: Vec<u8> = f.dataset("persistence/flags").unwrap().read_raw().unwrap();
     (c.into_iter().map(f32::to_bits).collect(), p)
 }
@@ -77,7 +84,10 @@ fn resuming_from_each_checkpoint_gives_identical_bytes() {
 
     for det in [1u8, 2] {
         let ck = checkpoint::list(&a.join("ckpt"), DetectorId(det)).unwrap();
-        assert_eq!(ck.iter().map(|c| c.0).collect::<Vec<_>>(), (0..12).collect::<Vec<u64>>());
+        assert_eq!(
+            ck.iter().map(|c| c.0).collect::<Vec<_>>(),
+            (0..12).collect::<Vec<u64>>()
+        );
         for i in 0..11u64 {
             let b = tmp.path().join(format!("b{det}_{i}"));
             copy_dir(&a.join("ckpt"), &b.join("ckpt"));
@@ -86,7 +96,11 @@ fn resuming_from_each_checkpoint_gives_identical_bytes() {
             assert_eq!(report.exposures.len() as u64, 11 - i, "det {det} from {i}");
             for k in (i + 1)..12 {
                 let (pa, pb) = (output(&a, det, k), output(&b, det, k));
-                assert_eq!(persistence(&pa), persistence(&pb), "det {det} from {i}: exposure {k}");
+                assert_eq!(
+                    persistence(&pa),
+                    persistence(&pb),
+                    "det {det} from {i}: exposure {k}"
+                );
                 assert_eq!(std::fs::read(&pa).unwrap(), std::fs::read(&pb).unwrap());
             }
             std::fs::remove_dir_all(&b).unwrap();
@@ -117,7 +131,10 @@ fn a_later_run_resumes_where_the_first_stopped() {
     }
     for det in [1u8, 2] {
         for k in 0..12 {
-            assert_eq!(std::fs::read(output(&a, det, k)).unwrap(), std::fs::read(output(&b, det, k)).unwrap());
+            assert_eq!(
+                std::fs::read(output(&a, det, k)).unwrap(),
+                std::fs::read(output(&b, det, k)).unwrap()
+            );
         }
     }
     // A third run has nothing to do.
@@ -149,16 +166,24 @@ fn malformed_inputs_are_refused_by_field_and_the_rest_is_processed() {
 
     let name = |k: u64| format!("l1_det2_exp{k:04}.h5");
     // exp 2: a missing attribute.
-    tamper(&input.join(name(2)), |f| f.delete_attr("t_exposure_s").unwrap());
+    tamper(&input.join(name(2)), |f| {
+        f.delete_attr("t_exposure_s").unwrap()
+    });
     // exp 4: a wrong dtype (float64 image).
     tamper(&input.join(name(4)), |f| {
         f.unlink("image").unwrap();
-        f.new_dataset::<f64>().shape((64, 64)).create("image").unwrap();
+        f.new_dataset::<f64>()
+            .shape((64, 64))
+            .create("image")
+            .unwrap();
     });
     // exp 6: image and flags of different shapes.
     tamper(&input.join(name(6)), |f| {
         f.unlink("flags").unwrap();
-        f.new_dataset::<u32>().shape((32, 64)).create("flags").unwrap();
+        f.new_dataset::<u32>()
+            .shape((32, 64))
+            .create("flags")
+            .unwrap();
     });
     // exp 9: starts before the reset that ended exp 8 (exp 8 started 30 s after exp 7
     // ended and lasted 112 s; this start is 60 s before exp 8's reset).
@@ -199,13 +224,20 @@ fn malformed_inputs_are_refused_by_field_and_the_rest_is_processed() {
     ] {
         let errs = errors_about(&report, &file);
         assert_eq!(errs.len(), 1, "{file}: {errs:?} in {:?}", report.errors);
-        assert!(errs[0].contains(field), "{file}: `{}` does not name {field}", errs[0]);
+        assert!(
+            errs[0].contains(field),
+            "{file}: `{}` does not name {field}",
+            errs[0]
+        );
     }
     assert_eq!(report.errors.len(), 5, "{:?}", report.errors);
 
     // Detector 1: all 12 outputs, byte-identical to the clean run.
     for k in 0..12 {
-        assert_eq!(std::fs::read(output(&clean, 1, k)).unwrap(), std::fs::read(output(&bad, 1, k)).unwrap());
+        assert_eq!(
+            std::fs::read(output(&clean, 1, k)).unwrap(),
+            std::fs::read(output(&bad, 1, k)).unwrap()
+        );
     }
     // Detector 2: the 8 good exposures are published; those after a rejected one are
     // marked history incomplete.
@@ -213,7 +245,10 @@ fn malformed_inputs_are_refused_by_field_and_the_rest_is_processed() {
     assert_eq!(published, vec![0, 1, 3, 5, 7, 8, 10, 11]);
     for k in [3u64, 5, 7, 8, 10, 11] {
         let (_, p) = persistence(&output(&bad, 2, k));
-        assert!(p.iter().all(|b| b & pbits::HISTORY_INCOMPLETE != 0), "exposure {k}");
+        assert!(
+            p.iter().all(|b| b & pbits::HISTORY_INCOMPLETE != 0),
+            "exposure {k}"
+        );
     }
     let (_, p1) = persistence(&output(&bad, 2, 1));
     assert!(p1.iter().all(|b| b & pbits::HISTORY_INCOMPLETE == 0));

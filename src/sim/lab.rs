@@ -127,12 +127,12 @@ fn temp_at(base: f64, t: f64) -> f64 {
     base + 0.005 * (2.0 * std::f64::consts::PI * t / 7200.0).sin()
 }
 
-/// Run the laboratory scenario, handing each exposure to `sink` as it is made.
-/// Returns the scenario description for `truth.json`.
-pub fn run(
-    cfg: &LabConfig,
-    mut sink: impl FnMut(SimExposure) -> crate::Result<()>,
-) -> crate::Result<serde_json::Value> {
+/// Check the configuration (and the effects) before anything is written.
+pub fn validate(cfg: &LabConfig) -> crate::Result<()> {
+    steps(cfg).map(|_| ())
+}
+
+fn steps(cfg: &LabConfig) -> crate::Result<Vec<Illumination>> {
     if cfg.size < 4 || cfg.size > 8192 {
         return Err(crate::Error::invalid(
             "--size",
@@ -162,6 +162,17 @@ pub fn run(
             ));
         }
     }
+    EffectSet::from_specs(&cfg.effects)?;
+    Ok(steps)
+}
+
+/// Run the laboratory scenario, handing each exposure to `sink` as it is made.
+/// Returns the scenario description for `truth.json`.
+pub fn run(
+    cfg: &LabConfig,
+    mut sink: impl FnMut(SimExposure) -> crate::Result<()>,
+) -> crate::Result<serde_json::Value> {
+    let steps = steps(cfg)?;
     let effects = Arc::new(EffectSet::from_specs(&cfg.effects)?);
     let n = cfg.size;
     let mut sim = SimDetector::new(

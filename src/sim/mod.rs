@@ -19,6 +19,7 @@ pub mod effect;
 pub mod effects;
 pub mod engine;
 pub mod lab;
+pub mod output;
 pub mod rng;
 pub mod sky;
 pub mod traps;

@@ -156,7 +156,8 @@ pub fn plan(cfg: &SkyConfig) -> Vec<Pointing> {
         .collect()
 }
 
-fn validate(cfg: &SkyConfig) -> crate::Result<()> {
+/// Check the configuration (and the effects) before anything is written.
+pub fn validate(cfg: &SkyConfig) -> crate::Result<()> {
     let bad = |f: &str, m: String| Err(crate::Error::invalid(f, m));
     if cfg.size < 4 || cfg.size > 8192 {
         return bad("--size", format!("must be 4..=8192, got {}", cfg.size));
@@ -179,6 +180,7 @@ fn validate(cfg: &SkyConfig) -> crate::Result<()> {
     if !(cfg.m_faint > cfg.m_bright) {
         return bad("m_faint", "must exceed m_bright".into());
     }
+    EffectSet::from_specs(&cfg.effects)?;
     Ok(())
 }
 

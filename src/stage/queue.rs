@@ -62,10 +62,7 @@ fn file_digest(path: &Path) -> Result<[u8; 32]> {
 }
 
 /// Read every candidate's root attributes with `read_meta` and order the histories.
-pub fn plan(
-    files: &[PathBuf],
-    read_meta: impl Fn(&Path) -> Result<ExposureMeta>,
-) -> Plan {
+pub fn plan(files: &[PathBuf], read_meta: impl Fn(&Path) -> Result<ExposureMeta>) -> Plan {
     let mut plan = Plan::default();
     let mut by_key: HashMap<(DetectorId, u64), PathBuf> = HashMap::new();
     let mut by_name: HashMap<std::ffi::OsString, PathBuf> = HashMap::new();
@@ -114,10 +111,13 @@ pub fn plan(
         }
         by_name.insert(name, path.clone());
         by_key.insert(key, path.clone());
-        plan.detectors.entry(meta.detector).or_default().push(Entry {
-            path: path.clone(),
-            meta,
-        });
+        plan.detectors
+            .entry(meta.detector)
+            .or_default()
+            .push(Entry {
+                path: path.clone(),
+                meta,
+            });
     }
     for entries in plan.detectors.values_mut() {
         entries.sort_by_key(|e| e.meta.exposure_index);

@@ -152,15 +152,15 @@ impl<'a> Detector<'a> {
     fn start(&self) -> Result<Option<(State, Bookkeeping)>> {
         let cfg = self.cfg;
         let path = match cfg.from_checkpoint {
-            Some((d, index)) if d == self.det => Some(
-                checkpoint::find(&cfg.checkpoints, d, index).ok_or_else(|| {
+            Some((d, index)) if d == self.det => {
+                Some(checkpoint::find(&cfg.checkpoints, d, index).ok_or_else(|| {
                     Error::new(
                         ErrorKind::Checkpoint,
                         format!("no checkpoint for detector {d} at exposure {index}"),
                     )
                     .path(&cfg.checkpoints)
-                })?,
-            ),
+                })?)
+            }
             _ => checkpoint::list(&cfg.checkpoints, self.det)?
                 .pop()
                 .map(|(_, p)| p),
@@ -234,7 +234,14 @@ impl<'a> Detector<'a> {
             if last.is_some_and(|l| index != l + 1) {
                 gap_before = true;
             }
-            match self.one(entry, &mut state, &mut book, &mut buffers, gap_before, reprocess) {
+            match self.one(
+                entry,
+                &mut state,
+                &mut book,
+                &mut buffers,
+                gap_before,
+                reprocess,
+            ) {
                 Ok(report) => {
                     gap_before = false;
                     (self.on_exposure)(&report);
@@ -308,7 +315,10 @@ impl<'a> Detector<'a> {
         if gap_before {
             let t_cross = model
                 .exp_sum()
-                .crossing_time_s(model.response().max_e(), model.params().thresholds.low_e_per_s)
+                .crossing_time_s(
+                    model.response().max_e(),
+                    model.params().thresholds.low_e_per_s,
+                )
                 .unwrap_or(f64::INFINITY);
             let until = meta.t_start.0 + t_cross;
             book.history_incomplete_until_unix_s = Some(
@@ -370,9 +380,7 @@ impl<'a> Detector<'a> {
     }
 
     fn output_path(&self, input: &Path) -> PathBuf {
-        self.cfg
-            .output
-            .join(input.file_name().unwrap_or_default())
+        self.cfg.output.join(input.file_name().unwrap_or_default())
     }
 
     fn save(&self, state: &State, book: &Bookkeeping) -> Result<()> {
