@@ -39,12 +39,68 @@ pub enum Command {
         #[arg(required = true)]
         files: Vec<PathBuf>,
     },
+    /// Simulate Level-1 products from a trap-physics truth (truth under `OUT/truth/`).
+    Simulate {
+        #[command(subcommand)]
+        scenario: SimScenario,
+    },
     /// The main job on a built-in default: run the stage on the committed fixtures.
     Demo {
         /// Where to write outputs and checkpoints (replaced if it exists).
         #[arg(long, default_value = "demo-out")]
         out: PathBuf,
     },
+}
+
+#[derive(Subcommand, Debug)]
+pub enum SimScenario {
+    /// The paper's laboratory test: a 613 s integration lit for 481 s through a pinhole,
+    /// then 180 s dark integrations (the first keeps its ramp).
+    Lab(LabArgs),
+    /// A SPHEREx-like survey: 112 s integrations, slews, zodiacal light, stars.
+    Sky(SkyArgs),
+}
+
+#[derive(Args, Debug)]
+pub struct LabArgs {
+    /// Output directory (products; truth in OUT/truth).
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Array size N (N x N pixels).
+    #[arg(long, default_value_t = 256)]
+    pub size: usize,
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+    /// Dark integrations after the illumination (default 280 = 14 h; ignored with
+    /// --campaign).
+    #[arg(long, default_value_t = 280)]
+    pub darks: usize,
+    /// Chain several illuminations of different durations, fluxes and temperatures
+    /// (see `persist::sim::lab` for the default campaign).
+    #[arg(long)]
+    pub campaign: bool,
+    /// Switch on a truth effect: NAME[:param=value,...] (repeatable). Names: blooming,
+    /// capacity, ipc, linefit_bias, populations, short_tau_boost, soak, temperature.
+    #[arg(long = "effect")]
+    pub effects: Vec<String>,
+}
+
+#[derive(Args, Debug)]
+pub struct SkyArgs {
+    /// Output directory (products; truth in OUT/truth).
+    #[arg(long)]
+    pub out: PathBuf,
+    #[arg(long, default_value_t = 2040)]
+    pub size: usize,
+    #[arg(long, default_value_t = 6)]
+    pub detectors: u8,
+    #[arg(long, default_value_t = 1143)]
+    pub exposures: u64,
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+    /// Switch on a truth effect: NAME[:param=value,...] (repeatable).
+    #[arg(long = "effect")]
+    pub effects: Vec<String>,
 }
 
 #[derive(Args, Debug)]
@@ -126,8 +182,53 @@ pub fn run(cli: Cli) -> persist::Result<ExitCode> {
             }
         },
         Command::Validate { files } => Ok(validate(&files)),
+        Command::Simulate { scenario } => simulate(scenario),
         Command::Demo { out } => demo(&out),
     }
+}
+
+/// `persist simulate lab|sky`: products and truth written as they are simulated.
+fn simulate(scenario: SimScenario) -> persist::Result<ExitCode> {
+    use persist::sim::{effect::EffectSpec, lab, output::Writer, sky};
+    let specs = |v: &[String]| -> persist::Result<Vec<EffectSpec>> {
+        v.iter().map(|s| s.parse()).collect()
+    };
+    let (out, n) = match scenario {
+        SimScenario::Lab(a) => {
+            let cfg = lab::LabConfig {
+                size: a.size,
+                seed: a.seed,
+                darks: a.darks,
+                campaign: a.campaign.then(lab::Illumination::default_campaign),
+                effects: specs(&a.effects)?,
+                ..lab::LabConfig::default()
+            };
+            lab::validate(&cfg)?;
+            let mut w = Writer::new(&a.out)?;
+            let desc = lab::run(&cfg, |e| w.write(&e))?;
+            (a.out, w.finish(desc)?)
+        }
+        SimScenario::Sky(a) => {
+            let cfg = sky::SkyConfig {
+                size: a.size,
+                detectors: a.detectors,
+                exposures: a.exposures,
+                seed: a.seed,
+                effects: specs(&a.effects)?,
+                ..sky::SkyConfig::default()
+            };
+            sky::validate(&cfg)?;
+            let mut w = Writer::new(&a.out)?;
+            let desc = sky::run(&cfg, |e| w.write(&e))?;
+            (a.out, w.finish(desc)?)
+        }
+    };
+    println!(
+        "persist simulate: {n} products in {}, truth in {}",
+        out.display(),
+        out.join("truth").display()
+    );
+    Ok(ExitCode::SUCCESS)
 }
 
 /// `persist validate FILE...`: every file is checked; exit 1 if any failed.

@@ -30,6 +30,7 @@ pub mod model;
 pub mod model_file;
 pub mod plot;
 pub mod product;
+pub mod sim;
 pub mod stage;
 pub mod units;
 
