@@ -7,7 +7,7 @@ use persist::checkpoint::Retention;
 use persist::model::{Model, ModelParams};
 use persist::stage::{self, ExposureReport, RunConfig, RunReport};
 use persist::units::DetectorId;
-use persist::{Error, ErrorKind};
+
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
@@ -44,12 +44,9 @@ pub enum Command {
         #[command(subcommand)]
         scenario: SimScenario,
     },
-    /// The main job on a built-in default: run the stage on the committed fixtures.
-    Demo {
-        /// Where to write outputs and checkpoints (replaced if it exists).
-        #[arg(long, default_value = "demo-out")]
-        out: PathBuf,
-    },
+    /// The main job on a built-in default: simulate two days of SPHEREx-like sky (one
+    /// detector, 128 x 128), run the stage, print and plot what it flags.
+    Demo(DemoArgs),
 }
 
 #[derive(Subcommand, Debug)]
@@ -137,6 +134,21 @@ pub struct RunArgs {
     pub quiet: bool,
 }
 
+#[derive(Args, Debug)]
+pub struct DemoArgs {
+    /// Where to write the simulation, outputs, checkpoints and plots (replaced).
+    #[arg(long, default_value = "demo-out")]
+    pub out: PathBuf,
+    /// Image size in pixels (square).
+    #[arg(long, default_value_t = 128)]
+    pub size: usize,
+    /// Exposures (1143 = the paper's two days).
+    #[arg(long, default_value_t = 1143)]
+    pub exposures: u64,
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+}
+
 #[derive(Subcommand, Debug)]
 pub enum ModelAction {
     /// Print the default model file (the paper's constants).
@@ -183,7 +195,7 @@ pub fn run(cli: Cli) -> persist::Result<ExitCode> {
         },
         Command::Validate { files } => Ok(validate(&files)),
         Command::Simulate { scenario } => simulate(scenario),
-        Command::Demo { out } => demo(&out),
+        Command::Demo(args) => demo(&args),
     }
 }
 
@@ -333,30 +345,44 @@ fn finish(report: &RunReport) -> ExitCode {
     }
 }
 
-fn demo(out: &Path) -> persist::Result<ExitCode> {
-    let fixtures = Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures");
-    if out.exists() {
-        std::fs::remove_dir_all(out).map_err(|e| Error::io(out, e))?;
-    }
-    let args = RunArgs {
-        input: fixtures,
-        output: out.join("output"),
-        checkpoints: out.join("checkpoints"),
-        model: None,
-        from_checkpoint: None,
-        allow_model_change: false,
-        checkpoint_every: 1,
-        keep_latest: 20,
-        no_hourly_checkpoints: false,
-        quiet: false,
+fn demo(args: &DemoArgs) -> persist::Result<ExitCode> {
+    let cfg = persist::demo::DemoConfig {
+        out: args.out.clone(),
+        size: args.size,
+        exposures: args.exposures,
+        seed: args.seed,
     };
-    if !args.input.is_dir() {
-        return Err(Error::new(ErrorKind::Usage, "fixtures directory not found").path(&args.input));
+    let r = persist::demo::run(&cfg, &|m| eprintln!("persist demo: {m}"))?;
+    println!(
+        "{:>8} {:>8} {:>12} {:>12}",
+        "exposure", "t [h]", "% >0.1 e/s", "% >0.01 e/s"
+    );
+    let step = (r.rows.len() / 24).max(1);
+    for row in r.rows.iter().step_by(step) {
+        println!(
+            "{:>8} {:>8.2} {:>12.2} {:>12.2}",
+            row.exposure_index,
+            row.t_hours,
+            100.0 * row.frac_high,
+            100.0 * row.frac_low
+        );
     }
     println!(
-        "persist demo: default model on {} -> {}",
-        args.input.display(),
-        out.display()
+        "after the first 6 h (median over exposures): {:.2}% of pixels above 0.1 e-/s, {:.1}% above 0.01 e-/s",
+        100.0 * r.steady_frac_high,
+        100.0 * r.steady_frac_low
     );
-    run_stage(&args)
+    let above = r.pixel_trace.iter().filter(|t| t.1 > 0.1).count();
+    println!(
+        "pixel {:?}: saturated at exposure {} ({:.3e} e-); predicted above 0.1 e-/s in {} exposures",
+        r.pixel, r.pixel_event_index, r.pixel_event_fluence_e, above
+    );
+    for p in &r.plots {
+        println!("plot: {}", p.display());
+    }
+    Ok(if r.errors == 0 {
+        ExitCode::SUCCESS
+    } else {
+        ExitCode::from(1)
+    })
 }

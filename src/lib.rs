@@ -23,6 +23,7 @@
 //! Units: seconds, electrons, electrons per second; names carry them (`t_exposure_s`).
 
 pub mod checkpoint;
+pub mod demo;
 pub mod error;
 pub mod flags;
 pub mod h5io;

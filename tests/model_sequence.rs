@@ -45,6 +45,7 @@ fn hand_model() -> Model {
             enabled: true,
             threshold_e_per_s: 0.5,
             consecutive: 3,
+            subtract_background: true,
         },
         ..ModelParams::default()
     })
@@ -52,6 +53,8 @@ fn hand_model() -> Model {
 }
 
 struct Run {
+    /// Passed as `Input::background_e_per_s` (the hand-worked cases pin it to 0).
+    background: Option<f64>,
     model: Model,
     state: State,
     current: Array2<f32>,
@@ -62,6 +65,7 @@ impl Run {
     fn new(model: Model, ny: usize, nx: usize) -> Self {
         let state = model.new_state(ny, nx);
         Run {
+            background: Some(0.0),
             model,
             state,
             current: Array2::zeros((ny, nx)),
@@ -83,6 +87,7 @@ impl Run {
             t_exposure_s: 100.0,
             t_illuminated_s: 100.0,
             history_incomplete: false,
+            background_e_per_s: self.background,
         };
         let mut out = Output {
             flags: &mut flags,
@@ -227,6 +232,7 @@ fn out_of_order_and_early_start_are_refused_without_change() {
             t_exposure_s: 100.0,
             t_illuminated_s: 100.0,
             history_incomplete: false,
+            background_e_per_s: Some(0.0),
         };
         let mut out = Output {
             flags: &mut flags,
@@ -333,6 +339,7 @@ proptest! {
                 t_exposure_s: e.t_exposure_s,
                 t_illuminated_s: e.t_exposure_s,
                 history_incomplete: e.gap,
+                background_e_per_s: None,
             };
             let (mut fa, mut ca, mut pa) = (flags0.clone(), Array2::zeros((ny, nx)), Array2::zeros((ny, nx)));
             let (mut fb, mut cb, mut pb) = (flags0.clone(), Array2::zeros((ny, nx)), Array2::zeros((ny, nx)));
@@ -353,4 +360,49 @@ proptest! {
             t += e.t_exposure_s;
         }
     }
+}
+
+/// Early release on a sky: a pixel flagged after a transient, measuring only the
+/// 1.0 e-/s sky (+0.05), is released after three exposures when the background (the
+/// image median) is subtracted, and never without it (1.05 > 0.1 e-/s).
+#[test]
+fn early_release_subtracts_the_sky_level() {
+    for (subtract, released_at) in [(true, Some(3u64)), (false, None)] {
+        let mut params = ModelParams::default();
+        params.early_release.subtract_background = subtract;
+        let mut r = Run::new(Model::new(params).unwrap(), 4, 4);
+        r.background = None; // estimated from the image: 1.0 e-/s
+        let sky = Array2::from_elem((4, 4), 1.0f32);
+        let mut hit = Array2::zeros((4, 4));
+        hit[(0, 0)] = bits::TRANSIENT;
+        r.step(0, 0.0, sky.clone(), hit);
+        let mut first_release = None;
+        for k in 1..8u64 {
+            let mut image = sky.clone();
+            image[(0, 0)] = 1.05;
+            let (s, _) = r.step(k, k as f64 * 130.0, image, Array2::zeros((4, 4)));
+            if s.released > 0 && first_release.is_none() {
+                first_release = Some(k);
+                assert_eq!(r.pflags[(0, 0)], pbits::RELEASED);
+            }
+        }
+        assert_eq!(
+            first_release, released_at,
+            "subtract_background = {subtract}"
+        );
+    }
+}
+
+#[test]
+fn sky_level_is_the_median_of_finite_pixels() {
+    use persist::model::step::sky_level_e_per_s;
+    let mut a = Array2::from_shape_fn((10, 10), |(y, x)| (y * 10 + x) as f32);
+    a[(0, 0)] = f32::NAN;
+    a[(9, 9)] = 1e6; // a star does not move the median
+                     // 98 finite values 1..=98 plus 1e6: the median (index 49 of 0..99) is 50.
+    assert_eq!(sky_level_e_per_s(&a.view()), 50.0);
+    assert_eq!(
+        sky_level_e_per_s(&Array2::from_elem((3, 3), f32::NAN).view()),
+        0.0
+    );
 }

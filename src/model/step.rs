@@ -6,8 +6,9 @@
 //! 2. **flag**: above the high / low thresholds (strictly greater). A pixel whose
 //!    previous response used the maximum amplitude (unknown fluence) is flagged high
 //!    whatever the prediction, and marked `MAX_AMPLITUDE`;
-//! 3. **early release**: a pixel flagged high whose measured current is finite and below
-//!    the early-release threshold counts one more; at `consecutive` it is released: its
+//! 3. **early release**: a pixel flagged high whose measured current, less the
+//!    exposure's background (sky + dark, [`sky_level_e_per_s`], when the model asks for
+//!    it), is finite and below the early-release threshold counts one more; at `consecutive` it is released: its
 //!    amplitudes become zero, it is not flagged in this exposure, it is marked
 //!    `RELEASED`. A non-finite measurement or an unflagged pixel resets the count;
 //! 4. **decay** the amplitudes over `t_elapsed = t_reset(k+1) - t_reset(k)`;
@@ -239,6 +240,20 @@ impl Model {
             }
         };
         let er = &self.params.early_release;
+        // Comparing `m - background < threshold` is comparing `m < threshold + background`.
+        let background = if er.enabled && er.subtract_background {
+            input
+                .background_e_per_s
+                .unwrap_or_else(|| sky_level_e_per_s(&input.image_e_per_s))
+        } else {
+            0.0
+        };
+        if !background.is_finite() {
+            return Err(Error::invalid(
+                "background_e_per_s",
+                format!("must be finite, got {background}"),
+            ));
+        }
         Ok(Kernel {
             n: self.n_terms(),
             w,
@@ -247,7 +262,7 @@ impl Model {
             high: self.params.thresholds.high_e_per_s,
             low: self.params.thresholds.low_e_per_s,
             er_enabled: er.enabled,
-            er_threshold: er.threshold_e_per_s,
+            er_threshold: er.threshold_e_per_s + background,
             er_consecutive: er.consecutive,
             response: &self.response,
             a_max: self.response.max_e(),
@@ -281,6 +296,31 @@ pub struct Input<'a> {
     pub t_illuminated_s: f64,
     /// Set bit `HISTORY_INCOMPLETE` on every pixel of this exposure.
     pub history_incomplete: bool,
+    /// The sky + dark level of this exposure, e-/s, subtracted from the measured current
+    /// before the early-release comparison (when the model asks for it). `None`: the
+    /// step estimates it with [`sky_level_e_per_s`].
+    pub background_e_per_s: Option<f64>,
+}
+
+/// A robust estimate of an exposure's background (sky + dark), e-/s: the median of the
+/// finite pixels, on a regular sample of at most 65,536 of them (the zodiacal light
+/// varies slowly across an array; stars and persistence are a minority of pixels).
+/// 0 when no pixel is finite.
+pub fn sky_level_e_per_s(image: &ArrayView2<'_, f32>) -> f64 {
+    let n = image.len();
+    let stride = n.div_ceil(65_536).max(1);
+    let mut sample: Vec<f32> = image
+        .iter()
+        .step_by(stride)
+        .copied()
+        .filter(|v| v.is_finite())
+        .collect();
+    if sample.is_empty() {
+        return 0.0;
+    }
+    let mid = sample.len() / 2;
+    let (_, m, _) = sample.select_nth_unstable_by(mid, f32::total_cmp);
+    f64::from(*m)
 }
 
 /// Where the step writes. `flags` holds the on-board flags on entry; on return the

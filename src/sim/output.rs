@@ -22,6 +22,12 @@ use crate::error::{Error, Result};
 use crate::h5io;
 use std::path::{Path, PathBuf};
 
+/// Where the truth of (detector, exposure) of a simulation in `dir` is written.
+pub fn truth_path(dir: &Path, det: u8, index: u64) -> PathBuf {
+    dir.join("truth")
+        .join(format!("d{det}_e{index:06}.truth.hdf5"))
+}
+
 /// Writes products and truth as they are simulated.
 #[derive(Debug)]
 pub struct Writer {
@@ -43,9 +49,7 @@ impl Writer {
     }
 
     pub fn truth_path(&self, det: u8, index: u64) -> PathBuf {
-        self.dir
-            .join("truth")
-            .join(format!("d{det}_e{index:06}.truth.hdf5"))
+        truth_path(&self.dir, det, index)
     }
 
     pub fn write(&mut self, s: &SimExposure) -> Result<()> {

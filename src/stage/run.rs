@@ -346,6 +346,7 @@ impl<'a> Detector<'a> {
             t_exposure_s: meta.t_exposure_s,
             t_illuminated_s: meta.t_illuminated_s(),
             history_incomplete,
+            background_e_per_s: None,
         };
         let mut flags = std::mem::take(&mut exposure.flags);
         // The step validates before it changes anything: an error leaves the state as it was.
