@@ -443,10 +443,12 @@ impl<'a> Stage<'a> {
     /// Refuse a product for its content: report it and move it aside.
     fn refuse(&mut self, path: &Path, e: Error) {
         let e = e.path(path);
-        self.seen.remove(path);
+        // Not moved aside: stays in the cache, so it is not refused again until it
+        // changes.
         if let Some(q) = &self.ops.quarantine {
             match quarantine::quarantine(q, path, &e) {
                 Ok(to) => {
+                    self.seen.remove(path);
                     tracing::warn!(path = %path.display(), quarantined = %to.display(),
                         kind = ?e.kind, field = e.context.field.as_deref().unwrap_or(""),
                         reason = %e.message, "refused: quarantined");
