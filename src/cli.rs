@@ -176,7 +176,11 @@ impl Write for LogWriter {
 pub fn init_logging(cli: &Cli) {
     use tracing_subscriber::EnvFilter;
     let quiet = matches!(&cli.command, Command::Run(a) if a.quiet);
-    let level = if quiet { "warn" } else { cli.log_level.as_str() };
+    let level = if quiet {
+        "warn"
+    } else {
+        cli.log_level.as_str()
+    };
     let filter = EnvFilter::try_from_env("PERSIST_LOG")
         .or_else(|_| EnvFilter::try_new(level))
         .unwrap_or_else(|_| EnvFilter::new("info"));
@@ -191,7 +195,9 @@ pub fn init_logging(cli: &Cli) {
             .with_current_span(false)
             .try_init()
     } else {
-        builder.with_ansi(std::io::stderr().is_terminal()).try_init()
+        builder
+            .with_ansi(std::io::stderr().is_terminal())
+            .try_init()
     };
 }
 
@@ -305,7 +311,9 @@ fn run_stage(args: &RunArgs) -> persist::Result<ExitCode> {
         // A second signal while stopping exits at once (status 130).
         signal_hook::flag::register_conditional_shutdown(sig, 130, Arc::clone(&stop))
             .and_then(|_| signal_hook::flag::register(sig, Arc::clone(&stop)))
-            .map_err(|e| Error::new(ErrorKind::Io, format!("cannot install signal handler: {e}")))?;
+            .map_err(|e| {
+                Error::new(ErrorKind::Io, format!("cannot install signal handler: {e}"))
+            })?;
     }
     let progress = (!args.watch && !args.quiet && std::io::stderr().is_terminal()).then(|| {
         let pb = indicatif::ProgressBar::new(0);

@@ -31,17 +31,28 @@ fn set_str(f: &hdf5::File, name: &str, v: &str) {
 
 fn set_f64(f: &hdf5::File, name: &str, v: f64) {
     let _ = f.delete_attr(name);
-    f.new_attr::<f64>().create(name).unwrap().write_scalar(&v).unwrap();
+    f.new_attr::<f64>()
+        .create(name)
+        .unwrap()
+        .write_scalar(&v)
+        .unwrap();
 }
 
 fn set_i64(f: &hdf5::File, name: &str, v: i64) {
     let _ = f.delete_attr(name);
-    f.new_attr::<i64>().create(name).unwrap().write_scalar(&v).unwrap();
+    f.new_attr::<i64>()
+        .create(name)
+        .unwrap()
+        .write_scalar(&v)
+        .unwrap();
 }
 
 fn replace<T: hdf5::H5Type + Clone>(f: &hdf5::File, path: &str, data: &ndarray::Array2<T>) {
     f.unlink(path).unwrap();
-    f.new_dataset_builder().with_data(data).create(path).unwrap();
+    f.new_dataset_builder()
+        .with_data(data)
+        .create(path)
+        .unwrap();
 }
 
 /// A valid product of (det, k) written to `dir/file`.
@@ -87,13 +98,19 @@ fn make_corpus(dir: &Path) -> Vec<Fault> {
     tamper(&p, |f| f.unlink("image").unwrap());
     faults.push(("bad_no_image.h5", "/image"));
     let p = valid(dir, "bad_image_f64.h5", 4, 2);
-    tamper(&p, |f| replace(f, "image", &ndarray::Array2::<f64>::ones((N, N))));
+    tamper(&p, |f| {
+        replace(f, "image", &ndarray::Array2::<f64>::ones((N, N)))
+    });
     faults.push(("bad_image_f64.h5", "/image"));
     let p = valid(dir, "bad_flags_i16.h5", 4, 3);
-    tamper(&p, |f| replace(f, "flags", &ndarray::Array2::<i16>::zeros((N, N))));
+    tamper(&p, |f| {
+        replace(f, "flags", &ndarray::Array2::<i16>::zeros((N, N)))
+    });
     faults.push(("bad_flags_i16.h5", "/flags"));
     let p = valid(dir, "bad_shapes.h5", 4, 4);
-    tamper(&p, |f| replace(f, "flags", &ndarray::Array2::<u32>::zeros((N, N / 2))));
+    tamper(&p, |f| {
+        replace(f, "flags", &ndarray::Array2::<u32>::zeros((N, N / 2)))
+    });
     faults.push(("bad_shapes.h5", "/flags"));
     let p = valid(dir, "bad_absurd_dims.h5", 4, 5);
     tamper(&p, |f| {
@@ -129,7 +146,13 @@ fn make_corpus(dir: &Path) -> Vec<Fault> {
     tamper(&p, |f| set_str(f, "t_start_utc", &early));
     faults.push(("bad_det3_exp0001_time_backwards.h5", "t_start_utc"));
     let p = valid(dir, "bad_det3_exp0002_nan_plane.h5", 3, 2);
-    tamper(&p, |f| replace(f, "image", &ndarray::Array2::<f32>::from_elem((N, N), f32::NAN)));
+    tamper(&p, |f| {
+        replace(
+            f,
+            "image",
+            &ndarray::Array2::<f32>::from_elem((N, N), f32::NAN),
+        )
+    });
     faults.push(("bad_det3_exp0002_nan_plane.h5", "/image"));
     let p = valid(dir, "bad_det3_exp0003_inf.h5", 3, 3);
     tamper(&p, |f| {
@@ -199,6 +222,7 @@ fn every_kind_of_bad_input_is_quarantined_with_its_reason_and_the_rest_is_unchan
         let field = r["field"].as_str().unwrap_or_default();
         let message = r["message"].as_str().unwrap_or_default();
         assert!(!message.is_empty(), "{file}: {text}");
+        eprintln!("{file}: {kind} `{field}`: {message}");
         assert!(
             kind == *what || field.contains(what) || message.contains(what),
             "{file}: the reason does not name `{what}`: {text}"

@@ -40,6 +40,8 @@ fn sigkill_at_random_moments_then_restart_gives_identical_bytes() {
     let span_ms = (took.as_millis() as u64).max(50);
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(20260301);
     let mut killed_mid_run = 0;
+    // Kills that left some but not all outputs published (mid-processing).
+    let mut partial_kills = 0;
     for trial in 0..20 {
         let root = tmp.path().join(format!("trial{trial:02}"));
         let kills_wanted = rng.random_range(1..=2);
@@ -63,6 +65,10 @@ fn sigkill_at_random_moments_then_restart_gives_identical_bytes() {
                     let status = child.wait().unwrap();
                     assert!(!status.success());
                     kills += 1;
+                    let n = tree(&root.join("out")).len();
+                    if n > 0 && n < 50 {
+                        partial_kills += 1;
+                    }
                     continue;
                 }
             }
@@ -73,6 +79,7 @@ fn sigkill_at_random_moments_then_restart_gives_identical_bytes() {
         if kills > 0 {
             killed_mid_run += 1;
         }
+        eprintln!("trial {trial}: {kills} kill(s), {runs} run(s)");
         let out = tree(&root.join("out"));
         let ckpt = tree(&root.join("ckpt"));
         assert_eq!(
@@ -103,8 +110,19 @@ fn sigkill_at_random_moments_then_restart_gives_identical_bytes() {
         assert!(temporaries(&input).is_empty());
         std::fs::remove_dir_all(&root).unwrap();
     }
+    eprintln!(
+        "reference run {took:?}; {killed_mid_run} of 20 trials killed mid-run, \
+         {partial_kills} kills with part of the outputs published"
+    );
+    assert!(
+        partial_kills >= 10,
+        "only {partial_kills} kills landed mid-processing"
+    );
     // Most trials must really have been interrupted (the kill came before the end).
-    assert!(killed_mid_run >= 15, "only {killed_mid_run} trials were killed mid-run");
+    assert!(
+        killed_mid_run >= 15,
+        "only {killed_mid_run} trials were killed mid-run"
+    );
 }
 
 /// SIGTERM (and SIGINT) mid-run: the exposure in hand is finished, its checkpoint

@@ -98,9 +98,19 @@ fn shuffled_arrivals(events: bool) {
         let name = p.file_name().unwrap().to_string_lossy().into_owned();
         match i % 3 {
             // Slowly, under `.NAME.part` (hidden and .part), then renamed.
-            0 => write_slowly(&std::fs::read(p).unwrap(), &input, &format!(".{name}.part"), &name),
+            0 => write_slowly(
+                &std::fs::read(p).unwrap(),
+                &input,
+                &format!(".{name}.part"),
+                &name,
+            ),
             // Slowly, under `NAME.part`, then renamed.
-            1 => write_slowly(&std::fs::read(p).unwrap(), &input, &format!("{name}.part"), &name),
+            1 => write_slowly(
+                &std::fs::read(p).unwrap(),
+                &input,
+                &format!("{name}.part"),
+                &name,
+            ),
             // Moved in from elsewhere on the same file system.
             _ => std::fs::rename(p, input.join(&name)).unwrap(),
         }
@@ -175,7 +185,11 @@ fn gap_crossed_after_timeout_then_late_and_duplicates_are_kept_aside() {
     let input = tmp.path().join("in");
     std::fs::create_dir_all(&input).unwrap();
     let root = tmp.path().join("watch");
-    let child = start_watch(&input, &root, &["--gap-timeout-s", "1.5", "--poll-interval-s", "0.3"]);
+    let child = start_watch(
+        &input,
+        &root,
+        &["--gap-timeout-s", "1.5", "--poll-interval-s", "0.3"],
+    );
     let put = |k: u64| std::fs::rename(staging.join(name(1, k)), input.join(name(1, k))).unwrap();
     let out = |k: u64| root.join("out").join(name(1, k));
     put(0);
@@ -200,16 +214,25 @@ fn gap_crossed_after_timeout_then_late_and_duplicates_are_kept_aside() {
     put(2);
     // An identical copy of exposure 1 under another name: ignored.
     std::fs::copy(input.join(name(1, 1)), tmp.path().join("copy.h5")).unwrap();
-    std::fs::rename(tmp.path().join("copy.h5"), input.join("again_det1_exp0001.h5")).unwrap();
+    std::fs::rename(
+        tmp.path().join("copy.h5"),
+        input.join("again_det1_exp0001.h5"),
+    )
+    .unwrap();
     // A different product claiming exposure 4: refused.
     let mut e = exposure(1, 4, N);
     e.image.fill(2.5);
     persist::product::write::write_exposure(&tmp.path().join("other.h5"), &e).unwrap();
-    std::fs::rename(tmp.path().join("other.h5"), input.join("other_det1_exp0004.h5")).unwrap();
+    std::fs::rename(
+        tmp.path().join("other.h5"),
+        input.join("other_det1_exp0004.h5"),
+    )
+    .unwrap();
     put(5);
     let q = input.join(".quarantine");
     assert!(wait_until(Duration::from_secs(20), || {
-        out(5).exists() && q.join("other_det1_exp0004.h5.reason.json").exists()
+        out(5).exists()
+            && q.join("other_det1_exp0004.h5.reason.json").exists()
             && q.join(format!("{}.reason.json", name(1, 2))).exists()
     }));
     stop(child);
@@ -219,7 +242,13 @@ fn gap_crossed_after_timeout_then_late_and_duplicates_are_kept_aside() {
     assert!(late["message"].as_str().unwrap().contains("late"), "{late}");
     let dup = reason(&q, "other_det1_exp0004.h5");
     assert_eq!(dup["field"], "exposure_index");
-    assert!(dup["message"].as_str().unwrap().contains("different content"), "{dup}");
+    assert!(
+        dup["message"]
+            .as_str()
+            .unwrap()
+            .contains("different content"),
+        "{dup}"
+    );
     // The identical copy stayed where it was, produced nothing, and was not quarantined.
     assert!(input.join("again_det1_exp0001.h5").exists());
     assert!(!root.join("out/again_det1_exp0001.h5").exists());

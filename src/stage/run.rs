@@ -597,8 +597,11 @@ impl<'a> Processor<'a> {
         self.started = true;
         match self.start() {
             Ok(Some((s, b))) => {
-                tracing::info!(detector = self.det.0, exposure_index = s.last_index,
-                    "resuming from checkpoint");
+                tracing::info!(
+                    detector = self.det.0,
+                    exposure_index = s.last_index,
+                    "resuming from checkpoint"
+                );
                 self.state = Some(s);
                 self.book = b;
             }
@@ -758,7 +761,9 @@ impl<'a> Processor<'a> {
         match self.last() {
             Some(l) if next == l + 1 => true,
             Some(l) => final_ || timed_out || (l + 1..next).all(|i| self.refused.contains(&i)),
-            None => next == 0 || final_ || timed_out || (0..next).all(|i| self.refused.contains(&i)),
+            None => {
+                next == 0 || final_ || timed_out || (0..next).all(|i| self.refused.contains(&i))
+            }
         }
     }
 
@@ -784,8 +789,12 @@ impl<'a> Processor<'a> {
             if let Some(l) = last.filter(|&l| next != l + 1) {
                 self.gap_before = true;
                 if !(l + 1..next).all(|i| self.refused.contains(&i)) {
-                    tracing::warn!(detector = self.det.0, from = l + 1, to = next - 1,
-                        "gap crossed: exposures missing; going on, history incomplete");
+                    tracing::warn!(
+                        detector = self.det.0,
+                        from = l + 1,
+                        to = next - 1,
+                        "gap crossed: exposures missing; going on, history incomplete"
+                    );
                 }
             }
             match self.one(&mut entry) {
@@ -815,11 +824,8 @@ impl<'a> Processor<'a> {
                 }
                 Err(Failure::Input(e)) if e.kind == ErrorKind::NotReady => {
                     if final_ {
-                        self.errors.push(
-                            e.path(&entry.path)
-                                .detector(self.det)
-                                .exposure(next),
-                        );
+                        self.errors
+                            .push(e.path(&entry.path).detector(self.det).exposure(next));
                         break;
                     }
                     tracing::debug!(path = %entry.path.display(), error = %e, "not ready; will retry");

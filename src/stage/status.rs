@@ -126,7 +126,10 @@ pub fn status(
                         Ok(m) => {
                             let last = dets.get(&m.detector.0).and_then(|d| d.last_processed);
                             if last.is_none_or(|l| m.exposure_index > l) {
-                                queued.entry(m.detector.0).or_default().push(m.exposure_index);
+                                queued
+                                    .entry(m.detector.0)
+                                    .or_default()
+                                    .push(m.exposure_index);
                             }
                         }
                         Err(_) => st.unreadable_inputs += 1,
@@ -157,17 +160,19 @@ pub fn status(
                 reasons.sort();
                 for r in reasons {
                     match read_reason(&r) {
-                        Ok((det, item)) => match det.filter(|d| (DetectorId::MIN..=DetectorId::MAX).contains(d)) {
-                            Some(d) => dets
-                                .entry(d)
-                                .or_insert_with(|| DetectorStatus {
-                                    detector: d,
-                                    ..Default::default()
-                                })
-                                .quarantined
-                                .push(item),
-                            None => st.quarantined_unattributed.push(item),
-                        },
+                        Ok((det, item)) => {
+                            match det.filter(|d| (DetectorId::MIN..=DetectorId::MAX).contains(d)) {
+                                Some(d) => dets
+                                    .entry(d)
+                                    .or_insert_with(|| DetectorStatus {
+                                        detector: d,
+                                        ..Default::default()
+                                    })
+                                    .quarantined
+                                    .push(item),
+                                None => st.quarantined_unattributed.push(item),
+                            }
+                        }
                         Err(e) => st.problems.push(e.to_string()),
                     }
                 }
@@ -215,7 +220,13 @@ pub fn render(st: &Status) -> String {
             "-".to_string()
         } else {
             v.iter()
-                .map(|(a, b)| if a == b { format!("{a}") } else { format!("{a}-{b}") })
+                .map(|(a, b)| {
+                    if a == b {
+                        format!("{a}")
+                    } else {
+                        format!("{a}-{b}")
+                    }
+                })
                 .collect::<Vec<_>>()
                 .join(",")
         }

@@ -140,7 +140,9 @@ pub fn temporaries(dir: &Path) -> Vec<PathBuf> {
         .filter_map(|e| e.ok())
         .filter(|e| {
             let n = e.file_name().to_string_lossy();
-            e.file_type().is_file() && n != ".persist.lock" && (n.starts_with('.') || n.ends_with(".part"))
+            e.file_type().is_file()
+                && n != ".persist.lock"
+                && (n.starts_with('.') || n.ends_with(".part"))
         })
         .map(|e| e.into_path())
         .collect()
