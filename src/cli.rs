@@ -408,7 +408,7 @@ fn finish(report: &RunReport) -> ExitCode {
     if report.stopped {
         eprintln!(
             "persist: stopped by signal after {} exposure(s); checkpoints written",
-            report.exposures.len()
+            report.processed
         );
         return ExitCode::SUCCESS;
     }
@@ -429,7 +429,7 @@ fn finish(report: &RunReport) -> ExitCode {
     } else {
         eprintln!(
             "persist: {} exposure(s) processed, {} error(s)",
-            report.exposures.len(),
+            report.processed,
             report.errors.len()
         );
         ExitCode::from(1)

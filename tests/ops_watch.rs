@@ -313,3 +313,79 @@ fn a_second_stage_on_the_same_directories_refuses() {
     let (code, err) = run_batch(&other_input, &root, &[]);
     assert_eq!(code, 0, "{err}");
 }
+
+/// A product written in place under its final name and held open by its writer (HDF5
+/// refuses to open it: "unable to lock file") is not ready: retried, never quarantined,
+/// and processed once the writer closes it.
+#[test]
+fn a_file_still_open_for_writing_is_retried_not_quarantined() {
+    use hdf5::types::VarLenUnicode;
+    let tmp = tempfile::tempdir().unwrap();
+    let input = tmp.path().join("in");
+    std::fs::create_dir_all(&input).unwrap();
+    let root = tmp.path().join("watch");
+    let child = start_watch(
+        &input,
+        &root,
+        &["--poll-interval-s", "0.2", "--log-level", "debug"],
+    );
+    let e = exposure(1, 0, N);
+    let path = input.join(name(1, 0));
+    let file = hdf5::File::create(&path).unwrap();
+    let s = |k: &str, v: &str| {
+        file.new_attr::<VarLenUnicode>()
+            .create(k)
+            .unwrap()
+            .write_scalar(&v.parse::<VarLenUnicode>().unwrap())
+            .unwrap()
+    };
+    s("product", "spherex.l1.exposure");
+    s("schema_version", "1.0");
+    s("t_start_utc", &e.meta.t_start_utc);
+    for (k, v) in [("detector", 1i64), ("exposure_index", 0)] {
+        file.new_attr::<i64>()
+            .create(k)
+            .unwrap()
+            .write_scalar(&v)
+            .unwrap();
+    }
+    file.new_attr::<f64>()
+        .create("t_exposure_s")
+        .unwrap()
+        .write_scalar(&e.meta.t_exposure_s)
+        .unwrap();
+    file.new_dataset_builder()
+        .with_data(&e.image)
+        .create("image")
+        .unwrap();
+    file.new_dataset_builder()
+        .with_data(&e.flags)
+        .create("flags")
+        .unwrap();
+    file.flush().unwrap();
+    // Several rescans see it, stable in size, but cannot open it.
+    let log = root.join("log.jsonl");
+    assert!(wait_until(Duration::from_secs(20), || !log_events(
+        &log,
+        "not ready; will retry"
+    )
+    .is_empty()));
+    std::thread::sleep(Duration::from_millis(600));
+    assert!(!root.join("out").join(name(1, 0)).exists());
+    drop(file);
+    assert!(wait_until(Duration::from_secs(20), || root
+        .join("out")
+        .join(name(1, 0))
+        .exists()));
+    stop(child);
+    assert!(!input.join(".quarantine").exists());
+    assert!(log_events(&log, "refused: quarantined").is_empty());
+    assert_eq!(processed(&root), vec![(1, 0)]);
+    let retried = log_events(&log, "not ready; will retry");
+    assert!(
+        retried.iter().all(|v| v["error"]
+            .as_str()
+            .is_some_and(|m| m.contains("unable to lock file"))),
+        "{retried:?}"
+    );
+}

@@ -41,9 +41,9 @@
 //! previous reset to the new one) and records the crossed range in the bookkeeping.
 //!
 //! **History incomplete (bit 4).** After a crossed gap or a refused exposure, outputs are
-//! marked while their mid-exposure time is before `t_start(first exposure after the gap)
-//! + T`, where `T` is the time the largest amplitude the missing exposure could have
-//! added -- the knot table's maximum, added just before the next exposure started --
+//! marked while their mid-exposure time is before the deadline `t_start(first exposure
+//! after the gap) + T`. `T` is the time the largest amplitude the missing exposure could
+//! have added (the knot table's maximum, added just before the next exposure started)
 //! takes to decay below the low threshold (65,300 s for the default model): after that
 //! the missing exposure cannot change any flag. The deadline is carried in the
 //! checkpoint, so it survives restarts.
@@ -173,6 +173,8 @@ pub struct RunReport {
     pub quarantined: Vec<PathBuf>,
     /// The run was stopped by [`Ops::stop`].
     pub stopped: bool,
+    /// Exposures processed (in watch mode `exposures` is not kept, this count is).
+    pub processed: u64,
 }
 
 /// The stage's own bookkeeping carried in each checkpoint (`stage_json`).
@@ -469,7 +471,13 @@ impl<'a> Stage<'a> {
     fn collect(&mut self) {
         let mut refused = Vec::new();
         let mut retry = Vec::new();
+        let watching = self.ops.watch.is_some();
         for p in self.detectors.values_mut() {
+            self.report.processed += p.reports.len() as u64;
+            if watching {
+                // Weeks of reports are not kept: the logs have them.
+                p.reports.clear();
+            }
             self.report.exposures.append(&mut p.reports);
             self.report.errors.append(&mut p.errors);
             refused.append(&mut p.refused_files);
@@ -521,6 +529,8 @@ struct Pending {
     /// When it was first seen (the gap timeout counts from here).
     seen: Instant,
     digest: Option<String>,
+    /// (size, mtime) when observed: a file that changed since was still being written.
+    key: Option<FileKey>,
     /// Not ready: do not try before this.
     retry_at: Option<Instant>,
 }
@@ -715,6 +725,7 @@ impl<'a> Processor<'a> {
                 // The same file seen again (changed in place): take its new attributes.
                 p.meta = meta;
                 p.digest = None;
+                p.key = file_key(path).ok();
                 return Offer::Known;
             }
             let first = match &p.digest {
@@ -746,6 +757,7 @@ impl<'a> Processor<'a> {
                 meta,
                 seen: now,
                 digest: None,
+                key: file_key(path).ok(),
                 retry_at: None,
             },
         );
@@ -821,6 +833,22 @@ impl<'a> Processor<'a> {
                     if self.unsaved >= every {
                         self.save_now();
                     }
+                }
+                Err(Failure::Input(e))
+                    if e.kind != ErrorKind::NotReady
+                        && entry.key.is_some()
+                        && file_key(&entry.path).ok() != entry.key =>
+                {
+                    // It changed since it was observed: still being written, not bad.
+                    tracing::debug!(path = %entry.path.display(), error = %e,
+                        "changed since observed; will retry");
+                    if final_ {
+                        self.errors
+                            .push(e.path(&entry.path).detector(self.det).exposure(next));
+                    } else {
+                        self.forget.push(entry.path);
+                    }
+                    break;
                 }
                 Err(Failure::Input(e)) if e.kind == ErrorKind::NotReady => {
                     if final_ {
