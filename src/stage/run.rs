@@ -614,6 +614,14 @@ impl<'a> Processor<'a> {
                 );
                 self.state = Some(s);
                 self.book = b;
+                // A crash between a checkpoint and its pruning leaves old ones behind:
+                // prune now, or a history with nothing left to process never would.
+                if let Err(e) =
+                    checkpoint::prune(&self.cfg.checkpoints, self.det, &self.cfg.retention)
+                {
+                    tracing::error!(error = %e, "pruning checkpoints failed");
+                    self.errors.push(e.detector(self.det));
+                }
             }
             Ok(None) => {}
             Err(e) => {
