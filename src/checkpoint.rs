@@ -191,6 +191,41 @@ pub fn load(path: &Path) -> Result<(CheckpointMeta, State)> {
     check_file(&file, path).map_err(schema::combine)
 }
 
+/// The meta data and reset time of a checkpoint, reading its attributes only (no
+/// state arrays): for `persist status`.
+pub fn load_meta(path: &Path) -> Result<(CheckpointMeta, f64)> {
+    let file = h5io::open(path)?;
+    let m = schema::manifest(&file).map_err(|e| e.path(path))?;
+    let v = View(&m);
+    if v.attr_str("product") != Some(PRODUCT) {
+        return Err(Error::invalid("product", "not a checkpoint").path(path));
+    }
+    let text = |f: &str| v.attr_str(f).unwrap_or_default().to_owned();
+    let detector = v
+        .attr_i64("detector")
+        .and_then(DetectorId::new)
+        .ok_or_else(|| Error::invalid("detector", "missing or out of 1..=6").path(path))?;
+    let exposure_index = v
+        .attr("exposure_index")
+        .and_then(serde_json::Value::as_u64)
+        .ok_or_else(|| Error::invalid("exposure_index", "missing or negative").path(path))?;
+    let t_reset = v
+        .attr_f64("t_reset_unix_s")
+        .ok_or_else(|| Error::invalid("t_reset_unix_s", "missing or not finite").path(path))?;
+    Ok((
+        CheckpointMeta {
+            detector,
+            exposure_index,
+            model_id: text("model_id"),
+            model_name: text("model_name"),
+            model_json: text("model_json"),
+            stage_json: text("stage_json"),
+            software_version: text("software_version"),
+        },
+        t_reset,
+    ))
+}
+
 /// `State::check` messages look like `amplitudes_e: holds ...`: name the field.
 fn state_error(message: &str) -> Error {
     let field = match message.split_once(':') {

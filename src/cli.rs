@@ -1,15 +1,27 @@
 //! The command line: parse, call the library, map the outcome to an exit code.
-//! Exit codes: 0 all went well; 1 some input or output failed (the rest was processed,
-//! every failure reported); 2 the command could not run at all.
+//! Exit codes: 0 all went well, or the run was stopped by SIGINT/SIGTERM (after
+//! finishing the exposure in hand and writing its checkpoint); 1 some input or output
+//! failed (the rest was processed, every failure reported, bad inputs quarantined);
+//! 2 the command could not run at all (usage, model file, the directories are locked by
+//! another stage).
+//!
+//! Logs go to stderr through `tracing`: human-readable by default, JSON lines with
+//! `--log-json`; the level is `--log-level` (or the `PERSIST_LOG` filter). A batch run
+//! on a terminal draws a progress bar on stderr (the logs are printed above it).
 
 use clap::{Args, Parser, Subcommand};
 use persist::checkpoint::Retention;
 use persist::model::{Model, ModelParams};
-use persist::stage::{self, ExposureReport, RunConfig, RunReport};
+use persist::stage::lock::DirLock;
+use persist::stage::{self, ExposureReport, Ops, RunConfig, RunReport, WatchOpts};
 use persist::units::DetectorId;
-
+use persist::{Error, ErrorKind};
+use std::io::{IsTerminal, Write};
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
+use std::sync::atomic::AtomicBool;
+use std::sync::{Arc, OnceLock};
+use std::time::Duration;
 
 #[derive(Parser, Debug)]
 #[command(
@@ -20,6 +32,12 @@ use std::process::ExitCode;
 pub struct Cli {
     #[command(subcommand)]
     pub command: Command,
+    /// Logs as JSON lines (one object per event) instead of human-readable text.
+    #[arg(long, global = true)]
+    pub log_json: bool,
+    /// Log level: error, warn, info, debug, trace (`PERSIST_LOG` overrides, as a filter).
+    #[arg(long, global = true, default_value = "info")]
+    pub log_level: String,
 }
 
 #[derive(Subcommand, Debug)]
@@ -44,6 +62,9 @@ pub enum Command {
         #[command(subcommand)]
         scenario: SimScenario,
     },
+    /// Per detector: last exposure processed, backlog, gaps, quarantined files, age of
+    /// the newest checkpoint. Reads the directories only; safe while a stage runs.
+    Status(StatusArgs),
     /// The main job on a built-in default: simulate two days of SPHEREx-like sky (one
     /// detector, 128 x 128), run the stage, print and plot what it flags.
     Demo(DemoArgs),
@@ -129,9 +150,108 @@ pub struct RunArgs {
     /// Do not keep one checkpoint per hour of data beyond the newest ones.
     #[arg(long)]
     pub no_hourly_checkpoints: bool,
-    /// Print nothing per exposure.
+    /// Print nothing per exposure (no table, no progress bar, warnings and errors only).
     #[arg(long, short)]
     pub quiet: bool,
+    /// Keep running: pick up products as they arrive (file system events plus a periodic
+    /// rescan) until SIGINT/SIGTERM.
+    #[arg(long)]
+    pub watch: bool,
+    /// With --watch: rescan the input directory every this many seconds.
+    #[arg(long, default_value_t = 10.0, value_parser = positive_seconds)]
+    pub poll_interval_s: f64,
+    /// With --watch: do not use file system events (polling only, e.g. on NFS).
+    #[arg(long)]
+    pub no_events: bool,
+    /// With --watch: a product waiting behind a missing exposure waits at most this many
+    /// seconds (from when it was first seen); then the gap is crossed.
+    #[arg(long, default_value_t = 600.0, value_parser = nonnegative_seconds)]
+    pub gap_timeout_s: f64,
+    /// Where refused inputs are moved, each with a `NAME.reason.json` [default:
+    /// INPUT/.quarantine, on the input's file system so the move is a rename; hidden
+    /// directories are never scanned].
+    #[arg(long)]
+    pub quarantine: Option<PathBuf>,
+}
+
+#[derive(Args, Debug)]
+pub struct StatusArgs {
+    /// The stage's output directory.
+    #[arg(long)]
+    pub output: PathBuf,
+    /// The stage's checkpoint directory.
+    #[arg(long)]
+    pub checkpoints: PathBuf,
+    /// The input directory (to count the backlog and the missing exposures).
+    #[arg(long)]
+    pub input: Option<PathBuf>,
+    /// The quarantine directory [default: INPUT/.quarantine when --input is given].
+    #[arg(long)]
+    pub quarantine: Option<PathBuf>,
+    /// Print JSON instead of a table.
+    #[arg(long)]
+    pub json: bool,
+}
+
+fn positive_seconds(s: &str) -> Result<f64, String> {
+    match s.parse::<f64>() {
+        Ok(x) if x.is_finite() && x > 0.0 => Ok(x),
+        _ => Err(format!("`{s}`: expected a number of seconds > 0")),
+    }
+}
+
+fn nonnegative_seconds(s: &str) -> Result<f64, String> {
+    match s.parse::<f64>() {
+        Ok(x) if x.is_finite() && x >= 0.0 => Ok(x),
+        _ => Err(format!("`{s}`: expected a number of seconds >= 0")),
+    }
+}
+
+/// The progress bar of a batch run, when one is drawn: logs are printed above it.
+static BAR: OnceLock<indicatif::ProgressBar> = OnceLock::new();
+
+struct LogWriter;
+
+impl Write for LogWriter {
+    fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
+        match BAR.get() {
+            Some(pb) if !pb.is_hidden() => pb.suspend(|| std::io::stderr().write_all(buf))?,
+            _ => std::io::stderr().write_all(buf)?,
+        }
+        Ok(buf.len())
+    }
+    fn flush(&mut self) -> std::io::Result<()> {
+        std::io::stderr().flush()
+    }
+}
+
+/// Install the log subscriber (once, before anything logs).
+pub fn init_logging(cli: &Cli) {
+    use tracing_subscriber::EnvFilter;
+    let quiet = matches!(&cli.command, Command::Run(a) if a.quiet);
+    let level = if quiet {
+        "warn"
+    } else {
+        cli.log_level.as_str()
+    };
+    let filter = EnvFilter::try_from_env("PERSIST_LOG")
+        .or_else(|_| EnvFilter::try_new(level))
+        .unwrap_or_else(|_| EnvFilter::new("info"));
+    let builder = tracing_subscriber::fmt()
+        .with_env_filter(filter)
+        .with_writer(|| LogWriter)
+        .with_target(false);
+    let _ = if cli.log_json {
+        builder
+            .json()
+            .flatten_event(true)
+            .with_current_span(false)
+            .try_init()
+    } else {
+        builder
+            .with_ansi(std::io::stderr().is_terminal())
+            .try_init()
+    };
 }
 
 #[derive(Args, Debug)]
@@ -195,6 +315,7 @@ pub fn run(cli: Cli) -> persist::Result<ExitCode> {
         },
         Command::Validate { files } => Ok(validate(&files)),
         Command::Simulate { scenario } => simulate(scenario),
+        Command::Status(args) => status(&args),
         Command::Demo(args) => demo(&args),
     }
 }
@@ -265,12 +386,78 @@ fn validate(files: &[PathBuf]) -> ExitCode {
     }
 }
 
+/// `persist status`.
+fn status(args: &StatusArgs) -> persist::Result<ExitCode> {
+    let quarantine = args
+        .quarantine
+        .clone()
+        .or_else(|| args.input.as_ref().map(|i| i.join(".quarantine")));
+    let st = stage::status::status(
+        &args.output,
+        &args.checkpoints,
+        args.input.as_deref(),
+        quarantine.as_deref(),
+    );
+    if args.json {
+        let text = serde_json::to_string_pretty(&st)
+            .map_err(|e| Error::new(ErrorKind::Io, format!("status as JSON: {e}")))?;
+        println!("{text}");
+    } else {
+        print!("{}", stage::status::render(&st));
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
 fn run_stage(args: &RunArgs) -> persist::Result<ExitCode> {
+    let model = load_model(args.model.as_deref())?;
+    // One stage per set of directories; then nothing else writes there, so every
+    // temporary left is from an interrupted write of ours.
+    let _lock = DirLock::acquire(&[&args.output, &args.checkpoints])?;
+    for dir in [&args.output, &args.checkpoints] {
+        let n = persist::checkpoint::clean_temporaries(dir)?;
+        if n > 0 {
+            tracing::info!(dir = %dir.display(), removed = n, "stray temporary files removed");
+        }
+    }
+    let stop = Arc::new(AtomicBool::new(false));
+    for sig in [signal_hook::consts::SIGINT, signal_hook::consts::SIGTERM] {
+        // A second signal while stopping exits at once (status 130).
+        signal_hook::flag::register_conditional_shutdown(sig, 130, Arc::clone(&stop))
+            .and_then(|_| signal_hook::flag::register(sig, Arc::clone(&stop)))
+            .map_err(|e| {
+                Error::new(ErrorKind::Io, format!("cannot install signal handler: {e}"))
+            })?;
+    }
+    let progress = (!args.watch && !args.quiet && std::io::stderr().is_terminal()).then(|| {
+        let pb = indicatif::ProgressBar::new(0);
+        pb.set_style(
+            indicatif::ProgressStyle::with_template(
+                "{elapsed_precise} [{bar:40}] {pos}/{len} exposures ({eta} left)",
+            )
+            .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
+        );
+        let _ = BAR.set(pb.clone());
+        pb
+    });
+    let ops = Ops {
+        quarantine: Some(
+            args.quarantine
+                .clone()
+                .unwrap_or_else(|| args.input.join(".quarantine")),
+        ),
+        watch: args.watch.then(|| WatchOpts {
+            poll_interval: Duration::from_secs_f64(args.poll_interval_s),
+            events: !args.no_events,
+        }),
+        gap_timeout: Duration::from_secs_f64(args.gap_timeout_s),
+        stop,
+        progress,
+    };
     let cfg = RunConfig {
         input: args.input.clone(),
         output: args.output.clone(),
         checkpoints: args.checkpoints.clone(),
-        model: load_model(args.model.as_deref())?,
+        model,
         from_checkpoint: args.from_checkpoint,
         allow_model_change: args.allow_model_change,
         checkpoint_every: args.checkpoint_every,
@@ -280,8 +467,15 @@ fn run_stage(args: &RunArgs) -> persist::Result<ExitCode> {
         },
         processed_utc: stage::processing_time(),
     };
-    let report = stage::run(&cfg, &|_| {});
-    if !args.quiet {
+    let report = stage::run_with(&cfg, &ops, &|_| {
+        if let Some(pb) = &ops.progress {
+            pb.inc(1);
+        }
+    });
+    if let Some(pb) = &ops.progress {
+        pb.finish_and_clear();
+    }
+    if !args.quiet && !args.watch {
         print_summary(&report);
     }
     Ok(finish(&report))
@@ -324,6 +518,16 @@ fn print_summary(report: &RunReport) {
 }
 
 fn finish(report: &RunReport) -> ExitCode {
+    if report.stopped {
+        eprintln!(
+            "persist: stopped by signal after {} exposure(s); checkpoints written",
+            report.processed
+        );
+        return ExitCode::SUCCESS;
+    }
+    for p in &report.quarantined {
+        eprintln!("persist: quarantined: {}", p.display());
+    }
     for p in &report.ignored_copies {
         eprintln!(
             "persist: {}: identical copy of a queued product, ignored",
@@ -338,7 +542,7 @@ fn finish(report: &RunReport) -> ExitCode {
     } else {
         eprintln!(
             "persist: {} exposure(s) processed, {} error(s)",
-            report.exposures.len(),
+            report.processed,
             report.errors.len()
         );
         ExitCode::from(1)

@@ -1,9 +1,15 @@
 //! The pipeline stage around the model: discover products, order each detector's
-//! history, run them through the model, publish outputs and checkpoints.
+//! history, run them through the model, publish outputs and checkpoints; watch a
+//! directory, quarantine bad inputs, lock the directories, report status.
 
 pub mod lock;
 pub mod quarantine;
 pub mod queue;
 pub mod run;
+pub mod status;
+pub mod watch;
 
-pub use run::{processing_time, run, ExposureReport, RunConfig, RunReport};
+pub use run::{
+    processing_time, run, run_with, Bookkeeping, ExposureReport, Ops, RunConfig, RunReport,
+    WatchOpts, DUPLICATE_WINDOW,
+};

@@ -1,31 +1,98 @@
 //! The stage loop: for each detector, in exposure-index order,
 //! read -> `Model::step` -> publish the output -> checkpoint.
 //!
-//! Detectors run in parallel (rayon), pixels in parallel inside the step. HDF5 calls are
-//! serialised by the library's global lock, so only the computation overlaps.
+//! # One code path for batch and watch
 //!
-//! Resumption: each detector starts from the newest checkpoint (or the one named with
+//! A [`Stage`] owns one long-lived [`Processor`] per detector (its state, bookkeeping,
+//! buffers and the queue of products waiting for their turn). Products are *observed*
+//! (root attributes read, routed to their detector's queue), then processors *advance*:
+//! each processes its queued products while the next one is ready (module rules below).
+//! Batch (`persist run`) is one scan of the input directory followed by one advance in
+//! which every gap is crossed at once (nothing more will arrive). Watch
+//! (`persist run --watch`, [`super::watch`]) observes products as they arrive and
+//! advances after every event or rescan, crossing a gap only after the gap timeout.
+//! Detectors advance in parallel (rayon), pixels in parallel inside the step; HDF5 calls
+//! are serialised by the library's global lock, so only the computation overlaps.
+//!
+//! # Resumption and crash safety
+//!
+//! Each detector starts from the newest checkpoint (or the one named with
 //! `--from-checkpoint`), and steps every later exposure. An exposure whose output is
 //! already published is stepped (the state needs it) but its output is not rewritten,
 //! except when reprocessing from a named checkpoint. Outputs are published before the
-//! checkpoint that includes them, so a crash between the two replays one exposure.
+//! checkpoint that includes them (both atomically: `.NAME.part`, validated, synced,
+//! renamed), so a crash anywhere replays at most the exposures after the newest
+//! checkpoint and rewrites the same bytes. The stop flag ([`Ops::stop`], set by
+//! SIGINT/SIGTERM) is checked between exposures: the exposure in hand is finished and a
+//! checkpoint written before the stage returns.
 //!
-//! History incomplete (bit 4): when an exposure is missing (its index is skipped) or
-//! was rejected, the exposures after it are marked until the largest amplitude the
-//! missing one could have added -- the knot table's maximum, added just before the next
-//! good exposure started -- has decayed below the low threshold (65,300 s for the
-//! default model). The deadline is carried in the checkpoint.
+//! # Ordering and the gap rule
+//!
+//! Within a detector, the next product is processed when its index is the last
+//! processed index + 1. A product further ahead *waits* while an index before it is
+//! missing. The gap is *crossed* (the product processed anyway) when
+//! - the run is a batch run (nothing more will arrive), or
+//! - every missing index in between was refused in this run (quarantined), or
+//! - the waiting product was first seen more than the gap timeout ago ([`Ops::gap_timeout`]).
+//!
+//! A fresh detector (no checkpoint) starts at index 0 at once, or at its lowest index
+//! after the gap timeout (watch) / at once (batch); indices below the start are late.
+//! Crossing a gap decays the state over the real elapsed time (the step decays from the
+//! previous reset to the new one) and records the crossed range in the bookkeeping.
+//!
+//! **History incomplete (bit 4).** After a crossed gap or a refused exposure, outputs are
+//! marked while their mid-exposure time is before the deadline `t_start(first exposure
+//! after the gap) + T`. `T` is the time the largest amplitude the missing exposure could
+//! have added (the knot table's maximum, added just before the next exposure started)
+//! takes to decay below the low threshold (65,300 s for the default model): after that
+//! the missing exposure cannot change any flag. The deadline is carried in the
+//! checkpoint, so it survives restarts.
+//!
+//! # Duplicates and late products
+//!
+//! - Two queued products with the same (detector, exposure index): identical bytes -> the
+//!   later-observed copy is ignored; different bytes -> the later one is refused loudly.
+//! - A product for an index already processed: the checkpoint's bookkeeping keeps the
+//!   SHA-256 of the file bytes of the last [`DUPLICATE_WINDOW`] processed exposures.
+//!   Same digest -> ignored (it is the same product seen again, e.g. by a rerun); other
+//!   digest -> refused as a different-content duplicate. Older than the window (and not
+//!   in a crossed gap) -> it cannot be compared: ignored, logged at debug level.
+//! - A product whose index lies in a crossed gap, or below the start of the history,
+//!   is *late*: refused, never mixed into the history.
+//!
+//! # Quarantine rule
+//!
+//! Every product refused for its content (HDF5 cannot read it, it breaks the ICD or the
+//! schema, it does not fit the history, a different-content duplicate, a late product)
+//! is moved to the quarantine directory (when [`Ops::quarantine`] is set) with a
+//! `NAME.reason.json` beside it ([`super::quarantine`]). A product that is not ready
+//! (still open for writing elsewhere: HDF5 "unable to lock file"; or its size or time
+//! changes between two looks) is retried, never quarantined. Failures to *write* (an
+//! output or checkpoint) stop that detector without a checkpoint, so that a restart
+//! replays from the last good one.
 
 use crate::checkpoint::{self, CheckpointMeta, Retention};
 use crate::error::{Error, ErrorKind, Result};
 use crate::model::{Input, Model, Output, State, StepSummary};
-use crate::product::{self, Exposure, PersistenceAttrs, PersistencePlanes};
-use crate::stage::queue::{self, Entry};
+use crate::product::{self, Exposure, ExposureMeta, PersistenceAttrs, PersistencePlanes};
+use crate::stage::{quarantine, queue};
 use crate::units::DetectorId;
 use ndarray::Array2;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
+use sha2::{Digest, Sha256};
+use std::collections::{BTreeMap, BTreeSet, HashMap};
 use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+use std::time::{Duration, Instant, SystemTime};
+
+/// How many processed exposures per detector keep their input digest in the checkpoint
+/// bookkeeping, to tell an identical re-delivery from a different-content duplicate.
+pub const DUPLICATE_WINDOW: usize = 64;
+
+/// How long a product that HDF5 could not lock waits before it is tried again.
+const RETRY_NOT_READY: Duration = Duration::from_millis(500);
 
 /// Everything a run needs.
 #[derive(Debug, Clone)]
@@ -38,11 +105,51 @@ pub struct RunConfig {
     pub from_checkpoint: Option<(DetectorId, u64)>,
     /// Continue from checkpoints made with another model.
     pub allow_model_change: bool,
-    /// Write a checkpoint every this many exposures (>= 1), and always at the end.
+    /// Write a checkpoint every this many exposures (>= 1), and always when idle or
+    /// stopping.
     pub checkpoint_every: u64,
     pub retention: Retention,
     /// Recorded as the processing time in every output of this run.
     pub processed_utc: String,
+}
+
+/// How the stage is operated (beyond what it computes).
+#[derive(Debug, Clone)]
+pub struct Ops {
+    /// Move refused products here (with a reason file); `None`: leave them in place and
+    /// only report them.
+    pub quarantine: Option<PathBuf>,
+    /// Watch the input directory instead of one batch scan.
+    pub watch: Option<WatchOpts>,
+    /// A product waiting behind a missing index waits at most this long (watch only)
+    /// from when it was first seen.
+    pub gap_timeout: Duration,
+    /// Set (by a signal handler) to stop after the exposure in hand.
+    pub stop: Arc<AtomicBool>,
+    /// Progress of a batch run (its length is set once the products are queued).
+    pub progress: Option<indicatif::ProgressBar>,
+}
+
+impl Default for Ops {
+    fn default() -> Self {
+        Ops {
+            quarantine: None,
+            watch: None,
+            gap_timeout: Duration::from_secs(600),
+            stop: Arc::new(AtomicBool::new(false)),
+            progress: None,
+        }
+    }
+}
+
+/// Watch mode settings.
+#[derive(Debug, Clone)]
+pub struct WatchOpts {
+    /// Rescan the input directory this often (the polling fallback, and the check on
+    /// files written in place).
+    pub poll_interval: Duration,
+    /// Use file system events (inotify through `notify`); `false`: polling only.
+    pub events: bool,
 }
 
 /// What happened to one exposure.
@@ -62,6 +169,12 @@ pub struct RunReport {
     pub exposures: Vec<ExposureReport>,
     pub errors: Vec<Error>,
     pub ignored_copies: Vec<PathBuf>,
+    /// Where refused products were moved.
+    pub quarantined: Vec<PathBuf>,
+    /// The run was stopped by [`Ops::stop`].
+    pub stopped: bool,
+    /// Exposures processed (in watch mode `exposures` is not kept, this count is).
+    pub processed: u64,
 }
 
 /// The stage's own bookkeeping carried in each checkpoint (`stage_json`).
@@ -73,6 +186,13 @@ pub struct Bookkeeping {
     /// or rejected): a product for one of them that turns up later is late.
     #[serde(default)]
     pub crossed: Vec<(u64, u64)>,
+    /// The first exposure index of this history (products below it are late).
+    #[serde(default)]
+    pub first_index: Option<u64>,
+    /// SHA-256 (hex) of the input file of each of the last [`DUPLICATE_WINDOW`]
+    /// processed exposures, by index.
+    #[serde(default)]
+    pub digests: BTreeMap<u64, String>,
 }
 
 impl Bookkeeping {
@@ -91,39 +211,328 @@ pub fn processing_time() -> String {
     t.to_rfc3339_opts(chrono::SecondsFormat::Micros, true)
 }
 
-/// Process every product in `cfg.input`.
+/// SHA-256 (hex) of a file's bytes.
+pub fn file_digest(path: &Path) -> Result<String> {
+    use std::io::Read;
+    let mut f = std::fs::File::open(path).map_err(|e| Error::io(path, e))?;
+    let mut h = Sha256::new();
+    let mut buf = vec![0u8; 1 << 20];
+    loop {
+        let n = f.read(&mut buf).map_err(|e| Error::io(path, e))?;
+        if n == 0 {
+            break;
+        }
+        h.update(&buf[..n]);
+    }
+    Ok(h.finalize().iter().map(|b| format!("{b:02x}")).collect())
+}
+
+/// Process every product in `cfg.input` once (batch, no quarantine).
 pub fn run(cfg: &RunConfig, on_exposure: &(dyn Fn(&ExposureReport) + Sync)) -> RunReport {
-    let mut report = RunReport::default();
+    run_with(cfg, &Ops::default(), on_exposure)
+}
+
+/// Run the stage as `ops` says: one batch, or watching until [`Ops::stop`].
+pub fn run_with(
+    cfg: &RunConfig,
+    ops: &Ops,
+    on_exposure: &(dyn Fn(&ExposureReport) + Sync),
+) -> RunReport {
+    let mut stage = Stage::new(cfg, ops, on_exposure);
     for dir in [&cfg.output, &cfg.checkpoints] {
         if let Err(e) = std::fs::create_dir_all(dir) {
-            report.errors.push(Error::io(dir, e));
-            return report;
+            stage.report.errors.push(Error::io(dir, e));
+            return stage.report;
         }
     }
-    let files = match queue::candidates(&cfg.input) {
-        Ok(f) => f,
-        Err(e) => {
-            report.errors.push(e);
-            return report;
-        }
-    };
-    let plan = queue::plan(&files, product::read::read_meta);
-    report.errors.extend(plan.errors);
-    report.ignored_copies = plan.ignored_copies;
-    let results: Vec<(Vec<ExposureReport>, Vec<Error>)> = plan
-        .detectors
-        .into_par_iter()
-        .map(|(det, entries)| {
-            let mut d = Detector::new(cfg, det, on_exposure);
-            d.run(&entries);
-            (d.reports, d.errors)
-        })
-        .collect();
-    for (r, e) in results {
-        report.exposures.extend(r);
-        report.errors.extend(e);
+    if !cfg.input.is_dir() {
+        stage
+            .report
+            .errors
+            .push(Error::new(ErrorKind::Usage, "input is not a directory").path(&cfg.input));
+        return stage.report;
     }
-    report
+    match &ops.watch {
+        None => {
+            stage.scan(Instant::now(), true);
+            if let Some(pb) = &ops.progress {
+                pb.set_length(stage.backlog() as u64);
+            }
+            stage.advance(Instant::now(), true);
+            for p in stage.detectors.values() {
+                if let Some((&next, _)) = p.pending.first_key_value() {
+                    if !p.dead && !ops.stop.load(Ordering::SeqCst) {
+                        stage.report.errors.push(
+                            Error::new(
+                                ErrorKind::NotReady,
+                                format!(
+                                    "{} product(s) from exposure {next} on left for the next run",
+                                    p.pending.len()
+                                ),
+                            )
+                            .detector(p.det),
+                        );
+                    }
+                }
+            }
+        }
+        Some(w) => super::watch::watch(&mut stage, w),
+    }
+    stage.report.stopped = ops.stop.load(Ordering::SeqCst);
+    stage.report
+}
+
+/// (size, modification time) of a file: what tells a rescan that it changed.
+pub(crate) type FileKey = (u64, Option<SystemTime>);
+
+pub(crate) fn file_key(path: &Path) -> std::io::Result<FileKey> {
+    let m = std::fs::metadata(path)?;
+    Ok((m.len(), m.modified().ok()))
+}
+
+/// The stage: every detector's processor, and what has been seen of the input.
+pub struct Stage<'a> {
+    pub(crate) cfg: &'a RunConfig,
+    pub(crate) ops: &'a Ops,
+    on_exposure: &'a (dyn Fn(&ExposureReport) + Sync),
+    detectors: BTreeMap<DetectorId, Processor<'a>>,
+    /// Files already observed (queued, processed, ignored), by path: a rescan skips a
+    /// file whose key did not change, so it does not re-read thousands of headers.
+    seen: HashMap<PathBuf, FileKey>,
+    /// Files found by a rescan (not announced by an event), waiting for a second look
+    /// with the same key before they are read.
+    unsettled: HashMap<PathBuf, FileKey>,
+    /// Output file names in use, and the (detector, index) they belong to.
+    names: HashMap<std::ffi::OsString, (DetectorId, u64)>,
+    pub(crate) report: RunReport,
+}
+
+impl<'a> Stage<'a> {
+    fn new(
+        cfg: &'a RunConfig,
+        ops: &'a Ops,
+        on_exposure: &'a (dyn Fn(&ExposureReport) + Sync),
+    ) -> Self {
+        Stage {
+            cfg,
+            ops,
+            on_exposure,
+            detectors: BTreeMap::new(),
+            seen: HashMap::new(),
+            unsettled: HashMap::new(),
+            names: HashMap::new(),
+            report: RunReport::default(),
+        }
+    }
+
+    /// Products queued and not processed yet.
+    pub(crate) fn backlog(&self) -> usize {
+        self.detectors.values().map(|p| p.pending.len()).sum()
+    }
+
+    /// Walk the input directory. `settled`: read every new or changed file now (the
+    /// first scan, and batch runs); otherwise a file found only by the scan is read once
+    /// a second scan sees the same size and time (it may still be being written).
+    pub(crate) fn scan(&mut self, now: Instant, settled: bool) {
+        let files = match queue::candidates(&self.cfg.input) {
+            Ok(f) => f,
+            Err(e) => {
+                tracing::error!(error = %e, "cannot scan the input directory");
+                self.report.errors.push(e);
+                return;
+            }
+        };
+        for path in files {
+            let Ok(key) = file_key(&path) else { continue };
+            if self.seen.get(&path) == Some(&key) {
+                continue;
+            }
+            if !settled && self.unsettled.get(&path) != Some(&key) {
+                self.unsettled.insert(path, key);
+                continue;
+            }
+            self.unsettled.remove(&path);
+            self.observe(&path, key, now);
+        }
+    }
+
+    /// A file announced complete (renamed into place): read it now.
+    pub(crate) fn observe_path(&mut self, path: &Path, now: Instant) {
+        let Ok(key) = file_key(path) else { return };
+        if self.seen.get(path) == Some(&key) {
+            return;
+        }
+        self.unsettled.remove(path);
+        self.observe(path, key, now);
+    }
+
+    fn observe(&mut self, path: &Path, key: FileKey, now: Instant) {
+        self.seen.insert(path.to_path_buf(), key);
+        let meta = match product::read::read_meta(path) {
+            Ok(m) => m,
+            Err(e) if matches!(e.kind, ErrorKind::NotReady | ErrorKind::Io) => {
+                self.not_ready(path, e);
+                return;
+            }
+            Err(e) => {
+                // A file that changed while being read was still being written.
+                if file_key(path).ok() != Some(key) {
+                    self.not_ready(path, e);
+                } else {
+                    self.refuse(path, e);
+                }
+                return;
+            }
+        };
+        let key_of = (meta.detector, meta.exposure_index);
+        let name = path.file_name().unwrap_or_default().to_os_string();
+        if let Some(other) = self.names.get(&name).filter(|&&k| k != key_of) {
+            let e = Error::new(
+                ErrorKind::Sequence,
+                format!(
+                    "same file name as the product of detector {} exposure {}: the output names would collide",
+                    other.0, other.1
+                ),
+            )
+            .field("file name");
+            self.refuse(path, e);
+            return;
+        }
+        let cfg = self.cfg;
+        let on_exposure = self.on_exposure;
+        let ops = self.ops;
+        let proc = self
+            .detectors
+            .entry(meta.detector)
+            .or_insert_with(|| Processor::new(cfg, ops, meta.detector, on_exposure));
+        proc.ensure_started();
+        let offer = proc.offer(path, meta, now);
+        self.collect();
+        match offer {
+            Offer::Queued => {
+                self.names.insert(name, key_of);
+            }
+            Offer::Known => {}
+            Offer::IgnoredCopy(of) => {
+                tracing::info!(path = %path.display(), copy_of = %of.display(),
+                    detector = key_of.0 .0, exposure_index = key_of.1,
+                    "identical copy of a queued product: ignored");
+                self.report.ignored_copies.push(path.to_path_buf());
+            }
+            Offer::AlreadyProcessed => {
+                tracing::debug!(path = %path.display(), detector = key_of.0 .0,
+                    exposure_index = key_of.1, "already processed: ignored");
+            }
+            Offer::Refused(e) => self.refuse(path, e),
+            Offer::Failed(e) => {
+                tracing::error!(error = %e, "cannot queue");
+                self.report.errors.push(e.path(path));
+            }
+            Offer::Dead => {}
+        }
+    }
+
+    /// Not ready (still being written, or vanished): forget it, a later look retries.
+    fn not_ready(&mut self, path: &Path, e: Error) {
+        let batch = self.ops.watch.is_none();
+        tracing::debug!(path = %path.display(), error = %e, "not ready; will retry");
+        self.seen.remove(path);
+        if batch {
+            self.report.errors.push(e.path(path));
+        }
+    }
+
+    /// Refuse a product for its content: report it and move it aside.
+    fn refuse(&mut self, path: &Path, e: Error) {
+        let e = e.path(path);
+        // Not moved aside: stays in the cache, so it is not refused again until it
+        // changes.
+        if let Some(q) = &self.ops.quarantine {
+            match quarantine::quarantine(q, path, &e) {
+                Ok(to) => {
+                    self.seen.remove(path);
+                    tracing::warn!(path = %path.display(), quarantined = %to.display(),
+                        kind = ?e.kind, field = e.context.field.as_deref().unwrap_or(""),
+                        reason = %e.message, "refused: quarantined");
+                    self.report.quarantined.push(to);
+                }
+                Err(qe) => {
+                    tracing::error!(path = %path.display(), error = %qe, "refused, and could not be quarantined");
+                    self.report.errors.push(qe);
+                }
+            }
+        } else {
+            tracing::warn!(error = %e, "refused");
+        }
+        self.report.errors.push(e);
+    }
+
+    /// Move what the processors produced into the report; refuse what they refused.
+    fn collect(&mut self) {
+        let mut refused = Vec::new();
+        let mut retry = Vec::new();
+        let watching = self.ops.watch.is_some();
+        for p in self.detectors.values_mut() {
+            self.report.processed += p.reports.len() as u64;
+            if watching {
+                // Weeks of reports are not kept: the logs have them.
+                p.reports.clear();
+            }
+            self.report.exposures.append(&mut p.reports);
+            self.report.errors.append(&mut p.errors);
+            refused.append(&mut p.refused_files);
+            retry.append(&mut p.forget);
+        }
+        for path in retry {
+            self.seen.remove(&path);
+        }
+        for (path, e) in refused {
+            self.refuse(&path, e);
+        }
+    }
+
+    /// Let every detector process what is ready (in parallel). `final_`: nothing more will
+    /// arrive, cross every gap.
+    pub(crate) fn advance(&mut self, now: Instant, final_: bool) {
+        self.detectors
+            .par_iter_mut()
+            .for_each(|(_, p)| p.advance(now, final_));
+        self.collect();
+    }
+
+    /// Per detector: (detector, last processed index, queued indices).
+    pub(crate) fn waiting(&self) -> Vec<(DetectorId, Option<u64>, Vec<u64>)> {
+        self.detectors
+            .values()
+            .map(|p| (p.det, p.last(), p.pending.keys().copied().collect()))
+            .collect()
+    }
+}
+
+/// What became of an observed product.
+enum Offer {
+    Queued,
+    /// The same file, already queued.
+    Known,
+    IgnoredCopy(PathBuf),
+    AlreadyProcessed,
+    Refused(Error),
+    Failed(Error),
+    /// The detector cannot go on (its checkpoint is unusable, or an output failed).
+    Dead,
+}
+
+/// A product waiting for its turn.
+struct Pending {
+    path: PathBuf,
+    meta: ExposureMeta,
+    /// When it was first seen (the gap timeout counts from here).
+    seen: Instant,
+    digest: Option<String>,
+    /// (size, mtime) when observed: a file that changed since was still being written.
+    key: Option<FileKey>,
+    /// Not ready: do not try before this.
+    retry_at: Option<Instant>,
 }
 
 /// Why one exposure was not completed.
@@ -134,27 +543,92 @@ enum Failure {
     Output(Error),
 }
 
-/// One detector's history being processed.
-struct Detector<'a> {
+/// One detector's history being processed: long-lived, fed products as they come.
+struct Processor<'a> {
     cfg: &'a RunConfig,
+    ops: &'a Ops,
     det: DetectorId,
     on_exposure: &'a (dyn Fn(&ExposureReport) + Sync),
+    started: bool,
+    dead: bool,
+    state: Option<State>,
+    book: Bookkeeping,
+    buffers: Option<PersistencePlanes>,
+    pending: BTreeMap<u64, Pending>,
+    /// Indices refused in this run: no need to wait for them.
+    refused: BTreeSet<u64>,
+    gap_before: bool,
+    unsaved: u64,
+    reprocess: bool,
+    // Produced since the last collect:
     reports: Vec<ExposureReport>,
     errors: Vec<Error>,
+    refused_files: Vec<(PathBuf, Error)>,
+    forget: Vec<PathBuf>,
 }
 
-impl<'a> Detector<'a> {
+impl<'a> Processor<'a> {
     fn new(
         cfg: &'a RunConfig,
+        ops: &'a Ops,
         det: DetectorId,
         on_exposure: &'a (dyn Fn(&ExposureReport) + Sync),
     ) -> Self {
-        Detector {
+        Processor {
             cfg,
+            ops,
             det,
             on_exposure,
+            started: false,
+            dead: false,
+            state: None,
+            book: Bookkeeping::default(),
+            buffers: None,
+            pending: BTreeMap::new(),
+            refused: BTreeSet::new(),
+            gap_before: false,
+            unsaved: 0,
+            reprocess: matches!(cfg.from_checkpoint, Some((d, _)) if d == det),
             reports: Vec::new(),
             errors: Vec::new(),
+            refused_files: Vec::new(),
+            forget: Vec::new(),
+        }
+    }
+
+    fn last(&self) -> Option<u64> {
+        self.state.as_ref().and_then(|s| s.last_index)
+    }
+
+    fn ensure_started(&mut self) {
+        if self.started {
+            return;
+        }
+        self.started = true;
+        match self.start() {
+            Ok(Some((s, b))) => {
+                tracing::info!(
+                    detector = self.det.0,
+                    exposure_index = s.last_index,
+                    "resuming from checkpoint"
+                );
+                self.state = Some(s);
+                self.book = b;
+                // A crash between a checkpoint and its pruning leaves old ones behind:
+                // prune now, or a history with nothing left to process never would.
+                if let Err(e) =
+                    checkpoint::prune(&self.cfg.checkpoints, self.det, &self.cfg.retention)
+                {
+                    tracing::error!(error = %e, "pruning checkpoints failed");
+                    self.errors.push(e.detector(self.det));
+                }
+            }
+            Ok(None) => {}
+            Err(e) => {
+                tracing::error!(error = %e, "detector cannot start");
+                self.errors.push(e.detector(self.det));
+                self.dead = true;
+            }
         }
     }
 
@@ -202,87 +676,239 @@ impl<'a> Detector<'a> {
             .path(&path));
         }
         let book: Bookkeeping = serde_json::from_str(&meta.stage_json).map_err(|e| {
-            Error::new(ErrorKind::Checkpoint, format!("stage_json: {e}")).path(&path)
+            Error::new(ErrorKind::Checkpoint, format!("stage_json: {e}"))
+                .path(&path)
+                .field("stage_json")
         })?;
         Ok(Some((state, book)))
     }
 
-    fn run(&mut self, entries: &[Entry]) {
-        let (mut state, mut book) = match self.start() {
-            Ok(Some((s, b))) => (Some(s), b),
-            Ok(None) => (None, Bookkeeping::default()),
-            Err(e) => {
-                self.errors.push(e.detector(self.det));
-                return;
-            }
+    /// Decide what to do with a newly observed product (module docs: duplicates, late).
+    fn offer(&mut self, path: &Path, meta: ExposureMeta, now: Instant) -> Offer {
+        if self.dead {
+            return Offer::Dead;
+        }
+        let index = meta.exposure_index;
+        let err = |kind: ErrorKind, msg: String| {
+            Error::new(kind, msg)
+                .path(path)
+                .field("exposure_index")
+                .detector(self.det)
+                .exposure(index)
         };
-        let reprocess = matches!(self.cfg.from_checkpoint, Some((d, _)) if d == self.det);
-        let mut gap_before = false;
-        let mut unsaved = 0u64;
-        let mut buffers: Option<PersistencePlanes> = None;
-        for entry in entries {
-            let index = entry.meta.exposure_index;
-            let last = state.as_ref().and_then(|s| s.last_index);
-            if let Some(l) = last.filter(|&l| index <= l) {
-                if book.was_crossed(index) {
-                    // Its place in the history was passed as missing or rejected.
-                    self.errors.push(
-                        Error::new(
-                            ErrorKind::Sequence,
-                            format!(
-                                "arrived after its gap was crossed (exposure {l} already processed): refused (late product)"
-                            ),
-                        )
-                        .path(&entry.path)
-                        .field("exposure_index")
-                        .detector(self.det)
-                        .exposure(index),
+        if let Some(last) = self.last().filter(|&l| index <= l) {
+            if let Some(d) = self.book.digests.get(&index) {
+                return match file_digest(path) {
+                    Ok(x) if &x == d => Offer::AlreadyProcessed,
+                    Ok(_) => Offer::Refused(err(
+                        ErrorKind::Sequence,
+                        format!(
+                            "duplicate of exposure {index}, already processed, with different content (SHA-256 differs): refused"
+                        ),
+                    )),
+                    Err(e) => Offer::Failed(e),
+                };
+            }
+            if self.book.was_crossed(index) {
+                return Offer::Refused(err(
+                    ErrorKind::Sequence,
+                    format!(
+                        "late product: arrived after its gap was crossed (exposure {last} already processed): refused"
+                    ),
+                ));
+            }
+            if self.book.first_index.is_some_and(|f| index < f) {
+                return Offer::Refused(err(
+                    ErrorKind::Sequence,
+                    format!(
+                        "late product: before the first exposure of this history ({}): refused",
+                        self.book.first_index.unwrap_or_default()
+                    ),
+                ));
+            }
+            return Offer::AlreadyProcessed;
+        }
+        if let Some(p) = self.pending.get_mut(&index) {
+            if p.path == path {
+                // The same file seen again (changed in place): take its new attributes.
+                p.meta = meta;
+                p.digest = None;
+                p.key = file_key(path).ok();
+                return Offer::Known;
+            }
+            let first = match &p.digest {
+                Some(d) => Ok(d.clone()),
+                None => file_digest(&p.path),
+            };
+            return match (first, file_digest(path)) {
+                (Ok(a), Ok(b)) if a == b => {
+                    p.digest = Some(a);
+                    Offer::IgnoredCopy(p.path.clone())
+                }
+                (Ok(a), Ok(_)) => {
+                    p.digest = Some(a);
+                    Offer::Refused(err(
+                        ErrorKind::Sequence,
+                        format!(
+                            "duplicate of {} (same detector and exposure index) with different content: refused",
+                            p.path.display()
+                        ),
+                    ))
+                }
+                (Err(e), _) | (_, Err(e)) => Offer::Failed(e),
+            };
+        }
+        self.pending.insert(
+            index,
+            Pending {
+                path: path.to_path_buf(),
+                meta,
+                seen: now,
+                digest: None,
+                key: file_key(path).ok(),
+                retry_at: None,
+            },
+        );
+        Offer::Queued
+    }
+
+    /// Is the first queued product's turn? (module docs: the gap rule)
+    fn ready(&self, next: u64, p: &Pending, now: Instant, final_: bool) -> bool {
+        if p.retry_at.is_some_and(|t| now < t) {
+            return false;
+        }
+        let timed_out = now.saturating_duration_since(p.seen) >= self.ops.gap_timeout;
+        match self.last() {
+            Some(l) if next == l + 1 => true,
+            Some(l) => final_ || timed_out || (l + 1..next).all(|i| self.refused.contains(&i)),
+            None => {
+                next == 0 || final_ || timed_out || (0..next).all(|i| self.refused.contains(&i))
+            }
+        }
+    }
+
+    fn advance(&mut self, now: Instant, final_: bool) {
+        if self.dead || !self.started {
+            return;
+        }
+        let every = self.cfg.checkpoint_every.max(1);
+        loop {
+            if self.ops.stop.load(Ordering::SeqCst) {
+                break;
+            }
+            let Some((&next, p)) = self.pending.first_key_value() else {
+                break;
+            };
+            if !self.ready(next, p, now, final_) {
+                break;
+            }
+            let Some(mut entry) = self.pending.remove(&next) else {
+                break;
+            };
+            let last = self.last();
+            if let Some(l) = last.filter(|&l| next != l + 1) {
+                self.gap_before = true;
+                if !(l + 1..next).all(|i| self.refused.contains(&i)) {
+                    tracing::warn!(
+                        detector = self.det.0,
+                        from = l + 1,
+                        to = next - 1,
+                        "gap crossed: exposures missing; going on, history incomplete"
                     );
                 }
-                continue; // otherwise already part of the state we resumed from
             }
-            if last.is_some_and(|l| index != l + 1) {
-                gap_before = true;
-            }
-            match self.one(
-                entry,
-                &mut state,
-                &mut book,
-                &mut buffers,
-                gap_before,
-                reprocess,
-            ) {
+            match self.one(&mut entry) {
                 Ok(report) => {
-                    gap_before = false;
-                    (self.on_exposure)(&report);
-                    self.reports.push(report);
-                    unsaved += 1;
-                    if unsaved >= self.cfg.checkpoint_every.max(1) {
-                        if let Some(s) = &state {
-                            match self.save(s, &book) {
-                                Ok(()) => unsaved = 0,
-                                Err(e) => self.errors.push(e),
-                            }
+                    self.gap_before = false;
+                    if self.book.first_index.is_none() && last.is_none() {
+                        self.book.first_index = Some(next);
+                    }
+                    if let Some(d) = entry.digest.take() {
+                        self.book.digests.insert(next, d);
+                        while self.book.digests.len() > DUPLICATE_WINDOW {
+                            self.book.digests.pop_first();
                         }
                     }
+                    tracing::info!(detector = self.det.0, exposure_index = next,
+                        path = %entry.path.display(),
+                        above_high = report.summary.above_high,
+                        above_low = report.summary.above_low,
+                        history_incomplete = report.history_incomplete,
+                        written = report.written, "processed");
+                    (self.on_exposure)(&report);
+                    self.reports.push(report);
+                    self.unsaved += 1;
+                    if self.unsaved >= every {
+                        self.save_now();
+                    }
+                }
+                Err(Failure::Input(e))
+                    if e.kind != ErrorKind::NotReady
+                        && entry.key.is_some()
+                        && file_key(&entry.path).ok() != entry.key =>
+                {
+                    // It changed since it was observed: still being written, not bad.
+                    tracing::debug!(path = %entry.path.display(), error = %e,
+                        "changed since observed; will retry");
+                    if final_ {
+                        self.errors
+                            .push(e.path(&entry.path).detector(self.det).exposure(next));
+                    } else {
+                        self.forget.push(entry.path);
+                    }
+                    break;
+                }
+                Err(Failure::Input(e)) if e.kind == ErrorKind::NotReady => {
+                    if final_ {
+                        self.errors
+                            .push(e.path(&entry.path).detector(self.det).exposure(next));
+                        break;
+                    }
+                    tracing::debug!(path = %entry.path.display(), error = %e, "not ready; will retry");
+                    if e.message.contains("changed while being queued") {
+                        self.forget.push(entry.path);
+                    } else {
+                        entry.retry_at = Some(now + RETRY_NOT_READY);
+                        self.pending.insert(next, entry);
+                    }
+                    break;
+                }
+                Err(Failure::Input(e)) if e.kind == ErrorKind::Io => {
+                    // Vanished or unreadable: not its content; forget it (a reappearance
+                    // is observed anew), the gap rule decides about its place.
+                    tracing::error!(error = %e, "cannot read");
+                    self.errors
+                        .push(e.path(&entry.path).detector(self.det).exposure(next));
+                    self.forget.push(entry.path);
                 }
                 Err(Failure::Input(e)) => {
-                    gap_before = true;
-                    self.errors
-                        .push(e.path(&entry.path).detector(self.det).exposure(index));
+                    self.gap_before = true;
+                    self.refused.insert(next);
+                    self.refused_files
+                        .push((entry.path.clone(), e.detector(self.det).exposure(next)));
                 }
                 Err(Failure::Output(e)) => {
                     // The state already holds this exposure but its output is not
                     // published: stop this detector without a checkpoint, so that the
                     // next run replays from the last checkpoint.
-                    self.errors.push(e.detector(self.det).exposure(index));
+                    tracing::error!(error = %e, detector = self.det.0, "output failed: detector stopped");
+                    self.errors.push(e.detector(self.det).exposure(next));
+                    self.dead = true;
                     return;
                 }
             }
         }
-        if unsaved > 0 {
-            if let Some(s) = &state {
-                if let Err(e) = self.save(s, &book) {
+        if self.unsaved > 0 {
+            self.save_now();
+        }
+    }
+
+    fn save_now(&mut self) {
+        if let Some(s) = &self.state {
+            match self.save(s, &self.book) {
+                Ok(()) => self.unsaved = 0,
+                Err(e) => {
+                    tracing::error!(error = %e, "checkpoint failed");
                     self.errors.push(e);
                 }
             }
@@ -290,28 +916,29 @@ impl<'a> Detector<'a> {
     }
 
     /// Read, step, publish one exposure.
-    fn one(
-        &self,
-        entry: &Entry,
-        state: &mut Option<State>,
-        book: &mut Bookkeeping,
-        buffers: &mut Option<PersistencePlanes>,
-        gap_before: bool,
-        reprocess: bool,
-    ) -> Result<ExposureReport, Failure> {
+    fn one(&mut self, entry: &mut Pending) -> Result<ExposureReport, Failure> {
         let model = &self.cfg.model;
         let mut exposure: Exposure =
             product::read::read_exposure(&entry.path).map_err(Failure::Input)?;
         let meta = exposure.meta.clone();
         if meta != entry.meta {
-            return Err(Failure::Input(Error::new(
-                ErrorKind::NotReady,
-                "changed while being queued; will be retried",
-            )));
+            return Err(Failure::Input(
+                Error::new(
+                    ErrorKind::NotReady,
+                    "changed while being queued; will be retried",
+                )
+                .path(&entry.path),
+            ));
         }
+        if entry.digest.is_none() {
+            entry.digest = Some(file_digest(&entry.path).map_err(Failure::Input)?);
+        }
+        let out_path = self.output_path(&entry.path);
         let shape = exposure.image.dim();
-        let st = state.get_or_insert_with(|| model.new_state(shape.0, shape.1));
-        let planes = buffers.get_or_insert_with(|| PersistencePlanes {
+        let st = self
+            .state
+            .get_or_insert_with(|| model.new_state(shape.0, shape.1));
+        let planes = self.buffers.get_or_insert_with(|| PersistencePlanes {
             current_e_per_s: Array2::zeros(shape),
             flags: Array2::zeros(shape),
         });
@@ -321,8 +948,10 @@ impl<'a> Detector<'a> {
                 flags: Array2::zeros(shape),
             };
         }
+        let book = &mut self.book;
         let t_mid = meta.t_start.0 + 0.5 * meta.t_exposure_s;
-        if gap_before {
+        let mut until = book.history_incomplete_until_unix_s;
+        if self.gap_before {
             let t_cross = model
                 .exp_sum()
                 .crossing_time_s(
@@ -330,15 +959,10 @@ impl<'a> Detector<'a> {
                     model.params().thresholds.low_e_per_s,
                 )
                 .unwrap_or(f64::INFINITY);
-            let until = meta.t_start.0 + t_cross;
-            book.history_incomplete_until_unix_s = Some(
-                book.history_incomplete_until_unix_s
-                    .map_or(until, |u| u.max(until)),
-            );
+            let u = meta.t_start.0 + t_cross;
+            until = Some(until.map_or(u, |x| x.max(u)));
         }
-        let history_incomplete = book
-            .history_incomplete_until_unix_s
-            .is_some_and(|u| t_mid < u);
+        let history_incomplete = until.is_some_and(|u| t_mid < u);
         let input = Input {
             image_e_per_s: exposure.image.view(),
             exposure_index: meta.exposure_index,
@@ -361,6 +985,7 @@ impl<'a> Detector<'a> {
                 },
             )
             .map_err(Failure::Input)?;
+        book.history_incomplete_until_unix_s = until;
         exposure.flags = flags;
         if let Some(prev) = summary
             .previous_index
@@ -368,8 +993,7 @@ impl<'a> Detector<'a> {
         {
             book.crossed.push((prev + 1, meta.exposure_index - 1));
         }
-        let out_path = self.output_path(&entry.path);
-        let written = if out_path.exists() && !reprocess {
+        let written = if out_path.exists() && !self.reprocess {
             false
         } else {
             let attrs = PersistenceAttrs {
@@ -402,13 +1026,16 @@ impl<'a> Detector<'a> {
 
     fn save(&self, state: &State, book: &Bookkeeping) -> Result<()> {
         let model = &self.cfg.model;
+        let stage_json = serde_json::to_string(book).map_err(|e| {
+            Error::new(ErrorKind::Checkpoint, format!("bookkeeping: {e}")).field("stage_json")
+        })?;
         let meta = CheckpointMeta {
             detector: self.det,
             exposure_index: state.last_index.unwrap_or(0),
             model_id: model.identity().to_string(),
             model_name: model.params().name.clone(),
             model_json: model.params().canonical_json(),
-            stage_json: serde_json::to_string(book).expect("bookkeeping serialises"),
+            stage_json,
             software_version: crate::VERSION.to_string(),
         };
         checkpoint::save(&self.cfg.checkpoints, &meta, state)?;

@@ -1,0 +1,199 @@
+//! Shared by the `ops_*` tests: a deterministic product stream, the real binary, and
+//! directory comparisons.
+#![allow(dead_code)]
+
+use ndarray::Array2;
+use persist::flags::bits;
+use persist::product::{Exposure, ExposureMeta};
+use persist::units::{DetectorId, UtcSeconds};
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+/// Fixed processing time, so that outputs are byte-comparable between runs.
+pub const SOURCE_DATE_EPOCH: &str = "1772409600";
+
+pub const T_EXPOSURE_S: f64 = 112.0;
+pub const SLEW_S: f64 = 30.0;
+
+pub fn t_start(det: u8, k: u64) -> f64 {
+    let t0 = UtcSeconds::parse("2026-03-01T00:00:00Z").unwrap().0;
+    t0 + f64::from(det) * 7.5 + k as f64 * (T_EXPOSURE_S + SLEW_S)
+}
+
+/// A small exposure with something to flag: a bright spot that moves, a saturated pixel
+/// with no slope, a transient every seventh exposure, a dead pixel.
+pub fn exposure(det: u8, k: u64, n: usize) -> Exposure {
+    let mut image = Array2::from_shape_fn((n, n), |(y, x)| {
+        1.0 + ((y * 7 + x * 3 + k as usize * 5 + det as usize) % 13) as f32 * 0.1
+    });
+    let mut flags = Array2::<u32>::zeros((n, n));
+    let ku = k as usize;
+    image[((ku * 3) % n, (ku * 5 + 1) % n)] = 3.0e4;
+    image[((ku * 5 + 2) % n, (ku * 3) % n)] = 800.0;
+    let sat = ((ku * 7 + 3) % n, (ku * 11 + 2) % n);
+    image[sat] = f32::NAN;
+    flags[sat] |= bits::SUR_ERROR | bits::OVERFLOW;
+    if k % 7 == 3 {
+        image[(n / 2, n / 3)] = 50.0;
+        flags[(n / 2, n / 3)] |= bits::TRANSIENT;
+    }
+    image[(n - 1, 0)] = f32::NAN;
+    flags[(n - 1, 0)] |= bits::NONFUNC;
+    let t_start_utc = UtcSeconds(t_start(det, k)).to_iso();
+    Exposure {
+        meta: ExposureMeta {
+            detector: DetectorId(det),
+            exposure_index: k,
+            t_start: UtcSeconds::parse(&t_start_utc).unwrap(),
+            t_start_utc,
+            t_exposure_s: T_EXPOSURE_S,
+            focal_plane_temp_k: Some(80.0),
+            t_illuminated_s: None,
+        },
+        image,
+        flags,
+        ramp: None,
+        ramp_times_s: None,
+    }
+}
+
+pub fn name(det: u8, k: u64) -> String {
+    format!("l1_det{det}_exp{k:04}.h5")
+}
+
+/// Write exposures `ks` of each detector into `dir`; returns the paths.
+pub fn write_stream(dir: &Path, dets: &[u8], ks: std::ops::Range<u64>, n: usize) -> Vec<PathBuf> {
+    std::fs::create_dir_all(dir).unwrap();
+    let mut out = Vec::new();
+    for &d in dets {
+        for k in ks.clone() {
+            let p = dir.join(name(d, k));
+            persist::product::write::write_exposure(&p, &exposure(d, k, n)).unwrap();
+            out.push(p);
+        }
+    }
+    out
+}
+
+pub fn bin() -> Command {
+    let mut c = Command::new(env!("CARGO_BIN_EXE_persist"));
+    c.env("SOURCE_DATE_EPOCH", SOURCE_DATE_EPOCH)
+        .env_remove("PERSIST_LOG")
+        .env_remove("RUST_LOG");
+    c
+}
+
+/// `persist run` arguments for a root holding `out/` and `ckpt/`.
+pub fn run_args(input: &Path, root: &Path) -> Vec<String> {
+    vec![
+        "run".into(),
+        "--input".into(),
+        input.display().to_string(),
+        "--output".into(),
+        root.join("out").display().to_string(),
+        "--checkpoints".into(),
+        root.join("ckpt").display().to_string(),
+        "--quiet".into(),
+    ]
+}
+
+/// Run to completion; returns (status code, stderr).
+pub fn run_batch(input: &Path, root: &Path, extra: &[&str]) -> (i32, String) {
+    let out = bin()
+        .args(run_args(input, root))
+        .args(extra)
+        .stdin(Stdio::null())
+        .output()
+        .unwrap();
+    (
+        out.status.code().unwrap_or(-1),
+        String::from_utf8_lossy(&out.stderr).into_owned(),
+    )
+}
+
+/// Every file under `dir` (relative path -> bytes), skipping the lock file.
+pub fn tree(dir: &Path) -> std::collections::BTreeMap<PathBuf, Vec<u8>> {
+    let mut m = std::collections::BTreeMap::new();
+    if !dir.exists() {
+        return m;
+    }
+    for e in walkdir::WalkDir::new(dir) {
+        let e = e.unwrap();
+        if e.file_type().is_file() && e.file_name() != ".persist.lock" {
+            m.insert(
+                e.path().strip_prefix(dir).unwrap().to_path_buf(),
+                std::fs::read(e.path()).unwrap(),
+            );
+        }
+    }
+    m
+}
+
+/// Temporary files (`.`-led or `*.part`) under `dir`, the lock file excepted.
+pub fn temporaries(dir: &Path) -> Vec<PathBuf> {
+    if !dir.exists() {
+        return Vec::new();
+    }
+    walkdir::WalkDir::new(dir)
+        .into_iter()
+        .filter_map(|e| e.ok())
+        .filter(|e| {
+            let n = e.file_name().to_string_lossy();
+            e.file_type().is_file()
+                && n != ".persist.lock"
+                && (n.starts_with('.') || n.ends_with(".part"))
+        })
+        .map(|e| e.into_path())
+        .collect()
+}
+
+/// The newest checkpoint file of a detector.
+pub fn newest_checkpoint(root: &Path, det: u8) -> Option<(u64, PathBuf)> {
+    persist::checkpoint::list(&root.join("ckpt"), DetectorId(det))
+        .unwrap()
+        .pop()
+}
+
+pub fn signal(child: &Child, sig: i32) {
+    // SAFETY: kill(2) on our own child's pid.
+    let r = unsafe { libc::kill(child.id() as libc::pid_t, sig) };
+    assert_eq!(r, 0, "kill failed");
+}
+
+/// Wait for a child to exit, at most `limit`; kills it and panics past that.
+pub fn wait_exit(child: &mut Child, limit: Duration) -> std::process::ExitStatus {
+    let t0 = Instant::now();
+    loop {
+        if let Some(s) = child.try_wait().unwrap() {
+            return s;
+        }
+        if t0.elapsed() > limit {
+            let _ = child.kill();
+            panic!("child did not exit within {limit:?}");
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    }
+}
+
+/// Poll `cond` every 50 ms until it holds; false after `limit`.
+pub fn wait_until(limit: Duration, mut cond: impl FnMut() -> bool) -> bool {
+    let t0 = Instant::now();
+    while t0.elapsed() < limit {
+        if cond() {
+            return true;
+        }
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    cond()
+}
+
+/// JSON log lines of a file whose `message` is `msg`.
+pub fn log_events(path: &Path, msg: &str) -> Vec<serde_json::Value> {
+    std::fs::read_to_string(path)
+        .unwrap_or_default()
+        .lines()
+        .filter_map(|l| serde_json::from_str::<serde_json::Value>(l).ok())
+        .filter(|v| v.get("message").and_then(|m| m.as_str()) == Some(msg))
+        .collect()
+}
