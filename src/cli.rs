@@ -267,6 +267,9 @@ pub struct DemoArgs {
     pub exposures: u64,
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
+    /// Model file (JSON); the built-in default if absent.
+    #[arg(long)]
+    pub model: Option<PathBuf>,
 }
 
 #[derive(Subcommand, Debug)]
@@ -555,6 +558,7 @@ fn demo(args: &DemoArgs) -> persist::Result<ExitCode> {
         size: args.size,
         exposures: args.exposures,
         seed: args.seed,
+        model: load_model(args.model.as_deref())?.params().clone(),
     };
     let r = persist::demo::run(&cfg, &|m| eprintln!("persist demo: {m}"))?;
     println!(

@@ -22,6 +22,7 @@ pub struct DemoConfig {
     pub size: usize,
     pub exposures: u64,
     pub seed: u64,
+    pub model: ModelParams,
 }
 
 impl Default for DemoConfig {
@@ -31,6 +32,7 @@ impl Default for DemoConfig {
             size: 128,
             exposures: 1143,
             seed: 1,
+            model: ModelParams::default(),
         }
     }
 }
@@ -123,12 +125,12 @@ pub fn run(cfg: &DemoConfig, progress: &dyn Fn(&str)) -> Result<DemoReport> {
     })?;
     writer.finish(description)?;
 
-    progress("running the stage with the default model");
+    progress(&format!("running the stage with model `{}`", cfg.model.name));
     let run_cfg = RunConfig {
         input: sim_dir.clone(),
         output: cfg.out.join("output"),
         checkpoints: cfg.out.join("checkpoints"),
-        model: Model::new(ModelParams::default())?,
+        model: Model::new(cfg.model.clone())?,
         from_checkpoint: None,
         allow_model_change: false,
         checkpoint_every: 1,
