@@ -125,7 +125,10 @@ pub fn run(cfg: &DemoConfig, progress: &dyn Fn(&str)) -> Result<DemoReport> {
     })?;
     writer.finish(description)?;
 
-    progress(&format!("running the stage with model `{}`", cfg.model.name));
+    progress(&format!(
+        "running the stage with model `{}`",
+        cfg.model.name
+    ));
     let run_cfg = RunConfig {
         input: sim_dir.clone(),
         output: cfg.out.join("output"),
