@@ -4,7 +4,8 @@
 
 use ndarray::Array2;
 use persist::flags::bits;
-use persist::product::{Exposure, ExposureMeta};
+use persist::product::synthetic::tiny_exposure;
+use persist::product::Exposure;
 use persist::units::{DetectorId, UtcSeconds};
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
@@ -40,22 +41,17 @@ pub fn exposure(det: u8, k: u64, n: usize) -> Exposure {
     }
     image[(n - 1, 0)] = f32::NAN;
     flags[(n - 1, 0)] |= bits::NONFUNC;
-    let t_start_utc = UtcSeconds(t_start(det, k)).to_iso();
-    Exposure {
-        meta: ExposureMeta {
-            detector: DetectorId(det),
-            exposure_index: k,
-            t_start: UtcSeconds::parse(&t_start_utc).unwrap(),
-            t_start_utc,
-            t_exposure_s: T_EXPOSURE_S,
-            focal_plane_temp_k: Some(80.0),
-            t_illuminated_s: None,
-        },
-        image,
-        flags,
-        ramp: None,
-        ramp_times_s: None,
-    }
+    let mut e = tiny_exposure(
+        det,
+        k,
+        n,
+        n,
+        &UtcSeconds(t_start(det, k)).to_iso(),
+        T_EXPOSURE_S,
+    );
+    e.image = image;
+    e.flags = flags;
+    e
 }
 
 pub fn name(det: u8, k: u64) -> String {
