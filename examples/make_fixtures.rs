@@ -7,8 +7,9 @@
 
 use ndarray::Array2;
 use persist::flags::bits;
-use persist::product::{Exposure, ExposureMeta};
-use persist::units::{DetectorId, UtcSeconds};
+use persist::product::synthetic::tiny_exposure;
+use persist::product::Exposure;
+use persist::units::UtcSeconds;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, Normal};
@@ -65,22 +66,10 @@ fn exposure(det: u8, k: u64, t_start: f64) -> Exposure {
         image[(y, x)] = f32::NAN;
         flags[(y, x)] |= bits::NONFUNC;
     }
-    let t_start_utc = UtcSeconds(t_start).to_iso();
-    Exposure {
-        meta: ExposureMeta {
-            detector: DetectorId(det),
-            exposure_index: k,
-            t_start: UtcSeconds::parse(&t_start_utc).expect("own time"),
-            t_start_utc,
-            t_exposure_s: T_EXPOSURE_S,
-            focal_plane_temp_k: Some(80.0),
-            t_illuminated_s: None,
-        },
-        image,
-        flags,
-        ramp: None,
-        ramp_times_s: None,
-    }
+    let mut e = tiny_exposure(det, k, N, N, &UtcSeconds(t_start).to_iso(), T_EXPOSURE_S);
+    e.image = image;
+    e.flags = flags;
+    e
 }
 
 /// Write all fixtures into `dir`; returns the paths written.

@@ -22,6 +22,10 @@ use std::path::{Path, PathBuf};
 /// Largest accepted size of any axis of any dataset (an H2RG is 2048 x 2048).
 pub const MAX_AXIS: usize = 8192;
 
+/// Largest accepted number of elements of any dataset (2^31: a 2040 x 2040 ramp of 500
+/// samples); larger would only exhaust memory.
+pub const MAX_ELEMENTS: usize = 1 << 31;
+
 /// Deflate level of the compressed flag planes (mostly zeros: level 1 already gives
 /// most of the gain at a fraction of the time).
 pub const FLAG_DEFLATE_LEVEL: u8 = 1;
@@ -45,11 +49,26 @@ pub fn is_temp_name(name: &str) -> bool {
 
 /// Open an HDF5 file for reading; errors name the file (a file still being written
 /// by another process gives [`ErrorKind::NotReady`]).
+/// Errors about the file as a whole have the field `/` (the root group).
 pub fn open(path: &Path) -> Result<hdf5::File> {
     if let Err(e) = std::fs::metadata(path) {
-        return Err(Error::io(path, e));
+        return Err(Error::io(path, e).field("/"));
     }
-    hdf5::File::open(path).map_err(|e| Error::from(e).path(path))
+    hdf5::File::open(path).map_err(|e| open_error(e).path(path))
+}
+
+/// An HDF5 open failure: not ready (locked by a writer) or not readable as HDF5.
+fn open_error(e: hdf5::Error) -> Error {
+    let mut err = Error::from(e).field("/");
+    if err.kind == ErrorKind::Hdf5 {
+        err.message = format!(
+            "not a readable HDF5 file (truncated or corrupt?): {}",
+            err.message
+        );
+    } else if err.kind == ErrorKind::NotReady {
+        err.message = format!("still being written by another process: {}", err.message);
+    }
+    err
 }
 
 /// Create (truncate) an HDF5 file with object times off. (No path in the error: the
@@ -62,7 +81,7 @@ pub fn create(path: &Path) -> hdf5::Result<hdf5::File> {
 
 /// Open `tmp` for validation; errors name `name`.
 pub fn open_as(tmp: &Path, name: &Path) -> Result<hdf5::File> {
-    hdf5::File::open(tmp).map_err(|e| Error::from(e).path(name))
+    hdf5::File::open(tmp).map_err(|e| open_error(e).path(name))
 }
 
 /// Create a group with object times off.
@@ -144,7 +163,7 @@ pub fn check_plane(field: &str, dim: (usize, usize)) -> Result<()> {
     check_axes(field, &[dim.0, dim.1])
 }
 
-/// Every axis in 1..=[`MAX_AXIS`].
+/// Every axis in 1..=[`MAX_AXIS`], at most [`MAX_ELEMENTS`] in all.
 pub fn check_axes(field: &str, shape: &[usize]) -> Result<()> {
     if let Some((k, n)) = shape
         .iter()
@@ -156,6 +175,16 @@ pub fn check_axes(field: &str, shape: &[usize]) -> Result<()> {
             format!(
                 "absurd dimensions {shape:?}: axis {k} is {n}, every axis must be 1..={MAX_AXIS}"
             ),
+        ));
+    }
+    let total = shape
+        .iter()
+        .try_fold(1usize, |acc, &n| acc.checked_mul(n))
+        .unwrap_or(usize::MAX);
+    if total > MAX_ELEMENTS {
+        return Err(Error::invalid(
+            field,
+            format!("absurd dimensions {shape:?}: {total} elements, at most {MAX_ELEMENTS}"),
         ));
     }
     Ok(())

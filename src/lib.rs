@@ -11,6 +11,9 @@
 //! - [`product`] is the only code that knows the HDF5 layout of the ICD
 //!   (`../shared/ICD.md`) and checks files against the JSON Schemas in `schemas/`.
 //! - [`checkpoint`] keeps each detector's state, keyed by (detector, exposure index).
+//! - [`model_file`] reads model files (JSON, `schemas/model.schema.json`).
+//! - [`h5io`] holds what products and checkpoints share: deterministic HDF5 creation
+//!   (no object times) and atomic publication (`.NAME.part`, validate, sync, rename).
 //! - [`stage`] runs detectors' histories through the model.
 //!
 //! Invariants: NaN or Inf never enters the model state; an output is published (renamed

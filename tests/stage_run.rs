@@ -253,12 +253,26 @@ fn malformed_inputs_are_refused_by_field_and_the_rest_is_processed() {
     let (_, p1) = persistence(&output(&bad, 2, 1));
     assert!(p1.iter().all(|b| b & pbits::HISTORY_INCOMPLETE == 0));
 
-    // A product whose exposure index was already passed is refused as late.
+    // Exposure 2 of detector 2 was rejected and its place crossed: a corrected copy
+    // arriving now is late, refused. Exposure 3, processed, is silently known.
     let late = tmp.path().join("late");
+    make_fixtures::write_all(&tmp.path().join("fresh")).unwrap();
     std::fs::create_dir_all(&late).unwrap();
-    std::fs::copy(input.join(name(3)), late.join("late_det2_exp3.h5")).unwrap();
+    std::fs::copy(
+        tmp.path().join("fresh").join(name(2)),
+        late.join("late_det2_exp2.h5"),
+    )
+    .unwrap();
+    std::fs::copy(
+        tmp.path().join("fresh").join(name(3)),
+        late.join("again_det2_exp3.h5"),
+    )
+    .unwrap();
     let report = run(&config(&late, &bad, None));
     assert_eq!(report.errors.len(), 1, "{:?}", report.errors);
     let e = report.errors[0].to_string();
-    assert!(e.contains("exposure_index") && e.contains("late"), "{e}");
+    assert!(
+        e.contains("late_det2_exp2.h5") && e.contains("exposure_index") && e.contains("late"),
+        "{e}"
+    );
 }

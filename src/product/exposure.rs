@@ -45,7 +45,7 @@ pub struct Exposure {
     pub flags: Array2<u32>,
     /// Sample-up-the-ramp charge, electrons [nsamp, ny, nx] (laboratory data only).
     pub ramp: Option<Array3<f32>>,
-    /// Sample times after the reset that started the integration, seconds [nsamp].
+    /// Sample times after the reset that started the integration, seconds `[nsamp]`.
     pub ramp_times_s: Option<Array1<f64>>,
 }
 

@@ -340,7 +340,7 @@ pub fn validate(schema: Schema, instance: &Value, file: &Path) -> Vec<Error> {
     let mut found: Vec<(String, u8, String)> = Vec::new();
     for err in validator.iter_errors(instance) {
         let segs: Vec<String> = err.instance_path().iter().map(|s| s.to_string()).collect();
-        for (field, rank, message) in describe(schema, &segs, &err) {
+        for (field, rank, message) in describe(schema, &segs, &err, instance) {
             match found.iter_mut().find(|(f, _, _)| *f == field) {
                 Some(slot) if rank < slot.1 => *slot = (field, rank, message),
                 Some(_) => {}
@@ -364,10 +364,21 @@ fn describe(
     schema: Schema,
     segs: &[String],
     err: &jsonschema::ValidationError<'_>,
+    root: &Value,
 ) -> Vec<(String, u8, String)> {
     use jsonschema::error::ValidationErrorKind as K;
     let inst = err.instance();
     let what = schema.what();
+    // `additionalProperties: false` with no `properties` is reported as a false schema
+    // at the object, naming only its first member: name every member instead.
+    let parent = root.pointer(err.instance_path().as_str());
+    let unexpected: Option<Vec<String>> = match err.kind() {
+        K::AdditionalProperties { unexpected } => Some(unexpected.clone()),
+        K::FalseSchema => parent
+            .and_then(Value::as_object)
+            .map(|o| o.keys().cloned().collect()),
+        _ => None,
+    };
     if schema == Schema::Model {
         let pointer = |extra: Option<&str>| {
             let mut p: String = segs.iter().map(|s| format!("/{s}")).collect();
@@ -385,7 +396,8 @@ fn describe(
                 let name = property.as_str().unwrap_or_default();
                 vec![(pointer(Some(name)), 0, "missing required field".into())]
             }
-            K::AdditionalProperties { unexpected } => unexpected
+            _ if unexpected.is_some() => unexpected
+                .unwrap_or_default()
                 .iter()
                 .map(|u| (pointer(Some(u)), 0, format!("unknown field in {what}")))
                 .collect(),
@@ -405,11 +417,15 @@ fn describe(
             let name = property.as_str().unwrap_or_default().to_owned();
             vec![(name, 0, format!("missing required {}", noun(section)))]
         }
-        ([section], K::AdditionalProperties { unexpected }) => unexpected
+        ([section], _) if unexpected.is_some() => unexpected
+            .unwrap_or_default()
             .iter()
             .map(|u| {
                 let reason = if *section == "links" {
-                    let kind = inst.get(u).and_then(Value::as_str).unwrap_or("link");
+                    let kind = parent
+                        .and_then(|p| p.get(u))
+                        .and_then(Value::as_str)
+                        .unwrap_or("link");
                     format!("{kind} link: not allowed in {what}")
                 } else {
                     format!("{} not defined by the ICD for {what}", noun(section))
@@ -426,15 +442,14 @@ fn describe(
                 "missing required attribute".into(),
             )]
         }
-        (["groups" | "datasets", owner, "attributes"], K::AdditionalProperties { unexpected }) => {
-            unexpected
-                .iter()
-                .map(|u| {
-                    let r = format!("attribute not defined by the ICD for {what}");
-                    (format!("{owner}@{u}"), 0, r)
-                })
-                .collect()
-        }
+        (["groups" | "datasets", owner, "attributes"], _) if unexpected.is_some() => unexpected
+            .unwrap_or_default()
+            .iter()
+            .map(|u| {
+                let r = format!("attribute not defined by the ICD for {what}");
+                (format!("{owner}@{u}"), 0, r)
+            })
+            .collect(),
         (["groups", owner, "attributes", name, rest @ ..], kind) => {
             let (rank, m) = attr_message(rest, kind, inst, err);
             vec![(format!("{owner}@{name}"), rank, m)]
@@ -838,6 +853,16 @@ mod tests {
         let f = fields(&e);
         assert_eq!(f, ["/image", "/flags", "t_illuminated_s"], "{e:?}");
         assert!(e[0].message.contains("absurd"));
+    }
+
+    #[test]
+    fn absurd_total_size_refused_from_manifest() {
+        let mut m = good_l1();
+        m["datasets"]["/ramp"] =
+            json!({"dtype": "float32", "shape": [8192, 8192, 8192], "attributes": {}});
+        let e = check_dimensions(View(&m));
+        assert_eq!(fields(&e), ["/ramp"]);
+        assert!(e[0].message.contains("elements"), "{}", e[0]);
     }
 
     #[test]

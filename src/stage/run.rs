@@ -69,6 +69,16 @@ pub struct RunReport {
 pub struct Bookkeeping {
     /// Mark outputs "history incomplete" while their mid-exposure time is before this.
     pub history_incomplete_until_unix_s: Option<f64>,
+    /// Inclusive ranges of exposure indices the history crossed without them (missing
+    /// or rejected): a product for one of them that turns up later is late.
+    #[serde(default)]
+    pub crossed: Vec<(u64, u64)>,
+}
+
+impl Bookkeeping {
+    pub fn was_crossed(&self, index: u64) -> bool {
+        self.crossed.iter().any(|&(a, b)| (a..=b).contains(&index))
+    }
 }
 
 /// The processing time to record: `SOURCE_DATE_EPOCH` (reproducible runs) or now.
@@ -214,13 +224,13 @@ impl<'a> Detector<'a> {
             let index = entry.meta.exposure_index;
             let last = state.as_ref().and_then(|s| s.last_index);
             if let Some(l) = last.filter(|&l| index <= l) {
-                if !self.output_path(&entry.path).exists() {
-                    // Not published, yet its place in the history has passed.
+                if book.was_crossed(index) {
+                    // Its place in the history was passed as missing or rejected.
                     self.errors.push(
                         Error::new(
                             ErrorKind::Sequence,
                             format!(
-                                "arrived after exposure {l} was processed: refused (late product)"
+                                "arrived after its gap was crossed (exposure {l} already processed): refused (late product)"
                             ),
                         )
                         .path(&entry.path)
@@ -229,7 +239,7 @@ impl<'a> Detector<'a> {
                         .exposure(index),
                     );
                 }
-                continue;
+                continue; // otherwise already part of the state we resumed from
             }
             if last.is_some_and(|l| index != l + 1) {
                 gap_before = true;
@@ -351,6 +361,12 @@ impl<'a> Detector<'a> {
             )
             .map_err(Failure::Input)?;
         exposure.flags = flags;
+        if let Some(prev) = summary
+            .previous_index
+            .filter(|&p| meta.exposure_index > p + 1)
+        {
+            book.crossed.push((prev + 1, meta.exposure_index - 1));
+        }
         let out_path = self.output_path(&entry.path);
         let written = if out_path.exists() && !reprocess {
             false
