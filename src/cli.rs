@@ -44,6 +44,14 @@ pub enum Command {
         #[command(subcommand)]
         scenario: SimScenario,
     },
+    /// Calibrate a model from a laboratory sequence (the paper's fit), optionally with
+    /// effects, and write the model file and a fit report.
+    Fit(FitArgs),
+    /// Predicted against measured persistence, residuals by covariate, flag quality;
+    /// writes OUT/report.html and OUT/summary.json.
+    Compare(CompareArgs),
+    /// Score test of every library effect against a fitted model, bootstrap-calibrated.
+    Diagnose(DiagnoseArgs),
     /// The main job on a built-in default: run the stage on the committed fixtures.
     Demo {
         /// Where to write outputs and checkpoints (replaced if it exists).
@@ -137,6 +145,56 @@ pub struct RunArgs {
     pub quiet: bool,
 }
 
+#[derive(Args, Debug)]
+pub struct FitArgs {
+    /// Directory of a laboratory sequence (products; the first dark keeps its ramp).
+    #[arg(long)]
+    pub input: PathBuf,
+    /// The model file to write.
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Also fit this effect's parameters (repeatable). Names: see `persist diagnose`.
+    #[arg(long = "with")]
+    pub with: Vec<String>,
+    /// Fit report (JSON); default: OUT with extension `.fit.json`.
+    #[arg(long)]
+    pub report: Option<PathBuf>,
+    /// Amplification of A_0 into A_bin (paper: 1.2).
+    #[arg(long, default_value_t = 1.2)]
+    pub amplification: f64,
+    /// Start of the span over which the C_n follow 1/(t+1): the shortest slew, s.
+    #[arg(long, default_value_t = 10.0)]
+    pub t_min_s: f64,
+}
+
+#[derive(Args, Debug)]
+pub struct CompareArgs {
+    #[arg(long)]
+    pub input: PathBuf,
+    /// Model file (repeatable: every figure side by side).
+    #[arg(long = "model", required = true)]
+    pub models: Vec<PathBuf>,
+    /// Output directory for report.html and summary.json.
+    #[arg(long)]
+    pub report: PathBuf,
+}
+
+#[derive(Args, Debug)]
+pub struct DiagnoseArgs {
+    #[arg(long)]
+    pub input: PathBuf,
+    #[arg(long)]
+    pub model: PathBuf,
+    /// Write the ranking as JSON here.
+    #[arg(long)]
+    pub json: Option<PathBuf>,
+    /// Parametric bootstrap replicas for the false-alarm threshold.
+    #[arg(long, default_value_t = 19)]
+    pub bootstrap: usize,
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+}
+
 #[derive(Subcommand, Debug)]
 pub enum ModelAction {
     /// Print the default model file (the paper's constants).
@@ -184,6 +242,9 @@ pub fn run(cli: Cli) -> persist::Result<ExitCode> {
         Command::Validate { files } => Ok(validate(&files)),
         Command::Simulate { scenario } => simulate(scenario),
         Command::Demo { out } => demo(&out),
+        Command::Fit(a) => fit(&a),
+        Command::Compare(a) => compare(&a),
+        Command::Diagnose(a) => diagnose(&a),
     }
 }
 
@@ -359,4 +420,35 @@ fn demo(out: &Path) -> persist::Result<ExitCode> {
         out.display()
     );
     run_stage(&args)
+}
+
+/// `persist fit`.
+fn fit(a: &FitArgs) -> persist::Result<ExitCode> {
+    let cfg = persist::calib::CalibConfig {
+        amplification: a.amplification,
+        t_min_s: a.t_min_s,
+        ..Default::default()
+    };
+    let report_path = a
+        .report
+        .clone()
+        .unwrap_or_else(|| a.out.with_extension("fit.json"));
+    let r = persist::calib::run(&a.input, &cfg, &a.with, &a.out, &report_path)?;
+    println!("{r}");
+    Ok(ExitCode::SUCCESS)
+}
+
+/// `persist compare`.
+fn compare(a: &CompareArgs) -> persist::Result<ExitCode> {
+    let s = persist::diag::compare::run(&a.input, &a.models, &a.report)?;
+    println!("{s}");
+    Ok(ExitCode::SUCCESS)
+}
+
+/// `persist diagnose`.
+fn diagnose(a: &DiagnoseArgs) -> persist::Result<ExitCode> {
+    let s =
+        persist::diag::diagnose::run(&a.input, &a.model, a.json.as_deref(), a.bootstrap, a.seed)?;
+    println!("{s}");
+    Ok(ExitCode::SUCCESS)
 }

@@ -328,3 +328,82 @@ mod tests {
         assert!((f.terms[0].c_per_s / 0.183 - 1.0).abs() < 0.3, "{f:?}");
     }
 }
+
+/// Everything `persist fit` writes beside the model file.
+#[derive(Debug, Clone, Serialize)]
+pub struct FitReport {
+    pub input: String,
+    pub calibration: CalibReport,
+    pub effects: Option<effects::EffectFit>,
+    /// RMS of the normalised cell residuals of the written model (diag::eval docs).
+    pub residual_rms_normalised: f64,
+    pub cells: usize,
+    pub model_identity: String,
+}
+
+/// `persist fit`: calibrate, fit the `--with` effects, write the model and the report.
+pub fn run(
+    input: &std::path::Path,
+    cfg: &CalibConfig,
+    with: &[String],
+    out: &std::path::Path,
+    report_path: &std::path::Path,
+) -> Result<String> {
+    let seq = Sequence::load(input)?;
+    let (mut params, cal) = calibrate(&seq, cfg).map_err(|e| e.path(input))?;
+    let samples = crate::diag::eval::Samples::new(&seq, 2);
+    let mut ef = None;
+    if !with.is_empty() {
+        let (p, f) = effects::fit(&params, with, &seq, &samples)?;
+        params = p;
+        ef = Some(f);
+    }
+    let pr = crate::diag::eval::predict(&params, &seq, &samples, false)?;
+    let cells = crate::diag::eval::cell_z(&samples, &pr.current);
+    let rep = FitReport {
+        input: input.display().to_string(),
+        calibration: cal,
+        effects: ef,
+        residual_rms_normalised: crate::diag::eval::rms(&cells),
+        cells: cells.len(),
+        model_identity: params.identity(),
+    };
+    write_text(out, &(params.to_json_pretty() + "\n"))?;
+    let text = serde_json::to_string_pretty(&rep)
+        .map_err(|e| Error::new(crate::ErrorKind::Io, e.to_string()))?;
+    write_text(report_path, &(text + "\n"))?;
+    let mut s = format!(
+        "persist fit: {} knots, C_n max relative error {:.3} over [{:.0}, {:.0}] s, \
+         normalised residual RMS {:.2} over {} cells\n",
+        rep.calibration.knots.len(),
+        rep.calibration.c_n.max_relative_error,
+        rep.calibration.c_n.t_min_s,
+        rep.calibration.c_n.t_max_s,
+        rep.residual_rms_normalised,
+        rep.cells
+    );
+    if let Some(f) = &rep.effects {
+        for p in &f.params {
+            s += &format!(
+                "  {}.{} = {:.6e} +- {:.2e}\n",
+                p.effect, p.name, p.value, p.sigma
+            );
+        }
+        s += &format!(
+            "  residual RMS {:.2} -> {:.2} ({} evaluations)\n",
+            f.residual_rms_normalised_before, f.residual_rms_normalised_after, f.evaluations
+        );
+    }
+    s += &format!("model {} , report {}", out.display(), report_path.display());
+    Ok(s)
+}
+
+/// Write a text file atomically (temporary name, rename).
+pub fn write_text(path: &std::path::Path, text: &str) -> Result<()> {
+    if let Some(d) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
+        std::fs::create_dir_all(d).map_err(|e| Error::io(d, e))?;
+    }
+    let tmp = crate::h5io::temp_path(path);
+    std::fs::write(&tmp, text).map_err(|e| Error::io(&tmp, e))?;
+    std::fs::rename(&tmp, path).map_err(|e| Error::io(path, e))
+}

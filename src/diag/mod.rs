@@ -2,4 +2,8 @@
 //! and flag quality ([`compare`]), the search for missing effects ([`diagnose`]), and
 //! the HTML report ([`report`]).
 
+pub mod compare;
 pub mod data;
+pub mod diagnose;
+pub mod eval;
+pub mod report;
