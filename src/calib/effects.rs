@@ -42,13 +42,15 @@ struct Slot {
     hi: f64,
 }
 
+type Cache = RefCell<Vec<(Vec<f64>, Option<DVector<f64>>)>>;
+
 struct Problem<'a> {
     base: ModelParams,
     seq: &'a Sequence,
     samples: &'a Samples,
     slots: Vec<Slot>,
     p: DVector<f64>,
-    cache: RefCell<Vec<(Vec<f64>, Option<DVector<f64>>)>>,
+    cache: Cache,
     evals: RefCell<usize>,
 }
 

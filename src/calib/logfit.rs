@@ -68,7 +68,7 @@ impl LeastSquaresProblem<f64, Dyn, U3> for Problem<'_> {
 /// Fit Eq. (logfit) to charge `q_e` at times `t_s` after the reset (both finite, at
 /// least 4 points, `t_s > 0`). Start: the linear fit with `tau` = 1 s.
 pub fn fit(t_s: &[f64], q_e: &[f64]) -> Option<LogFit> {
-    if t_s.len() < 4 || t_s.len() != q_e.len() || t_s.iter().any(|t| !(*t > 0.0)) {
+    if t_s.len() < 4 || t_s.len() != q_e.len() || t_s.iter().any(|t| t.is_nan() || *t <= 0.0) {
         return None;
     }
     // linear start: q = A ln(t+1) + q0

@@ -146,7 +146,7 @@ pub fn calibrate(seq: &Sequence, cfg: &CalibConfig) -> Result<(ModelParams, Cali
     let n_bins = (((fmax.max(1e4)).log10() - lo_exp) * cfg.bins_per_decade).ceil() as usize + 1;
     let mut members: Vec<Vec<(usize, usize)>> = vec![Vec::new(); n_bins];
     for ((y, x), v) in f.indexed_iter() {
-        if !(v.is_finite() && *v > 0.0) || !meas[(y, x)].is_finite() {
+        if !(v.is_finite() && *v > 0.0 && meas[(y, x)].is_finite()) {
             continue;
         }
         let b = ((v.log10() - lo_exp) * cfg.bins_per_decade).floor();

@@ -53,7 +53,10 @@ pub struct Diagnosis {
 
 fn z_of(p: &ModelParams, seq: &Sequence, s: &Samples) -> Result<Vec<f64>> {
     let pr = eval::predict(p, seq, s, false)?;
-    Ok(eval::cell_z(s, &pr.current).iter().map(|(_, g)| g.z).collect())
+    Ok(eval::cell_z(s, &pr.current)
+        .iter()
+        .map(|(_, g)| g.z)
+        .collect())
 }
 
 pub fn diagnose(
@@ -68,7 +71,11 @@ pub fn diagnose(
     let r = z_of(params, seq, &samples)?;
     let m = r.len();
     if m < 3 {
-        return Err(Error::new(ErrorKind::Usage, "fewer than 3 residual cells: nothing to test").path(input));
+        return Err(Error::new(
+            ErrorKind::Usage,
+            "fewer than 3 residual cells: nothing to test",
+        )
+        .path(input));
     }
     let rss0: f64 = r.iter().map(|v| v * v).sum();
     let s2 = rss0 / m as f64;
@@ -77,17 +84,29 @@ pub fn diagnose(
         if params.effects.iter().any(|e| e.name == def.name) {
             continue;
         }
-        let Some((p, null)) = def.switch() else { continue };
-        let h = if null == 0.0 { 1e-2 * p.default.abs().max(1e-12) } else { 1e-2 * null.abs() };
+        let Some((p, null)) = def.switch() else {
+            continue;
+        };
+        let h = if null == 0.0 {
+            1e-2 * p.default.abs().max(1e-12)
+        } else {
+            1e-2 * null.abs()
+        };
         let mut q = params.clone();
         let mut map = serde_json::Map::new();
         map.insert(p.name.into(), serde_json::json!(null + h));
-        q.effects.push(EffectSpec { name: def.name.into(), params: map });
+        q.effects.push(EffectSpec {
+            name: def.name.into(),
+            params: map,
+        });
         let z = z_of(&q, seq, &samples)?;
         if z.len() != m {
             continue;
         }
-        cols.push((def.name, z.iter().zip(&r).map(|(a, b)| (a - b) / h).collect()));
+        cols.push((
+            def.name,
+            z.iter().zip(&r).map(|(a, b)| (a - b) / h).collect(),
+        ));
     }
     let score = |res: &[f64], j: &[f64], s2: f64| {
         let jr: f64 = j.iter().zip(res).map(|(a, b)| a * b).sum();
@@ -101,9 +120,13 @@ pub fn diagnose(
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
     let mut maxes: Vec<f64> = (0..bootstrap.max(1))
         .map(|_| {
-            let rs: Vec<f64> = (0..m).map(|_| s2.sqrt() * rng.sample::<f64, _>(StandardNormal)).collect();
+            let rs: Vec<f64> = (0..m)
+                .map(|_| s2.sqrt() * rng.sample::<f64, _>(StandardNormal))
+                .collect();
             let s2b = rs.iter().map(|v| v * v).sum::<f64>() / m as f64;
-            cols.iter().map(|(_, j)| score(&rs, j, s2b)).fold(0.0, f64::max)
+            cols.iter()
+                .map(|(_, j)| score(&rs, j, s2b))
+                .fold(0.0, f64::max)
         })
         .collect();
     maxes.sort_by(|a, b| a.total_cmp(b));
@@ -132,17 +155,20 @@ pub fn diagnose(
         .collect();
     ranking.sort_by(|a, b| b.score.total_cmp(&a.score));
     for c in ranking.iter_mut().take(2).filter(|c| c.passes_score) {
-        let (_, f) = crate::calib::effects::fit(params, &[c.effect.clone()], seq, &samples)?;
+        let (_, f) =
+            crate::calib::effects::fit(params, std::slice::from_ref(&c.effect), seq, &samples)?;
         let k = f.params.len() as f64;
         let rss1 = f.residual_rms_normalised_after.powi(2) * f.cells as f64;
         let dbic = m as f64 * (rss1 / rss0).ln() + k * (m as f64).ln();
         c.delta_bic = Some(dbic);
         c.rms_after = Some(f.residual_rms_normalised_after);
-        c.significant =
-            dbic < -10.0 && f.residual_rms_normalised_after <= 0.8 * (s2.sqrt());
+        c.significant = dbic < -10.0 && f.residual_rms_normalised_after <= 0.8 * (s2.sqrt());
     }
     let verdict = match ranking.iter().find(|c| c.significant) {
-        Some(c) => format!("missing effect: {} (evidence in {}); add it with: {}", c.effect, c.covariate, c.command),
+        Some(c) => format!(
+            "missing effect: {} (evidence in {}); add it with: {}",
+            c.effect, c.covariate, c.command
+        ),
         None => "no library effect is significant".into(),
     };
     Ok(Diagnosis {
@@ -155,12 +181,19 @@ pub fn diagnose(
 }
 
 /// `persist diagnose`.
-pub fn run(input: &Path, model: &Path, json: Option<&Path>, bootstrap: usize, seed: u64) -> Result<String> {
+pub fn run(
+    input: &Path,
+    model: &Path,
+    json: Option<&Path>,
+    bootstrap: usize,
+    seed: u64,
+) -> Result<String> {
     let seq = Sequence::load(input)?;
     let params = crate::model_file::load(model)?;
     let d = diagnose(&params, &seq, bootstrap, seed, input, model)?;
     if let Some(p) = json {
-        let text = serde_json::to_string_pretty(&d).map_err(|e| Error::new(ErrorKind::Io, e.to_string()))?;
+        let text = serde_json::to_string_pretty(&d)
+            .map_err(|e| Error::new(ErrorKind::Io, e.to_string()))?;
         crate::calib::write_text(p, &(text + "\n"))?;
     }
     let mut s = format!(

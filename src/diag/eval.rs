@@ -285,7 +285,9 @@ pub fn bin_value(covariate: &str, b: i64) -> f64 {
 /// Groups keyed by bins of one or two covariates.
 pub fn groups(s: &Samples, pred: &[f64], keys: &[&str]) -> Vec<(Vec<i64>, GroupStat)> {
     use std::collections::BTreeMap;
+    #[allow(clippy::type_complexity)]
     let mut g: BTreeMap<Vec<i64>, (Vec<f64>, Vec<f64>, Vec<f64>)> = BTreeMap::new();
+    #[allow(clippy::needless_range_loop)]
     for i in 0..s.len() {
         let m = s.measured[i];
         if !m.is_finite() || !pred[i].is_finite() {

@@ -206,7 +206,7 @@ mod tests {
             let mut s = 0.0;
             for i in 0..n {
                 let u = (i as f64 + 0.5) * h;
-                s += (-r * (ts + u) as f64).exp() * u * (t - u) * h;
+                s += (-r * (ts + u)).exp() * u * (t - u) * h;
             }
             let q = 6.0 / (t * t * t) * s;
             let g = ls_slope_factor(r, ts, t);
