@@ -538,8 +538,8 @@ fn pixel(
             }
         } else {
             let c = c as f32;
-            for j in 0..nb {
-                neq[j] = c * p.f_eq[j];
+            for (q, f) in neq.iter_mut().zip(&p.f_eq) {
+                *q = c * f;
             }
         }
     };

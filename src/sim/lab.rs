@@ -139,7 +139,9 @@ fn steps(cfg: &LabConfig) -> crate::Result<Vec<Illumination>> {
             format!("must be 4..=8192, got {}", cfg.size),
         ));
     }
-    if !(cfg.dark_s >= 3.0 * cfg.detector.frame_time_s) {
+    if cfg.dark_s.partial_cmp(&(3.0 * cfg.detector.frame_time_s)) == Some(std::cmp::Ordering::Less)
+        || cfg.dark_s.is_nan()
+    {
         return Err(crate::Error::invalid("dark_s", "shorter than three frames"));
     }
     let steps = match &cfg.campaign {

@@ -171,13 +171,13 @@ pub fn validate(cfg: &SkyConfig) -> crate::Result<()> {
     if cfg.exposures < 1 {
         return bad("--exposures", "must be >= 1".into());
     }
-    if !(cfg.t_exposure_s >= 3.0 * cfg.detector.frame_time_s) {
+    if cfg.t_exposure_s.is_nan() || cfg.t_exposure_s < 3.0 * cfg.detector.frame_time_s {
         return bad("t_exposure_s", "shorter than three frames".into());
     }
     if !(cfg.slew_min_s >= 0.0 && cfg.slew_max_s >= cfg.slew_min_s) {
         return bad("slew_min_s", "need 0 <= slew_min_s <= slew_max_s".into());
     }
-    if !(cfg.m_faint > cfg.m_bright) {
+    if cfg.m_faint.is_nan() || cfg.m_bright.is_nan() || cfg.m_faint <= cfg.m_bright {
         return bad("m_faint", "must exceed m_bright".into());
     }
     EffectSet::from_specs(&cfg.effects)?;

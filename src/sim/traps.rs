@@ -150,7 +150,7 @@ impl TrapParams {
             return bad("capture_ratio", "must be finite and > 0".into());
         }
         let wsum: f64 = self.populations.iter().map(|p| p.weight).sum();
-        if self.populations.is_empty() || !(wsum > 0.0) {
+        if self.populations.is_empty() || wsum.is_nan() || wsum <= 0.0 {
             return bad("populations", "need at least one with weight > 0".into());
         }
         Ok(())
