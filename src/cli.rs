@@ -65,6 +65,15 @@ pub enum Command {
     /// Per detector: last exposure processed, backlog, gaps, quarantined files, age of
     /// the newest checkpoint. Reads the directories only; safe while a stage runs.
     Status(StatusArgs),
+    /// Calibrate a model from a laboratory sequence (the paper's fit), optionally with
+    /// effects, and write the model file and a fit report.
+    Fit(FitArgs),
+    /// Predicted against measured persistence, residuals by covariate, flag quality;
+    /// writes OUT/report.html and OUT/summary.json.
+    Compare(CompareArgs),
+    /// Score test of every library effect against a fitted model (see README: the
+    /// threshold is not yet calibrated by a parametric bootstrap).
+    Diagnose(DiagnoseArgs),
     /// The main job on a built-in default: simulate two days of SPHEREx-like sky (one
     /// detector, 128 x 128), run the stage, print and plot what it flags.
     Demo(DemoArgs),
@@ -272,6 +281,56 @@ pub struct DemoArgs {
     pub model: Option<PathBuf>,
 }
 
+#[derive(Args, Debug)]
+pub struct FitArgs {
+    /// Directory of a laboratory sequence (products; the first dark keeps its ramp).
+    #[arg(long)]
+    pub input: PathBuf,
+    /// The model file to write.
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Also fit this effect's parameters (repeatable). Names: see `persist diagnose`.
+    #[arg(long = "with")]
+    pub with: Vec<String>,
+    /// Fit report (JSON); default: OUT with extension `.fit.json`.
+    #[arg(long)]
+    pub report: Option<PathBuf>,
+    /// Amplification of A_0 into A_bin (paper: 1.2).
+    #[arg(long, default_value_t = 1.2)]
+    pub amplification: f64,
+    /// Start of the span over which the C_n follow 1/(t+1): the shortest slew, s.
+    #[arg(long, default_value_t = 10.0)]
+    pub t_min_s: f64,
+}
+
+#[derive(Args, Debug)]
+pub struct CompareArgs {
+    #[arg(long)]
+    pub input: PathBuf,
+    /// Model file (repeatable: every figure side by side).
+    #[arg(long = "model", required = true)]
+    pub models: Vec<PathBuf>,
+    /// Output directory for report.html and summary.json.
+    #[arg(long)]
+    pub report: PathBuf,
+}
+
+#[derive(Args, Debug)]
+pub struct DiagnoseArgs {
+    #[arg(long)]
+    pub input: PathBuf,
+    #[arg(long)]
+    pub model: PathBuf,
+    /// Write the ranking as JSON here.
+    #[arg(long)]
+    pub json: Option<PathBuf>,
+    /// Parametric bootstrap replicas for the false-alarm threshold.
+    #[arg(long, default_value_t = 19)]
+    pub bootstrap: usize,
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+}
+
 #[derive(Subcommand, Debug)]
 pub enum ModelAction {
     /// Print the default model file (the paper's constants).
@@ -320,6 +379,9 @@ pub fn run(cli: Cli) -> persist::Result<ExitCode> {
         Command::Simulate { scenario } => simulate(scenario),
         Command::Status(args) => status(&args),
         Command::Demo(args) => demo(&args),
+        Command::Fit(a) => fit(&a),
+        Command::Compare(a) => compare(&a),
+        Command::Diagnose(a) => diagnose(&a),
     }
 }
 
@@ -593,4 +655,35 @@ fn demo(args: &DemoArgs) -> persist::Result<ExitCode> {
     } else {
         ExitCode::from(1)
     })
+}
+
+/// `persist fit`.
+fn fit(a: &FitArgs) -> persist::Result<ExitCode> {
+    let cfg = persist::calib::CalibConfig {
+        amplification: a.amplification,
+        t_min_s: a.t_min_s,
+        ..Default::default()
+    };
+    let report_path = a
+        .report
+        .clone()
+        .unwrap_or_else(|| a.out.with_extension("fit.json"));
+    let r = persist::calib::run(&a.input, &cfg, &a.with, &a.out, &report_path)?;
+    println!("{r}");
+    Ok(ExitCode::SUCCESS)
+}
+
+/// `persist compare`.
+fn compare(a: &CompareArgs) -> persist::Result<ExitCode> {
+    let s = persist::diag::compare::run(&a.input, &a.models, &a.report)?;
+    println!("{s}");
+    Ok(ExitCode::SUCCESS)
+}
+
+/// `persist diagnose`.
+fn diagnose(a: &DiagnoseArgs) -> persist::Result<ExitCode> {
+    let s =
+        persist::diag::diagnose::run(&a.input, &a.model, a.json.as_deref(), a.bootstrap, a.seed)?;
+    println!("{s}");
+    Ok(ExitCode::SUCCESS)
 }

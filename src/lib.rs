@@ -22,8 +22,10 @@
 //!
 //! Units: seconds, electrons, electrons per second; names carry them (`t_exposure_s`).
 
+pub mod calib;
 pub mod checkpoint;
 pub mod demo;
+pub mod diag;
 pub mod error;
 pub mod flags;
 pub mod h5io;

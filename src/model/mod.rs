@@ -5,6 +5,9 @@
 //! Units: amplitudes `A_n` in electrons, `C_n` in 1/s, currents in e-/s, times in s.
 
 pub mod decay;
+pub mod effect;
+pub mod effect_step;
+pub mod effects;
 pub mod params;
 pub mod reference;
 pub mod response;
@@ -12,6 +15,7 @@ pub mod state;
 pub mod step;
 
 pub use decay::ExpSum;
+pub use effect_step::StepContext;
 pub use params::{EarlyRelease, Knot, ModelParams, Term, Thresholds};
 pub use response::Response;
 pub use state::State;

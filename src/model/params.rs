@@ -9,7 +9,9 @@
 //! Invariants checked by [`ModelParams::validate`]: at least one term; every `c_per_s`
 //! finite and >= 0; every `rate_per_s` finite and > 0; knots strictly increasing in
 //! fluence, with finite non-negative amplitudes; `0 < low <= high` thresholds; early
-//! release with a finite threshold and 1..=255 consecutive exposures.
+//! release with a finite threshold and 1..=255 consecutive exposures; every effect
+//! registered in [`crate::model::effects::REGISTRY`], at most once, with known
+//! parameters inside their bounds.
 
 use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
@@ -278,11 +280,16 @@ impl ModelParams {
         if er.consecutive == 0 {
             return Err("early_release.consecutive: must be >= 1".into());
         }
-        if let Some(e) = self.effects.first() {
-            return Err(format!(
-                "effects[0].name: unknown effect `{}` (this build's model has no effects yet)",
-                e.name
-            ));
+        let mut seen: Vec<&str> = Vec::new();
+        for (i, e) in self.effects.iter().enumerate() {
+            super::effects::resolve(e).map_err(|m| format!("effects[{i}].{m}"))?;
+            if seen.contains(&e.name.as_str()) {
+                return Err(format!(
+                    "effects[{i}].name: effect `{}` given twice",
+                    e.name
+                ));
+            }
+            seen.push(&e.name);
         }
         Ok(())
     }

@@ -63,6 +63,8 @@ pub struct Model {
     response: Response,
     identity: String,
     bits: FlagBits,
+    /// The model file's effects, built once (empty: the fused paper kernel below).
+    effects: std::sync::Arc<Vec<Box<dyn super::effect::Effect>>>,
 }
 
 impl Model {
@@ -70,7 +72,14 @@ impl Model {
         params
             .validate()
             .map_err(|m| Error::new(ErrorKind::Model, m))?;
+        let effects = params
+            .effects
+            .iter()
+            .map(super::effects::build)
+            .collect::<Result<Vec<_>, _>>()
+            .map_err(|m| Error::new(ErrorKind::Model, m))?;
         Ok(Model {
+            effects: std::sync::Arc::new(effects),
             sum: ExpSum::new(&params.terms),
             response: Response::new(&params.amplitude_knots),
             identity: params.identity(),
@@ -107,13 +116,39 @@ impl Model {
         State::zeros(ny, nx, self.n_terms())
     }
 
+    /// The effects of the model file, in file order.
+    pub fn effects(&self) -> &[Box<dyn super::effect::Effect>] {
+        &self.effects
+    }
+
+    /// [`Model::step`] with the exposure's environment (temperature), which effects
+    /// may use. A model without effects ignores it.
+    pub fn step_with(
+        &self,
+        state: &mut State,
+        input: &Input<'_>,
+        ctx: &super::effect_step::StepContext,
+        out: &mut Output<'_>,
+    ) -> Result<StepSummary, Error> {
+        if self.effects.is_empty() {
+            return self.step(state, input, out);
+        }
+        super::effect_step::step(self, &self.effects, state, input, ctx, out)
+    }
+
     /// Run one exposure: see the module documentation. Nothing is changed on error.
+    /// A model with effects goes through [`crate::model::effect_step`] (without an
+    /// environment; the stage uses [`Model::step_with`]).
     pub fn step(
         &self,
         state: &mut State,
         input: &Input<'_>,
         out: &mut Output<'_>,
     ) -> Result<StepSummary, Error> {
+        if !self.effects.is_empty() {
+            let ctx = super::effect_step::StepContext::default();
+            return super::effect_step::step(self, &self.effects, state, input, &ctx, out);
+        }
         let k = self.prepare(state, input, out)?;
         let (ny, nx) = state.shape();
         let n = k.n;
@@ -346,7 +381,7 @@ pub struct StepSummary {
 }
 
 impl StepSummary {
-    fn add(self, o: StepSummary) -> StepSummary {
+    pub(crate) fn add(self, o: StepSummary) -> StepSummary {
         StepSummary {
             pixels: self.pixels + o.pixels,
             above_high: self.above_high + o.above_high,

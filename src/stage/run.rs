@@ -974,10 +974,14 @@ impl<'a> Processor<'a> {
         };
         let mut flags = std::mem::take(&mut exposure.flags);
         // The step validates before it changes anything: an error leaves the state as it was.
+        let env = crate::model::StepContext {
+            focal_plane_temp_k: meta.focal_plane_temp_k,
+        };
         let summary = model
-            .step(
+            .step_with(
                 st,
                 &input,
+                &env,
                 &mut Output {
                     flags: &mut flags,
                     current_e_per_s: &mut planes.current_e_per_s,

@@ -1,0 +1,233 @@
+//! `fit --with NAME`: the fitted parameters of effects, by Levenberg-Marquardt
+//! (`levenberg-marquardt` 0.15, forward-difference Jacobian) on the normalised cell
+//! residuals `z` of [`crate::diag::eval`] (fluence bin x time since illumination), the
+//! paper's calibration held fixed. Parameters are kept inside their bounds (projected
+//! after each step). Uncertainties: `s^2 (J^T J)^-1`, `s^2 = SSR / (m - p)`.
+
+use crate::diag::data::Sequence;
+use crate::diag::eval::{self, Samples};
+use crate::error::{Error, Result};
+use crate::model::effects;
+use crate::model::params::{EffectSpec, ModelParams};
+use levenberg_marquardt::{LeastSquaresProblem, LevenbergMarquardt};
+use nalgebra::{storage::Owned, DMatrix, DVector, Dyn};
+use serde::Serialize;
+use std::cell::RefCell;
+
+/// One fitted parameter.
+#[derive(Debug, Clone, Serialize)]
+pub struct FittedParam {
+    pub effect: String,
+    pub name: String,
+    pub value: f64,
+    pub sigma: f64,
+    pub lo: f64,
+    pub hi: f64,
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct EffectFit {
+    pub params: Vec<FittedParam>,
+    pub cells: usize,
+    pub residual_rms_normalised_before: f64,
+    pub residual_rms_normalised_after: f64,
+    pub evaluations: usize,
+    pub termination: String,
+}
+
+struct Slot {
+    effect: usize,
+    name: &'static str,
+    lo: f64,
+    hi: f64,
+}
+
+type Cache = RefCell<Vec<(Vec<f64>, Option<DVector<f64>>)>>;
+
+struct Problem<'a> {
+    base: ModelParams,
+    seq: &'a Sequence,
+    samples: &'a Samples,
+    slots: Vec<Slot>,
+    p: DVector<f64>,
+    cache: Cache,
+    evals: RefCell<usize>,
+}
+
+impl Problem<'_> {
+    fn params_at(&self, p: &[f64]) -> ModelParams {
+        let mut m = self.base.clone();
+        for (s, v) in self.slots.iter().zip(p) {
+            m.effects[s.effect]
+                .params
+                .insert(s.name.to_string(), serde_json::json!(v.clamp(s.lo, s.hi)));
+        }
+        m
+    }
+
+    fn z_at(&self, p: &[f64]) -> Option<DVector<f64>> {
+        if let Some((_, z)) = self.cache.borrow().iter().find(|(q, _)| q == p) {
+            return z.clone();
+        }
+        *self.evals.borrow_mut() += 1;
+        let m = self.params_at(p);
+        let z = eval::predict(&m, self.seq, self.samples, false)
+            .ok()
+            .map(|pr| {
+                let c = eval::cell_z(self.samples, &pr.current);
+                DVector::from_iterator(c.len(), c.iter().map(|(_, g)| g.z))
+            });
+        let mut cache = self.cache.borrow_mut();
+        if cache.len() > 8 {
+            cache.remove(0);
+        }
+        cache.push((p.to_vec(), z.clone()));
+        z
+    }
+}
+
+impl LeastSquaresProblem<f64, Dyn, Dyn> for Problem<'_> {
+    type ResidualStorage = Owned<f64, Dyn>;
+    type JacobianStorage = Owned<f64, Dyn, Dyn>;
+    type ParameterStorage = Owned<f64, Dyn>;
+
+    fn set_params(&mut self, p: &DVector<f64>) {
+        self.p = DVector::from_iterator(
+            p.len(),
+            p.iter().zip(&self.slots).map(|(v, s)| v.clamp(s.lo, s.hi)),
+        );
+    }
+    fn params(&self) -> DVector<f64> {
+        self.p.clone()
+    }
+    fn residuals(&self) -> Option<DVector<f64>> {
+        self.z_at(self.p.as_slice())
+    }
+    fn jacobian(&self) -> Option<DMatrix<f64>> {
+        let r0 = self.z_at(self.p.as_slice())?;
+        let mut j = DMatrix::zeros(r0.len(), self.p.len());
+        for (i, s) in self.slots.iter().enumerate() {
+            let mut q = self.p.as_slice().to_vec();
+            let mut h = 1e-3 * (q[i].abs() + 1e-3 * (s.hi - s.lo).min(1.0));
+            if q[i] + h > s.hi {
+                h = -h;
+            }
+            q[i] += h;
+            let r = self.z_at(&q)?;
+            if r.len() != r0.len() {
+                return None;
+            }
+            j.set_column(i, &((r - &r0) / h));
+        }
+        Some(j)
+    }
+}
+
+/// Add the effects `names` (each `NAME`, defaults as start) to `base` and fit their
+/// fitted parameters. Returns the model and the fit.
+pub fn fit(
+    base: &ModelParams,
+    names: &[String],
+    seq: &Sequence,
+    samples: &Samples,
+) -> Result<(ModelParams, EffectFit)> {
+    let mut m = base.clone();
+    for n in names {
+        if m.effects.iter().any(|e| &e.name == n) {
+            continue;
+        }
+        if effects::lookup(n).is_none() {
+            return Err(Error::invalid(
+                "--with",
+                format!(
+                    "unknown effect `{n}` (known: {})",
+                    effects::names().join(", ")
+                ),
+            ));
+        }
+        m.effects.push(EffectSpec {
+            name: n.clone(),
+            params: serde_json::Map::new(),
+        });
+    }
+    // fill defaults so every parameter is explicit in the model file
+    let mut slots = Vec::new();
+    let mut start = Vec::new();
+    for (i, e) in m.effects.iter_mut().enumerate() {
+        let (def, vals) =
+            effects::resolve(e).map_err(|r| Error::invalid(format!("effects[{i}]"), r))?;
+        for (k, v) in &vals {
+            e.params.insert(k.clone(), serde_json::json!(v));
+        }
+        if names.contains(&e.name) {
+            for p in def.params.iter().filter(|p| p.fitted) {
+                slots.push(Slot {
+                    effect: i,
+                    name: p.name,
+                    lo: p.lo,
+                    hi: p.hi,
+                });
+                start.push(vals[p.name]);
+            }
+        }
+    }
+    let before = {
+        let pr = eval::predict(base, seq, samples, false)?;
+        eval::rms(&eval::cell_z(samples, &pr.current))
+    };
+    let problem = Problem {
+        base: m.clone(),
+        seq,
+        samples,
+        slots,
+        p: DVector::from_vec(start),
+        cache: RefCell::new(Vec::new()),
+        evals: RefCell::new(0),
+    };
+    let (problem, report) = LevenbergMarquardt::new()
+        .with_patience(20)
+        .minimize(problem);
+    let p = problem.p.as_slice().to_vec();
+    let fitted = problem.params_at(&p);
+    let r = problem.z_at(&p).unwrap_or_else(|| DVector::zeros(0));
+    let cells = r.len();
+    let after = if cells == 0 {
+        f64::NAN
+    } else {
+        (r.norm_squared() / cells as f64).sqrt()
+    };
+    let cov = problem
+        .jacobian()
+        .and_then(|j| (j.transpose() * &j).try_inverse());
+    let s2 = r.norm_squared() / (cells as f64 - p.len() as f64).max(1.0);
+    let params = problem
+        .slots
+        .iter()
+        .enumerate()
+        .map(|(i, s)| FittedParam {
+            effect: fitted.effects[s.effect].name.clone(),
+            name: s.name.to_string(),
+            value: p[i],
+            sigma: cov
+                .as_ref()
+                .map_or(f64::NAN, |c| (s2 * c[(i, i)]).max(0.0).sqrt()),
+            lo: s.lo,
+            hi: s.hi,
+        })
+        .collect();
+    let evals = *problem.evals.borrow();
+    fitted
+        .validate()
+        .map_err(|e| Error::invalid("effects", e))?;
+    Ok((
+        fitted,
+        EffectFit {
+            params,
+            cells,
+            residual_rms_normalised_before: before,
+            residual_rms_normalised_after: after,
+            evaluations: evals,
+            termination: format!("{:?}", report.termination),
+        },
+    ))
+}

@@ -1,0 +1,409 @@
+//! `persist fit`: the paper's calibration from a laboratory sequence (section 2.3 and
+//! "Model Parameters and Validation"), then, with `--with`, the effects' parameters.
+//!
+//! 1. Extrapolated fluence of the (first) illuminated exposure, `image * t_illuminated`,
+//!    in log-spaced bins (`bins_per_decade`, default 20; bins with fewer than
+//!    `min_pixels` usable pixels are skipped).
+//! 2. Per bin, the measured current of the first dark integration (image minus the
+//!    background, [`crate::diag::data`]): its 3-sigma-clipped median and its 95th
+//!    percentile ([`crate::diag::data::signal_p95`], read noise removed in quadrature).
+//! 3. Per bin, the clipped median of the first dark ramp (background ramp subtracted)
+//!    fitted with Eq. (logfit) `q(t) = A_0 ln(t + tau) + q_0` ([`logfit`]).
+//! 4. `A_bin = amplification * A_0` (paper: 1.2) and, through the 95th percentile,
+//!    `A_95 = A_bin * p95 / median`; the piecewise-linear `A_k` has one knot per bin
+//!    whose median is significant (> 3 standard errors), at the bin's mean fluence.
+//! 5. `C_n` for the chosen rates `1/tau_n` (default: the paper's) by linear least
+//!    squares of the relative error `sum_n C_n exp(-t/tau_n) (t + 1) - 1` at 400
+//!    log-spaced times from `t_min_s` (the shortest slew, default 10 s) to the time the
+//!    largest knot amplitude crosses the low threshold under Eq. (invT) with `tau = 1`
+//!    (`A_max / (t + 1) = low`); negative `C_n` are dropped (set to 0) and the rest
+//!    refitted.
+
+pub mod effects;
+pub mod logfit;
+
+use crate::diag::data::{fluence, quantile, signal_p95, Sequence, BACKGROUND_FLUENCE_E};
+use crate::error::{Error, Result};
+use crate::model::params::{Knot, ModelParams, Term, PAPER_TERMS};
+use crate::sim::analysis::{clipped_median, median};
+use logfit::LogFit;
+use nalgebra::{DMatrix, DVector};
+use serde::Serialize;
+
+#[derive(Debug, Clone, Serialize)]
+pub struct CalibConfig {
+    pub amplification: f64,
+    pub bins_per_decade: f64,
+    pub min_pixels: usize,
+    pub t_min_s: f64,
+    /// Decay rates `1/tau_n` of the terms, 1/s.
+    pub rates_per_s: Vec<f64>,
+}
+
+impl Default for CalibConfig {
+    fn default() -> Self {
+        CalibConfig {
+            amplification: 1.2,
+            bins_per_decade: 20.0,
+            min_pixels: 20,
+            t_min_s: 10.0,
+            rates_per_s: PAPER_TERMS.iter().map(|t| t.1).collect(),
+        }
+    }
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct BinResult {
+    pub fluence_lo_e: f64,
+    pub fluence_hi_e: f64,
+    pub fluence_mean_e: f64,
+    pub pixels: usize,
+    pub median_e_per_s: f64,
+    pub sd_e_per_s: f64,
+    pub p95_e_per_s: f64,
+    pub logfit: Option<LogFit>,
+    pub a_bin_e: Option<f64>,
+    pub a_95_e: Option<f64>,
+    /// Used as a knot of `A_k`.
+    pub knot: bool,
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct CnFit {
+    pub t_min_s: f64,
+    pub t_max_s: f64,
+    pub terms: Vec<Term>,
+    /// Largest and RMS `|sum_n C_n e^{-t/tau_n} (t+1) - 1|` over the span.
+    pub max_relative_error: f64,
+    pub rms_relative_error: f64,
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct CalibReport {
+    pub config: CalibConfig,
+    pub illumination_exposure_index: u64,
+    pub first_dark_exposure_index: u64,
+    pub background_e_per_s: f64,
+    pub noise_e_per_s: f64,
+    pub bins: Vec<BinResult>,
+    pub knots: Vec<Knot>,
+    pub c_n: CnFit,
+}
+
+/// Steps 1-5 of the module docs on the first illumination of `seq`.
+pub fn calibrate(seq: &Sequence, cfg: &CalibConfig) -> Result<(ModelParams, CalibReport)> {
+    if !(cfg.amplification.is_finite() && cfg.amplification > 0.0) {
+        return Err(Error::invalid("--amplification", "must be finite and > 0"));
+    }
+    let &i0 = seq
+        .illuminations
+        .first()
+        .ok_or_else(|| Error::invalid("t_illuminated_s", "no illuminated exposure in the input"))?;
+    let d = i0 + 1;
+    let dark = seq.exposures.get(d).ok_or_else(|| {
+        Error::invalid("exposure_index", "no dark exposure after the illumination")
+    })?;
+    let (ramp, times) = match (&dark.ramp, &dark.ramp_times_s) {
+        (Some(r), Some(t)) => (r, t),
+        _ => {
+            return Err(Error::invalid(
+                "ramp",
+                format!(
+                    "exposure {}: the first dark integration has no /ramp (laboratory data needed)",
+                    dark.meta.exposure_index
+                ),
+            ))
+        }
+    };
+    let t_slew = seq.t_mid_after_s(i0, d) - 0.5 * dark.meta.t_exposure_s;
+    let t: Vec<f64> = times.iter().map(|x| x + t_slew).collect();
+    let f = fluence(&seq.exposures[i0]);
+    let meas = seq.measured(d);
+    let noise = seq.noise_e_per_s[d];
+    let nsamp = ramp.shape()[0];
+    // background ramp
+    let bg_px: Vec<(usize, usize)> = f
+        .indexed_iter()
+        .filter(|(p, v)| **v < BACKGROUND_FLUENCE_E && meas[*p].is_finite())
+        .map(|(p, _)| p)
+        .collect();
+    let bg_ramp: Vec<f64> = (0..nsamp)
+        .map(|s| {
+            let v: Vec<f64> = bg_px
+                .iter()
+                .map(|&(y, x)| f64::from(ramp[[s, y, x]]))
+                .collect();
+            median(&v)
+        })
+        .collect();
+    // bins
+    let fmax = f
+        .iter()
+        .copied()
+        .filter(|v| v.is_finite())
+        .fold(0.0, f64::max);
+    let lo_exp = 3.0;
+    let n_bins = (((fmax.max(1e4)).log10() - lo_exp) * cfg.bins_per_decade).ceil() as usize + 1;
+    let mut members: Vec<Vec<(usize, usize)>> = vec![Vec::new(); n_bins];
+    for ((y, x), v) in f.indexed_iter() {
+        if !(v.is_finite() && *v > 0.0 && meas[(y, x)].is_finite()) {
+            continue;
+        }
+        let b = ((v.log10() - lo_exp) * cfg.bins_per_decade).floor();
+        if b >= 0.0 && (b as usize) < n_bins {
+            members[b as usize].push((y, x));
+        }
+    }
+    let mut bins = Vec::new();
+    for (b, px) in members.iter().enumerate() {
+        if px.len() < cfg.min_pixels {
+            continue;
+        }
+        let edge = |i: f64| 10f64.powf(lo_exp + i / cfg.bins_per_decade);
+        let cur: Vec<f64> = px.iter().map(|p| meas[*p]).collect();
+        let (med, sd) = clipped_median(&cur, 3.0);
+        let p95 = signal_p95(&cur, med, noise);
+        let q: Vec<f64> = (0..nsamp)
+            .map(|s| {
+                let v: Vec<f64> = px
+                    .iter()
+                    .map(|&(y, x)| f64::from(ramp[[s, y, x]]))
+                    .collect();
+                clipped_median(&v, 3.0).0 - bg_ramp[s]
+            })
+            .collect();
+        let ok: Vec<usize> = (0..nsamp)
+            .filter(|&s| q[s].is_finite() && t[s] > 0.0)
+            .collect();
+        let ts: Vec<f64> = ok.iter().map(|&s| t[s]).collect();
+        let qs: Vec<f64> = ok.iter().map(|&s| q[s]).collect();
+        let lf = logfit::fit(&ts, &qs);
+        let significant = med > 3.0 * sd / (px.len() as f64).sqrt() && med > 0.0;
+        let a_bin = lf
+            .filter(|l| l.a0_e > 0.0)
+            .map(|l| cfg.amplification * l.a0_e);
+        let a_95 = a_bin
+            .map(|a| a * p95 / med)
+            .filter(|a| a.is_finite() && *a >= 0.0);
+        bins.push(BinResult {
+            fluence_lo_e: edge(b as f64),
+            fluence_hi_e: edge(b as f64 + 1.0),
+            fluence_mean_e: px.iter().map(|p| f[*p]).sum::<f64>() / px.len() as f64,
+            pixels: px.len(),
+            median_e_per_s: med,
+            sd_e_per_s: sd,
+            p95_e_per_s: p95,
+            logfit: lf,
+            a_bin_e: a_bin,
+            a_95_e: a_95,
+            knot: significant && a_95.is_some(),
+        });
+    }
+    let knots: Vec<Knot> = bins
+        .iter()
+        .filter(|b| b.knot)
+        .map(|b| Knot {
+            fluence_e: b.fluence_mean_e,
+            amplitude_e: b.a_95_e.unwrap_or(0.0),
+        })
+        .collect();
+    if knots.is_empty() {
+        return Err(Error::invalid(
+            "image",
+            "no fluence bin has a significant first-dark current: nothing to calibrate",
+        ));
+    }
+    let base = ModelParams::default();
+    let a_max = knots.iter().map(|k| k.amplitude_e).fold(0.0, f64::max);
+    let t_max = a_max / base.thresholds.low_e_per_s - 1.0;
+    let c_n = fit_cn(&cfg.rates_per_s, cfg.t_min_s, t_max.max(cfg.t_min_s * 10.0))?;
+    let params = ModelParams {
+        name: "fit".into(),
+        description: format!(
+            "persist fit: paper calibration (A_bin = {} A_0, A_k through the 95th percentile, \
+             C_n fitted from {:.0} s to {:.0} s)",
+            cfg.amplification, c_n.t_min_s, c_n.t_max_s
+        ),
+        terms: c_n.terms.clone(),
+        amplitude_knots: knots.clone(),
+        ..base
+    };
+    params.validate().map_err(|m| Error::invalid("model", m))?;
+    Ok((
+        params,
+        CalibReport {
+            config: cfg.clone(),
+            illumination_exposure_index: seq.exposures[i0].meta.exposure_index,
+            first_dark_exposure_index: dark.meta.exposure_index,
+            background_e_per_s: seq.background_e_per_s[d],
+            noise_e_per_s: noise,
+            bins,
+            knots,
+            c_n,
+        },
+    ))
+}
+
+/// Step 5 of the module docs.
+pub fn fit_cn(rates: &[f64], t_min_s: f64, t_max_s: f64) -> Result<CnFit> {
+    if rates.is_empty() || rates.iter().any(|r| !(r.is_finite() && *r > 0.0)) {
+        return Err(Error::invalid(
+            "--rates",
+            "need at least one finite rate > 0",
+        ));
+    }
+    if !(t_min_s > 0.0 && t_max_s > t_min_s) {
+        return Err(Error::invalid(
+            "--t-min-s",
+            format!("span [{t_min_s}, {t_max_s}] s is empty"),
+        ));
+    }
+    let m = 400;
+    let ts: Vec<f64> = (0..m)
+        .map(|i| t_min_s * (t_max_s / t_min_s).powf(i as f64 / (m - 1) as f64))
+        .collect();
+    let mut active: Vec<bool> = vec![true; rates.len()];
+    let mut c = vec![0.0; rates.len()];
+    for _ in 0..rates.len() {
+        let idx: Vec<usize> = (0..rates.len()).filter(|&i| active[i]).collect();
+        let a = DMatrix::from_fn(m, idx.len(), |j, k| {
+            (-rates[idx[k]] * ts[j]).exp() * (ts[j] + 1.0)
+        });
+        let b = DVector::from_element(m, 1.0);
+        let sol = a
+            .svd(true, true)
+            .solve(&b, 1e-14)
+            .map_err(|e| Error::invalid("--rates", format!("C_n least squares failed: {e}")))?;
+        c.iter_mut().for_each(|v| *v = 0.0);
+        for (k, &i) in idx.iter().enumerate() {
+            c[i] = sol[k];
+        }
+        match (0..rates.len())
+            .filter(|&i| active[i] && c[i] < 0.0)
+            .min_by(|&a, &b| c[a].total_cmp(&c[b]))
+        {
+            Some(i) => active[i] = false,
+            None => break,
+        }
+    }
+    c.iter_mut().for_each(|v| *v = v.max(0.0));
+    let err: Vec<f64> = ts
+        .iter()
+        .map(|t| {
+            let s: f64 = c.iter().zip(rates).map(|(ci, r)| ci * (-r * t).exp()).sum();
+            s * (t + 1.0) - 1.0
+        })
+        .collect();
+    Ok(CnFit {
+        t_min_s,
+        t_max_s,
+        terms: c
+            .iter()
+            .zip(rates)
+            .map(|(&c_per_s, &rate_per_s)| Term {
+                c_per_s,
+                rate_per_s,
+            })
+            .collect(),
+        max_relative_error: err.iter().map(|e| e.abs()).fold(0.0, f64::max),
+        rms_relative_error: (err.iter().map(|e| e * e).sum::<f64>() / m as f64).sqrt(),
+    })
+}
+
+/// Quantile helper re-exported for reports.
+pub fn p95(v: &[f64]) -> f64 {
+    quantile(v, 0.95)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn cn_fit_follows_inverse_time() {
+        let rates: Vec<f64> = PAPER_TERMS.iter().map(|t| t.1).collect();
+        let f = fit_cn(&rates, 10.0, 1e5).unwrap();
+        assert!(f.max_relative_error < 0.10, "{f:?}");
+        // close to the paper's fastest coefficient
+        assert!((f.terms[0].c_per_s / 0.183 - 1.0).abs() < 0.3, "{f:?}");
+    }
+}
+
+/// Everything `persist fit` writes beside the model file.
+#[derive(Debug, Clone, Serialize)]
+pub struct FitReport {
+    pub input: String,
+    pub calibration: CalibReport,
+    pub effects: Option<effects::EffectFit>,
+    /// RMS of the normalised cell residuals of the written model (diag::eval docs).
+    pub residual_rms_normalised: f64,
+    pub cells: usize,
+    pub model_identity: String,
+}
+
+/// `persist fit`: calibrate, fit the `--with` effects, write the model and the report.
+pub fn run(
+    input: &std::path::Path,
+    cfg: &CalibConfig,
+    with: &[String],
+    out: &std::path::Path,
+    report_path: &std::path::Path,
+) -> Result<String> {
+    let seq = Sequence::load(input)?;
+    let (mut params, cal) = calibrate(&seq, cfg).map_err(|e| e.path(input))?;
+    let samples = crate::diag::eval::Samples::new(&seq, 2);
+    let mut ef = None;
+    if !with.is_empty() {
+        let (p, f) = effects::fit(&params, with, &seq, &samples)?;
+        params = p;
+        ef = Some(f);
+    }
+    let pr = crate::diag::eval::predict(&params, &seq, &samples, false)?;
+    let cells = crate::diag::eval::cell_z(&samples, &pr.current);
+    let rep = FitReport {
+        input: input.display().to_string(),
+        calibration: cal,
+        effects: ef,
+        residual_rms_normalised: crate::diag::eval::rms(&cells),
+        cells: cells.len(),
+        model_identity: params.identity(),
+    };
+    write_text(out, &(params.to_json_pretty() + "\n"))?;
+    let text = serde_json::to_string_pretty(&rep)
+        .map_err(|e| Error::new(crate::ErrorKind::Io, e.to_string()))?;
+    write_text(report_path, &(text + "\n"))?;
+    let mut s = format!(
+        "persist fit: {} knots, C_n max relative error {:.3} over [{:.0}, {:.0}] s, \
+         normalised residual RMS {:.2} over {} cells\n",
+        rep.calibration.knots.len(),
+        rep.calibration.c_n.max_relative_error,
+        rep.calibration.c_n.t_min_s,
+        rep.calibration.c_n.t_max_s,
+        rep.residual_rms_normalised,
+        rep.cells
+    );
+    if let Some(f) = &rep.effects {
+        for p in &f.params {
+            s += &format!(
+                "  {}.{} = {:.6e} +- {:.2e}\n",
+                p.effect, p.name, p.value, p.sigma
+            );
+        }
+        s += &format!(
+            "  residual RMS {:.2} -> {:.2} ({} evaluations)\n",
+            f.residual_rms_normalised_before, f.residual_rms_normalised_after, f.evaluations
+        );
+    }
+    s += &format!("model {} , report {}", out.display(), report_path.display());
+    Ok(s)
+}
+
+/// Write a text file atomically (temporary name, rename).
+pub fn write_text(path: &std::path::Path, text: &str) -> Result<()> {
+    if let Some(d) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
+        std::fs::create_dir_all(d).map_err(|e| Error::io(d, e))?;
+    }
+    let tmp = crate::h5io::temp_path(path);
+    std::fs::write(&tmp, text).map_err(|e| Error::io(&tmp, e))?;
+    std::fs::rename(&tmp, path).map_err(|e| Error::io(path, e))
+}

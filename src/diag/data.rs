@@ -1,0 +1,198 @@
+//! A detector's sequence of exposures in memory, with what `fit`, `compare` and
+//! `diagnose` need beside the images: illumination events, the background of every
+//! exposure and the per-pixel covariates.
+//!
+//! # Background (how "measured persistence current" is defined)
+//! The measured persistence current of pixel `p` in exposure `k` is
+//! `image_k(p) - b_k`, where `b_k` is the median of `image_k` over the *background
+//! pixels*: pixels whose extrapolated fluence stayed below [`BACKGROUND_FLUENCE_E`] in
+//! every illumination so far and that carry no on-board flag. This removes the dark
+//! current (and its temperature drift) exposure by exposure. The per-pixel noise
+//! `sigma_k` is 1.4826 times the median absolute deviation of the same pixels.
+//! On sky data (no `t_illuminated_s`), every exposure counts as an illumination and
+//! `b_k` is the same statistic, i.e. the faint sky plus dark.
+
+use crate::error::{Error, ErrorKind, Result};
+use crate::flags::bits;
+use crate::product::{read, Exposure};
+use crate::sim::analysis::median;
+use ndarray::Array2;
+use std::path::Path;
+
+/// Pixels below this extrapolated fluence in every illumination are background, e-.
+pub const BACKGROUND_FLUENCE_E: f64 = 3000.0;
+
+/// Flags that make a pixel unusable for statistics.
+pub const BAD_BITS: u32 = bits::TRANSIENT | bits::SUR_ERROR | bits::NONFUNC;
+
+#[derive(Debug)]
+pub struct Sequence {
+    pub exposures: Vec<Exposure>,
+    /// Indices (into `exposures`) of the illuminated exposures.
+    pub illuminations: Vec<usize>,
+    /// Background `b_k` and noise `sigma_k` per exposure, e-/s.
+    pub background_e_per_s: Vec<f64>,
+    pub noise_e_per_s: Vec<f64>,
+    /// Per exposure: the index (into `exposures`) of the last illumination before it.
+    pub last_illumination: Vec<Option<usize>>,
+    pub ny: usize,
+    pub nx: usize,
+}
+
+impl Sequence {
+    /// Read every product (`*.h5`, recursively) of the first detector found in `dir`.
+    pub fn load(dir: &Path) -> Result<Sequence> {
+        let files = crate::stage::queue::candidates(dir)?;
+        let mut metas = Vec::new();
+        for f in &files {
+            let m = read::read_meta(f)?;
+            metas.push((m.detector.0, m.exposure_index, f.clone()));
+        }
+        metas.sort();
+        let Some(det) = metas.first().map(|m| m.0) else {
+            return Err(Error::new(ErrorKind::Usage, "no Level-1 products (*.h5) found").path(dir));
+        };
+        let mut exposures = Vec::new();
+        for (d, _, f) in metas.iter().filter(|m| m.0 == det) {
+            let _ = d;
+            exposures.push(read::read_exposure(f)?);
+        }
+        Sequence::from_exposures(exposures).map_err(|e| e.path(dir))
+    }
+
+    pub fn from_exposures(exposures: Vec<Exposure>) -> Result<Sequence> {
+        let Some(first) = exposures.first() else {
+            return Err(Error::new(ErrorKind::Usage, "no exposures"));
+        };
+        let (ny, nx) = first.image.dim();
+        if let Some(e) = exposures.iter().find(|e| e.image.dim() != (ny, nx)) {
+            return Err(Error::invalid(
+                "image",
+                format!(
+                    "exposure {}: shape {:?} differs from the first exposure's {:?}",
+                    e.meta.exposure_index,
+                    e.image.dim(),
+                    (ny, nx)
+                ),
+            ));
+        }
+        let lab = exposures.iter().any(|e| e.meta.t_illuminated_s.is_some());
+        let illuminations: Vec<usize> = (0..exposures.len())
+            .filter(|&i| !lab || exposures[i].meta.t_illuminated_s.is_some())
+            .collect();
+        let mut max_fluence = Array2::<f64>::zeros((ny, nx));
+        let mut background = Vec::new();
+        let mut noise = Vec::new();
+        let mut last = Vec::new();
+        let mut cur_last = None;
+        for (i, e) in exposures.iter().enumerate() {
+            last.push(cur_last);
+            let is_ill = illuminations.contains(&i);
+            if is_ill {
+                let f = fluence(e);
+                ndarray::Zip::from(&mut max_fluence)
+                    .and(&f)
+                    .for_each(|m, v| {
+                        if !v.is_finite() {
+                            *m = f64::INFINITY;
+                        } else if *v > *m {
+                            *m = *v;
+                        }
+                    });
+            }
+            let vals: Vec<f64> = e
+                .image
+                .iter()
+                .zip(e.flags.iter())
+                .zip(max_fluence.iter())
+                .filter(|((v, f), m)| {
+                    **f & BAD_BITS == 0 && v.is_finite() && **m < BACKGROUND_FLUENCE_E
+                })
+                .map(|((v, _), _)| f64::from(*v))
+                .collect();
+            let b = median(&vals);
+            let dev: Vec<f64> = vals.iter().map(|v| (v - b).abs()).collect();
+            background.push(if b.is_finite() { b } else { 0.0 });
+            let s = 1.4826 * median(&dev);
+            noise.push(if s.is_finite() && s > 0.0 { s } else { 0.1 });
+            if is_ill {
+                cur_last = Some(i);
+            }
+        }
+        Ok(Sequence {
+            exposures,
+            illuminations,
+            background_e_per_s: background,
+            noise_e_per_s: noise,
+            last_illumination: last,
+            ny,
+            nx,
+        })
+    }
+
+    /// Measured persistence current of exposure `k` (module docs), NaN where unusable.
+    pub fn measured(&self, k: usize) -> Array2<f64> {
+        let e = &self.exposures[k];
+        let b = self.background_e_per_s[k];
+        let mut m = Array2::<f64>::from_elem((self.ny, self.nx), f64::NAN);
+        ndarray::Zip::from(&mut m)
+            .and(&e.image)
+            .and(&e.flags)
+            .for_each(|o, v, f| {
+                if *f & BAD_BITS == 0 && v.is_finite() {
+                    *o = f64::from(*v) - b;
+                }
+            });
+        m
+    }
+
+    /// Seconds from the reset ending exposure `a` to the middle of exposure `k`.
+    pub fn t_mid_after_s(&self, a: usize, k: usize) -> f64 {
+        let ea = &self.exposures[a].meta;
+        let ek = &self.exposures[k].meta;
+        ek.t_start.0 + 0.5 * ek.t_exposure_s - (ea.t_start.0 + ea.t_exposure_s)
+    }
+
+    /// Number of illuminations before exposure `k` (including the last one).
+    pub fn illuminations_before(&self, k: usize) -> usize {
+        self.illuminations.iter().filter(|&&i| i < k).count()
+    }
+}
+
+/// Extrapolated fluence of an exposure, e- (ICD "Timing"); NaN where unusable.
+pub fn fluence(e: &Exposure) -> Array2<f64> {
+    let t = e.meta.t_illuminated_s();
+    let mut f = Array2::<f64>::from_elem(e.image.dim(), f64::NAN);
+    ndarray::Zip::from(&mut f)
+        .and(&e.image)
+        .and(&e.flags)
+        .for_each(|o, v, fl| {
+            if *fl & BAD_BITS == 0 && v.is_finite() {
+                *o = f64::from(v.max(0.0)) * t;
+            }
+        });
+    f
+}
+
+/// The `q`-quantile (0..1) of finite values, linear interpolation; NaN when none.
+pub fn quantile(v: &[f64], q: f64) -> f64 {
+    let mut a: Vec<f64> = v.iter().copied().filter(|x| x.is_finite()).collect();
+    if a.is_empty() {
+        return f64::NAN;
+    }
+    a.sort_by(|x, y| x.total_cmp(y));
+    let pos = q.clamp(0.0, 1.0) * (a.len() - 1) as f64;
+    let i = pos.floor() as usize;
+    let j = (i + 1).min(a.len() - 1);
+    a[i] + (a[j] - a[i]) * (pos - i as f64)
+}
+
+/// The 95th percentile of the *signal* in a set of measurements with Gaussian noise
+/// `sigma`: `median + sqrt(max(0, (p95 - median)^2 - (1.645 sigma)^2))` (spreads add in
+/// quadrature). Used identically by the calibration and by `compare`.
+pub fn signal_p95(v: &[f64], med: f64, sigma: f64) -> f64 {
+    let p = quantile(v, 0.95);
+    med + ((p - med).powi(2) - (1.645 * sigma).powi(2))
+        .max(0.0)
+        .sqrt()
+}

@@ -1,0 +1,378 @@
+//! The model run over a sequence and the residual statistics shared by `fit --with`,
+//! `compare` and `diagnose`.
+//!
+//! # Samples
+//! A sample is one (pixel, exposure) with the exposure after an illumination and not
+//! itself illuminated. Pixels: every `stride`-th pixel in both directions (a fixed,
+//! documented subsample; `stride` 2 by default, i.e. a quarter of the array), with a
+//! usable fluence above [`BACKGROUND_FLUENCE_E`] in the last illumination.
+//! The model is always run on the whole array (effects such as blooming read
+//! neighbours); only the statistics use the subsample.
+//!
+//! # Group statistic and normalised residual
+//! The flagging model predicts the 95th percentile of the persistence current of
+//! pixels of the same history (its `A_k` go through the 95th percentile). For a group
+//! of `n >= 10` samples, the statistic is
+//! `z = (P95_signal(measured) - P95(predicted)) / sigma_q`, where `P95_signal` removes
+//! the read noise in quadrature ([`super::data::signal_p95`]) and
+//! `sigma_q = 2.12 s / sqrt(n)` is the standard error of a 95th percentile of a normal
+//! spread `s` (`sqrt(0.95 * 0.05) / phi(1.645) = 2.12`), `s` = 1.4826 MAD of the
+//! measured values, at least the exposure noise. `residual_rms_normalised` is the RMS
+//! of `z` over the cells fluence bin (5 per decade) x time since illumination (4 per
+//! decade).
+//!
+//! # Flag quality (per threshold `thr`)
+//! Missed: measured above `thr + 2 sigma_k` and not flagged (predicted `<= thr`).
+//! Over-flagged: flagged and measured below `thr - 2 sigma_k`. The `2 sigma_k` margin
+//! keeps read noise (`sigma_k` ~ 0.1 e-/s per pixel, the paper's noise level) from
+//! counting as a flag error. Fractions are of all samples, and missed also of the
+//! samples measured above `thr + 2 sigma_k`. Flags come from the model as the stage
+//! runs it (early release included); residuals from the same model with early release
+//! off (a release zeroes a prediction the physics still has).
+
+use super::data::{fluence, quantile, signal_p95, Sequence, BACKGROUND_FLUENCE_E};
+use crate::error::Result;
+use crate::model::effects::blooming::neighbour_excess;
+use crate::model::{Input, Model, ModelParams, Output, StepContext};
+use crate::sim::analysis::median;
+use ndarray::Array2;
+use serde::Serialize;
+
+/// Samples and their covariates.
+#[derive(Debug, Clone)]
+pub struct Samples {
+    pub stride: usize,
+    pub pixels: Vec<(usize, usize)>,
+    /// Exposure indices (into the sequence) of the samples' rows.
+    pub exposures: Vec<usize>,
+    /// `[exposures.len() * pixels.len()]`, e-/s, NaN unusable.
+    pub measured: Vec<f64>,
+    pub noise: Vec<f64>,
+    /// Per sample covariates (same layout as `measured`).
+    pub fluence_e: Vec<f64>,
+    pub neighbour_excess_e: Vec<f64>,
+    /// Per exposure row.
+    pub t_since_s: Vec<f64>,
+    pub illumination_time_s: Vec<f64>,
+    pub temperature_k: Vec<f64>,
+    pub earlier_illuminations: Vec<f64>,
+    /// Per pixel: distance from the array centre in units of the half size.
+    pub radius: Vec<f64>,
+}
+
+pub const NAMES: [&str; 7] = [
+    "fluence_x_time",
+    "fluence",
+    "neighbour_excess_fluence",
+    "illumination_time",
+    "temperature",
+    "earlier_illuminations",
+    "position",
+];
+
+impl Samples {
+    pub fn new(seq: &Sequence, stride: usize) -> Samples {
+        let stride = stride.max(1);
+        let pixels: Vec<(usize, usize)> = (0..seq.ny)
+            .step_by(stride)
+            .flat_map(|y| (0..seq.nx).step_by(stride).map(move |x| (y, x)))
+            .collect();
+        let mut s = Samples {
+            stride,
+            pixels: pixels.clone(),
+            exposures: Vec::new(),
+            measured: Vec::new(),
+            noise: Vec::new(),
+            fluence_e: Vec::new(),
+            neighbour_excess_e: Vec::new(),
+            t_since_s: Vec::new(),
+            illumination_time_s: Vec::new(),
+            temperature_k: Vec::new(),
+            earlier_illuminations: Vec::new(),
+            radius: pixels
+                .iter()
+                .map(|&(y, x)| {
+                    let c =
+                        |v: usize, n: usize| (v as f64 - (n as f64 - 1.0) / 2.0) / (n as f64 / 2.0);
+                    (c(y, seq.ny).powi(2) + c(x, seq.nx).powi(2)).sqrt()
+                })
+                .collect(),
+        };
+        let mut cache: Option<(usize, Array2<f64>, Array2<f64>)> = None;
+        for k in 0..seq.exposures.len() {
+            let Some(a) = seq.last_illumination[k] else {
+                continue;
+            };
+            if seq.illuminations.contains(&k) {
+                continue;
+            }
+            if cache.as_ref().map(|c| c.0) != Some(a) {
+                let f = fluence(&seq.exposures[a]);
+                let nb = neighbour_excess(&f, 2e5);
+                cache = Some((a, f, nb));
+            }
+            let (_, f, nb) = cache.as_ref().expect("set above");
+            let m = seq.measured(k);
+            s.exposures.push(k);
+            s.noise.push(seq.noise_e_per_s[k]);
+            s.t_since_s.push(seq.t_mid_after_s(a, k));
+            s.illumination_time_s
+                .push(seq.exposures[a].meta.t_illuminated_s());
+            s.temperature_k
+                .push(seq.exposures[k].meta.focal_plane_temp_k.unwrap_or(f64::NAN));
+            s.earlier_illuminations
+                .push(seq.illuminations_before(k) as f64 - 1.0);
+            for &p in &pixels {
+                let fl = f[p];
+                let ok = fl.is_finite() && fl > BACKGROUND_FLUENCE_E;
+                s.measured.push(if ok { m[p] } else { f64::NAN });
+                s.fluence_e.push(fl);
+                s.neighbour_excess_e.push(nb[p]);
+            }
+        }
+        s
+    }
+
+    pub fn len(&self) -> usize {
+        self.measured.len()
+    }
+    pub fn is_empty(&self) -> bool {
+        self.measured.is_empty()
+    }
+    pub fn npix(&self) -> usize {
+        self.pixels.len()
+    }
+}
+
+/// The model's predictions (and flags) at the samples.
+#[derive(Debug, Clone)]
+pub struct Prediction {
+    pub current: Vec<f64>,
+    pub flagged: Vec<bool>,
+}
+
+/// Run `params` over the whole sequence; predictions at the samples. `early_release`
+/// false switches it off (residuals), true keeps the model file's setting (flags).
+pub fn predict(
+    params: &ModelParams,
+    seq: &Sequence,
+    samples: &Samples,
+    early_release: bool,
+) -> Result<Prediction> {
+    let mut p = params.clone();
+    if !early_release {
+        p.early_release.enabled = false;
+    }
+    let model = Model::new(p)?;
+    let (ny, nx) = (seq.ny, seq.nx);
+    let mut st = model.new_state(ny, nx);
+    let mut cur = Array2::<f32>::zeros((ny, nx));
+    let mut pf = Array2::<u8>::zeros((ny, nx));
+    let mut out = Prediction {
+        current: Vec::with_capacity(samples.len()),
+        flagged: Vec::with_capacity(samples.len()),
+    };
+    let mut row = 0;
+    for (k, e) in seq.exposures.iter().enumerate() {
+        let mut flags = e.flags.clone();
+        let input = Input {
+            image_e_per_s: e.image.view(),
+            exposure_index: e.meta.exposure_index,
+            t_start_unix_s: e.meta.t_start.0,
+            t_exposure_s: e.meta.t_exposure_s,
+            t_illuminated_s: e.meta.t_illuminated_s(),
+            history_incomplete: false,
+            background_e_per_s: None,
+        };
+        model.step_with(
+            &mut st,
+            &input,
+            &StepContext {
+                focal_plane_temp_k: e.meta.focal_plane_temp_k,
+            },
+            &mut Output {
+                flags: &mut flags,
+                current_e_per_s: &mut cur,
+                pflags: &mut pf,
+            },
+        )?;
+        if samples.exposures.get(row) == Some(&k) {
+            for &px in &samples.pixels {
+                out.current.push(f64::from(cur[px]));
+                out.flagged.push(pf[px] & crate::flags::pbits::HIGH != 0);
+            }
+            row += 1;
+        }
+    }
+    Ok(out)
+}
+
+/// One group's comparison (module docs).
+#[derive(Debug, Clone, Copy, Serialize, PartialEq)]
+pub struct GroupStat {
+    pub n: usize,
+    pub measured_p95_e_per_s: f64,
+    pub predicted_p95_e_per_s: f64,
+    pub measured_median_e_per_s: f64,
+    pub sigma_e_per_s: f64,
+    pub z: f64,
+}
+
+pub fn group_stat(meas: &[f64], pred: &[f64], noise: f64) -> Option<GroupStat> {
+    if meas.len() < 10 {
+        return None;
+    }
+    let med = median(meas);
+    let dev: Vec<f64> = meas.iter().map(|v| (v - med).abs()).collect();
+    let s = (1.4826 * median(&dev)).max(noise);
+    let mp = signal_p95(meas, med, noise);
+    let pp = quantile(pred, 0.95);
+    let sigma = 2.12 * s / (meas.len() as f64).sqrt();
+    Some(GroupStat {
+        n: meas.len(),
+        measured_p95_e_per_s: mp,
+        predicted_p95_e_per_s: pp,
+        measured_median_e_per_s: med,
+        sigma_e_per_s: sigma,
+        z: (mp - pp) / sigma,
+    })
+}
+
+/// Bin index of a sample for a covariate; None to leave it out.
+pub fn bin_of(s: &Samples, covariate: &str, i: usize) -> Option<i64> {
+    let (row, px) = (i / s.npix(), i % s.npix());
+    let lg =
+        |v: f64, per: f64| (v > 0.0 && v.is_finite()).then(|| (v.log10() * per).floor() as i64);
+    match covariate {
+        "fluence" => lg(s.fluence_e[i], 5.0),
+        "time" => lg(s.t_since_s[row], 4.0),
+        "neighbour_excess_fluence" => {
+            let v = s.neighbour_excess_e[i];
+            Some(if v <= 0.0 {
+                -1
+            } else {
+                (v.log10() * 2.0).floor() as i64
+            })
+        }
+        "illumination_time" => Some(s.illumination_time_s[row].round() as i64),
+        "temperature" => {
+            let t = s.temperature_k[row];
+            t.is_finite().then(|| (t * 2.0).round() as i64)
+        }
+        "earlier_illuminations" => Some(s.earlier_illuminations[row] as i64),
+        "position" => Some((s.radius[px] * 5.0).floor() as i64),
+        _ => None,
+    }
+}
+
+/// Lower edge (in the covariate's unit) of a bin from [`bin_of`].
+pub fn bin_value(covariate: &str, b: i64) -> f64 {
+    match covariate {
+        "fluence" => 10f64.powf(b as f64 / 5.0),
+        "time" => 10f64.powf(b as f64 / 4.0),
+        "neighbour_excess_fluence" => {
+            if b < 0 {
+                0.0
+            } else {
+                10f64.powf(b as f64 / 2.0)
+            }
+        }
+        "temperature" => b as f64 / 2.0,
+        "position" => b as f64 / 5.0,
+        _ => b as f64,
+    }
+}
+
+/// Groups keyed by bins of one or two covariates.
+pub fn groups(s: &Samples, pred: &[f64], keys: &[&str]) -> Vec<(Vec<i64>, GroupStat)> {
+    use std::collections::BTreeMap;
+    #[allow(clippy::type_complexity)]
+    let mut g: BTreeMap<Vec<i64>, (Vec<f64>, Vec<f64>, Vec<f64>)> = BTreeMap::new();
+    #[allow(clippy::needless_range_loop)]
+    for i in 0..s.len() {
+        let m = s.measured[i];
+        if !m.is_finite() || !pred[i].is_finite() {
+            continue;
+        }
+        let mut key = Vec::with_capacity(keys.len());
+        for k in keys {
+            match bin_of(s, k, i) {
+                Some(b) => key.push(b),
+                None => break,
+            }
+        }
+        if key.len() != keys.len() {
+            continue;
+        }
+        let e = g.entry(key).or_default();
+        e.0.push(m);
+        e.1.push(pred[i]);
+        e.2.push(s.noise[i / s.npix()]);
+    }
+    g.into_iter()
+        .filter_map(|(k, (m, p, n))| group_stat(&m, &p, median(&n)).map(|st| (k, st)))
+        .collect()
+}
+
+/// The cells fluence x time and their `z` (module docs).
+pub fn cell_z(s: &Samples, pred: &[f64]) -> Vec<(Vec<i64>, GroupStat)> {
+    groups(s, pred, &["fluence", "time"])
+}
+
+/// `sqrt(mean z^2)` over the cells.
+pub fn rms(z: &[(Vec<i64>, GroupStat)]) -> f64 {
+    if z.is_empty() {
+        return f64::NAN;
+    }
+    (z.iter().map(|(_, g)| g.z * g.z).sum::<f64>() / z.len() as f64).sqrt()
+}
+
+/// Flag quality at one threshold (module docs).
+#[derive(Debug, Clone, Copy, Serialize, PartialEq)]
+pub struct FlagQuality {
+    pub threshold_e_per_s: f64,
+    pub samples: usize,
+    pub measured_above: usize,
+    pub flagged: usize,
+    pub missed: usize,
+    pub over_flagged: usize,
+    pub missed_flag_fraction: f64,
+    pub missed_of_measured_above: f64,
+    pub over_flag_fraction: f64,
+}
+
+pub fn flag_quality(s: &Samples, pred: &[f64], flagged: Option<&[bool]>, thr: f64) -> FlagQuality {
+    let (mut n, mut above, mut fl, mut missed, mut over) = (0, 0, 0, 0, 0);
+    for i in 0..s.len() {
+        let m = s.measured[i];
+        if !m.is_finite() {
+            continue;
+        }
+        n += 1;
+        let sig = s.noise[i / s.npix()];
+        let f = match flagged {
+            Some(f) => f[i],
+            None => pred[i] > thr,
+        };
+        fl += f as usize;
+        if m > thr + 2.0 * sig {
+            above += 1;
+            missed += !f as usize;
+        }
+        if f && m < thr - 2.0 * sig {
+            over += 1;
+        }
+    }
+    let fr = |a: usize, b: usize| if b == 0 { 0.0 } else { a as f64 / b as f64 };
+    FlagQuality {
+        threshold_e_per_s: thr,
+        samples: n,
+        measured_above: above,
+        flagged: fl,
+        missed,
+        over_flagged: over,
+        missed_flag_fraction: fr(missed, n),
+        missed_of_measured_above: fr(missed, above),
+        over_flag_fraction: fr(over, n),
+    }
+}

@@ -1,0 +1,190 @@
+//! The self-contained HTML report of `persist compare`: inline SVG plots (plotters' SVG
+//! backend, no fonts needed), every model of a figure side by side, no external
+//! resource, no script.
+
+use super::compare::{Summary, BREAKDOWNS};
+use crate::error::{Error, ErrorKind, Result};
+use plotters::prelude::*;
+
+fn perr<E: std::fmt::Display>(e: E) -> Error {
+    Error::new(ErrorKind::Io, format!("plot: {e}"))
+}
+
+fn esc(s: &str) -> String {
+    s.replace('&', "&amp;")
+        .replace('<', "&lt;")
+        .replace('>', "&gt;")
+}
+
+/// Heat map of z over fluence x time.
+fn map_svg(m: &super::compare::ModelSummary) -> Result<String> {
+    let mut s = String::new();
+    {
+        let root = SVGBackend::with_string(&mut s, (420, 320)).into_drawing_area();
+        root.fill(&WHITE).map_err(perr)?;
+        let (fx0, fx1) = m.map.iter().fold((f64::MAX, f64::MIN), |a, c| {
+            (
+                a.0.min(c.fluence_e.log10()),
+                a.1.max(c.fluence_e.log10() + 0.2),
+            )
+        });
+        let (ty0, ty1) = m.map.iter().fold((f64::MAX, f64::MIN), |a, c| {
+            (a.0.min(c.time_s.log10()), a.1.max(c.time_s.log10() + 0.25))
+        });
+        if m.map.is_empty() {
+            return Ok(String::new());
+        }
+        let mut ch = ChartBuilder::on(&root)
+            .margin(10)
+            .x_label_area_size(35)
+            .y_label_area_size(45)
+            .caption("z: fluence x time", ("sans-serif", 16))
+            .build_cartesian_2d(fx0..fx1, ty0..ty1)
+            .map_err(perr)?;
+        ch.configure_mesh()
+            .x_desc("log10 fluence (e-)")
+            .y_desc("log10 t (s)")
+            .disable_mesh()
+            .draw()
+            .map_err(perr)?;
+        ch.draw_series(m.map.iter().map(|c| {
+            let x = c.fluence_e.log10();
+            let y = c.time_s.log10();
+            let z = c.stat.z.clamp(-10.0, 10.0) / 10.0;
+            let col = if z >= 0.0 {
+                RGBColor(255, (255.0 * (1.0 - z)) as u8, (255.0 * (1.0 - z)) as u8)
+            } else {
+                RGBColor((255.0 * (1.0 + z)) as u8, (255.0 * (1.0 + z)) as u8, 255)
+            };
+            Rectangle::new([(x, y), (x + 0.2, y + 0.25)], col.filled())
+        }))
+        .map_err(perr)?;
+        root.present().map_err(perr)?;
+    }
+    Ok(s)
+}
+
+/// z against one covariate.
+fn line_svg(m: &super::compare::ModelSummary, cov: &str) -> Result<String> {
+    let Some(bins) = m.breakdown.get(cov).filter(|b| !b.is_empty()) else {
+        return Ok("<p>no data</p>".into());
+    };
+    let logx = matches!(cov, "time" | "fluence" | "neighbour_excess_fluence");
+    let xs: Vec<f64> = bins
+        .iter()
+        .map(|b| {
+            if logx {
+                b.value.max(1.0).log10()
+            } else {
+                b.value
+            }
+        })
+        .collect();
+    let (x0, x1) = xs
+        .iter()
+        .fold((f64::MAX, f64::MIN), |a, v| (a.0.min(*v), a.1.max(*v)));
+    let (y0, y1) = bins.iter().fold((-1.0f64, 1.0f64), |a, b| {
+        (a.0.min(b.stat.z.max(-1e3)), a.1.max(b.stat.z.min(1e3)))
+    });
+    let pad = ((x1 - x0).abs() * 0.05).max(0.5);
+    let mut s = String::new();
+    {
+        let root = SVGBackend::with_string(&mut s, (420, 260)).into_drawing_area();
+        root.fill(&WHITE).map_err(perr)?;
+        let mut ch = ChartBuilder::on(&root)
+            .margin(10)
+            .x_label_area_size(35)
+            .y_label_area_size(45)
+            .caption(format!("z by {cov}"), ("sans-serif", 16))
+            .build_cartesian_2d((x0 - pad)..(x1 + pad), (y0 * 1.1)..(y1 * 1.1))
+            .map_err(perr)?;
+        ch.configure_mesh()
+            .x_desc(if logx {
+                format!("log10 {cov}")
+            } else {
+                cov.to_string()
+            })
+            .y_desc("z")
+            .draw()
+            .map_err(perr)?;
+        let pts: Vec<(f64, f64)> = xs
+            .iter()
+            .zip(bins)
+            .map(|(x, b)| (*x, b.stat.z.clamp(-1e3, 1e3)))
+            .collect();
+        ch.draw_series(LineSeries::new(pts.clone(), &BLUE))
+            .map_err(perr)?;
+        ch.draw_series(pts.iter().map(|p| Circle::new(*p, 3, BLUE.filled())))
+            .map_err(perr)?;
+        ch.draw_series(LineSeries::new(
+            vec![(x0 - pad, 0.0), (x1 + pad, 0.0)],
+            &BLACK,
+        ))
+        .map_err(perr)?;
+        root.present().map_err(perr)?;
+    }
+    Ok(s)
+}
+
+pub fn html(sum: &Summary) -> Result<String> {
+    let mut h = String::from(
+        "<!DOCTYPE html><html><head><meta charset=\"utf-8\"><title>persist compare</title>\
+<style>body{font-family:sans-serif;margin:1em}.row{display:flex;flex-wrap:wrap;gap:1em}\
+.col{flex:1;min-width:420px}table{border-collapse:collapse}td,th{border:1px solid #999;padding:2px 6px}</style>\
+</head><body>",
+    );
+    h += &format!(
+        "<h1>persist compare</h1><p>input {} : {} exposures compared, {} pixels sampled (stride {}), {} samples</p>",
+        esc(&sum.input),
+        sum.exposures_compared,
+        sum.pixels_sampled,
+        sum.pixel_stride,
+        sum.samples
+    );
+    h += "<h2>Models</h2><table><tr><th>model</th><th>effects</th><th>residual RMS (normalised)</th><th>cells</th><th>missed @0.1</th><th>over @0.1</th><th>missed @0.01</th><th>over @0.01</th></tr>";
+    for m in &sum.models {
+        let q = |t: &str, f: fn(&crate::diag::eval::FlagQuality) -> f64| {
+            m.flag_quality
+                .get(t)
+                .map_or("-".to_string(), |q| format!("{:.4}", f(q)))
+        };
+        h += &format!(
+            "<tr><td>{}</td><td>{}</td><td>{:.3}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td></tr>",
+            esc(&m.path),
+            esc(&m.effects.join(", ")),
+            m.residual_rms_normalised,
+            m.cells,
+            q("0.1", |q| q.missed_flag_fraction),
+            q("0.1", |q| q.over_flag_fraction),
+            q("0.01", |q| q.missed_flag_fraction),
+            q("0.01", |q| q.over_flag_fraction),
+        );
+    }
+    h += "</table>";
+    let mut figure =
+        |title: &str, f: &dyn Fn(&super::compare::ModelSummary) -> Result<String>| -> Result<()> {
+            h += &format!("<h2>{}</h2><div class=\"row\">", esc(title));
+            for m in &sum.models {
+                h += &format!(
+                    "<div class=\"col\"><h3>{}</h3>{}</div>",
+                    esc(&m.path),
+                    f(m)?
+                );
+            }
+            h += "</div>";
+            Ok(())
+        };
+    figure(
+        "Normalised residual map: fluence bin x time since illumination",
+        &map_svg,
+    )?;
+    for c in BREAKDOWNS {
+        figure(&format!("Normalised residual by {c}"), &|m| line_svg(m, c))?;
+    }
+    h += "<h2>Definitions</h2><dl>";
+    for (k, v) in &sum.definitions {
+        h += &format!("<dt>{}</dt><dd>{}</dd>", esc(k), esc(v));
+    }
+    h += "</dl></body></html>\n";
+    Ok(h)
+}

@@ -1,0 +1,229 @@
+//! Model effects: physical corrections to the paper's exponential sum, plugged into the
+//! same [`crate::model::Model::step`] the stage uses (ARCHITECTURE "Effects plug into
+//! the same step the stage uses").
+//!
+//! An effect is one type implementing [`Effect`], with named parameters (value and
+//! bounds, [`ParamSpec`]) so that `persist fit` and `persist diagnose` can vary them.
+//! Every hook defaults to "no change"; an effect implements only what it acts on.
+//! For one exposure `k+1` after exposure `k` the step calls, in this order:
+//!
+//! 1. [`Effect::rates`]: the `(C_n, 1/tau_n)` in force over the interval from the reset
+//!    ending `k` to the reset ending `k+1` (temperature). Both the prediction weights
+//!    `C_n exp(-t_meas/tau_n)` and the decay factors `exp(-t_elapsed/tau_n)` use them;
+//! 2. [`Effect::observe`]: the per-term weights that turn amplitudes `A_n` into the
+//!    current the on-board line fit *measures* (linefit_bias). By default the weight is
+//!    the instantaneous current at `t_meas`;
+//! 3. [`Effect::response`]: this exposure's response planes `A_k,n` (one per term, all
+//!    equal to the paper's `A_k(fluence)` on entry): blooming reads the neighbours'
+//!    excess fluence, soak the illumination time, short_tau_boost a fluence window;
+//! 4. [`Effect::accumulate`]: replaces `A_n = A_n' exp(-t_elapsed/tau_n) + A_k,n`
+//!    (capacity).
+//!
+//! With no effect in the model the step is the paper's, bit for bit (the effect path is
+//! not entered; see [`crate::model::step`]).
+//!
+//! # Adding an effect
+//! 1. one file in `src/model/effects/` with a type implementing [`Effect`] and a
+//!    `pub const DEF: EffectDef` naming it, listing its parameters and building it;
+//! 2. one line in [`crate::model::effects::REGISTRY`].
+//!
+//! Everything else (model file validation, `fit --with NAME`, `compare`, `diagnose`,
+//! `run`) finds it through the registry.
+
+use ndarray::{Array2, Array3};
+use std::collections::BTreeMap;
+use std::fmt::Debug;
+
+/// One named parameter of an effect.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ParamSpec {
+    pub name: &'static str,
+    /// The value used when the model file does not give one.
+    pub default: f64,
+    /// Inclusive bounds, checked by `ModelParams::validate` and respected by the fitter.
+    pub lo: f64,
+    pub hi: f64,
+    /// The value at which the effect does nothing (the null hypothesis of `diagnose`),
+    /// when this is the parameter that switches the effect on.
+    pub null: Option<f64>,
+    /// Whether `fit --with` fits this parameter (others keep their value).
+    pub fitted: bool,
+    /// Unit and meaning.
+    pub doc: &'static str,
+}
+
+/// A registered effect: its name, parameters and constructor.
+#[derive(Clone, Copy)]
+pub struct EffectDef {
+    pub name: &'static str,
+    pub summary: &'static str,
+    pub params: &'static [ParamSpec],
+    /// Build from a complete, checked parameter map (every `params` name present).
+    pub build: fn(&BTreeMap<String, f64>) -> Box<dyn Effect>,
+    /// The covariate of `persist compare` that carries this effect's evidence.
+    pub covariate: &'static str,
+}
+
+impl Debug for EffectDef {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("EffectDef")
+            .field("name", &self.name)
+            .finish()
+    }
+}
+
+impl EffectDef {
+    /// Fill defaults and check names, finiteness and bounds. Errors name the field as
+    /// `effects[i].params.NAME` (the caller adds the index prefix).
+    pub fn resolve(
+        &self,
+        given: &serde_json::Map<String, serde_json::Value>,
+    ) -> Result<BTreeMap<String, f64>, String> {
+        for k in given.keys() {
+            if !self.params.iter().any(|p| p.name == k) {
+                let known: Vec<&str> = self.params.iter().map(|p| p.name).collect();
+                return Err(format!(
+                    "params.{k}: unknown parameter of `{}` (known: {})",
+                    self.name,
+                    if known.is_empty() {
+                        "none".to_string()
+                    } else {
+                        known.join(", ")
+                    }
+                ));
+            }
+        }
+        let mut out = BTreeMap::new();
+        for p in self.params {
+            let v = match given.get(p.name) {
+                None => p.default,
+                Some(v) => v
+                    .as_f64()
+                    .ok_or_else(|| format!("params.{}: must be a number", p.name))?,
+            };
+            if !(v.is_finite() && v >= p.lo && v <= p.hi) {
+                return Err(format!(
+                    "params.{}: must be finite and in [{}, {}], got {v}",
+                    p.name, p.lo, p.hi
+                ));
+            }
+            out.insert(p.name.to_string(), v);
+        }
+        Ok(out)
+    }
+
+    /// The parameter that switches the effect on, with its null value.
+    pub fn switch(&self) -> Option<(&'static ParamSpec, f64)> {
+        self.params.iter().find_map(|p| p.null.map(|n| (p, n)))
+    }
+}
+
+/// The interval from the reset ending exposure `k` to the reset ending `k+1`.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct IntervalCtx {
+    /// Time from the reset to the start of the integration, s.
+    pub t_slew_s: f64,
+    pub t_exposure_s: f64,
+    /// `t_slew + t_exposure / 2`, s.
+    pub t_meas_s: f64,
+    /// `t_slew + t_exposure`, s.
+    pub t_elapsed_s: f64,
+    /// Focal-plane temperature of exposure `k+1`, when known.
+    pub focal_plane_temp_k: Option<f64>,
+}
+
+/// What the response hook sees of exposure `k+1`.
+#[derive(Debug, Clone, Copy)]
+pub struct ResponseCtx<'a> {
+    /// Extrapolated fluence `max(current, 0) * t_illuminated`, e-; NaN where unknown
+    /// (transient, SUR error, non-finite) and 0 for non-functional pixels.
+    pub fluence_e: &'a Array2<f64>,
+    pub t_illuminated_s: f64,
+    pub t_exposure_s: f64,
+    /// Decay rates `1/tau_n` of the model (before any rate hook), 1/s.
+    pub rate_per_s: &'a [f64],
+}
+
+/// A model effect (module docs). Parameters come from the model file through
+/// [`EffectDef::build`]; hooks must not panic and must keep amplitudes finite and >= 0.
+pub trait Effect: Send + Sync + Debug {
+    fn name(&self) -> &'static str;
+    /// Adjust `C_n` (1/s) and `1/tau_n` (1/s) for one interval.
+    fn rates(&self, _ctx: &IntervalCtx, _c_per_s: &mut [f64], _rate_per_s: &mut [f64]) {}
+    /// Adjust the per-term weights (1/s) that turn amplitudes into the measured current.
+    /// `c_per_s`, `rate_per_s` are those of the interval (after [`Effect::rates`]).
+    fn observe(
+        &self,
+        _ctx: &IntervalCtx,
+        _c_per_s: &[f64],
+        _rate_per_s: &[f64],
+        _weights: &mut [f64],
+    ) {
+    }
+    /// Adjust this exposure's response `A_k,n`, electrons, shape `[ny, nx, n_terms]`.
+    fn response(&self, _ctx: &ResponseCtx<'_>, _ak: &mut Array3<f64>) {}
+    /// True if [`Effect::accumulate`] is implemented.
+    fn has_accumulate(&self) -> bool {
+        false
+    }
+    /// Replace `a_n = a_n * decay_n + add_n` for one pixel (`a` holds the decayed
+    /// amplitudes on entry).
+    fn accumulate(&self, a: &mut [f64], add: &[f64]) {
+        for (x, y) in a.iter_mut().zip(add) {
+            *x += y;
+        }
+    }
+}
+
+/// Least-squares slope weight of one exponential term for an integration of
+/// `t_exposure_s` starting `t_slew_s` after the reset, per unit `C_n`:
+/// `(6 / T^3) integral_0^T exp(-r (t_slew + u)) u (T - u) du` (dense, uniform samples;
+/// the slope of `q(u) = integral i` fitted by least squares, derived by parts from
+/// `slope = 12/T^3 integral q(u) (u - T/2) du`). For `r -> 0` it is 1.
+pub fn ls_slope_factor(rate_per_s: f64, t_slew_s: f64, t_exposure_s: f64) -> f64 {
+    let t = t_exposure_s;
+    let x = rate_per_s * t;
+    // closed form of (6/T^3) int_0^T e^{-r u} u (T-u) du with x = rT:
+    // 6/x^3 [ x(1 + e^{-x}) - 2 (1 - e^{-x}) ]; series for small x.
+    let g = if x < 1e-3 {
+        1.0 - x / 2.0 + x * x / 10.0
+    } else {
+        let e = (-x).exp();
+        6.0 / (x * x * x) * (x * (1.0 + e) - 2.0 * (1.0 - e))
+    };
+    (-rate_per_s * t_slew_s).exp() * g
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn ls_factor_matches_quadrature() {
+        for &(r, ts, t) in &[(0.1, 10.0, 180.0), (1e-3, 0.0, 180.0), (1e-6, 5.0, 112.0)] {
+            let n = 20000;
+            let h = t / n as f64;
+            let mut s = 0.0;
+            for i in 0..n {
+                let u = (i as f64 + 0.5) * h;
+                s += (-r * (ts + u)).exp() * u * (t - u) * h;
+            }
+            let q = 6.0 / (t * t * t) * s;
+            let g = ls_slope_factor(r, ts, t);
+            assert!((g / q - 1.0).abs() < 1e-5, "{r} {g} {q}");
+        }
+    }
+
+    #[test]
+    fn resolve_fills_defaults_and_checks_bounds() {
+        let def = crate::model::effects::lookup("capacity").unwrap();
+        let m = def.resolve(&serde_json::Map::new()).unwrap();
+        assert_eq!(m.len(), def.params.len());
+        let mut g = serde_json::Map::new();
+        g.insert("nope".into(), serde_json::json!(1.0));
+        assert!(def.resolve(&g).unwrap_err().contains("params.nope"));
+        let mut g = serde_json::Map::new();
+        g.insert(def.params[0].name.into(), serde_json::json!(-1e30));
+        assert!(def.resolve(&g).unwrap_err().contains(def.params[0].name));
+    }
+}

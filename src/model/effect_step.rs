@@ -1,0 +1,222 @@
+//! [`Model::step`] for a model with effects: the same algorithm as the fused kernel of
+//! [`crate::model::step`] (predict, flag, early release, decay, respond), with the
+//! hooks of [`crate::model::effect`] in between. Entered only when the model file lists
+//! effects, so the paper's model keeps its fused kernel unchanged.
+//!
+//! Per exposure: interval rates and observation weights (vectors, [`Effect::rates`],
+//! [`Effect::observe`]); the response planes `A_k,n` `[ny, nx, n_terms]`
+//! ([`Effect::response`]; built only here); then one pass over the pixels with
+//! [`Effect::accumulate`] when an effect has it. Pixels of unknown fluence keep the
+//! maximum amplitude and non-functional pixels add nothing, whatever the hooks say.
+
+use super::effect::{Effect, IntervalCtx, ResponseCtx};
+use super::state::{State, PENDING_MAX_AMPLITUDE};
+use super::step::{Input, Model, Output, StepSummary};
+use crate::error::Error;
+use crate::flags::pbits;
+use ndarray::{Array2, Array3};
+use rayon::prelude::*;
+
+/// What the step knows beyond the product's image: the exposure's environment.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct StepContext {
+    /// `focal_plane_temp_k` of the exposure, when the product has it.
+    pub focal_plane_temp_k: Option<f64>,
+}
+
+pub(crate) fn step(
+    model: &Model,
+    effects: &[Box<dyn Effect>],
+    state: &mut State,
+    input: &Input<'_>,
+    ctx: &StepContext,
+    out: &mut Output<'_>,
+) -> Result<StepSummary, Error> {
+    let k = model.prepare(state, input, out)?;
+    let (ny, nx) = state.shape();
+    let n = k.n;
+    let sum = model.exp_sum();
+    let (w, decay) = match state.t_reset_unix_s {
+        None => (k.w.clone(), k.decay.clone()),
+        Some(t_reset) => {
+            let t_slew = input.t_start_unix_s - t_reset;
+            let ictx = IntervalCtx {
+                t_slew_s: t_slew,
+                t_exposure_s: input.t_exposure_s,
+                t_meas_s: t_slew + 0.5 * input.t_exposure_s,
+                t_elapsed_s: t_slew + input.t_exposure_s,
+                focal_plane_temp_k: ctx.focal_plane_temp_k,
+            };
+            let (w, d) = interval_weights(effects, &sum.c_per_s, &sum.rate_per_s, &ictx);
+            (w, d)
+        }
+    };
+    // Response planes.
+    let image = input.image_e_per_s;
+    let mut base = Array2::<f64>::zeros((ny, nx));
+    let mut kind = Array2::<u8>::zeros((ny, nx)); // 0 known, 1 unknown (max), 2 nonfunc
+    let mut fluence = Array2::<f64>::zeros((ny, nx));
+    for ((y, x), b) in base.indexed_iter_mut() {
+        let m = image[(y, x)];
+        let f = out.flags[(y, x)];
+        let (a, max_used) = k.response_of(m, f);
+        *b = a;
+        if f & k.bits.nonfunc != 0 {
+            kind[(y, x)] = 2;
+        } else if max_used {
+            kind[(y, x)] = 1;
+            fluence[(y, x)] = f64::NAN;
+        } else {
+            fluence[(y, x)] = f64::from(m.max(0.0)) * k.t_illuminated_s;
+        }
+    }
+    let mut ak = Array3::<f64>::zeros((ny, nx, n));
+    for ((y, x, _), a) in ak.indexed_iter_mut() {
+        *a = base[(y, x)];
+    }
+    let rctx = ResponseCtx {
+        fluence_e: &fluence,
+        t_illuminated_s: k.t_illuminated_s,
+        t_exposure_s: input.t_exposure_s,
+        rate_per_s: &sum.rate_per_s,
+    };
+    for e in effects {
+        e.response(&rctx, &mut ak);
+    }
+    for ((y, x, _), a) in ak.indexed_iter_mut() {
+        if kind[(y, x)] != 0 || !(a.is_finite() && *a >= 0.0) {
+            *a = if kind[(y, x)] == 0 { 0.0 } else { base[(y, x)] };
+        }
+    }
+    let accumulators: Vec<&dyn Effect> = effects
+        .iter()
+        .filter(|e| e.has_accumulate())
+        .map(|e| e.as_ref())
+        .collect();
+
+    let amps = state.amplitudes_e.as_slice_mut().expect("owned state");
+    let count = state.release_count.as_slice_mut().expect("owned state");
+    let pending = state.pending.as_slice_mut().expect("owned state");
+    let kind = kind.as_slice().expect("standard layout");
+    let ak = ak.as_slice().expect("standard layout");
+    let image = image.as_standard_layout();
+    let image = image.as_slice().expect("standard layout");
+    let flags = contiguous(out.flags);
+    let current = contiguous(out.current_e_per_s);
+    let pflags = contiguous(out.pflags);
+    let mut summary = (
+        amps.par_chunks_mut(nx * n),
+        count.par_chunks_mut(nx),
+        pending.par_chunks_mut(nx),
+        image.par_chunks(nx),
+        flags.par_chunks_mut(nx),
+        current.par_chunks_mut(nx),
+        pflags.par_chunks_mut(nx),
+        ak.par_chunks(nx * n),
+        kind.par_chunks(nx),
+    )
+        .into_par_iter()
+        .map(|(a_row, c, p, img, f, cur, pf, ak_row, kd)| {
+            let mut s = StepSummary {
+                pixels: img.len() as u64,
+                ..Default::default()
+            };
+            for (x, a) in a_row.chunks_exact_mut(n).enumerate() {
+                let pred: f64 = a.iter().zip(&w).map(|(aj, wj)| aj * wj).sum();
+                let max_prev = p[x] & PENDING_MAX_AMPLITUDE != 0;
+                let mut high = pred > k.high || max_prev;
+                let mut low = pred > k.low || high;
+                let m = img[x];
+                let mut released = false;
+                if k.er_enabled && high {
+                    if m.is_finite() && f64::from(m) < k.er_threshold {
+                        c[x] = c[x].saturating_add(1);
+                    } else {
+                        c[x] = 0;
+                    }
+                    if c[x] >= k.er_consecutive {
+                        a.fill(0.0);
+                        c[x] = 0;
+                        high = false;
+                        low = false;
+                        released = true;
+                    }
+                } else {
+                    c[x] = 0;
+                }
+                let add = &ak_row[x * n..(x + 1) * n];
+                for (aj, dj) in a.iter_mut().zip(&decay) {
+                    *aj *= dj;
+                }
+                if accumulators.is_empty() {
+                    for (aj, bj) in a.iter_mut().zip(add) {
+                        *aj += bj;
+                    }
+                } else {
+                    // the first accumulator adds; later ones see nothing more to add
+                    let zero = vec![0.0; n];
+                    for (i, e) in accumulators.iter().enumerate() {
+                        e.accumulate(a, if i == 0 { add } else { &zero });
+                    }
+                }
+                for aj in a.iter_mut() {
+                    if !(aj.is_finite() && *aj >= 0.0) {
+                        *aj = 0.0;
+                    }
+                }
+                let max_used = kd[x] == 1;
+                p[x] = if max_used { PENDING_MAX_AMPLITUDE } else { 0 };
+                cur[x] = pred as f32;
+                pf[x] = (high as u8 * pbits::HIGH)
+                    | (low as u8 * pbits::LOW)
+                    | (max_prev as u8 * pbits::MAX_AMPLITUDE)
+                    | (released as u8 * pbits::RELEASED)
+                    | k.history;
+                let fl = f[x];
+                f[x] = (fl & !k.bits.persist) | if high { k.bits.persist } else { 0 };
+                s.above_high += high as u64;
+                s.above_low += low as u64;
+                s.released += released as u64;
+                s.max_amplitude += max_prev as u64;
+            }
+            s
+        })
+        .reduce(StepSummary::default, StepSummary::add);
+    summary.t_meas_s = k.t_meas_s;
+    summary.previous_index = state.last_index;
+    state.t_reset_unix_s = Some(input.t_start_unix_s + input.t_exposure_s);
+    state.last_index = Some(input.exposure_index);
+    Ok(summary)
+}
+
+/// The prediction weights and decay factors of one interval with the effects' rate and
+/// observation hooks applied: `(w_n, exp(-t_elapsed r_n'))`.
+pub fn interval_weights(
+    effects: &[Box<dyn Effect>],
+    c_per_s: &[f64],
+    rate_per_s: &[f64],
+    ictx: &IntervalCtx,
+) -> (Vec<f64>, Vec<f64>) {
+    let mut c = c_per_s.to_vec();
+    let mut r = rate_per_s.to_vec();
+    for e in effects {
+        e.rates(ictx, &mut c, &mut r);
+    }
+    let mut w: Vec<f64> = c
+        .iter()
+        .zip(&r)
+        .map(|(ci, ri)| ci * (-ictx.t_meas_s * ri).exp())
+        .collect();
+    for e in effects {
+        e.observe(ictx, &c, &r, &mut w);
+    }
+    let d = r.iter().map(|ri| (-ictx.t_elapsed_s * ri).exp()).collect();
+    (w, d)
+}
+
+fn contiguous<T: Clone>(a: &mut Array2<T>) -> &mut [T] {
+    if !a.is_standard_layout() {
+        *a = a.as_standard_layout().into_owned();
+    }
+    a.as_slice_mut().expect("standard layout")
+}

@@ -1,0 +1,59 @@
+//! The model effects, one file each, and the registry by name.
+//!
+//! They share names with the simulator's truth effects ([`crate::sim::effects`]) but not
+//! code: these act on the exponential sum, the simulator's on trap bins. `ipc` and
+//! `populations` have no model counterpart yet (a spatial kernel and a per-pixel
+//! population map): `diagnose` reports their signatures as unexplained residuals.
+
+pub mod blooming;
+pub mod capacity;
+pub mod linefit_bias;
+pub mod short_tau_boost;
+pub mod soak;
+pub mod temperature;
+
+use super::effect::{Effect, EffectDef};
+use super::params::EffectSpec;
+use std::collections::BTreeMap;
+
+/// Every effect this build knows, sorted by name.
+pub const REGISTRY: [EffectDef; 6] = [
+    blooming::DEF,
+    capacity::DEF,
+    linefit_bias::DEF,
+    short_tau_boost::DEF,
+    soak::DEF,
+    temperature::DEF,
+];
+
+/// The names of [`REGISTRY`].
+pub fn names() -> Vec<&'static str> {
+    REGISTRY.iter().map(|d| d.name).collect()
+}
+
+pub fn lookup(name: &str) -> Option<&'static EffectDef> {
+    REGISTRY.iter().find(|d| d.name == name)
+}
+
+/// Check a model file's effect entry; returns its full parameter map.
+pub fn resolve(spec: &EffectSpec) -> Result<(&'static EffectDef, BTreeMap<String, f64>), String> {
+    let def = lookup(&spec.name).ok_or_else(|| {
+        format!(
+            "name: unknown effect `{}` (known: {})",
+            spec.name,
+            names().join(", ")
+        )
+    })?;
+    Ok((def, def.resolve(&spec.params)?))
+}
+
+/// Build the effect of a validated entry.
+pub fn build(spec: &EffectSpec) -> Result<Box<dyn Effect>, String> {
+    let (def, p) = resolve(spec)?;
+    Ok((def.build)(&p))
+}
+
+/// Parameter value from a resolved map (present by construction).
+pub(crate) fn get(p: &BTreeMap<String, f64>, name: &str) -> f64 {
+    p.get(name).copied().unwrap_or(f64::NAN)
+}
