@@ -9,7 +9,9 @@ use std::sync::Once;
 
 static FONT: &[u8] = include_bytes!("../assets/DejaVuSans.ttf");
 
-fn register() {
+/// Register the compiled-in font as "sans-serif" (once). Every plotters backend that
+/// draws text (PNG here, SVG in `diag::report`) needs it: no system fonts are used.
+pub fn ensure_font() {
     static ONCE: Once = Once::new();
     ONCE.call_once(|| {
         // The font is compiled in and known to parse; a failure would leave text unset,
@@ -53,7 +55,7 @@ fn plot_err(path: &Path, e: impl std::fmt::Display) -> Error {
 
 /// Draw `chart` into a `width x height` PNG at `path`.
 pub fn line_chart_png(path: &Path, chart: &Chart, width: u32, height: u32) -> Result<()> {
-    register();
+    ensure_font();
     let keep = |y: f64| y.is_finite() && (!chart.log_y || y > 0.0);
     let pts = chart
         .series

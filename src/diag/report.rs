@@ -18,6 +18,7 @@ fn esc(s: &str) -> String {
 
 /// Heat map of z over fluence x time.
 fn map_svg(m: &super::compare::ModelSummary) -> Result<String> {
+    crate::plot::ensure_font();
     let mut s = String::new();
     {
         let root = SVGBackend::with_string(&mut s, (420, 320)).into_drawing_area();
@@ -87,6 +88,7 @@ fn line_svg(m: &super::compare::ModelSummary, cov: &str) -> Result<String> {
         (a.0.min(b.stat.z.max(-1e3)), a.1.max(b.stat.z.min(1e3)))
     });
     let pad = ((x1 - x0).abs() * 0.05).max(0.5);
+    crate::plot::ensure_font();
     let mut s = String::new();
     {
         let root = SVGBackend::with_string(&mut s, (420, 260)).into_drawing_area();
