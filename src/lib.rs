@@ -19,6 +19,7 @@
 //!
 //! Units: seconds, electrons, electrons per second; names carry them (`t_exposure_s`).
 
+pub mod bench;
 pub mod checkpoint;
 pub mod error;
 pub mod flags;
