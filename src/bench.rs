@@ -111,6 +111,8 @@ pub struct BenchConfig {
     pub reps: usize,
     /// Exposures per stream for the I/O cases (c, d).
     pub exposures: usize,
+    /// Interleaved rounds of (a, b, c, d), samples pooled.
+    pub rounds: usize,
     /// Extra `stage` rows with this checkpoint cadence (> 1), at every size and thread count.
     pub checkpoint_every: Vec<u64>,
     pub scratch: PathBuf,
@@ -124,9 +126,10 @@ impl BenchConfig {
         BenchConfig {
             sizes: vec![256, 1024, 2040],
             threads: vec![1, 2],
-            reps: 15,
-            exposures: 12,
-            checkpoint_every: vec![8],
+            reps: 11,
+            exposures: 10,
+            rounds: 3,
+            checkpoint_every: vec![4],
             scratch,
             exe,
         }
@@ -139,6 +142,7 @@ impl BenchConfig {
             threads: vec![1, 2],
             reps: 3,
             exposures: 4,
+            rounds: 1,
             checkpoint_every: vec![2],
             scratch,
             exe,
@@ -588,16 +592,36 @@ pub fn run(cfg: &BenchConfig, progress: &dyn Fn(&CaseResult)) -> Result<BenchRep
                 checkpoint_every: every,
                 scratch: cfg.scratch.clone(),
             };
-            // Interleaved per size and thread count, so that drifts in the machine's
-            // load hit the numerator and the denominator of each ratio alike.
-            let a = spawn(cfg, &spec(Case::Step, cfg.reps, 1))?;
-            progress(&a);
-            let b = spawn(cfg, &spec(Case::Memory, cfg.reps, 1))?;
-            progress(&b);
-            let c = spawn(cfg, &spec(Case::Stage, cfg.exposures, 1))?;
-            progress(&c);
-            let d = spawn(cfg, &spec(Case::Io, cfg.exposures, 1))?;
-            progress(&d);
+            // Interleaved rounds per size and thread count, so that drifts in the
+            // machine's load hit the numerator and the denominator of each ratio alike;
+            // each case's samples of all rounds are pooled into one median.
+            let mut merged: Vec<Option<CaseResult>> = vec![None, None, None, None];
+            for _ in 0..cfg.rounds.max(1) {
+                let runs = [
+                    (Case::Step, cfg.reps),
+                    (Case::Memory, cfg.reps),
+                    (Case::Stage, cfg.exposures),
+                    (Case::Io, cfg.exposures),
+                ];
+                for (slot, (case, reps)) in merged.iter_mut().zip(runs) {
+                    let r = spawn(cfg, &spec(case, reps, 1))?;
+                    progress(&r);
+                    *slot = Some(match slot.take() {
+                        None => r,
+                        Some(mut m) => {
+                            m.samples_s.extend(r.samples_s);
+                            m.median_s = median(&m.samples_s);
+                            m.peak_rss_bytes = m.peak_rss_bytes.max(r.peak_rss_bytes);
+                            m
+                        }
+                    });
+                }
+            }
+            let [Some(a), Some(b), Some(c), Some(d)] =
+                merged.try_into().unwrap_or([None, None, None, None])
+            else {
+                return Err(bench_error("no result"));
+            };
             let mut every = Vec::new();
             for &e in &cfg.checkpoint_every {
                 let r = spawn(cfg, &spec(Case::Stage, stage_exposures, e))?;

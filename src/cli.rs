@@ -67,6 +67,9 @@ pub struct BenchArgs {
     /// Exposures per stream of the I/O cases.
     #[arg(long)]
     pub exposures: Option<usize>,
+    /// Interleaved rounds of the four cases (samples pooled).
+    #[arg(long)]
+    pub rounds: Option<usize>,
     /// Scratch directory for products, outputs and checkpoints (removed afterwards).
     #[arg(long)]
     pub scratch: Option<PathBuf>,
@@ -339,6 +342,9 @@ fn bench(args: &BenchArgs) -> persist::Result<ExitCode> {
     }
     if let Some(e) = args.exposures {
         cfg.exposures = e;
+    }
+    if let Some(r) = args.rounds {
+        cfg.rounds = r;
     }
     let result = bench::run(&cfg, &|r| {
         eprintln!(

@@ -10,6 +10,13 @@
 //! except when reprocessing from a named checkpoint. Outputs are published before the
 //! checkpoint that includes them, so a crash between the two replays one exposure.
 //!
+//! A checkpoint is checked and written (HDF5, straight from the state in memory) on the
+//! detector's own thread; its publication (fsync, rename, directory fsync) and the
+//! pruning of old checkpoints then run on a helper thread while the next exposures are
+//! read, stepped and published. Checkpoints of a detector are published in order (the
+//! next one waits for the previous publication), and always after the outputs they
+//! include; a failed publication is reported and retried at the end of the stream.
+//!
 //! History incomplete (bit 4): when an exposure is missing (its index is skipped) or
 //! was rejected, the exposures after it are marked until the largest amplitude the
 //! missing one could have added -- the knot table's maximum, added just before the next
@@ -141,6 +148,9 @@ struct Detector<'a> {
     on_exposure: &'a (dyn Fn(&ExposureReport) + Sync),
     reports: Vec<ExposureReport>,
     errors: Vec<Error>,
+    /// The last checkpoint's publication (sync, rename, prune), running on its own
+    /// thread while the next exposures are processed.
+    publishing: Option<std::thread::JoinHandle<Result<()>>>,
 }
 
 impl<'a> Detector<'a> {
@@ -155,6 +165,7 @@ impl<'a> Detector<'a> {
             on_exposure,
             reports: Vec::new(),
             errors: Vec::new(),
+            publishing: None,
         }
     }
 
@@ -276,15 +287,39 @@ impl<'a> Detector<'a> {
                     // published: stop this detector without a checkpoint, so that the
                     // next run replays from the last checkpoint.
                     self.errors.push(e.detector(self.det).exposure(index));
+                    self.finish_publishing();
                     return;
                 }
             }
         }
-        if unsaved > 0 {
+        let last_failed = !self.finish_publishing();
+        if unsaved > 0 || last_failed {
             if let Some(s) = &state {
                 if let Err(e) = self.save(s, &book) {
                     self.errors.push(e);
                 }
+                self.finish_publishing();
+            }
+        }
+    }
+
+    /// Wait for the last checkpoint's publication; false if it failed (the error is
+    /// recorded).
+    fn finish_publishing(&mut self) -> bool {
+        let Some(handle) = self.publishing.take() else {
+            return true;
+        };
+        let result = handle.join().unwrap_or_else(|_| {
+            Err(Error::new(
+                ErrorKind::Checkpoint,
+                "the thread publishing a checkpoint panicked",
+            ))
+        });
+        match result {
+            Ok(()) => true,
+            Err(e) => {
+                self.errors.push(e.detector(self.det));
+                false
             }
         }
     }
@@ -399,7 +434,12 @@ impl<'a> Detector<'a> {
         self.cfg.output.join(input.file_name().unwrap_or_default())
     }
 
-    fn save(&self, state: &State, book: &Bookkeeping) -> Result<()> {
+    /// Checkpoint `state`: checked and written here (HDF5, from the state in memory,
+    /// no copy), then published and the old checkpoints pruned on another thread, so
+    /// that the sync of a 200 MB file does not stall the next exposures. Checkpoints
+    /// are published in order: the previous publication is waited for first.
+    fn save(&mut self, state: &State, book: &Bookkeeping) -> Result<()> {
+        self.finish_publishing();
         let model = &self.cfg.model;
         let meta = CheckpointMeta {
             detector: self.det,
@@ -410,8 +450,16 @@ impl<'a> Detector<'a> {
             stage_json: serde_json::to_string(book).expect("bookkeeping serialises"),
             software_version: crate::VERSION.to_string(),
         };
-        checkpoint::save(&self.cfg.checkpoints, &meta, state)?;
-        checkpoint::prune(&self.cfg.checkpoints, self.det, &self.cfg.retention)?;
+        let staged = checkpoint::stage(&self.cfg.checkpoints, &meta, state)?;
+        let (dir, det, retention) = (self.cfg.checkpoints.clone(), self.det, self.cfg.retention);
+        let index = meta.exposure_index;
+        self.publishing = Some(std::thread::spawn(move || {
+            if let checkpoint::Staged::Written(s) = staged {
+                s.commit().map_err(|e| e.exposure(index))?;
+            }
+            checkpoint::prune(&dir, det, &retention)?;
+            Ok(())
+        }));
         Ok(())
     }
 }
