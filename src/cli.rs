@@ -85,6 +85,10 @@ pub struct BenchArgs {
     pub threads: usize,
     #[arg(long, hide = true, default_value_t = 1)]
     pub checkpoint_every: u64,
+    /// Only write this many input products of `--size` under `--scratch` (for profiling
+    /// one case by hand with `--case`).
+    #[arg(long, hide = true)]
+    pub prepare: Option<usize>,
 }
 
 #[derive(Args, Debug)]
@@ -305,6 +309,12 @@ fn bench(args: &BenchArgs) -> persist::Result<ExitCode> {
     use persist::bench::{self, BenchConfig, Case, CaseSpec};
     let default_scratch =
         || std::env::temp_dir().join(format!("persist-bench-{}", std::process::id()));
+    if let Some(count) = args.prepare {
+        let scratch = args.scratch.clone().unwrap_or_else(default_scratch);
+        let dir = bench::prepare_inputs(&scratch, args.size, count)?;
+        println!("{}", dir.display());
+        return Ok(ExitCode::SUCCESS);
+    }
     if let Some(case) = &args.case {
         let case = Case::parse(case)
             .ok_or_else(|| Error::new(ErrorKind::Usage, format!("unknown bench case `{case}`")))?;
