@@ -95,6 +95,30 @@ fn ckpt_error(field: &str, message: impl Into<String>) -> Error {
 /// When an identical checkpoint (same meta data and state) already exists for that key,
 /// nothing is written. Returns the checkpoint's path.
 pub fn save(dir: &Path, meta: &CheckpointMeta, state: &State) -> Result<PathBuf> {
+    match stage(dir, meta, state)? {
+        Staged::Existing(path) => Ok(path),
+        Staged::Written(s) => {
+            let path = s.path().to_path_buf();
+            s.commit()
+                .map_err(|e| e.detector(meta.detector).exposure(meta.exposure_index))?;
+            Ok(path)
+        }
+    }
+}
+
+/// What [`stage`] did.
+#[derive(Debug)]
+pub enum Staged {
+    /// An identical checkpoint is already published under this path.
+    Existing(PathBuf),
+    /// Written and validated under its temporary name; [`h5io::Staged::commit`]
+    /// publishes it (sync, rename) and needs neither the state nor HDF5, so it can run
+    /// on another thread while processing goes on.
+    Written(h5io::Staged),
+}
+
+/// The first half of [`save`]: every check, and the write under the temporary name.
+pub fn stage(dir: &Path, meta: &CheckpointMeta, state: &State) -> Result<Staged> {
     let path = path_for(dir, meta.detector, meta.exposure_index);
     let fail = |e: Error| {
         e.path(&path)
@@ -129,7 +153,7 @@ pub fn save(dir: &Path, meta: &CheckpointMeta, state: &State) -> Result<PathBuf>
     if path.exists() {
         if let Ok((m, s)) = load(&path) {
             if m == *meta && s == *state {
-                return Ok(path);
+                return Ok(Staged::Existing(path));
             }
         }
     }
@@ -138,7 +162,7 @@ pub fn save(dir: &Path, meta: &CheckpointMeta, state: &State) -> Result<PathBuf>
         std::fs::create_dir_all(&det_dir).map_err(|e| fail(Error::io(&det_dir, e)))?;
         h5io::sync_dir(&det_dir).map_err(fail)?;
     }
-    h5io::publish(
+    let staged = h5io::write_temp(
         &path,
         |tmp| {
             let file = h5io::create(tmp)?;
@@ -147,14 +171,30 @@ pub fn save(dir: &Path, meta: &CheckpointMeta, state: &State) -> Result<PathBuf>
             Ok(())
         },
         |tmp| {
+            // The state was checked above; what was written is checked by its layout,
+            // meta data and shapes (reading 200 MB back would double the I/O and the
+            // peak memory).
             let file = h5io::open_as(tmp, &path)?;
-            check_file(&file, &path)
-                .map(|_| ())
-                .map_err(schema::combine)
+            let (m, t) = check_layout(&file, &path).map_err(schema::combine)?;
+            let shape = |d: &str| file.dataset(d).map(|d| d.shape()).unwrap_or_default();
+            let (ny, nx) = state.shape();
+            if m != *meta
+                || t.to_bits() != t_reset.to_bits()
+                || shape("amplitudes_e") != [ny, nx, state.n_terms()]
+                || shape("release_count") != [ny, nx]
+                || shape("pending") != [ny, nx]
+            {
+                return Err(ckpt_error(
+                    "state",
+                    "the checkpoint read back differs from what was written",
+                )
+                .path(&path));
+            }
+            Ok(())
         },
     )
     .map_err(fail)?;
-    Ok(path)
+    Ok(Staged::Written(staged))
 }
 
 fn write_checkpoint(
@@ -245,6 +285,40 @@ pub(crate) fn check_file(
     name: &Path,
 ) -> std::result::Result<(CheckpointMeta, State), Vec<Error>> {
     let one = |e: Error| vec![e.path(name)];
+    let (meta, t_reset) = check_layout(file, name)?;
+    let exposure_index = meta.exposure_index;
+    let read =
+        |path: &'static str| move |e: hdf5::Error| vec![Error::from(e).field(path).path(name)];
+    let amplitudes_e = file
+        .dataset("amplitudes_e")
+        .and_then(|d| d.read::<f64, ndarray::Ix3>())
+        .map_err(read("/amplitudes_e"))?;
+    let release_count = file
+        .dataset("release_count")
+        .and_then(|d| d.read::<u8, ndarray::Ix2>())
+        .map_err(read("/release_count"))?;
+    let pending = file
+        .dataset("pending")
+        .and_then(|d| d.read::<u8, ndarray::Ix2>())
+        .map_err(read("/pending"))?;
+    let state = State {
+        amplitudes_e: amplitudes_e as Array3<f64>,
+        release_count: release_count as Array2<u8>,
+        pending: pending as Array2<u8>,
+        t_reset_unix_s: Some(t_reset),
+        last_index: Some(exposure_index),
+    };
+    state.check().map_err(|m| one(state_error(&m)))?;
+    Ok((meta, state))
+}
+
+/// Everything [`check_file`] checks except the values of the datasets: format version,
+/// schema, shapes, attributes. Returns the meta data and `t_reset_unix_s`.
+fn check_layout(
+    file: &hdf5::File,
+    name: &Path,
+) -> std::result::Result<(CheckpointMeta, f64), Vec<Error>> {
+    let one = |e: Error| vec![e.path(name)];
     let m = schema::manifest(file).map_err(one)?;
     let v = View(&m);
     if v.attr_str("product") != Some(PRODUCT) {
@@ -322,29 +396,7 @@ pub(crate) fn check_file(
     if let Err(e) = serde_json::from_str::<serde_json::Value>(&meta.stage_json) {
         return Err(one(ckpt_error("stage_json", format!("not JSON: {e}"))));
     }
-    let read =
-        |path: &'static str| move |e: hdf5::Error| vec![Error::from(e).field(path).path(name)];
-    let amplitudes_e = file
-        .dataset("amplitudes_e")
-        .and_then(|d| d.read::<f64, ndarray::Ix3>())
-        .map_err(read("/amplitudes_e"))?;
-    let release_count = file
-        .dataset("release_count")
-        .and_then(|d| d.read::<u8, ndarray::Ix2>())
-        .map_err(read("/release_count"))?;
-    let pending = file
-        .dataset("pending")
-        .and_then(|d| d.read::<u8, ndarray::Ix2>())
-        .map_err(read("/pending"))?;
-    let state = State {
-        amplitudes_e: amplitudes_e as Array3<f64>,
-        release_count: release_count as Array2<u8>,
-        pending: pending as Array2<u8>,
-        t_reset_unix_s: Some(t_reset),
-        last_index: Some(exposure_index),
-    };
-    state.check().map_err(|m| one(state_error(&m)))?;
-    Ok((meta, state))
+    Ok((meta, t_reset))
 }
 
 /// The checkpoints of `detector` under `dir`, sorted by exposure index. Temporary and

@@ -77,6 +77,9 @@ pub enum Command {
     /// The main job on a built-in default: simulate two days of SPHEREx-like sky (one
     /// detector, 128 x 128), run the stage, print and plot what it flags.
     Demo(DemoArgs),
+    /// Benchmark the model step, the memory bound, the whole stage and the HDF5 I/O
+    /// bound, each case in a child process; prints a markdown table and writes JSON.
+    Bench(BenchArgs),
 }
 
 #[derive(Subcommand, Debug)]
@@ -128,6 +131,47 @@ pub struct SkyArgs {
     /// Switch on a truth effect: NAME[:param=value,...] (repeatable).
     #[arg(long = "effect")]
     pub effects: Vec<String>,
+}
+
+#[derive(Args, Debug)]
+pub struct BenchArgs {
+    /// Small sizes and few repetitions: runs in seconds.
+    #[arg(long)]
+    pub quick: bool,
+    /// Image sizes (square), comma-separated; default 256,1024,2040 (quick: 64,128).
+    #[arg(long, value_delimiter = ',')]
+    pub sizes: Option<Vec<usize>>,
+    /// rayon thread counts, comma-separated; default 1,2.
+    #[arg(long = "thread-counts", value_delimiter = ',')]
+    pub thread_counts: Option<Vec<usize>>,
+    /// Timed repetitions of the in-memory cases.
+    #[arg(long)]
+    pub reps: Option<usize>,
+    /// Exposures per stream of the I/O cases.
+    #[arg(long)]
+    pub exposures: Option<usize>,
+    /// Interleaved rounds of the four cases (samples pooled).
+    #[arg(long)]
+    pub rounds: Option<usize>,
+    /// Scratch directory for products, outputs and checkpoints (removed afterwards).
+    #[arg(long)]
+    pub scratch: Option<PathBuf>,
+    /// Write the whole report as JSON here.
+    #[arg(long)]
+    pub json: Option<PathBuf>,
+    /// Child mode: run one case (`step`, `memory`, `stage`, `io`), print its JSON.
+    #[arg(long, hide = true)]
+    pub case: Option<String>,
+    #[arg(long, hide = true, default_value_t = 2040)]
+    pub size: usize,
+    #[arg(long, hide = true, default_value_t = 1)]
+    pub threads: usize,
+    #[arg(long, hide = true, default_value_t = 1)]
+    pub checkpoint_every: u64,
+    /// Only write this many input products of `--size` under `--scratch` (for profiling
+    /// one case by hand with `--case`).
+    #[arg(long, hide = true)]
+    pub prepare: Option<usize>,
 }
 
 #[derive(Args, Debug)]
@@ -382,6 +426,7 @@ pub fn run(cli: Cli) -> persist::Result<ExitCode> {
         Command::Fit(a) => fit(&a),
         Command::Compare(a) => compare(&a),
         Command::Diagnose(a) => diagnose(&a),
+        Command::Bench(args) => bench(&args),
     }
 }
 
@@ -685,5 +730,81 @@ fn diagnose(a: &DiagnoseArgs) -> persist::Result<ExitCode> {
     let s =
         persist::diag::diagnose::run(&a.input, &a.model, a.json.as_deref(), a.bootstrap, a.seed)?;
     println!("{s}");
+    Ok(ExitCode::SUCCESS)
+}
+
+fn bench(args: &BenchArgs) -> persist::Result<ExitCode> {
+    use persist::bench::{self, BenchConfig, Case, CaseSpec};
+    let default_scratch =
+        || std::env::temp_dir().join(format!("persist-bench-{}", std::process::id()));
+    if let Some(count) = args.prepare {
+        let scratch = args.scratch.clone().unwrap_or_else(default_scratch);
+        let dir = bench::prepare_inputs(&scratch, args.size, count)?;
+        println!("{}", dir.display());
+        return Ok(ExitCode::SUCCESS);
+    }
+    if let Some(case) = &args.case {
+        let case = Case::parse(case)
+            .ok_or_else(|| Error::new(ErrorKind::Usage, format!("unknown bench case `{case}`")))?;
+        let spec = CaseSpec {
+            case,
+            size: args.size,
+            threads: args.threads,
+            reps: args.reps.unwrap_or(5),
+            checkpoint_every: args.checkpoint_every,
+            scratch: args.scratch.clone().unwrap_or_else(default_scratch),
+        };
+        let r = bench::run_case(&spec)?;
+        println!(
+            "{}",
+            serde_json::to_string(&r).map_err(|e| Error::new(ErrorKind::Io, e.to_string()))?
+        );
+        return Ok(ExitCode::SUCCESS);
+    }
+    let exe = std::env::current_exe().map_err(|e| Error::new(ErrorKind::Io, e.to_string()))?;
+    let own_scratch = args.scratch.is_none();
+    let scratch = args.scratch.clone().unwrap_or_else(default_scratch);
+    let mut cfg = if args.quick {
+        BenchConfig::quick(exe, scratch.clone())
+    } else {
+        BenchConfig::full(exe, scratch.clone())
+    };
+    if let Some(s) = &args.sizes {
+        cfg.sizes = s.clone();
+    }
+    if let Some(t) = &args.thread_counts {
+        cfg.threads = t.clone();
+    }
+    if let Some(r) = args.reps {
+        cfg.reps = r;
+    }
+    if let Some(e) = args.exposures {
+        cfg.exposures = e;
+    }
+    if let Some(r) = args.rounds {
+        cfg.rounds = r;
+    }
+    let result = bench::run(&cfg, &|r| {
+        eprintln!(
+            "persist bench: {:>6} {:>5}^2 threads {} ckpt/{}: median {:.4} s/exposure, peak {:.0} MiB",
+            r.case.name(),
+            r.size,
+            r.threads,
+            r.checkpoint_every,
+            r.median_s,
+            r.peak_rss_bytes as f64 / 1048576.0
+        )
+    });
+    if own_scratch {
+        let _ = std::fs::remove_dir_all(&scratch);
+    }
+    let report = result?;
+    println!("{}", report.markdown);
+    println!("{} ({})", report.date_utc, report.machine);
+    if let Some(path) = &args.json {
+        let text = serde_json::to_string_pretty(&report)
+            .map_err(|e| Error::new(ErrorKind::Io, e.to_string()))?;
+        std::fs::write(path, text).map_err(|e| Error::io(path, e))?;
+    }
     Ok(ExitCode::SUCCESS)
 }

@@ -197,21 +197,69 @@ pub fn publish(
     write: impl FnOnce(&Path) -> Result<()>,
     validate: impl FnOnce(&Path) -> Result<()>,
 ) -> Result<()> {
-    let tmp = temp_path(path);
-    let result = (|| {
-        write(&tmp).map_err(|e| e.path(path))?;
-        validate(&tmp).map_err(|e| e.path(path))?;
-        let f = std::fs::File::open(&tmp).map_err(|e| Error::io(path, e))?;
-        f.sync_all().map_err(|e| Error::io(path, e))?;
-        drop(f);
-        std::fs::rename(&tmp, path).map_err(|e| Error::io(path, e))?;
-        sync_dir(path)
-    })();
-    if result.is_err() {
-        // Best effort: the temporary file may not exist (failed before creation).
-        let _ = std::fs::remove_file(&tmp);
+    write_temp(path, write, validate)?.commit()
+}
+
+/// A file written and validated under its temporary name, not yet published: the
+/// first half of [`publish`]. [`Staged::commit`] is the second half (sync, rename,
+/// sync the directory); it needs no HDF5 call and no data in memory, so it can run on
+/// another thread. Dropped without a commit, the temporary file is removed.
+#[derive(Debug)]
+pub struct Staged {
+    tmp: Option<PathBuf>,
+    path: PathBuf,
+}
+
+impl Staged {
+    /// The final name.
+    pub fn path(&self) -> &Path {
+        &self.path
     }
-    result
+
+    /// `fsync` the temporary file, rename it into place, `fsync` the directory.
+    pub fn commit(mut self) -> Result<()> {
+        let Some(tmp) = self.tmp.take() else {
+            return Ok(());
+        };
+        let path = &self.path;
+        let result = (|| {
+            let f = std::fs::File::open(&tmp).map_err(|e| Error::io(path, e))?;
+            f.sync_all().map_err(|e| Error::io(path, e))?;
+            drop(f);
+            std::fs::rename(&tmp, path).map_err(|e| Error::io(path, e))?;
+            sync_dir(path)
+        })();
+        if result.is_err() {
+            let _ = std::fs::remove_file(&tmp);
+        }
+        result
+    }
+}
+
+impl Drop for Staged {
+    fn drop(&mut self) {
+        if let Some(tmp) = self.tmp.take() {
+            let _ = std::fs::remove_file(tmp);
+        }
+    }
+}
+
+/// The first half of [`publish`]: write and validate under the temporary name.
+pub fn write_temp(
+    path: &Path,
+    write: impl FnOnce(&Path) -> Result<()>,
+    validate: impl FnOnce(&Path) -> Result<()>,
+) -> Result<Staged> {
+    let tmp = temp_path(path);
+    let staged = Staged {
+        tmp: Some(tmp.clone()),
+        path: path.to_path_buf(),
+    };
+    // On error `staged` is dropped, which removes the temporary file (best effort: it
+    // may not exist if the failure came before its creation).
+    write(&tmp).map_err(|e| e.path(path))?;
+    validate(&tmp).map_err(|e| e.path(path))?;
+    Ok(staged)
 }
 
 /// `fsync` the directory holding `path`, so that a rename into it is durable.

@@ -22,6 +22,7 @@
 //!
 //! Units: seconds, electrons, electrons per second; names carry them (`t_exposure_s`).
 
+pub mod bench;
 pub mod calib;
 pub mod checkpoint;
 pub mod demo;

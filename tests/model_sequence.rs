@@ -324,42 +324,98 @@ proptest! {
         let mut params = ModelParams::default();
         params.early_release.threshold_e_per_s = 5.0; // let releases happen often
         let model = Model::new(params).unwrap();
-        let (ny, nx) = (3, 4);
-        let mut a = model.new_state(ny, nx);
-        let mut b = model.new_state(ny, nx);
-        let mut t = 1.0e9;
-        for (k, e) in seq.iter().enumerate() {
-            t += e.slew_s;
-            let image = Array2::from_shape_vec((ny, nx), e.image.clone()).unwrap();
-            let flags0 = Array2::from_shape_vec((ny, nx), e.flags.clone()).unwrap();
-            let input = Input {
-                image_e_per_s: image.view(),
-                exposure_index: k as u64 * 2,
-                t_start_unix_s: t,
-                t_exposure_s: e.t_exposure_s,
-                t_illuminated_s: e.t_exposure_s,
-                history_incomplete: e.gap,
-                background_e_per_s: None,
-            };
-            let (mut fa, mut ca, mut pa) = (flags0.clone(), Array2::zeros((ny, nx)), Array2::zeros((ny, nx)));
-            let (mut fb, mut cb, mut pb) = (flags0.clone(), Array2::zeros((ny, nx)), Array2::zeros((ny, nx)));
-            let sa = model.step(&mut a, &input, &mut Output { flags: &mut fa, current_e_per_s: &mut ca, pflags: &mut pa }).unwrap();
-            let sb = reference::step(&model, &mut b, &input, &mut Output { flags: &mut fb, current_e_per_s: &mut cb, pflags: &mut pb }).unwrap();
-            prop_assert_eq!(sa, sb);
-            prop_assert_eq!(ca.mapv(f32::to_bits), cb.mapv(f32::to_bits));
-            prop_assert_eq!(&pa, &pb);
-            prop_assert_eq!(&fa, &fb);
-            prop_assert_eq!(a.amplitudes_e.mapv(f64::to_bits), b.amplitudes_e.mapv(f64::to_bits));
-            prop_assert_eq!(&a.release_count, &b.release_count);
-            prop_assert_eq!(&a.pending, &b.pending);
-            prop_assert!(a.check().is_ok());
-            // PERSIST exactly where HIGH.
-            for (f, p) in fa.iter().zip(pa.iter()) {
-                prop_assert_eq!(f & bits::PERSIST != 0, p & pbits::HIGH != 0);
-            }
-            t += e.t_exposure_s;
-        }
+        fused_matches_reference(&model, &seq)?;
     }
+
+    /// The same for other term counts (the specialised 4-term loop and the dynamic one).
+    #[test]
+    fn fused_step_matches_reference_any_term_count(
+        seq in prop::collection::vec(exp_strategy(12), 1..12),
+        n in 1usize..9,
+    ) {
+        let mut params = ModelParams::default();
+        params.early_release.threshold_e_per_s = 5.0;
+        let base = params.terms.clone();
+        params.terms = (0..n)
+            .map(|i| Term {
+                c_per_s: base[i % base.len()].c_per_s,
+                rate_per_s: base[i % base.len()].rate_per_s * (1.0 + i as f64),
+            })
+            .collect();
+        let model = Model::new(params).unwrap();
+        prop_assert_eq!(model.n_terms(), n);
+        fused_matches_reference(&model, &seq)?;
+    }
+}
+
+fn fused_matches_reference(model: &Model, seq: &[Exp]) -> Result<(), TestCaseError> {
+    let (ny, nx) = (3, 4);
+    let mut a = model.new_state(ny, nx);
+    let mut b = model.new_state(ny, nx);
+    let mut t = 1.0e9;
+    for (k, e) in seq.iter().enumerate() {
+        t += e.slew_s;
+        let image = Array2::from_shape_vec((ny, nx), e.image.clone()).unwrap();
+        let flags0 = Array2::from_shape_vec((ny, nx), e.flags.clone()).unwrap();
+        let input = Input {
+            image_e_per_s: image.view(),
+            exposure_index: k as u64 * 2,
+            t_start_unix_s: t,
+            t_exposure_s: e.t_exposure_s,
+            t_illuminated_s: e.t_exposure_s,
+            history_incomplete: e.gap,
+            background_e_per_s: None,
+        };
+        let (mut fa, mut ca, mut pa) = (
+            flags0.clone(),
+            Array2::zeros((ny, nx)),
+            Array2::zeros((ny, nx)),
+        );
+        let (mut fb, mut cb, mut pb) = (
+            flags0.clone(),
+            Array2::zeros((ny, nx)),
+            Array2::zeros((ny, nx)),
+        );
+        let sa = model
+            .step(
+                &mut a,
+                &input,
+                &mut Output {
+                    flags: &mut fa,
+                    current_e_per_s: &mut ca,
+                    pflags: &mut pa,
+                },
+            )
+            .unwrap();
+        let sb = reference::step(
+            model,
+            &mut b,
+            &input,
+            &mut Output {
+                flags: &mut fb,
+                current_e_per_s: &mut cb,
+                pflags: &mut pb,
+            },
+        )
+        .unwrap();
+        prop_assert_eq!(sa, sb);
+        prop_assert_eq!(ca.mapv(f32::to_bits), cb.mapv(f32::to_bits));
+        prop_assert_eq!(&pa, &pb);
+        prop_assert_eq!(&fa, &fb);
+        prop_assert_eq!(
+            a.amplitudes_e.mapv(f64::to_bits),
+            b.amplitudes_e.mapv(f64::to_bits)
+        );
+        prop_assert_eq!(&a.release_count, &b.release_count);
+        prop_assert_eq!(&a.pending, &b.pending);
+        prop_assert!(a.check().is_ok());
+        // PERSIST exactly where HIGH.
+        for (f, p) in fa.iter().zip(pa.iter()) {
+            prop_assert_eq!(f & bits::PERSIST != 0, p & pbits::HIGH != 0);
+        }
+        t += e.t_exposure_s;
+    }
+    Ok(())
 }
 
 /// Early release on a sky: a pixel flagged after a transient, measuring only the

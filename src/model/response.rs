@@ -38,7 +38,7 @@ impl Response {
     }
 
     /// `A_k` in electrons for an extrapolated fluence in electrons.
-    #[inline]
+    #[inline(always)]
     pub fn amplitude_e(&self, fluence_e: f64) -> f64 {
         if fluence_e <= 0.0 {
             return 0.0;
@@ -53,6 +53,12 @@ impl Response {
             i += 1;
         }
         self.y[i] + self.slope[i] * (fluence_e - self.x[i])
+    }
+
+    /// The first segment `(x_1, y_0, slope_0, x_0)`: for `0 < fluence < x_1`,
+    /// [`Response::amplitude_e`] is `y_0 + slope_0 * (fluence - x_0)`.
+    pub fn first_segment(&self) -> (f64, f64, f64, f64) {
+        (self.x[1], self.y[0], self.slope[0], self.x[0])
     }
 
     /// The largest amplitude of the table: used when the fluence is unknown.

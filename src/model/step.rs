@@ -301,6 +301,7 @@ impl Model {
             er_consecutive: er.consecutive,
             response: &self.response,
             a_max: self.response.max_e(),
+            first: self.response.first_segment(),
             t_illuminated_s: t_illum,
             history: if input.history_incomplete {
                 pbits::HISTORY_INCOMPLETE
@@ -409,6 +410,8 @@ pub(crate) struct Kernel<'m> {
     pub er_consecutive: u8,
     pub response: &'m Response,
     pub a_max: f64,
+    /// [`Response::first_segment`].
+    pub first: (f64, f64, f64, f64),
     pub t_illuminated_s: f64,
     pub history: u8,
     pub bits: FlagBits,
@@ -416,7 +419,7 @@ pub(crate) struct Kernel<'m> {
 
 impl Kernel<'_> {
     /// `A_k` for one pixel and whether it was the maximum for an unknown fluence.
-    #[inline]
+    #[inline(always)]
     pub fn response_of(&self, current: f32, flags: u32) -> (f64, bool) {
         if flags & self.bits.nonfunc != 0 {
             (0.0, false)
@@ -424,10 +427,19 @@ impl Kernel<'_> {
             (self.a_max, true)
         } else {
             let fluence_e = f64::from(current.max(0.0)) * self.t_illuminated_s;
-            (self.response.amplitude_e(fluence_e), false)
+            // The first segment, where faint pixels fall, without a table look-up: the
+            // same operations as `Response::amplitude_e` there.
+            let (x1, y0, slope0, x0) = self.first;
+            if fluence_e > 0.0 && fluence_e < x1 {
+                (y0 + slope0 * (fluence_e - x0), false)
+            } else {
+                (self.response.amplitude_e(fluence_e), false)
+            }
         }
     }
 
+    /// One row of pixels: dispatch to a loop specialised for the common term counts
+    /// (the per-pixel arithmetic is the same code, [`Kernel::pixel`], in every case).
     #[allow(clippy::too_many_arguments)]
     #[inline]
     fn row(
@@ -440,59 +452,161 @@ impl Kernel<'_> {
         current: &mut [f32],
         pflags: &mut [u8],
     ) -> StepSummary {
-        let n = self.n;
-        let mut s = StepSummary {
-            pixels: image.len() as u64,
-            ..Default::default()
-        };
-        for (x, a) in amps.chunks_exact_mut(n).enumerate() {
-            // 1. predict
-            let mut pred = 0.0f64;
-            for (aj, wj) in a.iter().zip(&self.w) {
-                pred += aj * wj;
-            }
-            // 2. flag
-            let max_prev = pending[x] & PENDING_MAX_AMPLITUDE != 0;
-            let mut high = pred > self.high || max_prev;
-            let mut low = pred > self.low || high;
-            // 3. early release
-            let m = image[x];
-            let mut released = false;
-            if self.er_enabled && high {
-                if m.is_finite() && f64::from(m) < self.er_threshold {
-                    count[x] = count[x].saturating_add(1);
-                } else {
-                    count[x] = 0;
-                }
-                if count[x] >= self.er_consecutive {
-                    a.fill(0.0);
-                    count[x] = 0;
-                    high = false;
-                    low = false;
-                    released = true;
-                }
-            } else {
-                count[x] = 0;
-            }
-            // 4 + 5. decay to this exposure's reset and add its response
-            let f = flags[x];
-            let (ak, max_used) = self.response_of(m, f);
-            for (aj, dj) in a.iter_mut().zip(&self.decay) {
-                *aj = *aj * dj + ak;
-            }
-            pending[x] = if max_used { PENDING_MAX_AMPLITUDE } else { 0 };
-            current[x] = pred as f32;
-            pflags[x] = (high as u8 * pbits::HIGH)
-                | (low as u8 * pbits::LOW)
-                | (max_prev as u8 * pbits::MAX_AMPLITUDE)
-                | (released as u8 * pbits::RELEASED)
-                | self.history;
-            flags[x] = (f & !self.bits.persist) | if high { self.bits.persist } else { 0 };
-            s.above_high += high as u64;
-            s.above_low += low as u64;
-            s.released += released as u64;
-            s.max_amplitude += max_prev as u64;
+        match self.n {
+            6 => self.row_n::<6>(amps, count, pending, image, flags, current, pflags),
+            4 => self.row_n::<4>(amps, count, pending, image, flags, current, pflags),
+            _ => self.row_dyn(amps, count, pending, image, flags, current, pflags),
         }
-        s
+    }
+
+    /// `N` terms known at compile time: the term loops unroll, no bounds checks.
+    #[allow(clippy::too_many_arguments)]
+    fn row_n<const N: usize>(
+        &self,
+        amps: &mut [f64],
+        count: &mut [u8],
+        pending: &mut [u8],
+        image: &[f32],
+        flags: &mut [u32],
+        current: &mut [f32],
+        pflags: &mut [u8],
+    ) -> StepSummary {
+        let (Ok(w), Ok(decay)) = (
+            <[f64; N]>::try_from(&self.w[..]),
+            <[f64; N]>::try_from(&self.decay[..]),
+        ) else {
+            return self.row_dyn(amps, count, pending, image, flags, current, pflags);
+        };
+        let mut s = Counts::default();
+        let pixels = amps
+            .chunks_exact_mut(N)
+            .zip(count.iter_mut())
+            .zip(pending.iter_mut())
+            .zip(image.iter())
+            .zip(flags.iter_mut())
+            .zip(current.iter_mut())
+            .zip(pflags.iter_mut());
+        for ((((((a, c), p), &m), f), cur), pf) in pixels {
+            let a: &mut [f64; N] = match a.try_into() {
+                Ok(a) => a,
+                Err(_) => continue, // unreachable: chunks_exact_mut(N)
+            };
+            self.pixel(a, &w, &decay, c, p, m, f, cur, pf, &mut s);
+        }
+        s.summary(image.len())
+    }
+
+    /// Any number of terms.
+    #[allow(clippy::too_many_arguments)]
+    fn row_dyn(
+        &self,
+        amps: &mut [f64],
+        count: &mut [u8],
+        pending: &mut [u8],
+        image: &[f32],
+        flags: &mut [u32],
+        current: &mut [f32],
+        pflags: &mut [u8],
+    ) -> StepSummary {
+        let mut s = Counts::default();
+        let pixels = amps
+            .chunks_exact_mut(self.n.max(1))
+            .zip(count.iter_mut())
+            .zip(pending.iter_mut())
+            .zip(image.iter())
+            .zip(flags.iter_mut())
+            .zip(current.iter_mut())
+            .zip(pflags.iter_mut());
+        for ((((((a, c), p), &m), f), cur), pf) in pixels {
+            self.pixel(a, &self.w[..], &self.decay[..], c, p, m, f, cur, pf, &mut s);
+        }
+        s.summary(image.len())
+    }
+
+    /// One pixel: predict, flag, early release, decay, respond (module docs). Always
+    /// inlined, so that a fixed-size `a` unrolls the term loops.
+    #[allow(clippy::too_many_arguments)]
+    #[inline(always)]
+    fn pixel<A: AsMut<[f64]> + AsRef<[f64]> + ?Sized>(
+        &self,
+        a: &mut A,
+        w: &A,
+        decay: &A,
+        count: &mut u8,
+        pending: &mut u8,
+        m: f32,
+        flags: &mut u32,
+        current: &mut f32,
+        pflags: &mut u8,
+        s: &mut Counts,
+    ) {
+        // 1. predict (in term order: the sum is not reassociated)
+        let mut pred = 0.0f64;
+        for (aj, wj) in a.as_ref().iter().zip(w.as_ref()) {
+            pred += aj * wj;
+        }
+        // 2. flag
+        let max_prev = *pending & PENDING_MAX_AMPLITUDE != 0;
+        let mut high = pred > self.high || max_prev;
+        let mut low = pred > self.low || high;
+        // 3. early release
+        let mut released = false;
+        if self.er_enabled && high {
+            if m.is_finite() && f64::from(m) < self.er_threshold {
+                *count = count.saturating_add(1);
+            } else {
+                *count = 0;
+            }
+            if *count >= self.er_consecutive {
+                a.as_mut().fill(0.0);
+                *count = 0;
+                high = false;
+                low = false;
+                released = true;
+            }
+        } else {
+            *count = 0;
+        }
+        // 4 + 5. decay to this exposure's reset and add its response
+        let f = *flags;
+        let (ak, max_used) = self.response_of(m, f);
+        for (aj, dj) in a.as_mut().iter_mut().zip(decay.as_ref()) {
+            *aj = *aj * dj + ak;
+        }
+        *pending = if max_used { PENDING_MAX_AMPLITUDE } else { 0 };
+        *current = pred as f32;
+        *pflags = (high as u8 * pbits::HIGH)
+            | (low as u8 * pbits::LOW)
+            | (max_prev as u8 * pbits::MAX_AMPLITUDE)
+            | (released as u8 * pbits::RELEASED)
+            | self.history;
+        *flags = (f & !self.bits.persist) | if high { self.bits.persist } else { 0 };
+        s.high += high as u32;
+        s.low += low as u32;
+        s.released += released as u32;
+        s.max_amplitude += max_prev as u32;
+    }
+}
+
+/// Per-row counters (a row has at most [`crate::h5io::MAX_AXIS`] pixels).
+#[derive(Default)]
+struct Counts {
+    high: u32,
+    low: u32,
+    released: u32,
+    max_amplitude: u32,
+}
+
+impl Counts {
+    fn summary(&self, pixels: usize) -> StepSummary {
+        StepSummary {
+            pixels: pixels as u64,
+            above_high: u64::from(self.high),
+            above_low: u64::from(self.low),
+            released: u64::from(self.released),
+            max_amplitude: u64::from(self.max_amplitude),
+            t_meas_s: None,
+            previous_index: None,
+        }
     }
 }

@@ -18,7 +18,7 @@ use super::schema::{self, Schema, View};
 use crate::error::{Error, Result};
 use crate::h5io;
 use crate::units::{DetectorId, UtcSeconds};
-use ndarray::{Array, Dimension, Ix1, Ix3};
+use ndarray::{Array, Array1, Array2, Dimension, Ix1, Ix3};
 use serde_json::Value;
 use std::path::Path;
 
@@ -81,41 +81,7 @@ pub(crate) fn read_l2(
         dataset(file, "/persistence/current", name).map_err(|e| vec![e])?;
     let flags: ndarray::Array2<u8> =
         dataset(file, "/persistence/flags", name).map_err(|e| vec![e])?;
-    let mut errors = Vec::new();
-    if let Some(bad) = current_e_per_s
-        .iter()
-        .find(|c| !(c.is_finite() && **c >= 0.0))
-    {
-        errors.push(Error::invalid(
-            "/persistence/current",
-            format!("holds {bad}, every predicted current must be finite and >= 0 e-/s"),
-        ));
-    }
-    let defined = pbits::HIGH
-        | pbits::LOW
-        | pbits::MAX_AMPLITUDE
-        | pbits::RELEASED
-        | pbits::HISTORY_INCOMPLETE;
-    if let Some(bad) = flags.iter().find(|f| **f & !defined != 0) {
-        errors.push(Error::invalid(
-            "/persistence/flags",
-            format!("holds {bad:#04x}: bits 5-7 are not defined by the ICD"),
-        ));
-    }
-    let mismatched = e
-        .flags
-        .iter()
-        .zip(flags.iter())
-        .filter(|(f, p)| (**f & bits::PERSIST != 0) != (**p & pbits::HIGH != 0))
-        .count();
-    if mismatched > 0 {
-        errors.push(Error::invalid(
-            "/flags",
-            format!(
-                "PERSIST (bit 17) differs from bit 0 of /persistence/flags at {mismatched} pixels"
-            ),
-        ));
-    }
+    let errors = check_persistence_data(&e.flags, &current_e_per_s, &flags);
     let g = |attr: &str| view.group_attr("/persistence", attr);
     let text = |attr: &str| {
         g(attr)
@@ -214,47 +180,7 @@ fn read_exposure_part(
         (None, None)
     };
 
-    let mut errors = Vec::new();
-    let infinite = image.iter().filter(|v| v.is_infinite()).count();
-    if infinite > 0 {
-        let first = image
-            .indexed_iter()
-            .find(|(_, v)| v.is_infinite())
-            .map(|((y, x), _)| format!(" (first at [{y}, {x}])"))
-            .unwrap_or_default();
-        errors.push(Error::invalid(
-            "/image",
-            format!("holds +/-Inf at {infinite} pixels{first}; NaN is the only allowed no-value"),
-        ));
-    } else if !image.iter().any(|v| v.is_finite()) {
-        errors.push(Error::invalid(
-            "/image",
-            "NaN plane: no pixel has a finite value",
-        ));
-    }
-    if !output {
-        let persist = flags.iter().filter(|f| **f & bits::PERSIST != 0).count();
-        if persist > 0 {
-            errors.push(Error::invalid(
-                "/flags",
-                format!(
-                    "bit 17 (PERSIST) is set at {persist} pixels; upstream never sets it \
-                     (is this an output product?)"
-                ),
-            ));
-        }
-    }
-    if let Some(t) = &ramp_times_s {
-        if let Some(i) = (0..t.len()).find(|&i| !t[i].is_finite() || (i > 0 && t[i] <= t[i - 1])) {
-            errors.push(Error::invalid(
-                "/ramp_times_s",
-                format!(
-                    "must be finite and strictly increasing; element {i} is {}",
-                    t[i]
-                ),
-            ));
-        }
-    }
+    let errors = check_exposure_data(&image, &flags, ramp_times_s.as_ref(), output);
     if !errors.is_empty() {
         return Err(errors.into_iter().map(|e| e.path(name)).collect());
     }
@@ -265,4 +191,145 @@ fn read_exposure_part(
         ramp,
         ramp_times_s,
     })
+}
+
+/// Check the layout of a Level-1 product without reading its datasets: schema,
+/// manifest checks and the root attributes. Used after writing, when the data were
+/// checked in memory ([`check_exposure_data`]) before they were written.
+pub(crate) fn check_l1_layout(file: &hdf5::File, name: &Path) -> Checked<ExposureMeta> {
+    let m = schema::manifest(file).map_err(|e| vec![e.path(name)])?;
+    check_manifest(Schema::L1Exposure, &m, name)?;
+    meta_of(View(&m), name)
+}
+
+/// [`check_l1_layout`] for an output product.
+pub(crate) fn check_l2_layout(file: &hdf5::File, name: &Path) -> Checked<ExposureMeta> {
+    let m = schema::manifest(file).map_err(|e| vec![e.path(name)])?;
+    check_manifest(Schema::L2Persistence, &m, name)?;
+    meta_of(View(&m), name)
+}
+
+/// The contiguous elements of a plane (products are read and built in standard layout;
+/// anything else is copied once, for the check only).
+fn elements<T: Clone>(a: &Array2<T>) -> std::borrow::Cow<'_, [T]> {
+    match a.as_slice() {
+        Some(s) => std::borrow::Cow::Borrowed(s),
+        None => std::borrow::Cow::Owned(a.iter().cloned().collect()),
+    }
+}
+
+/// The value checks of an input (`output`: of the input part of an output product):
+/// no +/-Inf in `/image`, at least one finite pixel, no `PERSIST` in an input's
+/// `/flags`, `ramp_times_s` finite and strictly increasing. Errors name the field only.
+pub(crate) fn check_exposure_data(
+    image: &Array2<f32>,
+    flags: &Array2<u32>,
+    ramp_times_s: Option<&Array1<f64>>,
+    output: bool,
+) -> Vec<Error> {
+    let mut errors = Vec::new();
+    let img = elements(image);
+    // One branch-free pass for the common case; details only when something is wrong.
+    let (infinite, finite) = img.iter().fold((0usize, 0usize), |(i, f), v| {
+        (i + v.is_infinite() as usize, f + v.is_finite() as usize)
+    });
+    if infinite > 0 {
+        let first = image
+            .indexed_iter()
+            .find(|(_, v)| v.is_infinite())
+            .map(|((y, x), _)| format!(" (first at [{y}, {x}])"))
+            .unwrap_or_default();
+        errors.push(Error::invalid(
+            "/image",
+            format!("holds +/-Inf at {infinite} pixels{first}; NaN is the only allowed no-value"),
+        ));
+    } else if finite == 0 {
+        errors.push(Error::invalid(
+            "/image",
+            "NaN plane: no pixel has a finite value",
+        ));
+    }
+    if !output {
+        let persist = elements(flags)
+            .iter()
+            .map(|f| (*f & bits::PERSIST != 0) as usize)
+            .sum::<usize>();
+        if persist > 0 {
+            errors.push(Error::invalid(
+                "/flags",
+                format!(
+                    "bit 17 (PERSIST) is set at {persist} pixels; upstream never sets it \
+                     (is this an output product?)"
+                ),
+            ));
+        }
+    }
+    if let Some(t) = ramp_times_s {
+        if let Some(i) = (0..t.len()).find(|&i| !t[i].is_finite() || (i > 0 && t[i] <= t[i - 1])) {
+            errors.push(Error::invalid(
+                "/ramp_times_s",
+                format!(
+                    "must be finite and strictly increasing; element {i} is {}",
+                    t[i]
+                ),
+            ));
+        }
+    }
+    errors
+}
+
+/// The value checks of the persistence planes of an output: the predicted current
+/// finite and >= 0, no undefined `/persistence/flags` bits, and `PERSIST` in `/flags`
+/// exactly where `/persistence/flags` has `HIGH`. Errors name the field only.
+pub(crate) fn check_persistence_data(
+    flags: &Array2<u32>,
+    current_e_per_s: &Array2<f32>,
+    pflags: &Array2<u8>,
+) -> Vec<Error> {
+    let mut errors = Vec::new();
+    let current = elements(current_e_per_s);
+    let bad_current = current
+        .iter()
+        .map(|c| !(c.is_finite() && *c >= 0.0) as usize)
+        .sum::<usize>();
+    if bad_current > 0 {
+        if let Some(bad) = current.iter().find(|c| !(c.is_finite() && **c >= 0.0)) {
+            errors.push(Error::invalid(
+                "/persistence/current",
+                format!("holds {bad}, every predicted current must be finite and >= 0 e-/s"),
+            ));
+        }
+    }
+    let defined = pbits::HIGH
+        | pbits::LOW
+        | pbits::MAX_AMPLITUDE
+        | pbits::RELEASED
+        | pbits::HISTORY_INCOMPLETE;
+    let pf = elements(pflags);
+    if pf.iter().fold(0u8, |acc, f| acc | f) & !defined != 0 {
+        if let Some(bad) = pf.iter().find(|f| **f & !defined != 0) {
+            errors.push(Error::invalid(
+                "/persistence/flags",
+                format!("holds {bad:#04x}: bits 5-7 are not defined by the ICD"),
+            ));
+        }
+    }
+    let f = elements(flags);
+    let mismatched = if f.len() == pf.len() {
+        f.iter()
+            .zip(pf.iter())
+            .map(|(f, p)| ((*f & bits::PERSIST != 0) != (*p & pbits::HIGH != 0)) as usize)
+            .sum::<usize>()
+    } else {
+        f.len().max(pf.len())
+    };
+    if mismatched > 0 {
+        errors.push(Error::invalid(
+            "/flags",
+            format!(
+                "PERSIST (bit 17) differs from bit 0 of /persistence/flags at {mismatched} pixels"
+            ),
+        ));
+    }
+    errors
 }

@@ -1,10 +1,12 @@
 //! [`Exposure`] (+ persistence planes) -> temporary file -> validate -> sync -> rename.
 //!
-//! Both writers publish atomically ([`crate::h5io::publish`]): the file is written as
-//! `.NAME.part` in the destination directory, closed, re-opened and validated exactly as
-//! a reader would ([`super::read`]: schema, manifest checks and data checks), synced,
-//! renamed into place, and the directory synced. On any failure the temporary file is
-//! removed and nothing appears under the final name.
+//! Both writers check the data in memory exactly as a reader would check them after
+//! reading ([`super::read`]'s data checks), then publish atomically
+//! ([`crate::h5io::publish`]): the file is written as `.NAME.part` in the destination
+//! directory, closed, re-opened and its layout validated as a reader would (schema,
+//! manifest checks, root attributes; the datasets are not read back, which would move
+//! every byte twice), synced, renamed into place, and the directory synced. On any
+//! failure the temporary file is removed and nothing appears under the final name.
 //!
 //! Layout choices (DEPENDENCIES.md): `/image`, `/ramp`, `/ramp_times_s` and
 //! `/persistence/current` contiguous and uncompressed; the flag planes (`/flags` u32 and
@@ -15,7 +17,7 @@
 //! floats as float64, all scalar.
 
 use super::exposure::{Exposure, PersistenceAttrs, PersistencePlanes, PRODUCT_L1, SCHEMA_VERSION};
-use super::read::{read_l1, read_l2};
+use super::read::{check_exposure_data, check_l1_layout, check_l2_layout, check_persistence_data};
 use super::schema::combine;
 use crate::error::{Error, Result};
 use crate::h5io::{self, attr_f64, attr_i64, attr_str};
@@ -24,6 +26,10 @@ use std::path::Path;
 /// Write a Level-1 input product (used by the simulator and the fixtures).
 pub fn write_exposure(path: &Path, e: &Exposure) -> Result<()> {
     precheck(e).map_err(|err| err.path(path))?;
+    data_errors(
+        path,
+        check_exposure_data(&e.image, &e.flags, e.ramp_times_s.as_ref(), false),
+    )?;
     h5io::publish(
         path,
         |tmp| {
@@ -34,7 +40,7 @@ pub fn write_exposure(path: &Path, e: &Exposure) -> Result<()> {
         },
         |tmp| {
             let file = h5io::open_as(tmp, path)?;
-            read_l1(&file, path).map(|_| ()).map_err(combine)
+            check_l1_layout(&file, path).map(|_| ()).map_err(combine)
         },
     )
 }
@@ -60,6 +66,13 @@ pub fn write_output(
             );
         }
     }
+    let mut errors = check_exposure_data(&e.image, &e.flags, e.ramp_times_s.as_ref(), true);
+    errors.extend(check_persistence_data(
+        &e.flags,
+        &planes.current_e_per_s,
+        &planes.flags,
+    ));
+    data_errors(path, errors)?;
     h5io::publish(
         path,
         |tmp| {
@@ -82,9 +95,18 @@ pub fn write_output(
         },
         |tmp| {
             let file = h5io::open_as(tmp, path)?;
-            read_l2(&file, path).map(|_| ()).map_err(combine)
+            check_l2_layout(&file, path).map(|_| ()).map_err(combine)
         },
     )
+}
+
+/// The value checks a reader makes, done on the data in memory before they are written.
+fn data_errors(path: &Path, errors: Vec<Error>) -> Result<()> {
+    if errors.is_empty() {
+        Ok(())
+    } else {
+        Err(combine(errors.into_iter().map(|e| e.path(path)).collect()))
+    }
 }
 
 /// Shapes that would make HDF5 fail obscurely (validation checks the rest).

@@ -26,6 +26,15 @@
 //! SIGINT/SIGTERM) is checked between exposures: the exposure in hand is finished and a
 //! checkpoint written before the stage returns.
 //!
+//! # Checkpoint publication
+//!
+//! A checkpoint is checked and written (HDF5, straight from the state in memory) on the
+//! detector's own thread; its publication (fsync, rename, directory fsync) and the
+//! pruning of old checkpoints then run on a helper thread while the next exposures are
+//! read, stepped and published. A detector's checkpoints are published in order (the
+//! next waits for the previous), always after the outputs they include, and every pass
+//! of the processor ends with its last checkpoint published.
+//!
 //! # Ordering and the gap rule
 //!
 //! Within a detector, the next product is processed when its index is the last
@@ -565,6 +574,9 @@ struct Processor<'a> {
     errors: Vec<Error>,
     refused_files: Vec<(PathBuf, Error)>,
     forget: Vec<PathBuf>,
+    /// The last checkpoint's publication (fsync, rename, prune), running on its own
+    /// thread while the next exposures are processed.
+    publishing: Option<std::thread::JoinHandle<Result<()>>>,
 }
 
 impl<'a> Processor<'a> {
@@ -593,6 +605,7 @@ impl<'a> Processor<'a> {
             errors: Vec::new(),
             refused_files: Vec::new(),
             forget: Vec::new(),
+            publishing: None,
         }
     }
 
@@ -894,6 +907,7 @@ impl<'a> Processor<'a> {
                     tracing::error!(error = %e, detector = self.det.0, "output failed: detector stopped");
                     self.errors.push(e.detector(self.det).exposure(next));
                     self.dead = true;
+                    self.finish_publishing();
                     return;
                 }
             }
@@ -901,16 +915,59 @@ impl<'a> Processor<'a> {
         if self.unsaved > 0 {
             self.save_now();
         }
+        // Every pass ends with its checkpoints published; a failed publication is
+        // retried once (the state in memory is still the one to save).
+        if !self.finish_publishing() {
+            self.save_now();
+            self.finish_publishing();
+        }
     }
 
+    /// Checkpoint the state: checked and written here (HDF5, from the state in memory,
+    /// no copy), then published (fsync, rename, directory fsync) and the old checkpoints
+    /// pruned on another thread, so that syncing a 200 MB file does not stall the next
+    /// exposures. A detector's checkpoints are published in order, always after the
+    /// outputs they include: the previous publication is waited for first.
     fn save_now(&mut self) {
-        if let Some(s) = &self.state {
-            match self.save(s, &self.book) {
-                Ok(()) => self.unsaved = 0,
-                Err(e) => {
-                    tracing::error!(error = %e, "checkpoint failed");
-                    self.errors.push(e);
-                }
+        self.finish_publishing();
+        let Some(state) = &self.state else { return };
+        match self.write_checkpoint(state) {
+            Ok((staged, index)) => {
+                self.unsaved = 0;
+                let (dir, det, retention) =
+                    (self.cfg.checkpoints.clone(), self.det, self.cfg.retention);
+                self.publishing = Some(std::thread::spawn(move || {
+                    if let checkpoint::Staged::Written(s) = staged {
+                        s.commit().map_err(|e| e.exposure(index))?;
+                    }
+                    checkpoint::prune(&dir, det, &retention)?;
+                    Ok(())
+                }));
+            }
+            Err(e) => {
+                tracing::error!(error = %e, "checkpoint failed");
+                self.errors.push(e);
+            }
+        }
+    }
+
+    /// Wait for the last checkpoint's publication; false if it failed (recorded).
+    fn finish_publishing(&mut self) -> bool {
+        let Some(handle) = self.publishing.take() else {
+            return true;
+        };
+        let result = handle.join().unwrap_or_else(|_| {
+            Err(Error::new(
+                ErrorKind::Checkpoint,
+                "the thread publishing a checkpoint panicked",
+            ))
+        });
+        match result {
+            Ok(()) => true,
+            Err(e) => {
+                tracing::error!(error = %e, "checkpoint publication failed");
+                self.errors.push(e.detector(self.det));
+                false
             }
         }
     }
@@ -1028,9 +1085,10 @@ impl<'a> Processor<'a> {
         self.cfg.output.join(input.file_name().unwrap_or_default())
     }
 
-    fn save(&self, state: &State, book: &Bookkeeping) -> Result<()> {
+    /// Write (not yet publish) the checkpoint of `state`; returns it and its index.
+    fn write_checkpoint(&self, state: &State) -> Result<(checkpoint::Staged, u64)> {
         let model = &self.cfg.model;
-        let stage_json = serde_json::to_string(book).map_err(|e| {
+        let stage_json = serde_json::to_string(&self.book).map_err(|e| {
             Error::new(ErrorKind::Checkpoint, format!("bookkeeping: {e}")).field("stage_json")
         })?;
         let meta = CheckpointMeta {
@@ -1042,8 +1100,10 @@ impl<'a> Processor<'a> {
             stage_json,
             software_version: crate::VERSION.to_string(),
         };
-        checkpoint::save(&self.cfg.checkpoints, &meta, state)?;
-        checkpoint::prune(&self.cfg.checkpoints, self.det, &self.cfg.retention)?;
-        Ok(())
+        let index = meta.exposure_index;
+        Ok((
+            checkpoint::stage(&self.cfg.checkpoints, &meta, state)?,
+            index,
+        ))
     }
 }

@@ -1,0 +1,731 @@
+//! `persist bench`: what one exposure costs, against what moving its bytes costs.
+//!
+//! Four cases, each run in a child process of the `persist` executable (so that the
+//! peak memory, `VmHWM` of `/proc/self/status`, and the rayon thread count are those of
+//! the case alone), all in one run so that their ratios hold on a noisy, shared machine:
+//!
+//! - **(a) `step`**: [`Model::step`] on one `ny x nx` exposure with the default
+//!   six-term model, the state already warm (several exposures absorbed). In memory only.
+//! - **(b) `memory`**: the memory bound of (a): one pass that reads and writes exactly
+//!   the bytes the step moves (reads amplitudes, release counters, pending bits, image,
+//!   flags; writes amplitudes, counters, pending bits, current, persistence flags, flags),
+//!   in the same parallel row layout, with trivial arithmetic.
+//! - **(c) `stage`**: the whole stage per exposure, through [`crate::stage::run`] itself
+//!   (no copy of its code): read and validate an input product, step, publish the
+//!   output (write, validate, fsync, rename), checkpoint (every exposure by default,
+//!   `checkpoint_every` otherwise) and prune. The time per exposure is the interval
+//!   between consecutive exposure reports of one detector's stream, which holds exactly
+//!   one of each; the median over the stream is reported.
+//! - **(d) `io`**: the I/O bound of (c): a raw HDF5 read of the input's `/image` and
+//!   `/flags`, and a raw write of the datasets the stage writes, with the same layout
+//!   (the output product's four planes, flag planes compressed as the stage does, and
+//!   the checkpoint's state), each file `fsync`ed as the stage does, and the same files
+//!   left on disk (every output, the two newest checkpoints); no validation, no model,
+//!   no rename.
+//!
+//! The table gives exposures per second (1 / median time per exposure), the ratios
+//! a/b and c/d, and the peak memory of the `stage` child (one detector's stream) against
+//! the bound `1.5 x (state + three images)`, an image being `ny x nx` float32.
+
+use crate::checkpoint::Retention;
+use crate::error::{Error, ErrorKind, Result};
+use crate::flags::bits;
+use crate::h5io;
+use crate::model::{Input, Model, ModelParams, Output, State};
+use crate::product::{self, Exposure, ExposureMeta};
+use crate::stage::{self, RunConfig};
+use crate::units::{DetectorId, UtcSeconds};
+use ndarray::Array2;
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+use std::path::{Path, PathBuf};
+use std::process::Command;
+use std::time::Instant;
+
+/// Exposure length and cadence of the synthetic streams (SPHEREx-like).
+const T_EXPOSURE_S: f64 = 112.0;
+const CADENCE_S: f64 = 150.0;
+/// First exposure start: 2026-03-01T00:00:00Z.
+const T0_UNIX_S: f64 = 1_772_323_200.0;
+
+/// The measured cases.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Case {
+    Step,
+    Memory,
+    Stage,
+    Io,
+}
+
+impl Case {
+    pub fn name(self) -> &'static str {
+        match self {
+            Case::Step => "step",
+            Case::Memory => "memory",
+            Case::Stage => "stage",
+            Case::Io => "io",
+        }
+    }
+
+    pub fn parse(s: &str) -> Option<Case> {
+        [Case::Step, Case::Memory, Case::Stage, Case::Io]
+            .into_iter()
+            .find(|c| c.name() == s)
+    }
+}
+
+/// One case in one configuration (what a child measures).
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct CaseSpec {
+    pub case: Case,
+    pub size: usize,
+    pub threads: usize,
+    /// Timed repetitions (exposures) after the warm-up.
+    pub reps: usize,
+    /// For `stage`: checkpoint every this many exposures.
+    pub checkpoint_every: u64,
+    /// Scratch directory (inputs under `in_{size}`, written by the parent).
+    pub scratch: PathBuf,
+}
+
+/// What a child reports.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct CaseResult {
+    pub case: Case,
+    pub size: usize,
+    pub threads: usize,
+    pub checkpoint_every: u64,
+    /// Seconds per exposure, each timed repetition.
+    pub samples_s: Vec<f64>,
+    pub median_s: f64,
+    /// `VmHWM` of the child, bytes.
+    pub peak_rss_bytes: u64,
+}
+
+/// The whole run (`persist bench`).
+#[derive(Debug, Clone)]
+pub struct BenchConfig {
+    pub sizes: Vec<usize>,
+    pub threads: Vec<usize>,
+    /// Timed repetitions of the in-memory cases (a, b).
+    pub reps: usize,
+    /// Exposures per stream for the I/O cases (c, d).
+    pub exposures: usize,
+    /// Interleaved rounds of (a, b, c, d), samples pooled.
+    pub rounds: usize,
+    /// Extra `stage` rows with this checkpoint cadence (> 1), at every size and thread count.
+    pub checkpoint_every: Vec<u64>,
+    pub scratch: PathBuf,
+    /// The `persist` executable that runs each case.
+    pub exe: PathBuf,
+}
+
+impl BenchConfig {
+    /// The full run for the README.
+    pub fn full(exe: PathBuf, scratch: PathBuf) -> Self {
+        BenchConfig {
+            sizes: vec![256, 1024, 2040],
+            threads: vec![1, 2],
+            reps: 11,
+            exposures: 10,
+            rounds: 3,
+            checkpoint_every: vec![4],
+            scratch,
+            exe,
+        }
+    }
+
+    /// Seconds, small sizes: keeps the code from rotting.
+    pub fn quick(exe: PathBuf, scratch: PathBuf) -> Self {
+        BenchConfig {
+            sizes: vec![64, 128],
+            threads: vec![1, 2],
+            reps: 3,
+            exposures: 4,
+            rounds: 1,
+            checkpoint_every: vec![2],
+            scratch,
+            exe,
+        }
+    }
+}
+
+/// Everything measured, and the table.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct BenchReport {
+    pub results: Vec<CaseResult>,
+    pub rows: Vec<Row>,
+    pub markdown: String,
+    pub machine: String,
+    pub date_utc: String,
+}
+
+/// One line of the table: one size, one thread count.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct Row {
+    pub size: usize,
+    pub threads: usize,
+    pub step_s: f64,
+    pub memory_s: f64,
+    pub stage_s: f64,
+    pub io_s: f64,
+    /// `(checkpoint_every, seconds per exposure)` of the extra stage rows.
+    pub stage_every_s: Vec<(u64, f64)>,
+    pub a_over_b: f64,
+    pub c_over_d: f64,
+    pub stage_peak_bytes: u64,
+    /// `1.5 x (state + three images)`.
+    pub memory_bound_bytes: u64,
+}
+
+fn bench_error(msg: impl Into<String>) -> Error {
+    Error::new(ErrorKind::Io, msg)
+}
+
+/// `1.5 x (state + three float32 images)` for one detector of `size^2`, six terms.
+pub fn memory_bound_bytes(size: usize, n_terms: usize) -> u64 {
+    let px = (size * size) as u64;
+    let state = px * (8 * n_terms as u64 + 2);
+    let images = 3 * px * 4;
+    (state + images) * 3 / 2
+}
+
+/// Peak resident set of this process (`VmHWM`), bytes; 0 where unknown.
+pub fn peak_rss_bytes() -> u64 {
+    std::fs::read_to_string("/proc/self/status")
+        .ok()
+        .and_then(|s| {
+            s.lines()
+                .find(|l| l.starts_with("VmHWM:"))
+                .and_then(|l| l.split_whitespace().nth(1))
+                .and_then(|kb| kb.parse::<u64>().ok())
+        })
+        .map_or(0, |kb| kb * 1024)
+}
+
+pub fn median(v: &[f64]) -> f64 {
+    if v.is_empty() {
+        return f64::NAN;
+    }
+    let mut s = v.to_vec();
+    s.sort_by(f64::total_cmp);
+    let m = s.len() / 2;
+    if s.len() % 2 == 1 {
+        s[m]
+    } else {
+        0.5 * (s[m - 1] + s[m])
+    }
+}
+
+/// SplitMix64: a cheap deterministic per-pixel hash (no RNG state to thread through).
+fn mix(mut z: u64) -> u64 {
+    z = z.wrapping_add(0x9e37_79b9_7f4a_7c15);
+    z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+    z ^ (z >> 31)
+}
+
+/// A synthetic exposure `k` of a `size^2` array: sky 0.5-10 e-/s, 1% bright pixels
+/// (10^3-10^5 e-/s, moving from exposure to exposure, so flags, releases and maximum
+/// amplitudes all happen), 0.01% NaN, 0.1% TRANSIENT, 0.01% NONFUNC.
+pub fn synthetic_frame(size: usize, k: u64) -> (Array2<f32>, Array2<u32>) {
+    let mut image = Array2::<f32>::zeros((size, size));
+    let mut flags = Array2::<u32>::zeros((size, size));
+    image
+        .as_slice_mut()
+        .expect("standard layout")
+        .par_iter_mut()
+        .zip(
+            flags
+                .as_slice_mut()
+                .expect("standard layout")
+                .par_iter_mut(),
+        )
+        .enumerate()
+        .for_each(|(i, (v, f))| {
+            let h = mix(i as u64 ^ k.wrapping_mul(0x5851_f42d_4c95_7f2d));
+            let u = (h & 0xffff) as f32 / 65536.0;
+            let sel = (h >> 16) % 10_000;
+            *v = 0.5 + 9.5 * u;
+            if sel < 100 {
+                *v = 1e3 * 100f32.powf(u);
+            } else if sel < 101 {
+                *v = f32::NAN;
+            } else if sel < 111 {
+                *f = bits::TRANSIENT;
+            } else if sel < 112 {
+                *f = bits::NONFUNC;
+            }
+        });
+    (image, flags)
+}
+
+fn input_dir(scratch: &Path, size: usize) -> PathBuf {
+    scratch.join(format!("in_{size}"))
+}
+
+fn input_meta(k: u64) -> ExposureMeta {
+    let t = UtcSeconds(T0_UNIX_S + k as f64 * CADENCE_S);
+    ExposureMeta {
+        detector: DetectorId(1),
+        exposure_index: k,
+        t_start_utc: t.to_iso(),
+        t_start: t,
+        t_exposure_s: T_EXPOSURE_S,
+        focal_plane_temp_k: Some(80.0),
+        t_illuminated_s: None,
+    }
+}
+
+/// Write `count` input products of `size^2` for detector 1 (not timed).
+pub fn prepare_inputs(scratch: &Path, size: usize, count: usize) -> Result<PathBuf> {
+    let dir = input_dir(scratch, size);
+    if dir.exists() {
+        std::fs::remove_dir_all(&dir).map_err(|e| Error::io(&dir, e))?;
+    }
+    std::fs::create_dir_all(&dir).map_err(|e| Error::io(&dir, e))?;
+    for k in 0..count as u64 {
+        let (image, flags) = synthetic_frame(size, k);
+        let e = Exposure {
+            meta: input_meta(k),
+            image,
+            flags,
+            ramp: None,
+            ramp_times_s: None,
+        };
+        product::write_exposure(&dir.join(format!("l1_det1_exp{k:04}.h5")), &e)?;
+    }
+    Ok(dir)
+}
+
+fn model() -> Model {
+    Model::new(ModelParams::default()).expect("the default model is valid")
+}
+
+/// Run one case in this process (the child side), with a rayon pool of `spec.threads`.
+pub fn run_case(spec: &CaseSpec) -> Result<CaseResult> {
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(spec.threads.max(1))
+        .build()
+        .map_err(|e| bench_error(format!("rayon pool: {e}")))?;
+    let samples = pool.install(|| match spec.case {
+        Case::Step => case_step(spec),
+        Case::Memory => Ok(case_memory(spec)),
+        Case::Stage => case_stage(spec),
+        Case::Io => case_io(spec),
+    })?;
+    Ok(CaseResult {
+        case: spec.case,
+        size: spec.size,
+        threads: spec.threads,
+        checkpoint_every: spec.checkpoint_every,
+        median_s: median(&samples),
+        samples_s: samples,
+        peak_rss_bytes: peak_rss_bytes(),
+    })
+}
+
+/// (a) The fused step on a warm state.
+fn case_step(spec: &CaseSpec) -> Result<Vec<f64>> {
+    let m = model();
+    let n = spec.size;
+    let mut state = m.new_state(n, n);
+    let frames: Vec<_> = (0..2).map(|k| synthetic_frame(n, k)).collect();
+    let mut flags = Array2::<u32>::zeros((n, n));
+    let mut current = Array2::<f32>::zeros((n, n));
+    let mut pflags = Array2::<u8>::zeros((n, n));
+    let warm = 3;
+    let mut samples = Vec::new();
+    for k in 0..(warm + spec.reps) as u64 {
+        let (image, f) = &frames[(k % 2) as usize];
+        flags.assign(f);
+        let input = Input {
+            image_e_per_s: image.view(),
+            exposure_index: k,
+            t_start_unix_s: T0_UNIX_S + k as f64 * CADENCE_S,
+            t_exposure_s: T_EXPOSURE_S,
+            t_illuminated_s: T_EXPOSURE_S,
+            history_incomplete: false,
+            background_e_per_s: None,
+        };
+        let t = Instant::now();
+        let s = m.step(
+            &mut state,
+            &input,
+            &mut Output {
+                flags: &mut flags,
+                current_e_per_s: &mut current,
+                pflags: &mut pflags,
+            },
+        )?;
+        let dt = t.elapsed().as_secs_f64();
+        std::hint::black_box(s);
+        if k >= warm as u64 {
+            samples.push(dt);
+        }
+    }
+    Ok(samples)
+}
+
+/// (b) One pass moving the step's bytes, trivial arithmetic, same row layout.
+fn case_memory(spec: &CaseSpec) -> Vec<f64> {
+    const N: usize = 6;
+    let n = spec.size;
+    let px = n * n;
+    let (image, flags0) = synthetic_frame(n, 0);
+    let image = image.as_slice().expect("standard layout").to_vec();
+    let mut flags = flags0.as_slice().expect("standard layout").to_vec();
+    let mut amps = vec![1.0f64; px * N];
+    let mut count = vec![0u8; px];
+    let mut pending = vec![0u8; px];
+    let mut current = vec![0f32; px];
+    let mut pflags = vec![0u8; px];
+    let decay = [0.5f64; N];
+    let warm = 3;
+    let mut samples = Vec::new();
+    for k in 0..warm + spec.reps {
+        let t = Instant::now();
+        (
+            amps.par_chunks_mut(n * N),
+            count.par_chunks_mut(n),
+            pending.par_chunks_mut(n),
+            image.par_chunks(n),
+            flags.par_chunks_mut(n),
+            current.par_chunks_mut(n),
+            pflags.par_chunks_mut(n),
+        )
+            .into_par_iter()
+            .for_each(|(a, c, p, img, f, cur, pf)| {
+                for (x, a) in a.chunks_exact_mut(N).enumerate() {
+                    let m = f64::from(img[x]);
+                    for (aj, dj) in a.iter_mut().zip(&decay) {
+                        *aj = *aj * dj + m;
+                    }
+                    c[x] = c[x].wrapping_add(1);
+                    p[x] ^= 1;
+                    cur[x] = img[x];
+                    pf[x] = c[x] ^ p[x];
+                    f[x] ^= bits::PERSIST;
+                }
+            });
+        let dt = t.elapsed().as_secs_f64();
+        std::hint::black_box((&amps, &current, &pflags, &flags, &count, &pending));
+        if k >= warm {
+            samples.push(dt);
+        }
+    }
+    samples
+}
+
+/// (c) The stage itself on a stream of `reps` products of one detector.
+fn case_stage(spec: &CaseSpec) -> Result<Vec<f64>> {
+    let input = input_dir(&spec.scratch, spec.size);
+    let root = spec.scratch.join(format!(
+        "stage_{}_{}_{}",
+        spec.size, spec.threads, spec.checkpoint_every
+    ));
+    if root.exists() {
+        std::fs::remove_dir_all(&root).map_err(|e| Error::io(&root, e))?;
+    }
+    let cfg = RunConfig {
+        input,
+        output: root.join("out"),
+        checkpoints: root.join("ckpt"),
+        model: model(),
+        from_checkpoint: None,
+        allow_model_change: false,
+        checkpoint_every: spec.checkpoint_every.max(1),
+        // Few files on disk; pruning still runs after every checkpoint.
+        retention: Retention {
+            keep_latest: 2,
+            keep_one_per_hour: true,
+        },
+        processed_utc: "2026-03-02T00:00:00.000000Z".into(),
+    };
+    let stamps = std::sync::Mutex::new(Vec::new());
+    let report = stage::run(&cfg, &|_| {
+        if let Ok(mut s) = stamps.lock() {
+            s.push(Instant::now());
+        }
+    });
+    let _ = std::fs::remove_dir_all(&root);
+    if let Some(e) = report.errors.into_iter().next() {
+        return Err(e);
+    }
+    let stamps = stamps
+        .into_inner()
+        .map_err(|_| bench_error("poisoned lock"))?;
+    let diffs: Vec<f64> = stamps
+        .windows(2)
+        .map(|w| (w[1] - w[0]).as_secs_f64())
+        .collect();
+    let every = spec.checkpoint_every.max(1) as usize;
+    if every == 1 {
+        return Ok(diffs);
+    }
+    // Average over whole checkpoint periods (each holds exactly one checkpoint).
+    Ok(diffs
+        .chunks_exact(every)
+        .map(|c| c.iter().sum::<f64>() / every as f64)
+        .collect())
+}
+
+/// (d) Raw HDF5: read the input planes, write the same output and checkpoint datasets.
+fn case_io(spec: &CaseSpec) -> Result<Vec<f64>> {
+    let input = input_dir(&spec.scratch, spec.size);
+    let root = spec
+        .scratch
+        .join(format!("io_{}_{}", spec.size, spec.threads));
+    if root.exists() {
+        std::fs::remove_dir_all(&root).map_err(|e| Error::io(&root, e))?;
+    }
+    std::fs::create_dir_all(&root).map_err(|e| Error::io(&root, e))?;
+    let n = spec.size;
+    // A state of the same size and the persistence planes, as the stage holds them.
+    let mut state = State::zeros(n, n, model().n_terms());
+    state.amplitudes_e.fill(1.5);
+    let current = Array2::<f32>::from_elem((n, n), 0.25);
+    let pflags = Array2::<u8>::zeros((n, n));
+    let h5 = |e: hdf5::Error| Error::from(e).path(&root);
+    let mut samples = Vec::new();
+    for k in 0..spec.reps as u64 {
+        let path = input.join(format!("l1_det1_exp{k:04}.h5"));
+        let t = Instant::now();
+        let f = hdf5::File::open(&path).map_err(h5)?;
+        let image = f
+            .dataset("image")
+            .and_then(|d| d.read::<f32, ndarray::Ix2>())
+            .map_err(h5)?;
+        let flags = f
+            .dataset("flags")
+            .and_then(|d| d.read::<u32, ndarray::Ix2>())
+            .map_err(h5)?;
+        drop(f);
+        let out = root.join(format!("out_{k:04}.h5"));
+        let file = h5io::create(&out).map_err(h5)?;
+        h5io::write_plain(&file, "image", image.view()).map_err(h5)?;
+        h5io::write_flags(&file, "flags", flags.view()).map_err(h5)?;
+        let g = h5io::create_group(&file, "persistence").map_err(h5)?;
+        h5io::write_plain(&g, "current", current.view()).map_err(h5)?;
+        h5io::write_flags(&g, "flags", pflags.view()).map_err(h5)?;
+        drop(g);
+        file.close().map_err(h5)?;
+        sync(&out)?;
+        let ck = root.join(format!("ckpt_{k:04}.h5"));
+        let file = h5io::create(&ck).map_err(h5)?;
+        h5io::write_plain(&file, "amplitudes_e", state.amplitudes_e.view()).map_err(h5)?;
+        h5io::write_plain(&file, "release_count", state.release_count.view()).map_err(h5)?;
+        h5io::write_plain(&file, "pending", state.pending.view()).map_err(h5)?;
+        file.close().map_err(h5)?;
+        sync(&ck)?;
+        samples.push(t.elapsed().as_secs_f64());
+        // Leave on disk what the stage leaves (its page-cache footprint matters on a
+        // VM): every output, the two newest checkpoints (the `stage` case's retention).
+        if k >= 2 {
+            let _ = std::fs::remove_file(root.join(format!("ckpt_{:04}.h5", k - 2)));
+        }
+    }
+    let _ = std::fs::remove_dir_all(&root);
+    // The first exposure opens the library and warms the page cache: drop it.
+    if samples.len() > 2 {
+        samples.remove(0);
+    }
+    Ok(samples)
+}
+
+fn sync(path: &Path) -> Result<()> {
+    std::fs::File::open(path)
+        .and_then(|f| f.sync_all())
+        .map_err(|e| Error::io(path, e))
+}
+
+/// Run one case in a child process: `persist bench --case ... --json`.
+fn spawn(cfg: &BenchConfig, spec: &CaseSpec) -> Result<CaseResult> {
+    let out = Command::new(&cfg.exe)
+        .args([
+            "bench",
+            "--case",
+            spec.case.name(),
+            "--size",
+            &spec.size.to_string(),
+            "--threads",
+            &spec.threads.to_string(),
+            "--reps",
+            &spec.reps.to_string(),
+            "--checkpoint-every",
+            &spec.checkpoint_every.to_string(),
+            "--scratch",
+        ])
+        .arg(&spec.scratch)
+        .env("RAYON_NUM_THREADS", spec.threads.to_string())
+        .output()
+        .map_err(|e| Error::io(&cfg.exe, e))?;
+    if !out.status.success() {
+        return Err(bench_error(format!(
+            "bench case {} size {} threads {} failed: {}",
+            spec.case.name(),
+            spec.size,
+            spec.threads,
+            String::from_utf8_lossy(&out.stderr).trim()
+        )));
+    }
+    let text = String::from_utf8_lossy(&out.stdout);
+    let line = text.lines().last().unwrap_or_default();
+    serde_json::from_str(line).map_err(|e| bench_error(format!("bench child output `{line}`: {e}")))
+}
+
+/// The whole benchmark: every case, size and thread count, each in a child process.
+/// `progress` is told of each result as it comes.
+pub fn run(cfg: &BenchConfig, progress: &dyn Fn(&CaseResult)) -> Result<BenchReport> {
+    std::fs::create_dir_all(&cfg.scratch).map_err(|e| Error::io(&cfg.scratch, e))?;
+    let mut results = Vec::new();
+    let mut rows = Vec::new();
+    let mut stage_exposures = cfg.exposures.max(3);
+    for &e in &cfg.checkpoint_every {
+        stage_exposures = stage_exposures.max(e as usize * 3 + 1);
+    }
+    for &size in &cfg.sizes {
+        let _ = prepare_inputs(&cfg.scratch, size, stage_exposures)?;
+        for &threads in &cfg.threads {
+            let spec = |case, reps, every| CaseSpec {
+                case,
+                size,
+                threads,
+                reps,
+                checkpoint_every: every,
+                scratch: cfg.scratch.clone(),
+            };
+            // Interleaved rounds per size and thread count, so that drifts in the
+            // machine's load hit the numerator and the denominator of each ratio alike;
+            // each case's samples of all rounds are pooled into one median.
+            let mut merged: Vec<Option<CaseResult>> = vec![None, None, None, None];
+            for _ in 0..cfg.rounds.max(1) {
+                let runs = [
+                    (Case::Step, cfg.reps),
+                    (Case::Memory, cfg.reps),
+                    (Case::Stage, cfg.exposures),
+                    (Case::Io, cfg.exposures),
+                ];
+                for (slot, (case, reps)) in merged.iter_mut().zip(runs) {
+                    let r = spawn(cfg, &spec(case, reps, 1))?;
+                    progress(&r);
+                    *slot = Some(match slot.take() {
+                        None => r,
+                        Some(mut m) => {
+                            m.samples_s.extend(r.samples_s);
+                            m.median_s = median(&m.samples_s);
+                            m.peak_rss_bytes = m.peak_rss_bytes.max(r.peak_rss_bytes);
+                            m
+                        }
+                    });
+                }
+            }
+            let [Some(a), Some(b), Some(c), Some(d)] =
+                merged.try_into().unwrap_or([None, None, None, None])
+            else {
+                return Err(bench_error("no result"));
+            };
+            let mut every = Vec::new();
+            for &e in &cfg.checkpoint_every {
+                let r = spawn(cfg, &spec(Case::Stage, stage_exposures, e))?;
+                progress(&r);
+                every.push((e, r.median_s));
+                results.push(r);
+            }
+            rows.push(Row {
+                size,
+                threads,
+                step_s: a.median_s,
+                memory_s: b.median_s,
+                stage_s: c.median_s,
+                io_s: d.median_s,
+                stage_every_s: every,
+                a_over_b: a.median_s / b.median_s,
+                c_over_d: c.median_s / d.median_s,
+                stage_peak_bytes: c.peak_rss_bytes,
+                memory_bound_bytes: memory_bound_bytes(size, model().n_terms()),
+            });
+            results.extend([a, b, c, d]);
+        }
+        let dir = input_dir(&cfg.scratch, size);
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+    let markdown = table(&rows);
+    Ok(BenchReport {
+        results,
+        rows,
+        markdown,
+        machine: machine(),
+        date_utc: chrono::Utc::now().to_rfc3339_opts(chrono::SecondsFormat::Secs, true),
+    })
+}
+
+fn mib(b: u64) -> f64 {
+    b as f64 / (1024.0 * 1024.0)
+}
+
+/// The markdown table of the rows.
+pub fn table(rows: &[Row]) -> String {
+    let every: Vec<u64> = rows
+        .first()
+        .map(|r| r.stage_every_s.iter().map(|e| e.0).collect())
+        .unwrap_or_default();
+    let mut s = String::from(
+        "| image | threads | (a) step exp/s | (b) memory exp/s | a/b | (c) stage exp/s | (d) I/O exp/s | c/d |",
+    );
+    for e in &every {
+        s.push_str(&format!(" (c) ckpt/{e} exp/s |"));
+    }
+    s.push_str(" stage peak MiB | bound MiB |\n|---|---|---|---|---|---|---|---|");
+    for _ in &every {
+        s.push_str("---|");
+    }
+    s.push_str("---|---|\n");
+    for r in rows {
+        s.push_str(&format!(
+            "| {0}^2 | {1} | {2:.1} | {3:.1} | {4:.2} | {5:.2} | {6:.2} | {7:.2} |",
+            r.size,
+            r.threads,
+            1.0 / r.step_s,
+            1.0 / r.memory_s,
+            r.a_over_b,
+            1.0 / r.stage_s,
+            1.0 / r.io_s,
+            r.c_over_d
+        ));
+        for (_, t) in &r.stage_every_s {
+            s.push_str(&format!(" {:.2} |", 1.0 / t));
+        }
+        s.push_str(&format!(
+            " {:.0} | {:.0} |\n",
+            mib(r.stage_peak_bytes),
+            mib(r.memory_bound_bytes)
+        ));
+    }
+    s
+}
+
+/// CPU model, core count and memory, for the record.
+pub fn machine() -> String {
+    let cpu = std::fs::read_to_string("/proc/cpuinfo")
+        .ok()
+        .and_then(|s| {
+            s.lines()
+                .find(|l| l.starts_with("model name"))
+                .and_then(|l| l.split_once(':'))
+                .map(|(_, v)| v.trim().to_owned())
+        })
+        .unwrap_or_else(|| "unknown CPU".into());
+    let cores = std::thread::available_parallelism().map_or(0, |n| n.get());
+    let mem = std::fs::read_to_string("/proc/meminfo")
+        .ok()
+        .and_then(|s| {
+            s.lines()
+                .find(|l| l.starts_with("MemTotal:"))
+                .and_then(|l| l.split_whitespace().nth(1))
+                .and_then(|kb| kb.parse::<u64>().ok())
+        })
+        .map_or(0.0, |kb| kb as f64 / (1024.0 * 1024.0));
+    format!("{cpu}, {cores} cores, {mem:.0} GiB")
+}
