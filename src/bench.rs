@@ -492,7 +492,9 @@ fn case_io(spec: &CaseSpec) -> Result<Vec<f64>> {
     for k in 0..spec.reps as u64 {
         let path = input.join(format!("l1_det1_exp{k:04}.h5"));
         let t = Instant::now();
-        let f = hdf5::File::open(&path).map_err(h5)?;
+        let f = hdf5::File::open(&path)
+            .map(crate::h5io::close_on_exec)
+            .map_err(h5)?;
         let image = f
             .dataset("image")
             .and_then(|d| d.read::<f32, ndarray::Ix2>())

@@ -54,7 +54,37 @@ pub fn open(path: &Path) -> Result<hdf5::File> {
     if let Err(e) = std::fs::metadata(path) {
         return Err(Error::io(path, e).field("/"));
     }
-    hdf5::File::open(path).map_err(|e| open_error(e).path(path))
+    hdf5::File::open(path)
+        .map(close_on_exec)
+        .map_err(|e| open_error(e).path(path))
+}
+
+/// Mark an open HDF5 file's descriptor close-on-exec, and return the file.
+///
+/// libhdf5 opens files without `O_CLOEXEC` and `flock`s them. A child process started
+/// while a file is open (the bench's children, a test harness's `persist` runs) would
+/// inherit the descriptor, and with it the lock, for its whole life: a later open of the
+/// file anywhere then fails with "unable to lock file". (A fork in the instant between
+/// libhdf5's `open` and this call can still inherit it; that window is microseconds.)
+pub fn close_on_exec(file: hdf5::File) -> hdf5::File {
+    let id = file.id();
+    let mut handle: *mut std::ffi::c_void = std::ptr::null_mut();
+    // SAFETY: `id` is a live file id; with the default (sec2) driver the handle is a
+    // pointer to the file's `int` descriptor, read once and only if the call succeeded.
+    let fd = hdf5::sync::sync(|| unsafe {
+        let rc = hdf5_sys::h5f::H5Fget_vfd_handle(id, hdf5_sys::h5p::H5P_DEFAULT, &mut handle);
+        (rc >= 0 && !handle.is_null()).then(|| *(handle as *const std::ffi::c_int))
+    });
+    if let Some(fd) = fd {
+        // SAFETY: fcntl on a descriptor this process owns; failure leaves it unchanged.
+        unsafe {
+            let flags = libc::fcntl(fd, libc::F_GETFD);
+            if flags >= 0 {
+                libc::fcntl(fd, libc::F_SETFD, flags | libc::FD_CLOEXEC);
+            }
+        }
+    }
+    file
 }
 
 /// An HDF5 open failure: not ready (locked by a writer) or not readable as HDF5.
@@ -77,11 +107,14 @@ pub fn create(path: &Path) -> hdf5::Result<hdf5::File> {
     hdf5::File::with_options()
         .with_fcpl(|p| p.obj_track_times(false))
         .create(path)
+        .map(close_on_exec)
 }
 
 /// Open `tmp` for validation; errors name `name`.
 pub fn open_as(tmp: &Path, name: &Path) -> Result<hdf5::File> {
-    hdf5::File::open(tmp).map_err(|e| open_error(e).path(name))
+    hdf5::File::open(tmp)
+        .map(close_on_exec)
+        .map_err(|e| open_error(e).path(name))
 }
 
 /// Create a group with object times off.
