@@ -23,11 +23,11 @@
 
 use crate::error::{Error, ErrorKind, Result};
 use crate::h5io::{self, attr_f64, attr_i64, attr_str};
+use crate::model::params::sha256_hex;
 use crate::model::State;
 use crate::product::schema::{self, Schema, View};
 use crate::units::{DetectorId, UtcSeconds};
 use ndarray::{Array2, Array3};
-use sha2::{Digest, Sha256};
 use std::collections::HashSet;
 use std::path::{Path, PathBuf};
 
@@ -80,11 +80,19 @@ pub fn path_for(dir: &Path, detector: DetectorId, index: u64) -> PathBuf {
     detector_dir(dir, detector).join(format!("ckpt_det{}_{index:010}.h5", detector.0))
 }
 
-fn hex_sha256(text: &str) -> String {
-    Sha256::digest(text.as_bytes())
-        .iter()
-        .map(|b| format!("{b:02x}"))
-        .collect()
+/// The metadata's own consistency, checked on saving and on loading: the identity is
+/// the SHA-256 of the model's canonical JSON, and the stage's bookkeeping is JSON.
+fn check_meta(meta: &CheckpointMeta) -> Result<()> {
+    if sha256_hex(meta.model_json.as_bytes()) != meta.model_id {
+        return Err(ckpt_error(
+            "model_id",
+            "is not the SHA-256 of model_json (the checkpoint was altered)",
+        ));
+    }
+    if let Err(e) = serde_json::from_str::<serde_json::Value>(&meta.stage_json) {
+        return Err(ckpt_error("stage_json", format!("not JSON: {e}")));
+    }
+    Ok(())
 }
 
 fn ckpt_error(field: &str, message: impl Into<String>) -> Error {
@@ -141,15 +149,7 @@ pub fn stage(dir: &Path, meta: &CheckpointMeta, state: &State) -> Result<Staged>
             "the state has absorbed no exposure (no reset time)",
         ))
     })?;
-    if hex_sha256(&meta.model_json) != meta.model_id {
-        return Err(fail(ckpt_error(
-            "model_id",
-            "is not the SHA-256 of model_json",
-        )));
-    }
-    if let Err(e) = serde_json::from_str::<serde_json::Value>(&meta.stage_json) {
-        return Err(fail(ckpt_error("stage_json", format!("not JSON: {e}"))));
-    }
+    check_meta(meta).map_err(fail)?;
     if path.exists() {
         if let Ok((m, s)) = load(&path) {
             if m == *meta && s == *state {
@@ -387,15 +387,7 @@ fn check_layout(
         stage_json: text("stage_json"),
         software_version: text("software_version"),
     };
-    if hex_sha256(&meta.model_json) != meta.model_id {
-        return Err(one(ckpt_error(
-            "model_id",
-            "is not the SHA-256 of model_json (the checkpoint was altered)",
-        )));
-    }
-    if let Err(e) = serde_json::from_str::<serde_json::Value>(&meta.stage_json) {
-        return Err(one(ckpt_error("stage_json", format!("not JSON: {e}"))));
-    }
+    check_meta(&meta).map_err(one)?;
     Ok((meta, t_reset))
 }
 

@@ -16,6 +16,16 @@
 use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
 
+/// Lower-case hex of a digest (the form of model identities and input digests).
+pub fn to_hex(digest: &[u8]) -> String {
+    digest.iter().map(|b| format!("{b:02x}")).collect()
+}
+
+/// SHA-256 of `bytes`, lower-case hex.
+pub fn sha256_hex(bytes: &[u8]) -> String {
+    to_hex(&Sha256::digest(bytes))
+}
+
 /// Version of the model file format this build reads and writes.
 pub const MODEL_FORMAT: u32 = 1;
 
@@ -219,8 +229,7 @@ impl ModelParams {
 
     /// The model identity: SHA-256 of the canonical form, lower-case hex.
     pub fn identity(&self) -> String {
-        let digest = Sha256::digest(self.canonical_json().as_bytes());
-        digest.iter().map(|b| format!("{b:02x}")).collect()
+        sha256_hex(self.canonical_json().as_bytes())
     }
 
     /// The largest amplitude of the knot table (used for transients and unknown fluence).

@@ -233,7 +233,7 @@ pub fn file_digest(path: &Path) -> Result<String> {
         }
         h.update(&buf[..n]);
     }
-    Ok(h.finalize().iter().map(|b| format!("{b:02x}")).collect())
+    Ok(crate::model::params::to_hex(&h.finalize()))
 }
 
 /// Process every product in `cfg.input` once (batch, no quarantine).
