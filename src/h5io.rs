@@ -59,6 +59,13 @@ pub fn open(path: &Path) -> Result<hdf5::File> {
         .map_err(|e| open_error(e).path(path))
 }
 
+/// Files this crate creates are never locked (`create`, `open_as`): they are written
+/// under hidden temporary names and renamed into place, so no reader can see them half
+/// written, and an unlocked file cannot be held locked by a child process that
+/// inherited its descriptor during libhdf5's create call (the window close-on-exec
+/// cannot close). Files read by name (`open`) keep libhdf5's locking: a product still
+/// being written in place by another program is "not ready".
+///
 /// Mark an open HDF5 file's descriptor close-on-exec, and return the file.
 ///
 /// libhdf5 opens files without `O_CLOEXEC` and `flock`s them. A child process started
@@ -106,13 +113,16 @@ fn open_error(e: hdf5::Error) -> Error {
 pub fn create(path: &Path) -> hdf5::Result<hdf5::File> {
     hdf5::File::with_options()
         .with_fcpl(|p| p.obj_track_times(false))
+        .with_fapl(|p| p.file_locking(false))
         .create(path)
         .map(close_on_exec)
 }
 
 /// Open `tmp` for validation; errors name `name`.
 pub fn open_as(tmp: &Path, name: &Path) -> Result<hdf5::File> {
-    hdf5::File::open(tmp)
+    hdf5::File::with_options()
+        .with_fapl(|p| p.file_locking(false))
+        .open(tmp)
         .map(close_on_exec)
         .map_err(|e| open_error(e).path(name))
 }
