@@ -561,6 +561,9 @@ struct Processor<'a> {
     started: bool,
     dead: bool,
     state: Option<State>,
+    /// Every step since the state was created (zeros) or loaded (checked) counted no
+    /// invalid amplitude: the checkpoint writer need not scan them again.
+    amplitudes_verified: bool,
     book: Bookkeeping,
     buffers: Option<PersistencePlanes>,
     pending: BTreeMap<u64, Pending>,
@@ -594,6 +597,7 @@ impl<'a> Processor<'a> {
             started: false,
             dead: false,
             state: None,
+            amplitudes_verified: true,
             book: Bookkeeping::default(),
             buffers: None,
             pending: BTreeMap::new(),
@@ -975,6 +979,12 @@ impl<'a> Processor<'a> {
     /// Read, step, publish one exposure.
     fn one(&mut self, entry: &mut Pending) -> Result<ExposureReport, Failure> {
         let model = &self.cfg.model;
+        // The duplicate digest reads the file's bytes with plain file I/O (no HDF5), on
+        // its own thread while the product is read through HDF5.
+        let digesting = entry.digest.is_none().then(|| {
+            let path = entry.path.clone();
+            std::thread::spawn(move || file_digest(&path))
+        });
         let mut exposure: Exposure =
             product::read::read_exposure(&entry.path).map_err(Failure::Input)?;
         let meta = exposure.meta.clone();
@@ -987,8 +997,12 @@ impl<'a> Processor<'a> {
                 .path(&entry.path),
             ));
         }
-        if entry.digest.is_none() {
-            entry.digest = Some(file_digest(&entry.path).map_err(Failure::Input)?);
+        // Joined before the state changes, so that a failed digest leaves it untouched.
+        if let Some(h) = digesting {
+            let digest = h.join().unwrap_or_else(|_| {
+                Err(Error::new(ErrorKind::Io, "the digest thread panicked").path(&entry.path))
+            });
+            entry.digest = Some(digest.map_err(Failure::Input)?);
         }
         let out_path = self.output_path(&entry.path);
         let shape = exposure.image.dim();
@@ -1046,6 +1060,7 @@ impl<'a> Processor<'a> {
                 },
             )
             .map_err(Failure::Input)?;
+        self.amplitudes_verified &= summary.invalid_amplitudes == Some(0);
         book.history_incomplete_until_unix_s = until;
         exposure.flags = flags;
         if let Some(prev) = summary
@@ -1102,7 +1117,12 @@ impl<'a> Processor<'a> {
         };
         let index = meta.exposure_index;
         Ok((
-            checkpoint::stage(&self.cfg.checkpoints, &meta, state)?,
+            checkpoint::stage_verified(
+                &self.cfg.checkpoints,
+                &meta,
+                state,
+                self.amplitudes_verified,
+            )?,
             index,
         ))
     }
