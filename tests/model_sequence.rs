@@ -463,24 +463,24 @@ fn sky_level_is_the_median_of_finite_pixels() {
     );
 }
 
-/// The step counts, as it writes them, the pixels whose new amplitudes are not finite
+/// The step checks, right after writing each row, that the row's amplitudes are finite
 /// and >= 0: the stage relies on `Some(0)` to skip re-scanning 200 MB of amplitudes
 /// before each checkpoint, so a corrupted state must show up in the count (and the
 /// reference must count the same).
 #[test]
-fn step_counts_invalid_amplitudes_it_writes() {
-    let mut run = Run::new(hand_model(), 1, 3);
-    let img = array![[1.0f32, 1.0, 1.0]];
-    let (s, _) = run.step(0, 0.0, img.clone(), Array2::zeros((1, 3)));
-    assert_eq!(s.invalid_amplitudes, Some(0));
-    // Corrupt one pixel's state behind the model's back (as a bug would).
+fn step_counts_rows_with_invalid_amplitudes() {
+    let mut run = Run::new(hand_model(), 3, 3);
+    let img = Array2::from_elem((3, 3), 1.0f32);
+    let (s, _) = run.step(0, 0.0, img.clone(), Array2::zeros((3, 3)));
+    assert_eq!(s.invalid_amplitude_rows, Some(0));
+    // Corrupt two rows of the state behind the model's back (as a bug would).
     run.state.amplitudes_e[(0, 1, 1)] = f64::NAN;
-    run.state.amplitudes_e[(0, 2, 0)] = -1e300;
+    run.state.amplitudes_e[(2, 2, 0)] = -1e300;
     let mut reference_state = run.state.clone();
-    let (s, _) = run.step(1, 200.0, img.clone(), Array2::zeros((1, 3)));
-    assert_eq!(s.invalid_amplitudes, Some(2));
-    let mut flags = Array2::zeros((1, 3));
-    let (mut cur, mut pf) = (Array2::zeros((1, 3)), Array2::zeros((1, 3)));
+    let (s, _) = run.step(1, 200.0, img.clone(), Array2::zeros((3, 3)));
+    assert_eq!(s.invalid_amplitude_rows, Some(2));
+    let mut flags = Array2::zeros((3, 3));
+    let (mut cur, mut pf) = (Array2::zeros((3, 3)), Array2::zeros((3, 3)));
     let r = reference::step(
         &hand_model(),
         &mut reference_state,
@@ -500,7 +500,7 @@ fn step_counts_invalid_amplitudes_it_writes() {
         },
     )
     .unwrap();
-    assert_eq!(r.invalid_amplitudes, Some(2));
+    assert_eq!(r.invalid_amplitude_rows, Some(2));
     // And the checkpoint check, told nothing, finds it.
     assert!(run.state.check().unwrap_err().contains("amplitudes_e"));
 }

@@ -77,18 +77,13 @@ pub fn step(
     let invalid = state
         .amplitudes_e
         .outer_iter()
-        .flat_map(|row| {
-            row.outer_iter()
-                .map(|px| px.iter().any(|a| !(a.is_finite() && *a >= 0.0)))
-                .collect::<Vec<_>>()
-        })
-        .filter(|bad| *bad)
+        .filter(|row| row.iter().any(|a| !(a.is_finite() && *a >= 0.0)))
         .count() as u64;
 
     // Pass 6: outputs.
     let mut summary = StepSummary {
         pixels: (ny * nx) as u64,
-        invalid_amplitudes: Some(invalid),
+        invalid_amplitude_rows: Some(invalid),
         t_meas_s: k.t_meas_s,
         previous_index: state.last_index,
         ..Default::default()

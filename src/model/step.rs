@@ -376,10 +376,11 @@ pub struct StepSummary {
     pub above_low: u64,
     pub released: u64,
     pub max_amplitude: u64,
-    /// Pixels whose new amplitudes are not all finite and `>= 0`, counted by the step as
-    /// it writes them (`Some(0)`: the state it leaves is valid, so saving it needs no
-    /// second pass over the amplitudes); `None`: this path does not count.
-    pub invalid_amplitudes: Option<u64>,
+    /// Rows of the state holding an amplitude that is not finite and `>= 0`, counted by
+    /// the step right after writing each row (`Some(0)`: the state it leaves is valid,
+    /// so saving it needs no pass over the 200 MB of amplitudes); `None`: this path
+    /// does not count.
+    pub invalid_amplitude_rows: Option<u64>,
     /// Time after the previous reset the prediction was made at (None: first exposure).
     pub t_meas_s: Option<f64>,
     pub previous_index: Option<u64>,
@@ -393,7 +394,7 @@ impl StepSummary {
             above_low: self.above_low + o.above_low,
             released: self.released + o.released,
             max_amplitude: self.max_amplitude + o.max_amplitude,
-            invalid_amplitudes: match (self.invalid_amplitudes, o.invalid_amplitudes) {
+            invalid_amplitude_rows: match (self.invalid_amplitude_rows, o.invalid_amplitude_rows) {
                 (Some(a), Some(b)) => Some(a + b),
                 (a, b) => a.or(b),
             },
@@ -486,7 +487,6 @@ impl Kernel<'_> {
             return self.row_dyn(amps, count, pending, image, flags, current, pflags);
         };
         let mut s = Counts::default();
-        let base = amps.as_ptr();
         let pixels = amps
             .chunks_exact_mut(N)
             .zip(count.iter_mut())
@@ -495,14 +495,14 @@ impl Kernel<'_> {
             .zip(flags.iter_mut())
             .zip(current.iter_mut())
             .zip(pflags.iter_mut());
-        for (i, ((((((a, c), p), &m), f), cur), pf)) in pixels.enumerate() {
-            prefetch(base.wrapping_add((i + PREFETCH_PIXELS) * N));
+        for ((((((a, c), p), &m), f), cur), pf) in pixels {
             let a: &mut [f64; N] = match a.try_into() {
                 Ok(a) => a,
                 Err(_) => continue, // unreachable: chunks_exact_mut(N)
             };
             self.pixel(a, &w, &decay, c, p, m, f, cur, pf, &mut s);
         }
+        s.invalid = !amplitudes_ok(amps);
         s.summary(image.len())
     }
 
@@ -530,6 +530,7 @@ impl Kernel<'_> {
         for ((((((a, c), p), &m), f), cur), pf) in pixels {
             self.pixel(a, &self.w[..], &self.decay[..], c, p, m, f, cur, pf, &mut s);
         }
+        s.invalid = !amplitudes_ok(amps);
         s.summary(image.len())
     }
 
@@ -580,12 +581,9 @@ impl Kernel<'_> {
         // 4 + 5. decay to this exposure's reset and add its response
         let f = *flags;
         let (ak, max_used) = self.response_of(m, f);
-        let mut valid = true;
         for (aj, dj) in a.as_mut().iter_mut().zip(decay.as_ref()) {
             *aj = *aj * dj + ak;
-            valid &= (0.0..f64::INFINITY).contains(aj);
         }
-        s.invalid += u32::from(!valid);
         *pending = if max_used { PENDING_MAX_AMPLITUDE } else { 0 };
         *current = pred as f32;
         *pflags = (high as u8 * pbits::HIGH)
@@ -601,23 +599,6 @@ impl Kernel<'_> {
     }
 }
 
-/// How far ahead of the pixel being computed the amplitudes are prefetched. The
-/// per-pixel work is long enough that the out-of-order window holds few loads of the
-/// amplitude stream; an explicit prefetch keeps more cache lines in flight.
-const PREFETCH_PIXELS: usize = 16;
-
-/// A hint to fetch the cache line holding `p` (never dereferenced; any address is fine).
-#[inline(always)]
-fn prefetch<T>(p: *const T) {
-    #[cfg(target_arch = "x86_64")]
-    // SAFETY: a prefetch is a hint; it does not access memory and cannot fault.
-    unsafe {
-        core::arch::x86_64::_mm_prefetch::<{ core::arch::x86_64::_MM_HINT_T0 }>(p.cast::<i8>());
-    }
-    #[cfg(not(target_arch = "x86_64"))]
-    let _ = p;
-}
-
 /// Per-row counters (a row has at most [`crate::h5io::MAX_AXIS`] pixels).
 #[derive(Default)]
 struct Counts {
@@ -625,7 +606,34 @@ struct Counts {
     low: u32,
     released: u32,
     max_amplitude: u32,
-    invalid: u32,
+    /// The row's new amplitudes were not all finite and `>= 0` ([`amplitudes_ok`]).
+    invalid: bool,
+}
+
+/// Whether every amplitude of a row just written is finite and `>= 0`: a second pass
+/// over the row while it is still in cache, with independent lanes so that it
+/// vectorises. NaN and infinities reach the sums, negatives the minima. A sum that
+/// overflows only reports a valid row as invalid (the checkpoint writer then scans
+/// the state itself): never a miss.
+fn amplitudes_ok(a: &[f64]) -> bool {
+    const L: usize = 8;
+    let mut sum = [0.0f64; L];
+    let mut min = [0.0f64; L];
+    let chunks = a.chunks_exact(L);
+    let tail = chunks.remainder();
+    for c in chunks {
+        for l in 0..L {
+            sum[l] += c[l];
+            min[l] = if c[l] < min[l] { c[l] } else { min[l] };
+        }
+    }
+    let mut total: f64 = sum.iter().sum();
+    let mut lowest = min.iter().fold(0.0f64, |m, &v| if v < m { v } else { m });
+    for &v in tail {
+        total += v;
+        lowest = if v < lowest { v } else { lowest };
+    }
+    total.is_finite() && lowest >= 0.0
 }
 
 impl Counts {
@@ -636,7 +644,7 @@ impl Counts {
             above_low: u64::from(self.low),
             released: u64::from(self.released),
             max_amplitude: u64::from(self.max_amplitude),
-            invalid_amplitudes: Some(u64::from(self.invalid)),
+            invalid_amplitude_rows: Some(u64::from(self.invalid)),
             t_meas_s: None,
             previous_index: None,
         }

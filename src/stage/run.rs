@@ -1060,7 +1060,7 @@ impl<'a> Processor<'a> {
                 },
             )
             .map_err(Failure::Input)?;
-        self.amplitudes_verified &= summary.invalid_amplitudes == Some(0);
+        self.amplitudes_verified &= summary.invalid_amplitude_rows == Some(0);
         book.history_incomplete_until_unix_s = until;
         exposure.flags = flags;
         if let Some(prev) = summary
