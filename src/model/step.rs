@@ -486,7 +486,6 @@ impl Kernel<'_> {
         ) else {
             return self.row_dyn(amps, count, pending, image, flags, current, pflags);
         };
-        let mut s = Counts::default();
         let pixels = amps
             .chunks_exact_mut(N)
             .zip(count.iter_mut())
@@ -500,10 +499,9 @@ impl Kernel<'_> {
                 Ok(a) => a,
                 Err(_) => continue, // unreachable: chunks_exact_mut(N)
             };
-            self.pixel(a, &w, &decay, c, p, m, f, cur, pf, &mut s);
+            self.pixel(a, &w, &decay, c, p, m, f, cur, pf);
         }
-        s.invalid = !amplitudes_ok(amps);
-        s.summary(image.len())
+        Counts::of_row(pflags, amps).summary(image.len())
     }
 
     /// Any number of terms.
@@ -518,7 +516,6 @@ impl Kernel<'_> {
         current: &mut [f32],
         pflags: &mut [u8],
     ) -> StepSummary {
-        let mut s = Counts::default();
         let pixels = amps
             .chunks_exact_mut(self.n.max(1))
             .zip(count.iter_mut())
@@ -528,10 +525,9 @@ impl Kernel<'_> {
             .zip(current.iter_mut())
             .zip(pflags.iter_mut());
         for ((((((a, c), p), &m), f), cur), pf) in pixels {
-            self.pixel(a, &self.w[..], &self.decay[..], c, p, m, f, cur, pf, &mut s);
+            self.pixel(a, &self.w[..], &self.decay[..], c, p, m, f, cur, pf);
         }
-        s.invalid = !amplitudes_ok(amps);
-        s.summary(image.len())
+        Counts::of_row(pflags, amps).summary(image.len())
     }
 
     /// One pixel: predict, flag, early release, decay, respond (module docs). Always
@@ -549,7 +545,6 @@ impl Kernel<'_> {
         flags: &mut u32,
         current: &mut f32,
         pflags: &mut u8,
-        s: &mut Counts,
     ) {
         // 1. predict (in term order: the sum is not reassociated)
         let mut pred = 0.0f64;
@@ -592,14 +587,12 @@ impl Kernel<'_> {
             | (released as u8 * pbits::RELEASED)
             | self.history;
         *flags = (f & !self.bits.persist) | if high { self.bits.persist } else { 0 };
-        s.high += high as u32;
-        s.low += low as u32;
-        s.released += released as u32;
-        s.max_amplitude += max_prev as u32;
     }
 }
 
-/// Per-row counters (a row has at most [`crate::h5io::MAX_AXIS`] pixels).
+/// Per-row counters (a row has at most [`crate::h5io::MAX_AXIS`] pixels), taken after
+/// the row is written from its persistence flags and amplitudes (still in cache), in
+/// loops that vectorise, rather than in the per-pixel code.
 #[derive(Default)]
 struct Counts {
     high: u32,
@@ -637,6 +630,17 @@ fn amplitudes_ok(a: &[f64]) -> bool {
 }
 
 impl Counts {
+    fn of_row(pflags: &[u8], amps: &[f64]) -> Counts {
+        let bit = |b: u8| pflags.iter().map(|&f| u32::from(f & b != 0)).sum::<u32>();
+        Counts {
+            high: bit(pbits::HIGH),
+            low: bit(pbits::LOW),
+            released: bit(pbits::RELEASED),
+            max_amplitude: bit(pbits::MAX_AMPLITUDE),
+            invalid: !amplitudes_ok(amps),
+        }
+    }
+
     fn summary(&self, pixels: usize) -> StepSummary {
         StepSummary {
             pixels: pixels as u64,
