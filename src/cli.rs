@@ -71,8 +71,8 @@ pub enum Command {
     /// Predicted against measured persistence, residuals by covariate, flag quality;
     /// writes OUT/report.html and OUT/summary.json.
     Compare(CompareArgs),
-    /// Score test of every library effect against a fitted model (see README: the
-    /// threshold is not yet calibrated by a parametric bootstrap).
+    /// Score test of every library effect against a fitted model, threshold by
+    /// parametric bootstrap, refit (delta BIC) and held-out check of the leaders.
     Diagnose(DiagnoseArgs),
     /// The main job on a built-in default: simulate two days of SPHEREx-like sky (one
     /// detector, 128 x 128), run the stage, print and plot what it flags.
@@ -369,10 +369,17 @@ pub struct DiagnoseArgs {
     #[arg(long)]
     pub json: Option<PathBuf>,
     /// Parametric bootstrap replicas for the false-alarm threshold.
-    #[arg(long, default_value_t = 19)]
+    #[arg(long, default_value_t = persist::diag::diagnose::DEFAULT_BOOTSTRAP)]
     pub bootstrap: usize,
+    /// Seed of the pixel subsample and of the bootstrap.
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
+    /// Pixels in the random subsample.
+    #[arg(long, default_value_t = persist::diag::diagnose::DEFAULT_PIXELS)]
+    pub pixels: usize,
+    /// Residuals of the score test: `within` (illumination contrasts) or `pooled`.
+    #[arg(long, default_value = "within")]
+    pub statistic: String,
 }
 
 #[derive(Subcommand, Debug)]
@@ -727,8 +734,13 @@ fn compare(a: &CompareArgs) -> persist::Result<ExitCode> {
 
 /// `persist diagnose`.
 fn diagnose(a: &DiagnoseArgs) -> persist::Result<ExitCode> {
-    let s =
-        persist::diag::diagnose::run(&a.input, &a.model, a.json.as_deref(), a.bootstrap, a.seed)?;
+    let cfg = persist::diag::diagnose::Config {
+        pixels: a.pixels,
+        bootstrap: a.bootstrap,
+        seed: a.seed,
+        statistic: a.statistic.parse()?,
+    };
+    let s = persist::diag::diagnose::run(&a.input, &a.model, a.json.as_deref(), &cfg)?;
     println!("{s}");
     Ok(ExitCode::SUCCESS)
 }

@@ -53,6 +53,9 @@ pub struct Samples {
     pub neighbour_excess_e: Vec<f64>,
     /// Per exposure row.
     pub t_since_s: Vec<f64>,
+    /// Per exposure row: the illumination event it follows (index into the
+    /// sequence's exposures), the key of `diagnose`'s held-out split.
+    pub event: Vec<usize>,
     pub illumination_time_s: Vec<f64>,
     pub temperature_k: Vec<f64>,
     pub earlier_illuminations: Vec<f64>,
@@ -77,6 +80,65 @@ impl Samples {
             .step_by(stride)
             .flat_map(|y| (0..seq.nx).step_by(stride).map(move |x| (y, x)))
             .collect();
+        Samples::with_pixels(seq, pixels, stride)
+    }
+
+    /// Samples at `n` pixels drawn at random (ChaCha8, `seed`) without replacement from
+    /// the pixels above [`BACKGROUND_FLUENCE_E`] in at least one illumination (all of
+    /// them when fewer), in raster order. `stride` is reported as 0.
+    pub fn random(seq: &Sequence, n: usize, seed: u64) -> Samples {
+        use rand::seq::SliceRandom;
+        use rand::SeedableRng;
+        let mut lit = vec![false; seq.ny * seq.nx];
+        for &a in &seq.illuminations {
+            for ((y, x), v) in fluence(&seq.exposures[a]).indexed_iter() {
+                if v.is_finite() && *v > BACKGROUND_FLUENCE_E {
+                    lit[y * seq.nx + x] = true;
+                }
+            }
+        }
+        let mut cand: Vec<usize> = (0..lit.len()).filter(|&i| lit[i]).collect();
+        if cand.len() > n {
+            let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
+            cand.shuffle(&mut rng);
+            cand.truncate(n);
+            cand.sort_unstable();
+        }
+        let pixels = cand.iter().map(|&i| (i / seq.nx, i % seq.nx)).collect();
+        Samples::with_pixels(seq, pixels, 0)
+    }
+
+    /// The rows (exposures) for which `keep(event)` is true.
+    pub fn rows_where(&self, keep: impl Fn(usize) -> bool) -> Samples {
+        let np = self.npix();
+        let rows: Vec<usize> = (0..self.exposures.len())
+            .filter(|&r| keep(self.event[r]))
+            .collect();
+        let per_row = |v: &Vec<f64>| rows.iter().map(|&r| v[r]).collect::<Vec<f64>>();
+        let per_sample = |v: &Vec<f64>| {
+            rows.iter()
+                .flat_map(|&r| v[r * np..(r + 1) * np].iter().copied())
+                .collect::<Vec<f64>>()
+        };
+        Samples {
+            stride: self.stride,
+            pixels: self.pixels.clone(),
+            exposures: rows.iter().map(|&r| self.exposures[r]).collect(),
+            measured: per_sample(&self.measured),
+            noise: per_row(&self.noise),
+            fluence_e: per_sample(&self.fluence_e),
+            neighbour_excess_e: per_sample(&self.neighbour_excess_e),
+            t_since_s: per_row(&self.t_since_s),
+            event: rows.iter().map(|&r| self.event[r]).collect(),
+            illumination_time_s: per_row(&self.illumination_time_s),
+            temperature_k: per_row(&self.temperature_k),
+            earlier_illuminations: per_row(&self.earlier_illuminations),
+            radius: self.radius.clone(),
+        }
+    }
+
+    /// Samples at the given pixels (every row).
+    pub fn with_pixels(seq: &Sequence, pixels: Vec<(usize, usize)>, stride: usize) -> Samples {
         let mut s = Samples {
             stride,
             pixels: pixels.clone(),
@@ -86,6 +148,7 @@ impl Samples {
             fluence_e: Vec::new(),
             neighbour_excess_e: Vec::new(),
             t_since_s: Vec::new(),
+            event: Vec::new(),
             illumination_time_s: Vec::new(),
             temperature_k: Vec::new(),
             earlier_illuminations: Vec::new(),
@@ -116,6 +179,7 @@ impl Samples {
             s.exposures.push(k);
             s.noise.push(seq.noise_e_per_s[k]);
             s.t_since_s.push(seq.t_mid_after_s(a, k));
+            s.event.push(a);
             s.illumination_time_s
                 .push(seq.exposures[a].meta.t_illuminated_s());
             s.temperature_k
@@ -219,6 +283,11 @@ pub struct GroupStat {
 }
 
 pub fn group_stat(meas: &[f64], pred: &[f64], noise: f64) -> Option<GroupStat> {
+    group_stat_p95(meas, quantile(pred, 0.95), noise)
+}
+
+/// [`group_stat`] with the predicted 95th percentile `pp` already computed.
+pub fn group_stat_p95(meas: &[f64], pp: f64, noise: f64) -> Option<GroupStat> {
     if meas.len() < 10 {
         return None;
     }
@@ -226,7 +295,6 @@ pub fn group_stat(meas: &[f64], pred: &[f64], noise: f64) -> Option<GroupStat> {
     let dev: Vec<f64> = meas.iter().map(|v| (v - med).abs()).collect();
     let s = (1.4826 * median(&dev)).max(noise);
     let mp = signal_p95(meas, med, noise);
-    let pp = quantile(pred, 0.95);
     let sigma = 2.12 * s / (meas.len() as f64).sqrt();
     Some(GroupStat {
         n: meas.len(),
@@ -260,6 +328,7 @@ pub fn bin_of(s: &Samples, covariate: &str, i: usize) -> Option<i64> {
             t.is_finite().then(|| (t * 2.0).round() as i64)
         }
         "earlier_illuminations" => Some(s.earlier_illuminations[row] as i64),
+        "event" => Some(s.event[row] as i64),
         "position" => Some((s.radius[px] * 5.0).floor() as i64),
         _ => None,
     }

@@ -1,0 +1,383 @@
+//! The proof matrix of issue 4 for `persist diagnose`: hidden effects in simulated
+//! laboratory campaigns (`persist simulate lab --campaign`), each diagnosed, refitted
+//! and compared. Writes a Markdown table (and JSON lines beside it).
+//!
+//! ```sh
+//! cargo run --release --example diagnose_matrix -- --size 128 --out docs/diagnose_matrix.md
+//! ```
+//! Options: `--size N` (default 128), `--baseline-seeds K` (10), `--seeds K` (3),
+//! `--effects a,b,...` (default: every simulator effect), `--pair a,b` (two hidden
+//! effects, default `soak,temperature`), `--pixels N`, `--bootstrap B`,
+//! `--statistic within|pooled`, `--skip-baseline`, `--skip-single`, `--skip-pair`.
+//!
+//! Per scenario, as the CLI would do it: `fit` (paper calibration) -> `diagnose` ->
+//! `fit --with` the hidden effect (stride-2 sample as `persist fit`) -> residual RMS and
+//! flag quality at 0.1 e-/s before and after. Missed-flag fraction: `compare`'s
+//! (missed samples / all samples) and relative to the samples the effect touches: those
+//! where the true persistence current of the run with the effect differs from the run
+//! without it (same seed) by more than 10 % or 0.01 e-/s, whichever is larger.
+
+use persist::calib::{self, effects as ceffects, CalibConfig};
+use persist::diag::data::Sequence;
+use persist::diag::diagnose::{self, Config, Statistic};
+use persist::diag::eval::{self, Samples};
+use persist::model::ModelParams;
+use persist::sim::effect::EffectSpec;
+use persist::sim::lab::{self, Illumination, LabConfig};
+use std::fmt::Write as _;
+use std::path::Path;
+use std::time::Instant;
+
+struct Sim {
+    seq: Sequence,
+    truth: Vec<ndarray::Array2<f32>>,
+}
+
+fn simulate(size: usize, seed: u64, effects: &[&str]) -> Sim {
+    let cfg = LabConfig {
+        size,
+        seed,
+        campaign: Some(Illumination::default_campaign()),
+        effects: effects
+            .iter()
+            .map(|e| e.parse::<EffectSpec>().expect("effect name"))
+            .collect(),
+        ..LabConfig::default()
+    };
+    let mut ex = Vec::new();
+    let mut truth = Vec::new();
+    lab::run(&cfg, |s| {
+        ex.push(s.exposure);
+        truth.push(s.true_persistence);
+        Ok(())
+    })
+    .expect("simulation");
+    Sim {
+        seq: Sequence::from_exposures(ex).expect("sequence"),
+        truth,
+    }
+}
+
+struct Quality {
+    rms: f64,
+    missed: f64,
+    missed_touched: Option<f64>,
+}
+
+fn quality(p: &ModelParams, seq: &Sequence, s: &Samples, touched: Option<&[bool]>) -> Quality {
+    let pr = eval::predict(p, seq, s, false).expect("predict");
+    let fl = eval::predict(p, seq, s, true).expect("predict");
+    let q = eval::flag_quality(s, &fl.current, Some(&fl.flagged), 0.1);
+    let missed_touched = touched.map(|t| {
+        let (mut n, mut miss) = (0usize, 0usize);
+        for i in 0..s.len() {
+            if !t[i] || !s.measured[i].is_finite() {
+                continue;
+            }
+            n += 1;
+            let sig = s.noise[i / s.npix()];
+            if s.measured[i] > 0.1 + 2.0 * sig && !fl.flagged[i] {
+                miss += 1;
+            }
+        }
+        if n == 0 {
+            0.0
+        } else {
+            miss as f64 / n as f64
+        }
+    });
+    Quality {
+        rms: eval::rms(&eval::cell_z(s, &pr.current)),
+        missed: q.missed_flag_fraction,
+        missed_touched,
+    }
+}
+
+fn touched(s: &Samples, with: &Sim, without: &Sim) -> Vec<bool> {
+    let mut t = Vec::with_capacity(s.len());
+    for &k in &s.exposures {
+        for &p in &s.pixels {
+            let a = f64::from(with.truth[k][p]);
+            let b = f64::from(without.truth[k][p]);
+            t.push((a - b).abs() > (0.1 * b.abs()).max(0.01));
+        }
+    }
+    t
+}
+
+fn arg(args: &[String], name: &str) -> Option<String> {
+    args.iter()
+        .position(|a| a == name)
+        .and_then(|i| args.get(i + 1).cloned())
+}
+
+fn main() {
+    let args: Vec<String> = std::env::args().collect();
+    let size: usize = arg(&args, "--size").map_or(128, |v| v.parse().unwrap());
+    let nbase: u64 = arg(&args, "--baseline-seeds").map_or(10, |v| v.parse().unwrap());
+    let nseed: u64 = arg(&args, "--seeds").map_or(3, |v| v.parse().unwrap());
+    let out = arg(&args, "--out").unwrap_or_else(|| "docs/diagnose_matrix.md".into());
+    let effects_arg = arg(&args, "--effects");
+    let all: Vec<&str> = persist::sim::effects::NAMES.to_vec();
+    let effects: Vec<String> = effects_arg
+        .map_or(all.iter().map(|s| s.to_string()).collect(), |v| {
+            v.split(',').map(String::from).collect()
+        });
+    let pair: Vec<String> = arg(&args, "--pair")
+        .unwrap_or_else(|| "soak,temperature".into())
+        .split(',')
+        .map(String::from)
+        .collect();
+    let mut cfg = Config::default();
+    if let Some(v) = arg(&args, "--pixels") {
+        cfg.pixels = v.parse().unwrap();
+    }
+    if let Some(v) = arg(&args, "--bootstrap") {
+        cfg.bootstrap = v.parse().unwrap();
+    }
+    if let Some(v) = arg(&args, "--statistic") {
+        cfg.statistic = v.parse::<Statistic>().unwrap();
+    }
+    let skip = |f: &str| args.iter().any(|a| a == f);
+    let dummy = Path::new("lab");
+    let model = Path::new("m0.json");
+    let mut md = String::new();
+    let mut jl = String::new();
+    let cmdline = args[1..].join(" ");
+    writeln!(
+        md,
+        "Command: `cargo run --release --example diagnose_matrix -- {cmdline}`\n\n\
+         Laboratory campaign (`persist simulate lab --campaign`), {size} x {size} pixels; diagnose: \
+         statistic {:?}, {} random pixels, {} bootstrap replicas; refit and flag quality on the \
+         stride-2 sample of `persist fit`/`compare`.\n",
+        cfg.statistic, cfg.pixels, cfg.bootstrap
+    )
+    .unwrap();
+    let mut baselines: Vec<Option<Sim>> = Vec::new();
+    let t_all = Instant::now();
+    // --- baseline
+    if !skip("--skip-baseline") {
+        writeln!(md, "## No hidden effect\n\n| seed | residual RMS | threshold | top score (effect) | significant | seconds |\n|---|---|---|---|---|---|").unwrap();
+        let mut clean = 0;
+        for seed in 1..=nbase {
+            let sim = simulate(size, seed, &[]);
+            let t0 = Instant::now();
+            let (m0, _) = calib::calibrate(&sim.seq, &CalibConfig::default()).expect("calibrate");
+            let d = diagnose::diagnose(
+                &m0,
+                &sim.seq,
+                &Config {
+                    seed,
+                    ..cfg.clone()
+                },
+                dummy,
+                model,
+            )
+            .expect("diagnose");
+            let secs = t0.elapsed().as_secs_f64();
+            let sig: Vec<&str> = d
+                .ranking
+                .iter()
+                .filter(|c| c.significant)
+                .map(|c| c.effect.as_str())
+                .collect();
+            clean += sig.is_empty() as usize;
+            let top = d
+                .ranking
+                .iter()
+                .max_by(|a, b| a.score.total_cmp(&b.score))
+                .unwrap();
+            writeln!(
+                md,
+                "| {seed} | {:.2} | {:.2} | {:.2} ({}) | {} | {secs:.1} |",
+                d.residual_rms_normalised,
+                d.threshold,
+                top.score,
+                top.effect,
+                if sig.is_empty() {
+                    "none".into()
+                } else {
+                    sig.join(", ")
+                }
+            )
+            .unwrap();
+            writeln!(jl, "{}", serde_json::json!({"case": "baseline", "seed": seed, "diagnosis": d, "seconds": secs})).unwrap();
+            eprintln!("baseline seed {seed}: {:?} ({secs:.1} s)", sig);
+            baselines.push(if seed <= nseed { Some(sim) } else { None });
+        }
+        writeln!(
+            md,
+            "\nNothing significant in **{clean} of {nbase}** seeds (criterion: at least 9 of 10).\n"
+        )
+        .unwrap();
+    }
+    // --- single effects
+    if !skip("--skip-single") {
+        writeln!(md, "## One hidden effect\n\n\
+            | effect | seed | rank by score | declared first | significant | RMS before -> after `fit --with` | halved | missed@0.1 before -> after (all samples) | missed@0.1 of touched before -> after | held-out gain | dBIC |\n\
+            |---|---|---|---|---|---|---|---|---|---|---|").unwrap();
+        let mut passed = Vec::new();
+        for e in &effects {
+            let mut ok_all = true;
+            for seed in 1..=nseed {
+                let sim = simulate(size, seed, &[e.as_str()]);
+                let base_sim = match baselines.get(seed as usize - 1) {
+                    Some(Some(_)) => None,
+                    _ => Some(simulate(size, seed, &[])),
+                };
+                let b = base_sim
+                    .as_ref()
+                    .unwrap_or_else(|| baselines[seed as usize - 1].as_ref().unwrap());
+                let (m0, _) =
+                    calib::calibrate(&sim.seq, &CalibConfig::default()).expect("calibrate");
+                let d = diagnose::diagnose(
+                    &m0,
+                    &sim.seq,
+                    &Config {
+                        seed,
+                        ..cfg.clone()
+                    },
+                    dummy,
+                    model,
+                )
+                .expect("diagnose");
+                let rank = d.ranking.iter().find(|c| &c.effect == e);
+                let first = d
+                    .ranking
+                    .first()
+                    .filter(|c| c.significant)
+                    .map(|c| c.effect.clone());
+                let s2 = Samples::new(&sim.seq, 2);
+                let t = touched(&s2, &sim, b);
+                let q0 = quality(&m0, &sim.seq, &s2, Some(&t));
+                let in_model = persist::model::effects::lookup(e).is_some();
+                let q1 = in_model.then(|| {
+                    let (m1, _) =
+                        ceffects::fit(&m0, std::slice::from_ref(e), &sim.seq, &s2).expect("fit");
+                    quality(&m1, &sim.seq, &s2, Some(&t))
+                });
+                let found = first.as_deref() == Some(e.as_str());
+                let halved = q1.as_ref().is_some_and(|q| q.rms <= 0.5 * q0.rms);
+                let flags_ok = q1
+                    .as_ref()
+                    .is_some_and(|q| q.missed_touched.unwrap_or(1.0) < 0.01);
+                ok_all &= found && halved && flags_ok;
+                let f3 = |v: f64| format!("{:.4}", v);
+                writeln!(
+                    md,
+                    "| {e} | {seed} | {} | {} | {} | {} | {} | {} | {} | {} | {} |",
+                    rank.map_or("not in library".into(), |c| format!(
+                        "{} ({:.1} vs {:.1})",
+                        c.score_rank, c.score, c.threshold
+                    )),
+                    first.clone().unwrap_or_else(|| "nothing".into()),
+                    rank.is_some_and(|c| c.significant),
+                    q1.as_ref()
+                        .map_or(format!("{:.2} -> (no model effect)", q0.rms), |q| format!(
+                            "{:.2} -> {:.2}",
+                            q0.rms, q.rms
+                        )),
+                    halved,
+                    q1.as_ref().map_or(f3(q0.missed), |q| format!(
+                        "{} -> {}",
+                        f3(q0.missed),
+                        f3(q.missed)
+                    )),
+                    q1.as_ref()
+                        .map_or(f3(q0.missed_touched.unwrap()), |q| format!(
+                            "{} -> {}",
+                            f3(q0.missed_touched.unwrap()),
+                            f3(q.missed_touched.unwrap())
+                        )),
+                    rank.and_then(|c| c.held_out.as_ref())
+                        .map_or("-".into(), |h| format!("{:.2}", h.gain)),
+                    rank.and_then(|c| c.delta_bic)
+                        .map_or("-".into(), |v| format!("{v:.1}")),
+                )
+                .unwrap();
+                writeln!(jl, "{}", serde_json::json!({"case": "single", "effect": e, "seed": seed, "diagnosis": d,
+                    "rms_before": q0.rms, "rms_after": q1.as_ref().map(|q| q.rms),
+                    "missed_before": q0.missed, "missed_after": q1.as_ref().map(|q| q.missed),
+                    "missed_touched_before": q0.missed_touched, "missed_touched_after": q1.as_ref().and_then(|q| q.missed_touched)})).unwrap();
+                eprintln!(
+                    "{e} seed {seed}: first {first:?}, rms {:.2} -> {:?}",
+                    q0.rms,
+                    q1.as_ref().map(|q| q.rms)
+                );
+            }
+            passed.push((e.clone(), ok_all));
+        }
+        writeln!(md, "\nAll three criteria (declared first and significant, RMS halved, missed of touched < 1 %) at every seed:\n").unwrap();
+        for (e, ok) in &passed {
+            writeln!(md, "- {e}: **{}**", if *ok { "yes" } else { "no" }).unwrap();
+        }
+        writeln!(md).unwrap();
+    }
+    // --- two effects
+    if !skip("--skip-pair") {
+        writeln!(md, "## Two hidden effects: {}\n\n| seed | round 1 declared | round 2 declared | RMS m0 -> m1 -> m2 | error falls each round | both found |\n|---|---|---|---|---|---|", pair.join(" + ")).unwrap();
+        for seed in 1..=nseed {
+            let names: Vec<&str> = pair.iter().map(String::as_str).collect();
+            let sim = simulate(size, seed, &names);
+            let s2 = Samples::new(&sim.seq, 2);
+            let (m0, _) = calib::calibrate(&sim.seq, &CalibConfig::default()).expect("calibrate");
+            let c = Config {
+                seed,
+                ..cfg.clone()
+            };
+            let d1 = diagnose::diagnose(&m0, &sim.seq, &c, dummy, model).expect("diagnose");
+            let w1 = d1
+                .ranking
+                .first()
+                .filter(|c| c.significant)
+                .map(|c| c.effect.clone());
+            let r0 = quality(&m0, &sim.seq, &s2, None).rms;
+            let (mut r1, mut r2, mut w2) = (f64::NAN, f64::NAN, None);
+            if let Some(w) = &w1 {
+                let (m1, _) =
+                    ceffects::fit(&m0, std::slice::from_ref(w), &sim.seq, &s2).expect("fit");
+                r1 = quality(&m1, &sim.seq, &s2, None).rms;
+                let d2 = diagnose::diagnose(&m1, &sim.seq, &c, dummy, model).expect("diagnose");
+                w2 = d2
+                    .ranking
+                    .first()
+                    .filter(|c| c.significant)
+                    .map(|c| c.effect.clone());
+                if let Some(v) = &w2 {
+                    let (m2, _) =
+                        ceffects::fit(&m0, &[w.clone(), v.clone()], &sim.seq, &s2).expect("fit");
+                    r2 = quality(&m2, &sim.seq, &s2, None).rms;
+                }
+                writeln!(
+                    jl,
+                    "{}",
+                    serde_json::json!({"case": "pair", "seed": seed, "round2": d2})
+                )
+                .unwrap();
+            }
+            writeln!(
+                jl,
+                "{}",
+                serde_json::json!({"case": "pair", "seed": seed, "round1": d1, "rms": [r0, r1, r2]})
+            )
+            .unwrap();
+            let both = match (&w1, &w2) {
+                (Some(a), Some(b)) => pair.contains(a) && pair.contains(b) && a != b,
+                _ => false,
+            };
+            writeln!(
+                md,
+                "| {seed} | {} | {} | {r0:.2} -> {r1:.2} -> {r2:.2} | {} | {both} |",
+                w1.clone().unwrap_or_else(|| "nothing".into()),
+                w2.clone().unwrap_or_else(|| "nothing".into()),
+                r1 < r0 && r2 < r1,
+            )
+            .unwrap();
+            eprintln!("pair seed {seed}: {w1:?} {w2:?} {r0:.2} {r1:.2} {r2:.2}");
+        }
+    }
+    writeln!(md, "\nTotal time {:.0} s.", t_all.elapsed().as_secs_f64()).unwrap();
+    std::fs::write(&out, md).expect("write table");
+    std::fs::write(Path::new(&out).with_extension("jsonl"), jl).expect("write json lines");
+    eprintln!("wrote {out}");
+}

@@ -1,0 +1,116 @@
+//! A fast subset of the `diagnose` proof matrix (docs/diagnose_matrix.md; the full
+//! matrix: `cargo run --release --example diagnose_matrix`). 64 x 64 laboratory
+//! campaigns, in memory.
+
+use persist::calib::{self, CalibConfig};
+use persist::diag::data::Sequence;
+use persist::diag::diagnose::{self, Config};
+use persist::sim::effect::EffectSpec;
+use persist::sim::lab::{self, Illumination, LabConfig};
+use std::path::Path;
+
+const SIZE: usize = 64;
+
+fn campaign(seed: u64, effects: &[&str]) -> Sequence {
+    let cfg = LabConfig {
+        size: SIZE,
+        seed,
+        campaign: Some(Illumination::default_campaign()),
+        effects: effects
+            .iter()
+            .map(|e| e.parse::<EffectSpec>().unwrap())
+            .collect(),
+        ..LabConfig::default()
+    };
+    let mut ex = Vec::new();
+    lab::run(&cfg, |s| {
+        ex.push(s.exposure);
+        Ok(())
+    })
+    .unwrap();
+    Sequence::from_exposures(ex).unwrap()
+}
+
+fn diagnose(seq: &Sequence, seed: u64) -> diagnose::Diagnosis {
+    let (m0, _) = calib::calibrate(seq, &CalibConfig::default()).unwrap();
+    let cfg = Config {
+        seed,
+        bootstrap: 49,
+        ..Config::default()
+    };
+    diagnose::diagnose(&m0, seq, &cfg, Path::new("lab"), Path::new("m0.json")).unwrap()
+}
+
+/// Data simulated from the fitted model itself (its prediction plus each exposure's
+/// noise, on the simulator's illuminations): nothing is missing, so nothing may be
+/// declared, and the score of every effect stays at the bootstrap's noise level. Same
+/// seed, same diagnosis (byte-identical JSON).
+#[test]
+fn data_from_the_fitted_model_declare_nothing() {
+    use persist::diag::eval::{self, Samples};
+    use rand::{Rng, SeedableRng};
+    let seq = campaign(3, &[]);
+    let (m0, _) = calib::calibrate(&seq, &CalibConfig::default()).unwrap();
+    let px: Vec<(usize, usize)> = (0..SIZE)
+        .flat_map(|y| (0..SIZE).map(move |x| (y, x)))
+        .collect();
+    let all = Samples::with_pixels(&seq, px.clone(), 1);
+    let pr = eval::predict(&m0, &seq, &all, false).unwrap();
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(7);
+    let mut ex = seq.exposures.clone();
+    for (row, &k) in all.exposures.iter().enumerate() {
+        let (b, sd) = (seq.background_e_per_s[k], seq.noise_e_per_s[k]);
+        for (j, &p) in px.iter().enumerate() {
+            let v = pr.current[row * px.len() + j];
+            if v.is_finite() {
+                let n: f64 = rng.sample(rand_distr::StandardNormal);
+                ex[k].image[p] = (b + v + sd * n) as f32;
+            }
+        }
+    }
+    let model_world = Sequence::from_exposures(ex).unwrap();
+    let cfg = Config {
+        seed: 3,
+        bootstrap: 39,
+        pixels: 1024,
+        ..Config::default()
+    };
+    let run = || {
+        diagnose::diagnose(
+            &m0,
+            &model_world,
+            &cfg,
+            Path::new("lab"),
+            Path::new("m0.json"),
+        )
+        .unwrap()
+    };
+    let d = run();
+    let text = diagnose::render(&d);
+    assert!(d.ranking.iter().all(|c| !c.significant), "{text}");
+    assert!(d.verdict.starts_with("no library effect"), "{text}");
+    assert!(d.threshold > 1.0 && d.threshold < 20.0, "{text}");
+    assert!(d.residual_rms_normalised < 3.0, "{text}");
+    assert_eq!(
+        serde_json::to_string(&d).unwrap(),
+        serde_json::to_string(&run()).unwrap()
+    );
+}
+
+/// The criterion on simulator (trap-level truth) data: nothing declared on a
+/// baseline campaign. FAILS today: capacity and soak are declared at every seed
+/// measured (docs/diagnose_matrix.md), because the paper's linear superposition of
+/// illuminations over-predicts repeated illuminations of the trap-level truth.
+#[test]
+#[ignore]
+fn baseline_campaign_declares_nothing() {
+    for seed in [1, 2] {
+        let seq = campaign(seed, &[]);
+        let d = diagnose(&seq, seed);
+        assert!(
+            d.ranking.iter().all(|c| !c.significant),
+            "seed {seed}:\n{}",
+            diagnose::render(&d)
+        );
+    }
+}
