@@ -70,8 +70,8 @@ fn quality(p: &ModelParams, seq: &Sequence, s: &Samples, touched: Option<&[bool]
     let q = eval::flag_quality(s, &fl.current, Some(&fl.flagged), 0.1);
     let missed_touched = touched.map(|t| {
         let (mut n, mut miss) = (0usize, 0usize);
-        for i in 0..s.len() {
-            if !t[i] || !s.measured[i].is_finite() {
+        for (i, &touched) in t.iter().enumerate().take(s.len()) {
+            if !touched || !s.measured[i].is_finite() {
                 continue;
             }
             n += 1;

@@ -201,8 +201,8 @@ fn make_cells(s: &Samples, pred: &[f64], st: Statistic) -> Cells {
         Statistic::Within => &["fluence", "time", "event"],
     };
     let mut g: BTreeMap<Vec<i64>, Vec<usize>> = BTreeMap::new();
-    'samples: for i in 0..s.len() {
-        if !s.measured[i].is_finite() || !pred[i].is_finite() {
+    'samples: for (i, p) in pred.iter().enumerate().take(s.len()) {
+        if !s.measured[i].is_finite() || !p.is_finite() {
             continue;
         }
         let mut key = Vec::with_capacity(keys.len());
