@@ -74,16 +74,10 @@ pub fn step(
     for ((y, x, j), a) in state.amplitudes_e.indexed_iter_mut() {
         *a = *a * k.decay[j] + ak[(y, x)];
     }
-    let invalid = state
-        .amplitudes_e
-        .outer_iter()
-        .filter(|row| row.iter().any(|a| !(a.is_finite() && *a >= 0.0)))
-        .count() as u64;
 
     // Pass 6: outputs.
     let mut summary = StepSummary {
         pixels: (ny * nx) as u64,
-        invalid_amplitude_rows: Some(invalid),
         t_meas_s: k.t_meas_s,
         previous_index: state.last_index,
         ..Default::default()

@@ -376,11 +376,6 @@ pub struct StepSummary {
     pub above_low: u64,
     pub released: u64,
     pub max_amplitude: u64,
-    /// Rows of the state holding an amplitude that is not finite and `>= 0`, counted by
-    /// the step right after writing each row (`Some(0)`: the state it leaves is valid,
-    /// so saving it needs no pass over the 200 MB of amplitudes); `None`: this path
-    /// does not count.
-    pub invalid_amplitude_rows: Option<u64>,
     /// Time after the previous reset the prediction was made at (None: first exposure).
     pub t_meas_s: Option<f64>,
     pub previous_index: Option<u64>,
@@ -394,10 +389,6 @@ impl StepSummary {
             above_low: self.above_low + o.above_low,
             released: self.released + o.released,
             max_amplitude: self.max_amplitude + o.max_amplitude,
-            invalid_amplitude_rows: match (self.invalid_amplitude_rows, o.invalid_amplitude_rows) {
-                (Some(a), Some(b)) => Some(a + b),
-                (a, b) => a.or(b),
-            },
             t_meas_s: self.t_meas_s.or(o.t_meas_s),
             previous_index: self.previous_index.or(o.previous_index),
         }
@@ -501,7 +492,7 @@ impl Kernel<'_> {
             };
             self.pixel(a, &w, &decay, c, p, m, f, cur, pf);
         }
-        Counts::of_row(pflags, amps).summary(image.len())
+        Counts::of_row(pflags).summary(image.len())
     }
 
     /// Any number of terms.
@@ -527,7 +518,7 @@ impl Kernel<'_> {
         for ((((((a, c), p), &m), f), cur), pf) in pixels {
             self.pixel(a, &self.w[..], &self.decay[..], c, p, m, f, cur, pf);
         }
-        Counts::of_row(pflags, amps).summary(image.len())
+        Counts::of_row(pflags).summary(image.len())
     }
 
     /// One pixel: predict, flag, early release, decay, respond (module docs). Always
@@ -591,53 +582,24 @@ impl Kernel<'_> {
 }
 
 /// Per-row counters (a row has at most [`crate::h5io::MAX_AXIS`] pixels), taken after
-/// the row is written from its persistence flags and amplitudes (still in cache), in
-/// loops that vectorise, rather than in the per-pixel code.
+/// the row is written from its persistence flags (still in cache), in loops that
+/// vectorise, rather than in the per-pixel code.
 #[derive(Default)]
 struct Counts {
     high: u32,
     low: u32,
     released: u32,
     max_amplitude: u32,
-    /// The row's new amplitudes were not all finite and `>= 0` ([`amplitudes_ok`]).
-    invalid: bool,
-}
-
-/// Whether every amplitude of a row just written is finite and `>= 0`: a second pass
-/// over the row while it is still in cache, with independent lanes so that it
-/// vectorises. NaN and infinities reach the sums, negatives the minima. A sum that
-/// overflows only reports a valid row as invalid (the checkpoint writer then scans
-/// the state itself): never a miss.
-fn amplitudes_ok(a: &[f64]) -> bool {
-    const L: usize = 8;
-    let mut sum = [0.0f64; L];
-    let mut min = [0.0f64; L];
-    let chunks = a.chunks_exact(L);
-    let tail = chunks.remainder();
-    for c in chunks {
-        for l in 0..L {
-            sum[l] += c[l];
-            min[l] = if c[l] < min[l] { c[l] } else { min[l] };
-        }
-    }
-    let mut total: f64 = sum.iter().sum();
-    let mut lowest = min.iter().fold(0.0f64, |m, &v| if v < m { v } else { m });
-    for &v in tail {
-        total += v;
-        lowest = if v < lowest { v } else { lowest };
-    }
-    total.is_finite() && lowest >= 0.0
 }
 
 impl Counts {
-    fn of_row(pflags: &[u8], amps: &[f64]) -> Counts {
+    fn of_row(pflags: &[u8]) -> Counts {
         let bit = |b: u8| pflags.iter().map(|&f| u32::from(f & b != 0)).sum::<u32>();
         Counts {
             high: bit(pbits::HIGH),
             low: bit(pbits::LOW),
             released: bit(pbits::RELEASED),
             max_amplitude: bit(pbits::MAX_AMPLITUDE),
-            invalid: !amplitudes_ok(amps),
         }
     }
 
@@ -648,7 +610,6 @@ impl Counts {
             above_low: u64::from(self.low),
             released: u64::from(self.released),
             max_amplitude: u64::from(self.max_amplitude),
-            invalid_amplitude_rows: Some(u64::from(self.invalid)),
             t_meas_s: None,
             previous_index: None,
         }

@@ -561,9 +561,6 @@ struct Processor<'a> {
     started: bool,
     dead: bool,
     state: Option<State>,
-    /// Every step since the state was created (zeros) or loaded (checked) counted no
-    /// invalid amplitude: the checkpoint writer need not scan them again.
-    amplitudes_verified: bool,
     book: Bookkeeping,
     buffers: Option<PersistencePlanes>,
     pending: BTreeMap<u64, Pending>,
@@ -597,7 +594,6 @@ impl<'a> Processor<'a> {
             started: false,
             dead: false,
             state: None,
-            amplitudes_verified: true,
             book: Bookkeeping::default(),
             buffers: None,
             pending: BTreeMap::new(),
@@ -1060,7 +1056,6 @@ impl<'a> Processor<'a> {
                 },
             )
             .map_err(Failure::Input)?;
-        self.amplitudes_verified &= summary.invalid_amplitude_rows == Some(0);
         book.history_incomplete_until_unix_s = until;
         exposure.flags = flags;
         if let Some(prev) = summary
@@ -1117,12 +1112,7 @@ impl<'a> Processor<'a> {
         };
         let index = meta.exposure_index;
         Ok((
-            checkpoint::stage_verified(
-                &self.cfg.checkpoints,
-                &meta,
-                state,
-                self.amplitudes_verified,
-            )?,
+            checkpoint::stage(&self.cfg.checkpoints, &meta, state)?,
             index,
         ))
     }
