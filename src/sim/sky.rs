@@ -18,8 +18,13 @@
 //!   1 to 2 in the plane), with a 5 % gradient across the array (issue 3; paper section
 //!   5: zodiacal light is always present).
 //! - Stars: cumulative counts `N(<m) = n12 10^(0.35 (m - 12))` per array, `n12` = 30
-//!   stars brighter than m = 12 at high latitude (near-IR counts of a few per square
-//!   degree over the 12.3 deg^2 of an array), from m = 3 to m = 18. Total flux
+//!   stars brighter than m = 12 at high latitude (2.5 per deg^2 over the 12.2 deg^2 of
+//!   an array), from m = 3 to m = 18. The scale is anchored at saturation (below), so
+//!   `n12` is the number of stars that fill a pixel's well in one integration: a photon
+//!   budget for SPHEREx (20 cm, lambda/41 channels) puts that at AB ~ 9 (Ks ~ 7.2), where
+//!   2MASS counts extrapolated with their 0.32 dex/mag slope give 30 to 60 per array;
+//!   `docs/floor_scan.md` gives the derivation and scans `--n12`, `--count-slope`,
+//!   `--plane-fraction`, `--plane-density` and `--cosmic-rate`. Total flux
 //!   `F(m) = F12 10^(-0.4 (m - 12))` with `F12` set so that a star of magnitude 12
 //!   centred on a pixel just fills the well in one integration (paper section 5: "sources
 //!   brighter than a magnitude of 12 will saturate"). PSF: 95 % in a Gaussian of
