@@ -261,8 +261,8 @@ pub fn run(cfg: &DemoConfig, progress: &dyn Fn(&str)) -> Result<DemoReport> {
         &plots[0],
         &Chart {
             title: format!(
-                "Pixels flagged, default model, simulated sky ({}x{}, seed {})",
-                cfg.size, cfg.size, cfg.seed
+                "Pixels above threshold, model `{}` and truth ({}x{}, seed {})",
+                cfg.model.name, cfg.size, cfg.size, cfg.seed
             ),
             x_label: "time since start [h]".into(),
             y_label: "pixels above threshold [%]".into(),
