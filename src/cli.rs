@@ -131,6 +131,50 @@ pub struct SkyArgs {
     /// Switch on a truth effect: NAME[:param=value,...] (repeatable).
     #[arg(long = "effect")]
     pub effects: Vec<String>,
+    #[command(flatten)]
+    pub sky: SkyOptions,
+}
+
+/// Sky and detector parameters of the sky survey (defaults: `persist::sim::sky::SkyConfig`
+/// and `persist::sim::detector::DetectorParams`; docs/floor_scan.md scans them).
+#[derive(Args, Debug, Clone, Default)]
+pub struct SkyOptions {
+    /// Stars brighter than magnitude 12 (the saturation magnitude) per 2040 x 2040 array
+    /// at high latitude [default 30].
+    #[arg(long)]
+    pub n12: Option<f64>,
+    /// Slope of the cumulative star counts, dex per magnitude [default 0.35].
+    #[arg(long)]
+    pub count_slope: Option<f64>,
+    /// Faintest star drawn, magnitude [default 18].
+    #[arg(long)]
+    pub m_faint: Option<f64>,
+    /// Fraction of the non-deep pointings that are Galactic-plane fields [default 0.1].
+    #[arg(long)]
+    pub plane_fraction: Option<f64>,
+    /// Star density of a Galactic-plane field relative to high latitude [default 30].
+    #[arg(long)]
+    pub plane_density: Option<f64>,
+    /// Cosmic-ray rate, hits per cm^2 per s [default 5].
+    #[arg(long)]
+    pub cosmic_rate: Option<f64>,
+}
+
+impl SkyOptions {
+    /// Overwrite the parameters given on the command line.
+    pub fn apply(&self, cfg: &mut persist::sim::sky::SkyConfig) {
+        let set = |dst: &mut f64, v: Option<f64>| {
+            if let Some(v) = v {
+                *dst = v;
+            }
+        };
+        set(&mut cfg.n12_per_array, self.n12);
+        set(&mut cfg.count_slope, self.count_slope);
+        set(&mut cfg.m_faint, self.m_faint);
+        set(&mut cfg.plane_fraction, self.plane_fraction);
+        set(&mut cfg.plane_density, self.plane_density);
+        set(&mut cfg.detector.cosmic_rate_per_cm2_s, self.cosmic_rate);
+    }
 }
 
 #[derive(Args, Debug)]
@@ -323,6 +367,8 @@ pub struct DemoArgs {
     /// Model file (JSON); the built-in default if absent.
     #[arg(long)]
     pub model: Option<PathBuf>,
+    #[command(flatten)]
+    pub sky: SkyOptions,
 }
 
 #[derive(Args, Debug)]
@@ -459,7 +505,7 @@ fn simulate(scenario: SimScenario) -> persist::Result<ExitCode> {
             (a.out, w.finish(desc)?)
         }
         SimScenario::Sky(a) => {
-            let cfg = sky::SkyConfig {
+            let mut cfg = sky::SkyConfig {
                 size: a.size,
                 detectors: a.detectors,
                 exposures: a.exposures,
@@ -467,6 +513,7 @@ fn simulate(scenario: SimScenario) -> persist::Result<ExitCode> {
                 effects: specs(&a.effects)?,
                 ..sky::SkyConfig::default()
             };
+            a.sky.apply(&mut cfg);
             sky::validate(&cfg)?;
             let mut w = Writer::new(&a.out)?;
             let desc = sky::run(&cfg, |e| w.write(&e))?;
@@ -667,36 +714,58 @@ fn finish(report: &RunReport) -> ExitCode {
 }
 
 fn demo(args: &DemoArgs) -> persist::Result<ExitCode> {
+    let mut sky = persist::sim::sky::SkyConfig::default();
+    args.sky.apply(&mut sky);
     let cfg = persist::demo::DemoConfig {
         out: args.out.clone(),
         size: args.size,
         exposures: args.exposures,
         seed: args.seed,
         model: load_model(args.model.as_deref())?.params().clone(),
+        sky,
     };
     let r = persist::demo::run(&cfg, &|m| eprintln!("persist demo: {m}"))?;
     println!(
-        "{:>8} {:>8} {:>12} {:>12}",
-        "exposure", "t [h]", "% >0.1 e/s", "% >0.01 e/s"
+        "{:>8} {:>8} {:>12} {:>12} {:>12} {:>12}",
+        "exposure", "t [h]", "% >0.1 e/s", "% >0.01 e/s", "true % >0.1", "true % >0.01"
     );
     let step = (r.rows.len() / 24).max(1);
     for row in r.rows.iter().step_by(step) {
         println!(
-            "{:>8} {:>8.2} {:>12.2} {:>12.2}",
+            "{:>8} {:>8.2} {:>12.2} {:>12.2} {:>12.2} {:>12.2}",
             row.exposure_index,
             row.t_hours,
             100.0 * row.frac_high,
-            100.0 * row.frac_low
+            100.0 * row.frac_low,
+            100.0 * row.true_frac_high,
+            100.0 * row.true_frac_low
         );
     }
+    let mean = |f: fn(&persist::demo::Row) -> f64| {
+        r.rows.iter().map(f).sum::<f64>() / r.rows.len().max(1) as f64
+    };
     println!(
         "after the first 6 h (median over exposures): {:.2}% of pixels above 0.1 e-/s, {:.1}% above 0.01 e-/s",
         100.0 * r.steady_frac_high,
         100.0 * r.steady_frac_low
     );
+    println!(
+        "true persistence after the first 6 h (median over exposures): {:.2}% above 0.1 e-/s, {:.1}% above 0.01 e-/s",
+        100.0 * r.steady_true_frac_high,
+        100.0 * r.steady_true_frac_low
+    );
+    println!(
+        "median pixel after the first 6 h (median over exposures): true {:.4} e-/s, predicted {:.4} e-/s",
+        r.steady_median_true_e_per_s, r.steady_median_pred_e_per_s
+    );
+    println!(
+        "per exposure (mean): {:.3}% of pixels saturated, {:.3}% hit by a cosmic ray",
+        100.0 * mean(|w| w.frac_saturated),
+        100.0 * mean(|w| w.frac_transient)
+    );
     let above = r.pixel_trace.iter().filter(|t| t.1 > 0.1).count();
     println!(
-        "pixel {:?}: saturated at exposure {} ({:.3e} e-); predicted above 0.1 e-/s in {} exposures",
+        "pixel {:?}: brightest exposure {} ({:.3e} e-); predicted above 0.1 e-/s in {} exposures",
         r.pixel, r.pixel_event_index, r.pixel_event_fluence_e, above
     );
     for p in &r.plots {

@@ -23,6 +23,9 @@ pub struct DemoConfig {
     pub exposures: u64,
     pub seed: u64,
     pub model: ModelParams,
+    /// The sky survey's parameters (star counts, cosmic rays, ...); `size`, `detectors`,
+    /// `exposures` and `seed` are taken from the fields above.
+    pub sky: sky::SkyConfig,
 }
 
 impl Default for DemoConfig {
@@ -33,17 +36,38 @@ impl Default for DemoConfig {
             exposures: 1143,
             seed: 1,
             model: ModelParams::default(),
+            sky: sky::SkyConfig::default(),
         }
     }
 }
 
-/// Per exposure: hours since the start and the fractions flagged.
+/// Per exposure: hours since the start, the fractions predicted above each threshold
+/// (what the stage flags), the same fractions of the simulator's true persistence
+/// current, and the fractions of pixels saturated (`OVERFLOW`) and hit by a cosmic ray
+/// (`TRANSIENT`) in that exposure.
 #[derive(Debug, Clone, serde::Serialize)]
 pub struct Row {
     pub exposure_index: u64,
     pub t_hours: f64,
     pub frac_high: f64,
     pub frac_low: f64,
+    pub true_frac_high: f64,
+    pub true_frac_low: f64,
+    pub frac_saturated: f64,
+    pub frac_transient: f64,
+    /// The median pixel's true and predicted persistence current, e-/s (the "floor").
+    pub median_true_e_per_s: f64,
+    pub median_pred_e_per_s: f64,
+}
+
+/// Per exposure, from the simulation (index order).
+#[derive(Debug, Clone, Copy, Default)]
+struct SimCounts {
+    true_high: f64,
+    true_low: f64,
+    saturated: f64,
+    transient: f64,
+    median_true: f64,
 }
 
 /// What the demo found.
@@ -59,6 +83,12 @@ pub struct DemoReport {
     /// Median over exposures after the first 6 h of the fraction above 0.1 / 0.01 e-/s.
     pub steady_frac_high: f64,
     pub steady_frac_low: f64,
+    /// The same medians of the true persistence current (simulator truth).
+    pub steady_true_frac_high: f64,
+    pub steady_true_frac_low: f64,
+    /// Median over exposures after 6 h of the median pixel's true / predicted current.
+    pub steady_median_true_e_per_s: f64,
+    pub steady_median_pred_e_per_s: f64,
     pub plots: Vec<PathBuf>,
     pub errors: usize,
 }
@@ -76,13 +106,33 @@ fn median(mut v: Vec<f64>) -> f64 {
     }
 }
 
-fn read_pixel(path: &Path, dataset: &str, (y, x): (usize, usize)) -> Result<f64> {
+fn read_plane(path: &Path, dataset: &str) -> Result<ndarray::Array2<f32>> {
     let f = crate::h5io::open(path)?;
-    let a: ndarray::Array2<f32> = f
-        .dataset(dataset)
+    f.dataset(dataset)
         .and_then(|d| d.read_2d())
-        .map_err(|e| Error::from(e).path(path).field(dataset))?;
-    Ok(f64::from(a[(y, x)]))
+        .map_err(|e| Error::from(e).path(path).field(dataset))
+}
+
+/// Median of a plane's finite values, e-/s.
+fn plane_median(a: &ndarray::Array2<f32>) -> f64 {
+    median(
+        a.iter()
+            .filter(|v| v.is_finite())
+            .map(|v| f64::from(*v))
+            .collect(),
+    )
+}
+
+/// Draw a chart, on a linear axis if a log axis would have nothing to show (a sky with
+/// no stars and no cosmic rays: every fraction zero).
+fn draw(path: &Path, chart: &Chart, width: u32, height: u32) -> Result<()> {
+    let positive = chart
+        .series
+        .iter()
+        .any(|s| s.points.iter().any(|p| p.1 > 0.0 && p.1.is_finite()));
+    let mut c = chart.clone();
+    c.log_y &= positive;
+    line_chart_png(path, &c, width, height)
 }
 
 /// Simulate, run the stage, analyse, plot. `progress` is told what happens.
@@ -96,7 +146,7 @@ pub fn run(cfg: &DemoConfig, progress: &dyn Fn(&str)) -> Result<DemoReport> {
         detectors: 1,
         exposures: cfg.exposures,
         seed: cfg.seed,
-        ..sky::SkyConfig::default()
+        ..cfg.sky.clone()
     };
     progress(&format!(
         "simulating {} sky exposures of {}x{} (seed {}) into {}",
@@ -110,8 +160,26 @@ pub fn run(cfg: &DemoConfig, progress: &dyn Fn(&str)) -> Result<DemoReport> {
     // The brightest exposure of any pixel in the middle half of the run: its event.
     let (lo, hi) = (cfg.exposures / 4, 3 * cfg.exposures / 4);
     let mut event: (f64, u64, (usize, usize)) = (0.0, 0, (0, 0));
+    let mut counts: Vec<SimCounts> = Vec::new();
+    // The true current is counted against the model's own thresholds.
+    let (high, low) = (
+        cfg.model.thresholds.high_e_per_s,
+        cfg.model.thresholds.low_e_per_s,
+    );
     let description = sky::run(&sky_cfg, |s| {
         let k = s.exposure.meta.exposure_index;
+        let n = s.true_persistence.len().max(1) as f64;
+        let frac = |p: &dyn Fn(f32) -> bool| {
+            s.true_persistence.iter().filter(|v| p(**v)).count() as f64 / n
+        };
+        let flagged = |b: u32| s.exposure.flags.iter().filter(|f| **f & b != 0).count() as f64 / n;
+        counts.push(SimCounts {
+            true_high: frac(&|v| f64::from(v) > high),
+            true_low: frac(&|v| f64::from(v) > low),
+            saturated: flagged(crate::flags::bits::OVERFLOW),
+            transient: flagged(crate::flags::bits::TRANSIENT),
+            median_true: plane_median(&s.true_persistence),
+        });
         if (lo..hi).contains(&k) {
             let t = s.exposure.meta.t_exposure_s;
             for ((y, x), f) in s.true_flux.indexed_iter() {
@@ -151,35 +219,50 @@ pub fn run(cfg: &DemoConfig, progress: &dyn Fn(&str)) -> Result<DemoReport> {
         let meta = crate::product::read::read_meta(&r.path)?;
         let t_hours = (meta.t_start.0 + 0.5 * meta.t_exposure_s - t0) / 3600.0;
         let n = r.summary.pixels.max(1) as f64;
+        let c = counts
+            .get(r.exposure_index as usize)
+            .copied()
+            .unwrap_or_default();
+        let out = run_cfg.output.join(r.path.file_name().unwrap_or_default());
+        let truth = crate::sim::output::truth_path(&sim_dir, 1, r.exposure_index);
+        let predicted = read_plane(&out, "persistence/current")?;
         rows.push(Row {
             exposure_index: r.exposure_index,
             t_hours,
             frac_high: r.summary.above_high as f64 / n,
             frac_low: r.summary.above_low as f64 / n,
+            true_frac_high: c.true_high,
+            true_frac_low: c.true_low,
+            frac_saturated: c.saturated,
+            frac_transient: c.transient,
+            median_true_e_per_s: c.median_true,
+            median_pred_e_per_s: plane_median(&predicted),
         });
-        let out = run_cfg.output.join(r.path.file_name().unwrap_or_default());
-        let truth = crate::sim::output::truth_path(&sim_dir, 1, r.exposure_index);
         trace.push((
             t_hours,
-            read_pixel(&out, "persistence/current", event.2)?,
-            read_pixel(&truth, "true_persistence", event.2)?,
+            f64::from(predicted[event.2]),
+            f64::from(read_plane(&truth, "true_persistence")?[event.2]),
         ));
     }
     let steady =
         |f: fn(&Row) -> f64| median(rows.iter().filter(|r| r.t_hours > 6.0).map(f).collect());
     let steady_frac_high = steady(|r| r.frac_high);
     let steady_frac_low = steady(|r| r.frac_low);
+    let steady_true_frac_high = steady(|r| r.true_frac_high);
+    let steady_true_frac_low = steady(|r| r.true_frac_low);
+    let steady_median_true = steady(|r| r.median_true_e_per_s);
+    let steady_median_pred = steady(|r| r.median_pred_e_per_s);
 
     let plots = vec![
         cfg.out.join("flagged_fraction.png"),
         cfg.out.join("pixel_trace.png"),
     ];
-    line_chart_png(
+    draw(
         &plots[0],
         &Chart {
             title: format!(
-                "Pixels flagged, default model, simulated sky ({}x{}, seed {})",
-                cfg.size, cfg.size, cfg.seed
+                "Pixels above threshold, model `{}` and truth ({}x{}, seed {})",
+                cfg.model.name, cfg.size, cfg.size, cfg.seed
             ),
             x_label: "time since start [h]".into(),
             y_label: "pixels above threshold [%]".into(),
@@ -199,17 +282,31 @@ pub fn run(cfg: &DemoConfig, progress: &dyn Fn(&str)) -> Result<DemoReport> {
                         .map(|r| (r.t_hours, 100.0 * r.frac_high))
                         .collect(),
                 },
+                Series {
+                    name: "true > 0.01 e-/s (simulator)".into(),
+                    points: rows
+                        .iter()
+                        .map(|r| (r.t_hours, 100.0 * r.true_frac_low))
+                        .collect(),
+                },
+                Series {
+                    name: "true > 0.1 e-/s (simulator)".into(),
+                    points: rows
+                        .iter()
+                        .map(|r| (r.t_hours, 100.0 * r.true_frac_high))
+                        .collect(),
+                },
             ],
             hlines: vec![(2.0, "paper: ~2% above 0.1 e-/s".into())],
         },
         1000,
         560,
     )?;
-    line_chart_png(
+    draw(
         &plots[1],
         &Chart {
             title: format!(
-                "Pixel ({}, {}): saturated at exposure {} ({:.2e} e-)",
+                "Pixel ({}, {}): brightest exposure {} ({:.2e} e-)",
                 event.2 .0, event.2 .1, event.1, event.0
             ),
             x_label: "time since start [h]".into(),
@@ -241,6 +338,10 @@ pub fn run(cfg: &DemoConfig, progress: &dyn Fn(&str)) -> Result<DemoReport> {
         pixel_trace: trace,
         steady_frac_high,
         steady_frac_low,
+        steady_true_frac_high,
+        steady_true_frac_low,
+        steady_median_true_e_per_s: steady_median_true,
+        steady_median_pred_e_per_s: steady_median_pred,
         plots,
         errors: report.errors.len(),
     })

@@ -1,7 +1,9 @@
 //! Issue 3: a two-day sky run at reduced size, processed by the stage with the default
 //! model. The paper's simulation reports "a minimum of 2%" of pixels above 0.1 e-/s at
 //! all times and a floor above 0.01 e-/s for every pixel; this checks the first (order of
-//! magnitude) and records the second, which the simulator does not reproduce (README).
+//! magnitude) and that the second is *not* reproduced, neither by the prediction nor by
+//! the simulator's truth (README, docs/floor_scan.md: no realistic star count or cosmic-ray
+//! rate gives both).
 
 use persist::demo::{run, DemoConfig};
 
@@ -33,6 +35,37 @@ fn two_day_sky_run_flags_a_steady_percent_or_two() {
         .iter()
         .filter(|row| row.t_hours > 6.0)
         .all(|row| row.frac_high > 0.0));
+    // The truth is counted too: the flagging is conservative (more pixels predicted above
+    // 0.1 e-/s than truly are), and the median pixel's current, the "floor", comes from
+    // the zodiacal light: predicted a few 1e-3 e-/s (the paper: "a minimum of 0.002"),
+    // true lower still, both below 0.01 e-/s. So most pixels stay below 0.01 e-/s.
+    assert!(
+        r.steady_true_frac_high < r.steady_frac_high,
+        "true {} predicted {}",
+        r.steady_true_frac_high,
+        r.steady_frac_high
+    );
+    assert!(
+        (0.001..0.01).contains(&r.steady_median_pred_e_per_s),
+        "predicted floor {}",
+        r.steady_median_pred_e_per_s
+    );
+    assert!(
+        r.steady_median_true_e_per_s < r.steady_median_pred_e_per_s,
+        "true floor {}",
+        r.steady_median_true_e_per_s
+    );
+    assert!(r.steady_frac_low < 0.5, "{}", r.steady_frac_low);
+    assert!(r.steady_true_frac_low < 0.5, "{}", r.steady_true_frac_low);
+    // Cosmic rays arrive at the configured rate (5 /cm^2/s on 18 um pixels, 112 s):
+    // TRANSIENT on 0.18% of pixels per exposure.
+    let p_cr = cfg.sky.detector.cosmic_probability(cfg.sky.t_exposure_s);
+    let transient = r.rows.iter().map(|w| w.frac_transient).sum::<f64>() / r.rows.len() as f64;
+    assert!(
+        (transient / p_cr - 1.0).abs() < 0.1,
+        "{transient} vs {p_cr}"
+    );
+    assert!(r.rows.iter().any(|w| w.frac_saturated > 0.0));
     // The traced pixel saturated, and the model saw it: predicted above 0.1 e-/s after.
     assert!(r.pixel_event_fluence_e > 2e5, "{}", r.pixel_event_fluence_e);
     let after = r

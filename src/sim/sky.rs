@@ -18,8 +18,13 @@
 //!   1 to 2 in the plane), with a 5 % gradient across the array (issue 3; paper section
 //!   5: zodiacal light is always present).
 //! - Stars: cumulative counts `N(<m) = n12 10^(0.35 (m - 12))` per array, `n12` = 30
-//!   stars brighter than m = 12 at high latitude (near-IR counts of a few per square
-//!   degree over the 12.3 deg^2 of an array), from m = 3 to m = 18. Total flux
+//!   stars brighter than m = 12 at high latitude (2.5 per deg^2 over the 12.2 deg^2 of
+//!   an array), from m = 3 to m = 18. The scale is anchored at saturation (below), so
+//!   `n12` is the number of stars that fill a pixel's well in one integration: a photon
+//!   budget for SPHEREx (20 cm, lambda/41 channels) puts that at AB ~ 9 (Ks ~ 7.2), where
+//!   2MASS counts extrapolated with their 0.32 dex/mag slope give 30 to 60 per array;
+//!   `docs/floor_scan.md` gives the derivation and scans `--n12`, `--count-slope`,
+//!   `--plane-fraction`, `--plane-density` and `--cosmic-rate`. Total flux
 //!   `F(m) = F12 10^(-0.4 (m - 12))` with `F12` set so that a star of magnitude 12
 //!   centred on a pixel just fills the well in one integration (paper section 5: "sources
 //!   brighter than a magnitude of 12 will saturate"). PSF: 95 % in a Gaussian of
@@ -179,6 +184,37 @@ pub fn validate(cfg: &SkyConfig) -> crate::Result<()> {
     }
     if cfg.m_faint.is_nan() || cfg.m_bright.is_nan() || cfg.m_faint <= cfg.m_bright {
         return bad("m_faint", "must exceed m_bright".into());
+    }
+    if !(cfg.n12_per_array.is_finite() && cfg.n12_per_array >= 0.0) {
+        return bad(
+            "--n12",
+            format!("must be finite and >= 0, got {}", cfg.n12_per_array),
+        );
+    }
+    if !(cfg.count_slope.is_finite() && cfg.count_slope > 0.0) {
+        return bad(
+            "--count-slope",
+            format!("must be finite and > 0, got {}", cfg.count_slope),
+        );
+    }
+    if !(0.0..=1.0).contains(&cfg.plane_fraction) {
+        return bad(
+            "--plane-fraction",
+            format!("must be in 0..=1, got {}", cfg.plane_fraction),
+        );
+    }
+    if !(cfg.plane_density.is_finite() && cfg.plane_density >= 0.0) {
+        return bad(
+            "--plane-density",
+            format!("must be finite and >= 0, got {}", cfg.plane_density),
+        );
+    }
+    let cr = cfg.detector.cosmic_rate_per_cm2_s;
+    if !(cr.is_finite() && cr >= 0.0) {
+        return bad(
+            "--cosmic-rate",
+            format!("must be finite and >= 0, got {cr}"),
+        );
     }
     EffectSet::from_specs(&cfg.effects)?;
     Ok(())
@@ -340,6 +376,51 @@ mod tests {
         let q = f64::from(f[[10, 10]]) * cfg.t_exposure_s;
         assert!((q / 2e5 - 1.0).abs() < 0.01, "{q}");
         assert!((f.sum() as f64 / f12(&cfg) - 1.0).abs() < 0.02);
+    }
+
+    #[test]
+    fn validate_names_the_bad_sky_option() {
+        let bad = [
+            (
+                "--n12",
+                SkyConfig {
+                    n12_per_array: -1.0,
+                    ..SkyConfig::default()
+                },
+            ),
+            (
+                "--count-slope",
+                SkyConfig {
+                    count_slope: f64::NAN,
+                    ..SkyConfig::default()
+                },
+            ),
+            (
+                "--plane-fraction",
+                SkyConfig {
+                    plane_fraction: 1.5,
+                    ..SkyConfig::default()
+                },
+            ),
+            (
+                "--plane-density",
+                SkyConfig {
+                    plane_density: -2.0,
+                    ..SkyConfig::default()
+                },
+            ),
+        ];
+        for (field, cfg) in bad {
+            let e = validate(&cfg).unwrap_err().to_string();
+            assert!(e.contains(field), "{field}: {e}");
+        }
+        let mut cfg = SkyConfig::default();
+        cfg.detector.cosmic_rate_per_cm2_s = f64::INFINITY;
+        assert!(validate(&cfg)
+            .unwrap_err()
+            .to_string()
+            .contains("--cosmic-rate"));
+        assert!(validate(&SkyConfig::default()).is_ok());
     }
 
     #[test]
