@@ -98,7 +98,10 @@ fn close(a: f64, b: f64, rel: f64) -> bool {
 fn at_their_null_values_both_are_bit_identical_to_the_paper_model() {
     let base = run(&Model::new(ModelParams::default()).unwrap(), 6);
     assert!(base[1][[C, C]] > 1.0, "the star leaves persistence");
-    let ipc0 = run(&with(vec![spec("ipc", serde_json::json!({"alpha": 0.0}))]), 6);
+    let ipc0 = run(
+        &with(vec![spec("ipc", serde_json::json!({"alpha": 0.0}))]),
+        6,
+    );
     assert_eq!(ipc0, base);
     let pop0 = run(&with(vec![spec("populations", serde_json::json!({}))]), 6);
     assert_eq!(pop0, base);
@@ -120,7 +123,10 @@ fn ipc_gives_neighbours_alpha_of_the_star_instead_of_their_measured_fluence() {
     let p = ModelParams::default();
     let resp = Response::new(&p.amplitude_knots);
     let base = run(&Model::new(p.clone()).unwrap(), 4);
-    let ipc = run(&with(vec![spec("ipc", serde_json::json!({"alpha": ALPHA}))]), 4);
+    let ipc = run(
+        &with(vec![spec("ipc", serde_json::json!({"alpha": ALPHA}))]),
+        4,
+    );
     let a_max = resp.amplitude_e(F_STAR);
     let f_nb_measured = f64::from((ALPHA * F_STAR / T_EXP) as f32) * T_EXP; // ~1e6 e-
     let a_nb = resp.amplitude_e(f_nb_measured);
@@ -202,8 +208,7 @@ fn persist_run_uses_the_effects_of_a_model_file() {
             Array2::from_elem((N, N), 0.01f32)
         };
         e.flags = Array2::zeros((N, N));
-        persist::product::write::write_exposure(&input.join(format!("d1_e{k:06}.h5")), &e)
-            .unwrap();
+        persist::product::write::write_exposure(&input.join(format!("d1_e{k:06}.h5")), &e).unwrap();
     }
     let model = |name: &str, effects: serde_json::Value| {
         let out = persist(&["model", "default"]);
@@ -229,11 +234,7 @@ fn persist_run_uses_the_effects_of_a_model_file() {
             m.to_str().unwrap(),
             "--quiet",
         ]);
-        assert!(
-            o.status.success(),
-            "{}",
-            String::from_utf8_lossy(&o.stderr)
-        );
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
         current(&out, 1)
     };
     let plain = run("plain", &model("plain.json", serde_json::json!([])));

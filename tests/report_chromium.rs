@@ -136,7 +136,8 @@ fn plot_pixels(p: &Pixels) -> (usize, usize, usize) {
     let is_blue = |c: &[u8; 3]| c[0] < 60 && c[1] < 60 && c[2] > 200;
     // the map's cells: red (255, g=b<235) or blue (r=g<235, 255), not the curves' blue
     let is_cell = |c: &[u8; 3]| {
-        (c[0] == 255 && c[1] == c[2] && c[1] < 235) || (c[2] == 255 && c[0] == c[1] && c[0] >= 60 && c[0] < 235)
+        (c[0] == 255 && c[1] == c[2] && c[1] < 235)
+            || (c[2] == 255 && c[0] == c[1] && c[0] >= 60 && c[0] < 235)
     };
     let non_white = p.rgb.iter().filter(|c| c.iter().any(|v| *v < 245)).count();
     let mut bands = 0;

@@ -21,9 +21,9 @@
 
 use super::data::Sequence;
 use super::eval::{self, FlagQuality, GroupStat, Samples};
+use crate::error::{Error, ErrorKind, Result};
 use crate::h5io;
 use crate::sim::effect::{EffectSet, EffectSpec as SimEffectSpec};
-use crate::error::{Error, ErrorKind, Result};
 use serde::Serialize;
 use std::collections::BTreeMap;
 use std::path::Path;
@@ -281,7 +281,12 @@ pub fn touched_pixels(
     let tj_in = input.join("truth").join("truth.json");
     let tj_base = baseline.join("truth").join("truth.json");
     let (a, b) = (read_json(&tj_in)?, read_json(&tj_base)?);
-    for field in ["/scenario", "/config/seed", "/config/size", "/config/campaign"] {
+    for field in [
+        "/scenario",
+        "/config/seed",
+        "/config/size",
+        "/config/campaign",
+    ] {
         if a.pointer(field) != b.pointer(field) {
             return Err(Error::invalid(
                 field.trim_start_matches('/').replace('/', "."),

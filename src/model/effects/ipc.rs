@@ -180,14 +180,24 @@ mod tests {
 
     #[test]
     fn decouple_inverts_couple() {
-        let s = Array2::from_shape_fn((6, 7), |(y, x)| ((y * 7 + x) as f64 * 1.7).sin().abs() * 1e5);
+        let s = Array2::from_shape_fn((6, 7), |(y, x)| {
+            ((y * 7 + x) as f64 * 1.7).sin().abs() * 1e5
+        });
         let back = decouple(&couple(&s, 0.02), 0.02);
         // converged to 1e-9 of the largest value (module docs)
         let bound = 1e-6 * 1e5;
-        let worst = s.iter().zip(back.iter()).map(|(a, b)| (a - b).abs()).fold(0.0, f64::max);
+        let worst = s
+            .iter()
+            .zip(back.iter())
+            .map(|(a, b)| (a - b).abs())
+            .fold(0.0, f64::max);
         assert!(worst < bound, "{worst} {bound}");
         // and it is a real improvement over not deconvolving
-        let raw = s.iter().zip(couple(&s, 0.02).iter()).map(|(a, b)| (a - b).abs()).fold(0.0, f64::max);
+        let raw = s
+            .iter()
+            .zip(couple(&s, 0.02).iter())
+            .map(|(a, b)| (a - b).abs())
+            .fold(0.0, f64::max);
         assert!(worst < raw / 20.0, "{worst} {raw}");
     }
 }
