@@ -142,21 +142,48 @@ impl Effect for Ipc {
         if self.alpha == 0.0 {
             return;
         }
+        // `K` on every term plane in one pass (the same arithmetic as [`couple`]):
+        // pixels of unknown fluence add nothing to their neighbours (an unknown value
+        // counts 0, as in the readout model); the step restores their own amplitude
         let (ny, nx, n) = ak.dim();
-        for t in 0..n {
-            // pixels of unknown fluence add nothing to their neighbours (as in the readout
-            // model, an unknown value counts 0); the step restores their own amplitude
-            let plane = Array2::from_shape_fn((ny, nx), |(y, x)| {
-                if ctx.fluence_e[[y, x]].is_finite() {
-                    ak[[y, x, t]]
-                } else {
-                    f64::NAN
+        let src = ak.as_standard_layout().into_owned();
+        let src = src.as_slice().expect("standard layout");
+        let known: Vec<bool> = ctx.fluence_e.iter().map(|f| f.is_finite()).collect();
+        let c = 1.0 - 4.0 * self.alpha;
+        let mut sum = vec![0.0f64; n];
+        for y in 0..ny {
+            for x in 0..nx {
+                let p = y * nx + x;
+                if !known[p] {
+                    continue;
                 }
-            });
-            let c = couple(&plane, self.alpha);
-            for ((y, x), v) in c.indexed_iter() {
-                if v.is_finite() {
-                    ak[[y, x, t]] = *v;
+                sum.fill(0.0);
+                let mut add = |q: usize| {
+                    if known[q] {
+                        for (s, v) in sum.iter_mut().zip(&src[q * n..(q + 1) * n]) {
+                            if v.is_finite() {
+                                *s += v;
+                            }
+                        }
+                    }
+                };
+                if y > 0 {
+                    add(p - nx);
+                }
+                if y + 1 < ny {
+                    add(p + nx);
+                }
+                if x > 0 {
+                    add(p - 1);
+                }
+                if x + 1 < nx {
+                    add(p + 1);
+                }
+                for (t, s) in sum.iter().enumerate() {
+                    let v = src[p * n + t];
+                    if v.is_finite() {
+                        ak[[y, x, t]] = c * v + self.alpha * s;
+                    }
                 }
             }
         }
