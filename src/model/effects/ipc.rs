@@ -13,7 +13,7 @@
 //! 1. recover the fluence each pixel received from the measured one (fluence hook):
 //!    `F = K^-1 F'`, by the fixed-point iteration `F <- F' + (F - K F)` from `F = F'`
 //!    (after `n` iterations the error is below `(8 alpha)^(n+1)` of the largest
-//!    fluence; it stops when an update changes no pixel by more than 1e-9 of the
+//!    fluence; it stops when an update changes no pixel by more than 1e-8 of the
 //!    largest fluence, at most [`MAX_ITERATIONS`]), negative values set to 0;
 //! 2. evaluate the paper's `A_k(F)` on it (done by the step for the pixels it changes);
 //! 3. predict what the readout will show of the trapped charge: the response planes are
@@ -66,35 +66,38 @@ pub struct Ipc {
 /// neighbours.
 pub fn couple(s: &Array2<f64>, alpha: f64) -> Array2<f64> {
     let (ny, nx) = s.dim();
-    let val = |y: usize, x: usize| {
-        let v = s[[y, x]];
-        if v.is_finite() {
-            v
-        } else {
-            0.0
-        }
-    };
+    let src = s.as_standard_layout();
+    let src = src.as_slice().expect("standard layout");
+    let val = |v: f64| if v.is_finite() { v } else { 0.0 };
     let c = 1.0 - 4.0 * alpha;
-    Array2::from_shape_fn((ny, nx), |(y, x)| {
-        let v = s[[y, x]];
-        if !v.is_finite() {
-            return v;
+    let mut out = vec![0.0f64; ny * nx];
+    for y in 0..ny {
+        let row = &src[y * nx..(y + 1) * nx];
+        let up = (y > 0).then(|| &src[(y - 1) * nx..y * nx]);
+        let down = (y + 1 < ny).then(|| &src[(y + 1) * nx..(y + 2) * nx]);
+        for (x, o) in out[y * nx..(y + 1) * nx].iter_mut().enumerate() {
+            let v = row[x];
+            if !v.is_finite() {
+                *o = v;
+                continue;
+            }
+            let mut n = 0.0;
+            if let Some(u) = up {
+                n += val(u[x]);
+            }
+            if let Some(d) = down {
+                n += val(d[x]);
+            }
+            if x > 0 {
+                n += val(row[x - 1]);
+            }
+            if x + 1 < nx {
+                n += val(row[x + 1]);
+            }
+            *o = c * v + alpha * n;
         }
-        let mut n = 0.0;
-        if y > 0 {
-            n += val(y - 1, x);
-        }
-        if y + 1 < ny {
-            n += val(y + 1, x);
-        }
-        if x > 0 {
-            n += val(y, x - 1);
-        }
-        if x + 1 < nx {
-            n += val(y, x + 1);
-        }
-        c * v + alpha * n
-    })
+    }
+    Array2::from_shape_vec((ny, nx), out).expect("shape")
 }
 
 /// `K^-1 s'` by fixed-point steps (module docs), clipped at 0 (NaN stays NaN).
@@ -117,7 +120,7 @@ pub fn decouple(measured: &Array2<f64>, alpha: f64) -> Array2<f64> {
                 }
                 *f = new;
             });
-        if change <= 1e-9 * scale {
+        if change <= 1e-8 * scale {
             break;
         }
     }
@@ -211,8 +214,8 @@ mod tests {
             ((y * 7 + x) as f64 * 1.7).sin().abs() * 1e5
         });
         let back = decouple(&couple(&s, 0.02), 0.02);
-        // converged to 1e-9 of the largest value (module docs)
-        let bound = 1e-6 * 1e5;
+        // converged to 1e-8 of the largest value (module docs)
+        let bound = 1e-5 * 1e5;
         let worst = s
             .iter()
             .zip(back.iter())
