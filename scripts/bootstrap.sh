@@ -1,14 +1,23 @@
 #!/usr/bin/env bash
 # Install what a fresh Debian 12 machine lacks to build persist: HDF5 headers and
 # pkg-config. Does nothing when pkg-config already finds HDF5.
+# With --chromium, also Debian's chromium (for tests/report_chromium.rs) when it is not
+# on PATH.
 set -euo pipefail
-if pkg-config --exists hdf5 2>/dev/null; then
-  exit 0
-fi
-echo "bootstrap: HDF5 not found by pkg-config; installing libhdf5-dev pkg-config" >&2
 SUDO=""
 if [ "$(id -u)" -ne 0 ]; then SUDO="sudo"; fi
 export DEBIAN_FRONTEND=noninteractive
-$SUDO apt-get update -qq
-$SUDO apt-get install -y -qq libhdf5-dev pkg-config >/dev/null
-pkg-config --modversion hdf5 >&2
+updated=0
+if ! pkg-config --exists hdf5 2>/dev/null; then
+  echo "bootstrap: HDF5 not found by pkg-config; installing libhdf5-dev pkg-config" >&2
+  $SUDO apt-get update -qq
+  updated=1
+  $SUDO apt-get install -y -qq libhdf5-dev pkg-config >/dev/null
+  pkg-config --modversion hdf5 >&2
+fi
+if [ "${1:-}" = "--chromium" ] && ! command -v chromium >/dev/null 2>&1; then
+  echo "bootstrap: chromium not found; installing Debian's chromium" >&2
+  if [ "$updated" -eq 0 ]; then $SUDO apt-get update -qq; fi
+  $SUDO apt-get install -y -qq chromium >/dev/null
+  chromium --version >&2 || true
+fi

@@ -403,6 +403,13 @@ pub struct CompareArgs {
     /// Output directory for report.html and summary.json.
     #[arg(long)]
     pub report: PathBuf,
+    /// Simulated data only: the same scenario and seed without the hidden effect; adds
+    /// the flag quality over the pixels the effect touches.
+    #[arg(long)]
+    pub touched_baseline: Option<PathBuf>,
+    /// A pixel is touched when its true persistence differs by more than this, e-/s.
+    #[arg(long, default_value_t = persist::diag::compare::TOUCHED_MIN_E_PER_S)]
+    pub touched_min_e_per_s: f64,
 }
 
 #[derive(Args, Debug)]
@@ -796,7 +803,11 @@ fn fit(a: &FitArgs) -> persist::Result<ExitCode> {
 
 /// `persist compare`.
 fn compare(a: &CompareArgs) -> persist::Result<ExitCode> {
-    let s = persist::diag::compare::run(&a.input, &a.models, &a.report)?;
+    let opts = persist::diag::compare::Options {
+        touched_baseline: a.touched_baseline.clone(),
+        touched_min_e_per_s: a.touched_min_e_per_s,
+    };
+    let s = persist::diag::compare::run_with(&a.input, &a.models, &a.report, &opts)?;
     println!("{s}");
     Ok(ExitCode::SUCCESS)
 }

@@ -4,10 +4,26 @@
 //! quality) are those of [`super::data`] and [`super::eval`]. Writes
 //! `OUT/summary.json` (every number of the report) and `OUT/report.html`
 //! (self-contained; [`super::report`]).
+//!
+//! # Flag quality over the pixels an effect touches (`--touched-baseline DIR`)
+//! On simulated data, `DIR` is the same scenario and seed simulated without the hidden
+//! effect. A sampled pixel is *touched* when, at any sampled exposure (every exposure
+//! after an illumination), the true persistence current of the input's truth
+//! (`truth/*.truth.hdf5`, passed through the readout hooks of the input's truth effects,
+//! e.g. `ipc`'s coupling, so that an effect acting on the measurement counts) differs
+//! from the baseline's by more than `--touched-min-e-per-s` (default
+//! [`TOUCHED_MIN_E_PER_S`] = 0.01 e-/s, a tenth of the 0.1 e-/s flag threshold).
+//! The flag quality of every model and threshold is then also given over the samples of
+//! the touched pixels (`flag_quality_touched`: `missed_flag_fraction_touched` = missed
+//! samples of touched pixels / usable samples of touched pixels). Effects that change
+//! neither the truth nor the readout of it (`linefit_bias` changes how the on-board line
+//! fit reads it) touch nothing by this definition.
 
 use super::data::Sequence;
 use super::eval::{self, FlagQuality, GroupStat, Samples};
 use crate::error::{Error, ErrorKind, Result};
+use crate::h5io;
+use crate::sim::effect::{EffectSet, EffectSpec as SimEffectSpec};
 use serde::Serialize;
 use std::collections::BTreeMap;
 use std::path::Path;
@@ -44,6 +60,59 @@ pub struct ModelSummary {
     pub breakdown: BTreeMap<String, Vec<Bin>>,
     /// Keyed by the threshold in e-/s, e.g. "0.1".
     pub flag_quality: BTreeMap<String, FlagQuality>,
+    /// The same over the touched pixels (module docs), when a baseline is given.
+    #[serde(skip_serializing_if = "BTreeMap::is_empty")]
+    pub flag_quality_touched: BTreeMap<String, TouchedQuality>,
+}
+
+/// Flag quality over the samples of the touched pixels (module docs).
+#[derive(Debug, Clone, Copy, Serialize, PartialEq)]
+pub struct TouchedQuality {
+    pub threshold_e_per_s: f64,
+    pub touched_pixels: usize,
+    /// Usable samples (finite measurement) of the touched pixels.
+    pub touched_samples: usize,
+    pub measured_above: usize,
+    pub flagged: usize,
+    pub missed: usize,
+    pub over_flagged: usize,
+    pub missed_flag_fraction_touched: f64,
+    pub missed_of_measured_above_touched: f64,
+    pub over_flag_fraction_touched: f64,
+}
+
+/// Which pixels the hidden effect touches (module docs).
+#[derive(Debug, Clone, Serialize)]
+pub struct Touched {
+    pub baseline: String,
+    pub definition: String,
+    pub min_difference_e_per_s: f64,
+    /// The input's truth effects, whose readout hooks were applied to its truth.
+    pub input_effects: Vec<String>,
+    /// Touched pixels among the sampled pixels.
+    pub touched_pixels: usize,
+    pub pixels_sampled: usize,
+    /// Largest difference found, e-/s.
+    pub max_difference_e_per_s: f64,
+}
+
+/// Default of `--touched-min-e-per-s`, e-/s.
+pub const TOUCHED_MIN_E_PER_S: f64 = 0.01;
+
+/// Options of `persist compare` beyond the input and models.
+#[derive(Debug, Clone)]
+pub struct Options {
+    pub touched_baseline: Option<std::path::PathBuf>,
+    pub touched_min_e_per_s: f64,
+}
+
+impl Default for Options {
+    fn default() -> Self {
+        Options {
+            touched_baseline: None,
+            touched_min_e_per_s: TOUCHED_MIN_E_PER_S,
+        }
+    }
 }
 
 #[derive(Debug, Clone, Serialize)]
@@ -54,6 +123,9 @@ pub struct Summary {
     pub pixels_sampled: usize,
     pub pixel_stride: usize,
     pub samples: usize,
+    /// Present with `--touched-baseline`.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub touched: Option<Touched>,
     pub models: Vec<ModelSummary>,
 }
 
@@ -72,6 +144,17 @@ pub fn summarise(
     seq: &Sequence,
     samples: &Samples,
     models: &[(String, crate::model::ModelParams)],
+) -> Result<Vec<ModelSummary>> {
+    summarise_touched(seq, samples, models, None)
+}
+
+/// [`summarise`], and the flag quality over the touched pixels when `touched` (one
+/// entry per sampled pixel) is given.
+pub fn summarise_touched(
+    seq: &Sequence,
+    samples: &Samples,
+    models: &[(String, crate::model::ModelParams)],
+    touched: Option<&[bool]>,
 ) -> Result<Vec<ModelSummary>> {
     let mut out = Vec::new();
     for (path, params) in models {
@@ -101,6 +184,7 @@ pub fn summarise(
             );
         }
         let mut fq = BTreeMap::new();
+        let mut fqt = BTreeMap::new();
         let high = params.thresholds.high_e_per_s;
         let mut ths = vec![0.1, 0.01, high, params.thresholds.low_e_per_s];
         ths.sort_by(|a, b| a.total_cmp(b));
@@ -111,6 +195,24 @@ pub fn summarise(
                 format!("{t}"),
                 eval::flag_quality(samples, &pr.current, flags, t),
             );
+            if let Some(mask) = touched {
+                let q = eval::flag_quality_of(samples, &pr.current, flags, t, Some(mask));
+                fqt.insert(
+                    format!("{t}"),
+                    TouchedQuality {
+                        threshold_e_per_s: t,
+                        touched_pixels: mask.iter().filter(|m| **m).count(),
+                        touched_samples: q.samples,
+                        measured_above: q.measured_above,
+                        flagged: q.flagged,
+                        missed: q.missed,
+                        over_flagged: q.over_flagged,
+                        missed_flag_fraction_touched: q.missed_flag_fraction,
+                        missed_of_measured_above_touched: q.missed_of_measured_above,
+                        over_flag_fraction_touched: q.over_flag_fraction,
+                    },
+                );
+            }
         }
         out.push(ModelSummary {
             path: path.clone(),
@@ -122,6 +224,7 @@ pub fn summarise(
             map,
             breakdown,
             flag_quality: fq,
+            flag_quality_touched: fqt,
         });
     }
     Ok(out)
@@ -139,15 +242,160 @@ pub fn definitions() -> BTreeMap<String, String> {
     ])
 }
 
+fn read_json(path: &Path) -> Result<serde_json::Value> {
+    let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
+    serde_json::from_str(&text)
+        .map_err(|e| Error::new(ErrorKind::Invalid, format!("not JSON: {e}")).path(path))
+}
+
+fn read_truth(path: &Path, shape: (usize, usize)) -> Result<ndarray::Array2<f32>> {
+    let f = h5io::open(path)?;
+    let a: ndarray::Array2<f32> = f
+        .dataset("true_persistence")
+        .and_then(|d| d.read_2d())
+        .map_err(|e| Error::from(e).path(path).field("true_persistence"))?;
+    if a.dim() != shape {
+        return Err(Error::invalid(
+            "true_persistence",
+            format!("shape {:?}, the products' is {:?}", a.dim(), shape),
+        )
+        .path(path));
+    }
+    Ok(a)
+}
+
+/// The touched pixels of the sample (module docs): one entry per sampled pixel.
+pub fn touched_pixels(
+    seq: &Sequence,
+    samples: &Samples,
+    input: &Path,
+    baseline: &Path,
+    min_difference_e_per_s: f64,
+) -> Result<(Vec<bool>, Touched)> {
+    if !(min_difference_e_per_s.is_finite() && min_difference_e_per_s >= 0.0) {
+        return Err(Error::invalid(
+            "--touched-min-e-per-s",
+            format!("must be finite and >= 0, got {min_difference_e_per_s}"),
+        ));
+    }
+    let tj_in = input.join("truth").join("truth.json");
+    let tj_base = baseline.join("truth").join("truth.json");
+    let (a, b) = (read_json(&tj_in)?, read_json(&tj_base)?);
+    for field in [
+        "/scenario",
+        "/config/seed",
+        "/config/size",
+        "/config/campaign",
+    ] {
+        if a.pointer(field) != b.pointer(field) {
+            return Err(Error::invalid(
+                field.trim_start_matches('/').replace('/', "."),
+                format!(
+                    "{} has {}, the baseline {} has {}: the baseline must be the same scenario and seed without the effect",
+                    tj_in.display(),
+                    a.pointer(field).map_or("nothing".into(), |v| v.to_string()),
+                    tj_base.display(),
+                    b.pointer(field).map_or("nothing".into(), |v| v.to_string()),
+                ),
+            ));
+        }
+    }
+    let mut specs = Vec::new();
+    for e in a
+        .get("effects")
+        .and_then(|v| v.as_array())
+        .into_iter()
+        .flatten()
+    {
+        let name = e.get("name").and_then(|v| v.as_str()).unwrap_or_default();
+        let params = e
+            .get("params")
+            .and_then(|v| v.as_object())
+            .into_iter()
+            .flatten()
+            .filter_map(|(k, v)| v.as_f64().map(|v| (k.clone(), v)))
+            .collect();
+        specs.push(SimEffectSpec {
+            name: name.to_string(),
+            params,
+        });
+    }
+    let effects = EffectSet::from_specs(&specs).map_err(|e| e.path(&tj_in).field("effects"))?;
+    let shape = (seq.ny, seq.nx);
+    let mut touched = vec![false; samples.npix()];
+    let mut max_diff = 0.0f64;
+    for &k in &samples.exposures {
+        let m = &seq.exposures[k].meta;
+        let det = m.detector.0;
+        let mut t_in = read_truth(
+            &crate::sim::output::truth_path(input, det, m.exposure_index),
+            shape,
+        )?;
+        for e in &effects.list {
+            e.measured(&mut t_in, None);
+        }
+        let t_base = read_truth(
+            &crate::sim::output::truth_path(baseline, det, m.exposure_index),
+            shape,
+        )?;
+        for (t, &p) in touched.iter_mut().zip(&samples.pixels) {
+            let d = (f64::from(t_in[p]) - f64::from(t_base[p])).abs();
+            if d.is_finite() {
+                max_diff = max_diff.max(d);
+                if d > min_difference_e_per_s {
+                    *t = true;
+                }
+            }
+        }
+    }
+    let info = Touched {
+        baseline: baseline.display().to_string(),
+        definition: format!(
+            "a sampled pixel whose true persistence current (input truth through its effects' readout) differs from the baseline's by more than {min_difference_e_per_s} e-/s at any sampled exposure"
+        ),
+        min_difference_e_per_s,
+        input_effects: effects.list.iter().map(|e| e.name().to_string()).collect(),
+        touched_pixels: touched.iter().filter(|t| **t).count(),
+        pixels_sampled: samples.npix(),
+        max_difference_e_per_s: max_diff,
+    };
+    Ok((touched, info))
+}
+
 /// `persist compare`.
 pub fn run(input: &Path, models: &[std::path::PathBuf], out: &Path) -> Result<String> {
+    run_with(input, models, out, &Options::default())
+}
+
+/// `persist compare` with [`Options`].
+pub fn run_with(
+    input: &Path,
+    models: &[std::path::PathBuf],
+    out: &Path,
+    opts: &Options,
+) -> Result<String> {
     let seq = Sequence::load(input)?;
     let samples = Samples::new(&seq, STRIDE);
     let mut loaded = Vec::new();
     for m in models {
         loaded.push((m.display().to_string(), crate::model_file::load(m)?));
     }
-    let ms = summarise(&seq, &samples, &loaded)?;
+    let touched = match &opts.touched_baseline {
+        Some(b) => Some(touched_pixels(
+            &seq,
+            &samples,
+            input,
+            b,
+            opts.touched_min_e_per_s,
+        )?),
+        None => None,
+    };
+    let ms = summarise_touched(
+        &seq,
+        &samples,
+        &loaded,
+        touched.as_ref().map(|t| t.0.as_slice()),
+    )?;
     let summary = Summary {
         input: input.display().to_string(),
         definitions: definitions(),
@@ -155,6 +403,7 @@ pub fn run(input: &Path, models: &[std::path::PathBuf], out: &Path) -> Result<St
         pixels_sampled: samples.npix(),
         pixel_stride: STRIDE,
         samples: samples.len(),
+        touched: touched.map(|t| t.1),
         models: ms,
     };
     std::fs::create_dir_all(out).map_err(|e| Error::io(out, e))?;
@@ -167,15 +416,28 @@ pub fn run(input: &Path, models: &[std::path::PathBuf], out: &Path) -> Result<St
         "persist compare: {} exposures, {} pixels sampled\n",
         summary.exposures_compared, summary.pixels_sampled
     );
+    if let Some(t) = &summary.touched {
+        s += &format!(
+            "  touched pixels: {} of {} sampled (> {} e-/s from {})\n",
+            t.touched_pixels, t.pixels_sampled, t.min_difference_e_per_s, t.baseline
+        );
+    }
     for m in &summary.models {
         let q = m.flag_quality.get("0.1");
         s += &format!(
-            "  {:<40} residual RMS {:>8.2}  missed@0.1 {:.4}  over@0.1 {:.4}\n",
+            "  {:<40} residual RMS {:>8.2}  missed@0.1 {:.4}  over@0.1 {:.4}",
             m.path,
             m.residual_rms_normalised,
             q.map_or(f64::NAN, |q| q.missed_flag_fraction),
             q.map_or(f64::NAN, |q| q.over_flag_fraction)
         );
+        if let Some(t) = m.flag_quality_touched.get("0.1") {
+            s += &format!(
+                "  missed@0.1 of touched {:.4}",
+                t.missed_flag_fraction_touched
+            );
+        }
+        s += "\n";
     }
     s += &format!("report {}", out.join("report.html").display());
     Ok(s)

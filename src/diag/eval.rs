@@ -411,10 +411,22 @@ pub struct FlagQuality {
 }
 
 pub fn flag_quality(s: &Samples, pred: &[f64], flagged: Option<&[bool]>, thr: f64) -> FlagQuality {
+    flag_quality_of(s, pred, flagged, thr, None)
+}
+
+/// [`flag_quality`] over the samples of the pixels where `pixel_mask` (one entry per
+/// sampled pixel, [`Samples::pixels`]) is true; all samples when `None`.
+pub fn flag_quality_of(
+    s: &Samples,
+    pred: &[f64],
+    flagged: Option<&[bool]>,
+    thr: f64,
+    pixel_mask: Option<&[bool]>,
+) -> FlagQuality {
     let (mut n, mut above, mut fl, mut missed, mut over) = (0, 0, 0, 0, 0);
     for i in 0..s.len() {
         let m = s.measured[i];
-        if !m.is_finite() {
+        if !m.is_finite() || pixel_mask.is_some_and(|k| !k[i % s.npix()]) {
             continue;
         }
         n += 1;

@@ -143,7 +143,21 @@ pub fn html(sum: &Summary) -> Result<String> {
         sum.pixel_stride,
         sum.samples
     );
-    h += "<h2>Models</h2><table><tr><th>model</th><th>effects</th><th>residual RMS (normalised)</th><th>cells</th><th>missed @0.1</th><th>over @0.1</th><th>missed @0.01</th><th>over @0.01</th></tr>";
+    let touched = sum.touched.as_ref();
+    if let Some(t) = touched {
+        h += &format!(
+            "<p>touched pixels: {} of {} sampled ({}; baseline {})</p>",
+            t.touched_pixels,
+            t.pixels_sampled,
+            esc(&t.definition),
+            esc(&t.baseline)
+        );
+    }
+    h += "<h2>Models</h2><table><tr><th>model</th><th>effects</th><th>residual RMS (normalised)</th><th>cells</th><th>missed @0.1</th><th>over @0.1</th><th>missed @0.01</th><th>over @0.01</th>";
+    if touched.is_some() {
+        h += "<th>missed @0.1 of touched</th><th>over @0.1 of touched</th><th>missed @0.01 of touched</th>";
+    }
+    h += "</tr>";
     for m in &sum.models {
         let q = |t: &str, f: fn(&crate::diag::eval::FlagQuality) -> f64| {
             m.flag_quality
@@ -151,7 +165,7 @@ pub fn html(sum: &Summary) -> Result<String> {
                 .map_or("-".to_string(), |q| format!("{:.4}", f(q)))
         };
         h += &format!(
-            "<tr><td>{}</td><td>{}</td><td>{:.3}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td></tr>",
+            "<tr><td>{}</td><td>{}</td><td>{:.3}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td>",
             esc(&m.path),
             esc(&m.effects.join(", ")),
             m.residual_rms_normalised,
@@ -161,6 +175,20 @@ pub fn html(sum: &Summary) -> Result<String> {
             q("0.01", |q| q.missed_flag_fraction),
             q("0.01", |q| q.over_flag_fraction),
         );
+        if touched.is_some() {
+            let t = |th: &str, f: fn(&super::compare::TouchedQuality) -> f64| {
+                m.flag_quality_touched
+                    .get(th)
+                    .map_or("-".to_string(), |q| format!("{:.4}", f(q)))
+            };
+            h += &format!(
+                "<td>{}</td><td>{}</td><td>{}</td>",
+                t("0.1", |q| q.missed_flag_fraction_touched),
+                t("0.1", |q| q.over_flag_fraction_touched),
+                t("0.01", |q| q.missed_flag_fraction_touched),
+            );
+        }
+        h += "</tr>";
     }
     h += "</table>";
     let mut figure =

@@ -7,6 +7,10 @@
 //! Every hook defaults to "no change"; an effect implements only what it acts on.
 //! For one exposure `k+1` after exposure `k` the step calls, in this order:
 //!
+//! 0. [`Effect::fluence`]: the extrapolated fluence the response is evaluated at, from
+//!    the measured one (ipc: what the pixel received before inter-pixel coupling mixed
+//!    it with its neighbours'); pixels whose fluence it changes get the paper's `A_k`
+//!    of the new value;
 //! 1. [`Effect::rates`]: the `(C_n, 1/tau_n)` in force over the interval from the reset
 //!    ending `k` to the reset ending `k+1` (temperature). Both the prediction weights
 //!    `C_n exp(-t_meas/tau_n)` and the decay factors `exp(-t_elapsed/tau_n)` use them;
@@ -160,6 +164,14 @@ pub trait Effect: Send + Sync + Debug {
         _weights: &mut [f64],
     ) {
     }
+    /// True if [`Effect::fluence`] is implemented.
+    fn has_fluence(&self) -> bool {
+        false
+    }
+    /// Adjust the extrapolated fluence `[ny, nx]` (e-) of this exposure before `A_k` is
+    /// evaluated. NaN marks an unknown fluence and must stay NaN; values must stay
+    /// finite and >= 0 elsewhere (others are set to 0).
+    fn fluence(&self, _fluence_e: &mut Array2<f64>) {}
     /// Adjust this exposure's response `A_k,n`, electrons, shape `[ny, nx, n_terms]`.
     fn response(&self, _ctx: &ResponseCtx<'_>, _ak: &mut Array3<f64>) {}
     /// True if [`Effect::accumulate`] is implemented.

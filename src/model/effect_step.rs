@@ -3,7 +3,8 @@
 //! hooks of [`crate::model::effect`] in between. Entered only when the model file lists
 //! effects, so the paper's model keeps its fused kernel unchanged.
 //!
-//! Per exposure: interval rates and observation weights (vectors, [`Effect::rates`],
+//! Per exposure: the fluence hook ([`Effect::fluence`], only when an effect has one);
+//! interval rates and observation weights (vectors, [`Effect::rates`],
 //! [`Effect::observe`]); the response planes `A_k,n` `[ny, nx, n_terms]`
 //! ([`Effect::response`]; built only here); then one pass over the pixels with
 //! [`Effect::accumulate`] when an effect has it. Pixels of unknown fluence keep the
@@ -68,6 +69,25 @@ pub(crate) fn step(
             fluence[(y, x)] = f64::NAN;
         } else {
             fluence[(y, x)] = f64::from(m.max(0.0)) * k.t_illuminated_s;
+        }
+    }
+    if effects.iter().any(|e| e.has_fluence()) {
+        let mut adjusted = fluence.clone();
+        for e in effects.iter().filter(|e| e.has_fluence()) {
+            e.fluence(&mut adjusted);
+        }
+        // only pixels whose fluence changed get a new `A_k` (a null hook changes nothing)
+        for (((b, f), g), kd) in base
+            .iter_mut()
+            .zip(fluence.iter_mut())
+            .zip(adjusted.iter())
+            .zip(kind.iter())
+        {
+            if *kd == 0 && g.to_bits() != f.to_bits() {
+                let g = if g.is_finite() { g.max(0.0) } else { 0.0 };
+                *f = g;
+                *b = k.response.amplitude_e(g);
+            }
         }
     }
     let mut ak = Array3::<f64>::zeros((ny, nx, n));

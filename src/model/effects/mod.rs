@@ -1,13 +1,15 @@
 //! The model effects, one file each, and the registry by name.
 //!
 //! They share names with the simulator's truth effects ([`crate::sim::effects`]) but not
-//! code: these act on the exponential sum, the simulator's on trap bins. `ipc` and
-//! `populations` have no model counterpart yet (a spatial kernel and a per-pixel
-//! population map): `diagnose` reports their signatures as unexplained residuals.
+//! code: these act on the exponential sum, the simulator's on trap bins. The model's
+//! `populations` is a smooth (quadratic) surface, not the simulator's per-pixel map
+//! (see its module docs).
 
 pub mod blooming;
 pub mod capacity;
+pub mod ipc;
 pub mod linefit_bias;
+pub mod populations;
 pub mod short_tau_boost;
 pub mod soak;
 pub mod temperature;
@@ -17,10 +19,12 @@ use super::params::EffectSpec;
 use std::collections::BTreeMap;
 
 /// Every effect this build knows, sorted by name.
-pub const REGISTRY: [EffectDef; 6] = [
+pub const REGISTRY: [EffectDef; 8] = [
     blooming::DEF,
     capacity::DEF,
+    ipc::DEF,
     linefit_bias::DEF,
+    populations::DEF,
     short_tau_boost::DEF,
     soak::DEF,
     temperature::DEF,

@@ -1,0 +1,123 @@
+//! `populations`: a spatially smooth scale of the trap density across the array.
+//!
+//! Physics: the paper (end of section 4) notes that "groupings can be made of pixels
+//! across the array that exhibit similar persistence current response, likely a result
+//! of similar trap distributions": trap density follows the material (growth defects,
+//! implant variations), which varies smoothly across the array. Persistence amplitudes
+//! are proportional to the trap density (the simulator's truth effect
+//! `crate::sim::effects::populations` scales both trap densities by a smooth field and
+//! draws the population from another), so the model scales its response by a smooth
+//! function of position.
+//!
+//! What the flagging model can honestly carry is a handful of numbers, not a per-pixel
+//! map: here a quadratic surface in the log of the amplitude,
+//! `A_k,n(y,x) <- A_k,n(y,x) * exp(gx u + gy v + gxx u^2 + gxy u v + gyy v^2)`,
+//! with `u = (x - (nx-1)/2) / (nx/2)` and `v = (y - (ny-1)/2) / (ny/2)` (about -1 at one
+//! edge, +1 at the other, the same normalisation as `compare`'s position covariate).
+//! There is no constant term: the global scale is the knot table's.
+//! Parameters: `gx`, `gy`, `gxx`, `gxy`, `gyy` (default 0, bounds [-2, 2], null 0; all
+//! zero is bit-identical to no effect; `diagnose` tests the first, `gx`; `fit --with`
+//! fits all five).
+//!
+//! Limit: it follows array-scale trends only. Patches a few pixels across (the
+//! simulator's default correlation length, `length_px` 8) are not representable by
+//! five numbers; with the simulator's `populations:length_px=512` the field is
+//! array-scale and the surface can follow it.
+//! Covariate: position on the array.
+
+use super::get;
+use crate::model::effect::{Effect, EffectDef, ParamSpec, ResponseCtx};
+use ndarray::{Array2, Array3};
+
+const fn coef(name: &'static str, doc: &'static str) -> ParamSpec {
+    ParamSpec {
+        name,
+        default: 0.0,
+        lo: -2.0,
+        hi: 2.0,
+        null: Some(0.0),
+        fitted: true,
+        doc,
+    }
+}
+
+pub const DEF: EffectDef = EffectDef {
+    name: "populations",
+    summary: "smooth trap-density scale across the array: log A *= quadratic in position",
+    params: &[
+        coef("gx", "log amplitude per half array width in x (u)"),
+        coef("gy", "log amplitude per half array height in y (v)"),
+        coef("gxx", "coefficient of u^2 in log amplitude"),
+        coef("gxy", "coefficient of u v in log amplitude"),
+        coef("gyy", "coefficient of v^2 in log amplitude"),
+    ],
+    build: |p| {
+        Box::new(Populations {
+            g: [
+                get(p, "gx"),
+                get(p, "gy"),
+                get(p, "gxx"),
+                get(p, "gxy"),
+                get(p, "gyy"),
+            ],
+        })
+    },
+    covariate: "position",
+};
+
+#[derive(Debug, Clone)]
+pub struct Populations {
+    /// `gx, gy, gxx, gxy, gyy`.
+    pub g: [f64; 5],
+}
+
+impl Populations {
+    /// The amplitude scale map `[ny, nx]` (module docs).
+    pub fn scale(&self, ny: usize, nx: usize) -> Array2<f64> {
+        let c = |v: usize, n: usize| (v as f64 - (n as f64 - 1.0) / 2.0) / (n as f64 / 2.0);
+        let [gx, gy, gxx, gxy, gyy] = self.g;
+        Array2::from_shape_fn((ny, nx), |(y, x)| {
+            let (u, v) = (c(x, nx), c(y, ny));
+            (gx * u + gy * v + gxx * u * u + gxy * u * v + gyy * v * v).exp()
+        })
+    }
+}
+
+impl Effect for Populations {
+    fn name(&self) -> &'static str {
+        DEF.name
+    }
+    fn response(&self, _ctx: &ResponseCtx<'_>, ak: &mut Array3<f64>) {
+        if self.g.iter().all(|g| *g == 0.0) {
+            return;
+        }
+        let (ny, nx, _) = ak.dim();
+        let s = self.scale(ny, nx);
+        for ((y, x, _), a) in ak.indexed_iter_mut() {
+            *a *= s[[y, x]];
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn gradient_scales_as_documented() {
+        // 1 x 4: u = (x - 1.5) / 2 = -0.75, -0.25, 0.25, 0.75; gx = ln 2 -> scale 2^u
+        let p = Populations {
+            g: [std::f64::consts::LN_2, 0.0, 0.0, 0.0, 0.0],
+        };
+        let s = p.scale(1, 4);
+        for (x, u) in [-0.75f64, -0.25, 0.25, 0.75].iter().enumerate() {
+            assert!((s[[0, x]] - 2f64.powf(*u)).abs() < 1e-12);
+        }
+        let q = Populations {
+            g: [0.0, 0.0, 1.0, 0.0, 1.0],
+        };
+        let s = q.scale(3, 3); // u, v in {-2/3, 0, 2/3}
+        assert_eq!(s[[1, 1]], 1.0);
+        assert!((s[[0, 0]] - (8.0f64 / 9.0).exp()).abs() < 1e-12);
+    }
+}
