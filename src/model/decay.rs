@@ -74,6 +74,28 @@ impl ExpSum {
     }
 }
 
+/// The predicted current `sum_n A_n w_n` (`w_n = C_n exp(-t/tau_n)`) in the one fixed
+/// order every implementation uses, so that they agree bit for bit: the even-indexed
+/// and the odd-indexed terms are summed separately, each in term order from 0.0, then
+/// added (`(A_0 w_0 + A_2 w_2 + A_4 w_4) + (A_1 w_1 + A_3 w_3 + A_5 w_5)` for six
+/// terms). Two independent chains halve the dependent additions of one chain and fill
+/// the two lanes of an SSE2 register.
+#[inline(always)]
+pub fn weighted_sum(a: &[f64], w: &[f64]) -> f64 {
+    let n = a.len().min(w.len());
+    let (mut even, mut odd) = (0.0f64, 0.0f64);
+    let mut j = 0;
+    while j + 1 < n {
+        even += a[j] * w[j];
+        odd += a[j + 1] * w[j + 1];
+        j += 2;
+    }
+    if j < n {
+        even += a[j] * w[j];
+    }
+    even + odd
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

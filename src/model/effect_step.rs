@@ -142,7 +142,7 @@ pub(crate) fn step(
                 ..Default::default()
             };
             for (x, a) in a_row.chunks_exact_mut(n).enumerate() {
-                let pred: f64 = a.iter().zip(&w).map(|(aj, wj)| aj * wj).sum();
+                let pred = super::decay::weighted_sum(a, &w);
                 let max_prev = p[x] & PENDING_MAX_AMPLITUDE != 0;
                 let mut high = pred > k.high || max_prev;
                 let mut low = pred > k.low || high;

@@ -22,12 +22,18 @@ pub fn step(
     // Pass 1: prediction at t_meas.
     let mut pred = Array2::<f64>::zeros((ny, nx));
     for ((y, x), p) in pred.indexed_iter_mut() {
+        // Even-indexed terms, odd-indexed terms, then their sum (the documented order of
+        // `decay::weighted_sum`).
         let a = state.amplitudes_e.slice(s![y, x, ..]);
-        let mut sum = 0.0f64;
+        let (mut even, mut odd) = (0.0f64, 0.0f64);
         for j in 0..k.n {
-            sum += a[j] * k.w[j];
+            if j % 2 == 0 {
+                even += a[j] * k.w[j];
+            } else {
+                odd += a[j] * k.w[j];
+            }
         }
-        *p = sum;
+        *p = even + odd;
     }
 
     // Pass 2: thresholds (and the forced flag of an unknown previous fluence).
