@@ -8,7 +8,9 @@ bootstrap:
 demo: bootstrap
 	cargo run --release --quiet -- demo
 
-test: bootstrap
+# The tests also open a report in headless Chromium (tests/report_chromium.rs).
+test:
+	@bash scripts/bootstrap.sh --chromium
 	cargo test
 
 lint: bootstrap
