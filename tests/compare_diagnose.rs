@@ -1,20 +1,8 @@
 //! `persist compare` writes a consistent summary and a self-contained report; with a
 //! hidden effect, the model fitted with it scores better and `diagnose` finds it.
 
-use std::process::Command;
-
-fn persist(args: &[&str]) -> String {
-    let o = Command::new(env!("CARGO_BIN_EXE_persist"))
-        .args(args)
-        .output()
-        .unwrap();
-    assert!(
-        o.status.success(),
-        "{args:?}: {}",
-        String::from_utf8_lossy(&o.stderr)
-    );
-    String::from_utf8_lossy(&o.stdout).to_string()
-}
+mod common;
+use common::persist_ok as persist;
 
 #[test]
 fn compare_summary_is_consistent_and_report_self_contained() {

@@ -10,15 +10,8 @@ fn persist(args: &[&str]) -> std::process::Output {
         .unwrap()
 }
 
-fn ok(args: &[&str]) -> String {
-    let o = persist(args);
-    assert!(
-        o.status.success(),
-        "{args:?}: {}",
-        String::from_utf8_lossy(&o.stderr)
-    );
-    String::from_utf8_lossy(&o.stdout).to_string()
-}
+mod common;
+use common::persist_ok as ok;
 
 fn summary(dir: &std::path::Path) -> serde_json::Value {
     serde_json::from_str(&std::fs::read_to_string(dir.join("summary.json")).unwrap()).unwrap()

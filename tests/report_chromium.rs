@@ -27,18 +27,8 @@ use std::time::{Duration, Instant};
 const WIDTH: u32 = 1400;
 const HEIGHT: u32 = 3600;
 
-fn persist(args: &[&str]) -> String {
-    let o = Command::new(env!("CARGO_BIN_EXE_persist"))
-        .args(args)
-        .output()
-        .unwrap();
-    assert!(
-        o.status.success(),
-        "{args:?}: {}",
-        String::from_utf8_lossy(&o.stderr)
-    );
-    String::from_utf8_lossy(&o.stdout).to_string()
-}
+mod common;
+use common::persist_ok as persist;
 
 fn find_chromium() -> Option<PathBuf> {
     if let Ok(p) = std::env::var("PERSIST_CHROMIUM") {

@@ -15,7 +15,8 @@
 //!
 //! # Score (Lagrange-multiplier) test per library effect
 //! For each registry effect not in the model, its switch parameter `theta` is moved from
-//! the null value to its default (`h = default - null`: a finite-difference score in the
+//! the null value to its default (`h = default - null`, or a tenth of the way to the
+//! farther bound when the default is the null: a finite-difference score in the
 //! direction of the effect at its default strength; the derivative *at* the null is
 //! degenerate for `soak`, whose fill fraction is flat at 0). `j_c = dz_c/dtheta =
 //! -(P95_c(theta_0 + h) - P95_c(theta_0)) / (h sigma_c)`. With residual scale
@@ -74,6 +75,24 @@ use rand_distr::StandardNormal;
 use serde::Serialize;
 use std::collections::BTreeMap;
 use std::path::Path;
+
+/// The finite-difference step of the score test for an effect's switch parameter `p`
+/// (null value `null`): to its default strength when that differs from the null;
+/// otherwise (effects whose default is "off", such as `populations`) a tenth of the way
+/// to the farther bound, so that the step is not degenerate. The score is the same for
+/// either sign of the step.
+fn score_step(p: &crate::model::effect::ParamSpec, null: f64) -> f64 {
+    if p.default != null {
+        return p.default - null;
+    }
+    let (up, down) = (p.hi - null, p.lo - null);
+    let h = 0.1 * if up.abs() >= down.abs() { up } else { down };
+    if h != 0.0 && h.is_finite() {
+        h
+    } else {
+        1e-2 * null.abs().max(1e-12)
+    }
+}
 
 /// Pixels in the random subsample.
 pub const DEFAULT_PIXELS: usize = 2048;
@@ -401,11 +420,7 @@ pub fn diagnose(
         let Some((p, null)) = def.switch() else {
             continue;
         };
-        let h = if p.default != null {
-            p.default - null
-        } else {
-            1e-2 * null.abs().max(1e-12)
-        };
+        let h = score_step(p, null);
         let mut q = params.clone();
         let mut map = serde_json::Map::new();
         map.insert(p.name.into(), serde_json::json!(null + h));
@@ -615,4 +630,23 @@ pub fn render(d: &Diagnosis) -> String {
     }
     s += &d.verdict;
     s
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// `populations` switches on from a default equal to its null (0, bounds [-2, 2]):
+    /// the step must not be degenerate (it was 1e-14, so its score was always ~0).
+    #[test]
+    fn score_step_is_not_degenerate_when_the_default_is_the_null() {
+        let def = crate::model::effects::lookup("populations").expect("registered");
+        let (p, null) = def.switch().expect("has a switch");
+        assert_eq!(p.default, null);
+        let h = score_step(p, null);
+        assert!(h.abs() >= 0.1 * (p.hi - p.lo) / 2.0 - 1e-12, "step {h}");
+        let soak = crate::model::effects::lookup("soak").expect("registered");
+        let (q, n) = soak.switch().expect("has a switch");
+        assert_eq!(score_step(q, n), q.default - n);
+    }
 }

@@ -1,5 +1,5 @@
-//! Shared by the `ops_*` tests: a deterministic product stream, the real binary, and
-//! directory comparisons.
+//! Shared by the integration tests: a deterministic product stream, the real binary,
+//! and directory comparisons.
 #![allow(dead_code)]
 
 use ndarray::Array2;
@@ -192,4 +192,18 @@ pub fn log_events(path: &Path, msg: &str) -> Vec<serde_json::Value> {
         .filter_map(|l| serde_json::from_str::<serde_json::Value>(l).ok())
         .filter(|v| v.get("message").and_then(|m| m.as_str()) == Some(msg))
         .collect()
+}
+
+/// Run the real binary with `args`; it must succeed. Its standard output.
+pub fn persist_ok(args: &[&str]) -> String {
+    let o = Command::new(env!("CARGO_BIN_EXE_persist"))
+        .args(args)
+        .output()
+        .unwrap();
+    assert!(
+        o.status.success(),
+        "{args:?}: {}",
+        String::from_utf8_lossy(&o.stderr)
+    );
+    String::from_utf8_lossy(&o.stdout).to_string()
 }
