@@ -486,7 +486,7 @@ impl Kernel<'_> {
         let base = amps.as_ptr();
         for x in 0..nx {
             if x % 4 == 0 {
-                // Four pixels' amplitudes are three cache lines (6 terms x 8 bytes).
+                // Four pixels' amplitudes: three cache lines with 6 terms (two with 4).
                 let ahead = base.wrapping_add(x + PREFETCH_PIXELS);
                 prefetch(ahead);
                 prefetch(ahead.wrapping_add(2));

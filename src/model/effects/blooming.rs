@@ -66,18 +66,7 @@ pub fn neighbour_excess(fluence_e: &ndarray::Array2<f64>, f_sat_e: f64) -> ndarr
     };
     ndarray::Array2::from_shape_fn((ny, nx), |(y, x)| {
         let mut s = 0.0;
-        if y > 0 {
-            s += ex(y - 1, x);
-        }
-        if y + 1 < ny {
-            s += ex(y + 1, x);
-        }
-        if x > 0 {
-            s += ex(y, x - 1);
-        }
-        if x + 1 < nx {
-            s += ex(y, x + 1);
-        }
+        crate::model::grid::for_each_neighbour(ny, nx, y, x, |y, x| s += ex(y, x));
         s / 4.0
     })
 }

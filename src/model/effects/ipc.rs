@@ -72,28 +72,14 @@ pub fn couple(s: &Array2<f64>, alpha: f64) -> Array2<f64> {
     let c = 1.0 - 4.0 * alpha;
     let mut out = vec![0.0f64; ny * nx];
     for y in 0..ny {
-        let row = &src[y * nx..(y + 1) * nx];
-        let up = (y > 0).then(|| &src[(y - 1) * nx..y * nx]);
-        let down = (y + 1 < ny).then(|| &src[(y + 1) * nx..(y + 2) * nx]);
         for (x, o) in out[y * nx..(y + 1) * nx].iter_mut().enumerate() {
-            let v = row[x];
+            let v = src[y * nx + x];
             if !v.is_finite() {
                 *o = v;
                 continue;
             }
             let mut n = 0.0;
-            if let Some(u) = up {
-                n += val(u[x]);
-            }
-            if let Some(d) = down {
-                n += val(d[x]);
-            }
-            if x > 0 {
-                n += val(row[x - 1]);
-            }
-            if x + 1 < nx {
-                n += val(row[x + 1]);
-            }
+            crate::model::grid::for_each_neighbour(ny, nx, y, x, |y, x| n += val(src[y * nx + x]));
             *o = c * v + alpha * n;
         }
     }
@@ -170,18 +156,7 @@ impl Effect for Ipc {
                         }
                     }
                 };
-                if y > 0 {
-                    add(p - nx);
-                }
-                if y + 1 < ny {
-                    add(p + nx);
-                }
-                if x > 0 {
-                    add(p - 1);
-                }
-                if x + 1 < nx {
-                    add(p + 1);
-                }
+                crate::model::grid::for_each_neighbour(ny, nx, y, x, |y, x| add(y * nx + x));
                 for (t, s) in sum.iter().enumerate() {
                     let v = src[p * n + t];
                     if v.is_finite() {

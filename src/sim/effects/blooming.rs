@@ -50,18 +50,9 @@ impl Effect for Blooming {
                 let moved = self.fraction * ex;
                 flux[[y, x]] -= moved as f32;
                 let share = (moved / 4.0) as f32;
-                if y > 0 {
-                    flux[[y - 1, x]] += share;
-                }
-                if y + 1 < ny {
-                    flux[[y + 1, x]] += share;
-                }
-                if x > 0 {
-                    flux[[y, x - 1]] += share;
-                }
-                if x + 1 < nx {
-                    flux[[y, x + 1]] += share;
-                }
+                crate::model::grid::for_each_neighbour(ny, nx, y, x, |y, x| {
+                    flux[[y, x]] += share;
+                });
             }
         }
     }

@@ -50,18 +50,7 @@ pub fn convolve(mut img: ArrayViewMut2<'_, f32>, alpha: f64) {
                 continue;
             }
             let mut s = 0.0f32;
-            if y > 0 {
-                s += val(y - 1, x);
-            }
-            if y + 1 < ny {
-                s += val(y + 1, x);
-            }
-            if x > 0 {
-                s += val(y, x - 1);
-            }
-            if x + 1 < nx {
-                s += val(y, x + 1);
-            }
+            crate::model::grid::for_each_neighbour(ny, nx, y, x, |y, x| s += val(y, x));
             img[[y, x]] = c * v + a * s;
         }
     }
