@@ -105,6 +105,33 @@ fn touched(s: &Samples, with: &Sim, without: &Sim) -> Vec<bool> {
     t
 }
 
+/// The paper's calibration of `seq`, then `diagnose` of it with `cfg` at `seed`.
+fn calibrate_and_diagnose(
+    seq: &Sequence,
+    seed: u64,
+    cfg: &Config,
+) -> (ModelParams, diagnose::Diagnosis) {
+    let (m0, _) = calib::calibrate(seq, &CalibConfig::default()).expect("calibrate");
+    let d = diagnose_with(&m0, seq, seed, cfg);
+    (m0, d)
+}
+
+fn diagnose_with(m: &ModelParams, seq: &Sequence, seed: u64, cfg: &Config) -> diagnose::Diagnosis {
+    let c = Config {
+        seed,
+        ..cfg.clone()
+    };
+    diagnose::diagnose(m, seq, &c, Path::new("lab"), Path::new("m0.json")).expect("diagnose")
+}
+
+/// The effect ranked first, when it is significant.
+fn declared_first(d: &diagnose::Diagnosis) -> Option<String> {
+    d.ranking
+        .first()
+        .filter(|c| c.significant)
+        .map(|c| c.effect.clone())
+}
+
 fn arg(args: &[String], name: &str) -> Option<String> {
     args.iter()
         .position(|a| a == name)
@@ -139,8 +166,6 @@ fn main() {
         cfg.statistic = v.parse::<Statistic>().unwrap();
     }
     let skip = |f: &str| args.iter().any(|a| a == f);
-    let dummy = Path::new("lab");
-    let model = Path::new("m0.json");
     let mut md = String::new();
     let mut jl = String::new();
     let cmdline = args[1..].join(" ");
@@ -162,18 +187,7 @@ fn main() {
         for seed in 1..=nbase {
             let sim = simulate(size, seed, &[]);
             let t0 = Instant::now();
-            let (m0, _) = calib::calibrate(&sim.seq, &CalibConfig::default()).expect("calibrate");
-            let d = diagnose::diagnose(
-                &m0,
-                &sim.seq,
-                &Config {
-                    seed,
-                    ..cfg.clone()
-                },
-                dummy,
-                model,
-            )
-            .expect("diagnose");
+            let (_, d) = calibrate_and_diagnose(&sim.seq, seed, &cfg);
             let secs = t0.elapsed().as_secs_f64();
             let sig: Vec<&str> = d
                 .ranking
@@ -228,25 +242,9 @@ fn main() {
                 let b = base_sim
                     .as_ref()
                     .unwrap_or_else(|| baselines[seed as usize - 1].as_ref().unwrap());
-                let (m0, _) =
-                    calib::calibrate(&sim.seq, &CalibConfig::default()).expect("calibrate");
-                let d = diagnose::diagnose(
-                    &m0,
-                    &sim.seq,
-                    &Config {
-                        seed,
-                        ..cfg.clone()
-                    },
-                    dummy,
-                    model,
-                )
-                .expect("diagnose");
+                let (m0, d) = calibrate_and_diagnose(&sim.seq, seed, &cfg);
                 let rank = d.ranking.iter().find(|c| &c.effect == e);
-                let first = d
-                    .ranking
-                    .first()
-                    .filter(|c| c.significant)
-                    .map(|c| c.effect.clone());
+                let first = declared_first(&d);
                 let s2 = Samples::new(&sim.seq, 2);
                 let t = touched(&s2, &sim, b);
                 let q0 = quality(&m0, &sim.seq, &s2, Some(&t));
@@ -320,29 +318,16 @@ fn main() {
             let names: Vec<&str> = pair.iter().map(String::as_str).collect();
             let sim = simulate(size, seed, &names);
             let s2 = Samples::new(&sim.seq, 2);
-            let (m0, _) = calib::calibrate(&sim.seq, &CalibConfig::default()).expect("calibrate");
-            let c = Config {
-                seed,
-                ..cfg.clone()
-            };
-            let d1 = diagnose::diagnose(&m0, &sim.seq, &c, dummy, model).expect("diagnose");
-            let w1 = d1
-                .ranking
-                .first()
-                .filter(|c| c.significant)
-                .map(|c| c.effect.clone());
+            let (m0, d1) = calibrate_and_diagnose(&sim.seq, seed, &cfg);
+            let w1 = declared_first(&d1);
             let r0 = quality(&m0, &sim.seq, &s2, None).rms;
             let (mut r1, mut r2, mut w2) = (f64::NAN, f64::NAN, None);
             if let Some(w) = &w1 {
                 let (m1, _) =
                     ceffects::fit(&m0, std::slice::from_ref(w), &sim.seq, &s2).expect("fit");
                 r1 = quality(&m1, &sim.seq, &s2, None).rms;
-                let d2 = diagnose::diagnose(&m1, &sim.seq, &c, dummy, model).expect("diagnose");
-                w2 = d2
-                    .ranking
-                    .first()
-                    .filter(|c| c.significant)
-                    .map(|c| c.effect.clone());
+                let d2 = diagnose_with(&m1, &sim.seq, seed, &cfg);
+                w2 = declared_first(&d2);
                 if let Some(v) = &w2 {
                     let (m2, _) =
                         ceffects::fit(&m0, &[w.clone(), v.clone()], &sim.seq, &s2).expect("fit");

@@ -63,16 +63,6 @@ pub struct Samples {
     pub radius: Vec<f64>,
 }
 
-pub const NAMES: [&str; 7] = [
-    "fluence_x_time",
-    "fluence",
-    "neighbour_excess_fluence",
-    "illumination_time",
-    "temperature",
-    "earlier_illuminations",
-    "position",
-];
-
 impl Samples {
     pub fn new(seq: &Sequence, stride: usize) -> Samples {
         let stride = stride.max(1);
