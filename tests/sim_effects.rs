@@ -127,25 +127,9 @@ fn blooming_gives_neighbours_persistence() {
         flux[[4, 4]] = 1e5;
         let zero = Array2::<f32>::zeros((9, 9));
         let a = s
-            .expose(&ExposureSpec {
-                index: 0,
-                flux: &flux,
-                t_exposure_s: 613.0,
-                t_on_s: 481.0,
-                temp_k: 80.0,
-                write_ramp: false,
-            })
+            .expose(&ExposureSpec::paper_illumination(0, &flux))
             .unwrap();
-        let b = s
-            .expose(&ExposureSpec {
-                index: 1,
-                flux: &zero,
-                t_exposure_s: 180.0,
-                t_on_s: 180.0,
-                temp_k: 80.0,
-                write_ramp: false,
-            })
-            .unwrap();
+        let b = s.expose(&ExposureSpec::paper_dark(1, &zero)).unwrap();
         (a.flux[[4, 5]], b.image[[4, 5]])
     };
     let (f0, p0) = run("");

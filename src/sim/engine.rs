@@ -69,6 +69,34 @@ pub struct ExposureSpec<'a> {
     pub write_ramp: bool,
 }
 
+impl<'a> ExposureSpec<'a> {
+    /// The paper's laboratory illumination (section "Persistence measurements"): a 613 s
+    /// integration lit for its first 481 s, at 80 K, without a ramp.
+    pub fn paper_illumination(index: u64, flux: &'a Array2<f32>) -> Self {
+        ExposureSpec {
+            index,
+            flux,
+            t_exposure_s: 613.0,
+            t_on_s: 481.0,
+            temp_k: 80.0,
+            write_ramp: false,
+        }
+    }
+
+    /// One of the paper's 180 s dark integrations after it (lit the whole time by
+    /// `flux`, zeros for a true dark), at 80 K, without a ramp.
+    pub fn paper_dark(index: u64, flux: &'a Array2<f32>) -> Self {
+        ExposureSpec {
+            index,
+            flux,
+            t_exposure_s: 180.0,
+            t_on_s: 180.0,
+            temp_k: 80.0,
+            write_ramp: false,
+        }
+    }
+}
+
 /// What one exposure produced.
 #[derive(Debug, Clone)]
 pub struct ExposureOut {
@@ -702,15 +730,8 @@ mod tests {
         let (ny, nx) = s.dim();
         let flux =
             Array2::from_shape_fn((ny, nx), |(y, x)| 50.0 * 2f32.powi((y * nx + x) as i32 % 9));
-        s.expose(&ExposureSpec {
-            index: 0,
-            flux: &flux,
-            t_exposure_s: 613.0,
-            t_on_s: 481.0,
-            temp_k: 80.0,
-            write_ramp: false,
-        })
-        .unwrap();
+        s.expose(&ExposureSpec::paper_illumination(0, &flux))
+            .unwrap();
     }
 
     /// The fast (weights) path and the explicit ramp agree without noise.
@@ -720,14 +741,7 @@ mod tests {
             let mut a = sim(4, 6, false, ls);
             illuminate(&mut a);
             let zero = Array2::<f32>::zeros((4, 6));
-            let mut spec = ExposureSpec {
-                index: 1,
-                flux: &zero,
-                t_exposure_s: 180.0,
-                t_on_s: 180.0,
-                temp_k: 80.0,
-                write_ramp: false,
-            };
+            let mut spec = ExposureSpec::paper_dark(1, &zero);
             let mut b = sim(4, 6, false, ls);
             illuminate(&mut b);
             let fast = a.expose(&spec).unwrap();
@@ -756,14 +770,7 @@ mod tests {
         let mut a = sim(3, 3, false, false);
         illuminate(&mut a);
         let zero = Array2::<f32>::zeros((3, 3));
-        let spec = ExposureSpec {
-            index: 1,
-            flux: &zero,
-            t_exposure_s: 180.0,
-            t_on_s: 180.0,
-            temp_k: 80.0,
-            write_ramp: false,
-        };
+        let spec = ExposureSpec::paper_dark(1, &zero);
         let first = a.expose(&spec).unwrap();
         a.gap(3600.0, 80.0);
         let later = a.expose(&spec).unwrap();

@@ -286,25 +286,11 @@ pub fn calibrate(fluence_e: f64) -> (f64, f64) {
     let mut sim = sim.with_pixels(px);
     let phi = (fluence_e / 481.0) as f32;
     let flux = Array2::from_elem((1, 2), phi);
-    sim.expose(&ExposureSpec {
-        index: 0,
-        flux: &flux,
-        t_exposure_s: 613.0,
-        t_on_s: 481.0,
-        temp_k: 80.0,
-        write_ramp: false,
-    })
-    .expect("valid");
+    sim.expose(&ExposureSpec::paper_illumination(0, &flux))
+        .expect("valid");
     let zero = Array2::<f32>::zeros((1, 2));
     let out = sim
-        .expose(&ExposureSpec {
-            index: 1,
-            flux: &zero,
-            t_exposure_s: 180.0,
-            t_on_s: 180.0,
-            temp_k: 80.0,
-            write_ramp: false,
-        })
+        .expose(&ExposureSpec::paper_dark(1, &zero))
         .expect("valid");
     let dark = 0.01;
     (
