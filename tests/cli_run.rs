@@ -89,7 +89,9 @@ fn run_prints_a_summary_and_refuses_a_model_change_unless_asked() {
     let out = persist(&with_model, tmp.path());
     assert!(out.status.success(), "{}", text(&out.stderr));
     assert_eq!(text(&out.stdout).lines().count(), 1 + 6);
-    let f = hdf5::File::open(tmp.path().join("out/l1_det1_exp0009.h5")).unwrap();
+    let f = hdf5::File::open(tmp.path().join("out/l1_det1_exp0009.h5"))
+        .map(persist::h5io::close_on_exec)
+        .unwrap();
     let id = f
         .group("persistence")
         .unwrap()

@@ -16,7 +16,9 @@ use std::path::Path;
 const N: usize = 16;
 
 fn tamper(path: &Path, f: impl FnOnce(&hdf5::File)) {
-    let file = hdf5::File::open_rw(path).unwrap();
+    let file = hdf5::File::open_rw(path)
+        .map(persist::h5io::close_on_exec)
+        .unwrap();
     f(&file);
 }
 

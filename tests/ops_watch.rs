@@ -202,7 +202,9 @@ fn gap_crossed_after_timeout_then_late_and_duplicates_are_kept_aside() {
     assert!(!out(3).exists(), "exposure 3 did not wait for the gap");
     assert!(wait_until(Duration::from_secs(20), || out(4).exists()));
     let pf = |k: u64| {
-        let f = hdf5::File::open(out(k)).unwrap();
+        let f = hdf5::File::open(out(k))
+            .map(persist::h5io::close_on_exec)
+            .unwrap();
         let p: Vec<u8> = f.dataset("persistence/flags").unwrap().read_raw().unwrap();
         p
     };
@@ -331,7 +333,9 @@ fn a_file_still_open_for_writing_is_retried_not_quarantined() {
     );
     let e = exposure(1, 0, N);
     let path = input.join(name(1, 0));
-    let file = hdf5::File::create(&path).unwrap();
+    let file = hdf5::File::create(&path)
+        .map(persist::h5io::close_on_exec)
+        .unwrap();
     let s = |k: &str, v: &str| {
         file.new_attr::<VarLenUnicode>()
             .create(k)

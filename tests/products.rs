@@ -94,7 +94,9 @@ fn only_file(dir: &Path) -> Vec<String> {
 fn modified(dir: &Path, name: &str, e: &Exposure, f: impl FnOnce(&hdf5::File)) -> PathBuf {
     let path = dir.join(name);
     write_exposure(&path, e).unwrap();
-    let file = hdf5::File::open_rw(&path).unwrap();
+    let file = hdf5::File::open_rw(&path)
+        .map(persist::h5io::close_on_exec)
+        .unwrap();
     f(&file);
     file.close().unwrap();
     path
@@ -537,7 +539,9 @@ fn unknown_checkpoint_format_version() {
     state.t_reset_unix_s = Some(1.7e9);
     state.last_index = Some(3);
     let path = checkpoint::save(dir.path(), &meta, &state).unwrap();
-    let file = hdf5::File::open_rw(&path).unwrap();
+    let file = hdf5::File::open_rw(&path)
+        .map(persist::h5io::close_on_exec)
+        .unwrap();
     file.delete_attr("format_version").unwrap();
     file.new_attr::<i64>()
         .create("format_version")
@@ -555,7 +559,9 @@ fn unknown_checkpoint_format_version() {
     assert!(text.contains("not supported"), "{text}");
     // A negative amplitude is refused by State::check.
     let path = checkpoint::save(dir.path(), &meta, &state).unwrap();
-    let file = hdf5::File::open_rw(&path).unwrap();
+    let file = hdf5::File::open_rw(&path)
+        .map(persist::h5io::close_on_exec)
+        .unwrap();
     let mut a = state.amplitudes_e.clone();
     a[[1, 1, 1]] = -1.0;
     file.dataset("amplitudes_e").unwrap().write(&a).unwrap();

@@ -52,7 +52,9 @@ fn output(root: &Path, det: u8, k: u64) -> PathBuf {
 
 /// `/persistence/current` (as bits) and `/persistence/flags` of an output.
 fn persistence(path: &Path) -> (Vec<u32>, Vec<u8>) {
-    let f = hdf5::File::open(path).unwrap();
+    let f = hdf5::File::open(path)
+        .map(persist::h5io::close_on_exec)
+        .unwrap();
     let c: Vec<f32> = f
         .dataset("persistence/current")
         .unwrap()
@@ -143,7 +145,9 @@ fn a_later_run_resumes_where_the_first_stopped() {
 
 /// Open a product for editing (the tests' way to make malformed inputs).
 fn tamper(path: &Path, f: impl FnOnce(&hdf5::File)) {
-    let file = hdf5::File::open_rw(path).unwrap();
+    let file = hdf5::File::open_rw(path)
+        .map(persist::h5io::close_on_exec)
+        .unwrap();
     f(&file);
 }
 
@@ -188,6 +192,7 @@ fn malformed_inputs_are_refused_by_field_and_the_rest_is_processed() {
     // exp 9: starts before the reset that ended exp 8 (exp 8 started 30 s after exp 7
     // ended and lasted 112 s; this start is 60 s before exp 8's reset).
     let t8 = hdf5::File::open(input.join(name(8)))
+        .map(persist::h5io::close_on_exec)
         .unwrap()
         .attr("t_start_utc")
         .unwrap()
