@@ -14,12 +14,28 @@ fn spec(name: &str, params: serde_json::Value) -> EffectSpec {
 
 /// Run a 4x4 lab-like sequence (one bright exposure, then darks); predictions per step.
 fn run(model: &Model, temps: &[f64]) -> Vec<Array2<f32>> {
+    run_masked(model, temps, None).unwrap()
+}
+
+/// [`run`] advancing only the `active` pixels (and a non-finite pixel at (0, 1) in the
+/// bright exposure when `active` is given: an unknown-fluence pixel).
+fn run_masked(
+    model: &Model,
+    temps: &[f64],
+    active: Option<&[bool]>,
+) -> Result<Vec<Array2<f32>>, persist::Error> {
     let mut st = model.new_state(4, 4);
     let mut out = Vec::new();
     let mut t = 0.0;
     for (k, temp) in temps.iter().enumerate() {
         let img = if k == 0 {
-            Array2::from_shape_fn((4, 4), |(y, x)| (200.0 * (1 + y * 4 + x) as f32).powf(1.3))
+            Array2::from_shape_fn((4, 4), |(y, x)| {
+                if active.is_some() && (y, x) == (0, 1) {
+                    f32::NAN
+                } else {
+                    (200.0 * (1 + y * 4 + x) as f32).powf(1.3)
+                }
+            })
         } else {
             Array2::from_elem((4, 4), 0.01f32)
         };
@@ -36,24 +52,67 @@ fn run(model: &Model, temps: &[f64]) -> Vec<Array2<f32>> {
         let mut flags = Array2::<u32>::zeros((4, 4));
         let mut cur = Array2::<f32>::zeros((4, 4));
         let mut pf = Array2::<u8>::zeros((4, 4));
-        model
-            .step_with(
-                &mut st,
-                &input,
-                &StepContext {
-                    focal_plane_temp_k: Some(*temp),
-                },
-                &mut Output {
-                    flags: &mut flags,
-                    current_e_per_s: &mut cur,
-                    pflags: &mut pf,
-                },
-            )
-            .unwrap();
+        model.step_with(
+            &mut st,
+            &input,
+            &StepContext {
+                focal_plane_temp_k: Some(*temp),
+                active_pixels: active,
+            },
+            &mut Output {
+                flags: &mut flags,
+                current_e_per_s: &mut cur,
+                pflags: &mut pf,
+            },
+        )?;
         out.push(cur);
         t += t_exp;
     }
-    out
+    Ok(out)
+}
+
+/// The diagnostics advance only their sampled pixels (`StepContext::active_pixels`):
+/// what those pixels predict must not depend on whether the others are advanced, for
+/// every effect, the spatial ones (blooming, ipc) and the position-dependent one
+/// (populations) included.
+#[test]
+fn active_pixels_predict_bit_identically_to_the_whole_array() {
+    let temps: Vec<f64> = (0..8).map(|k| 79.0 + 0.5 * k as f64).collect();
+    let keep: Vec<bool> = (0..16).map(|i| i % 3 != 0).collect();
+    let all = vec![true; 16];
+    for (name, p) in [
+        ("capacity", serde_json::json!({"inv_a_max_per_e": 1e-3})),
+        ("soak", serde_json::json!({"capture_ratio": 0.5})),
+        ("temperature", serde_json::json!({})),
+        ("linefit_bias", serde_json::json!({})),
+        ("blooming", serde_json::json!({"gain_per_e": 1e-4})),
+        ("short_tau_boost", serde_json::json!({"factor": 2.0})),
+        ("ipc", serde_json::json!({"alpha": 0.02})),
+        ("populations", serde_json::json!({"gx": 0.3, "gyy": -0.2})),
+    ] {
+        // with an accumulator beside (capacity), so that path runs too
+        let mut effects = vec![spec(name, p)];
+        if name != "capacity" {
+            effects.push(spec("capacity", serde_json::json!({})));
+        }
+        let m = with(effects);
+        let whole = run_masked(&m, &temps, Some(&all)).unwrap();
+        let part = run_masked(&m, &temps, Some(&keep)).unwrap();
+        for (k, (w, q)) in whole.iter().zip(&part).enumerate() {
+            for (i, (a, b)) in w.iter().zip(q.iter()).enumerate() {
+                if keep[i] {
+                    assert_eq!(a.to_bits(), b.to_bits(), "{name}: exposure {k} pixel {i}");
+                }
+            }
+        }
+        // the masked-out pixels were really skipped (their current stays 0)
+        assert!(part[1].iter().zip(&keep).any(|(v, k)| !k && *v == 0.0));
+        assert!(whole[1].iter().all(|v| *v > 0.0), "{name}");
+    }
+    // a mask of the wrong size is refused, naming the field
+    let m = with(vec![spec("capacity", serde_json::json!({}))]);
+    let e = run_masked(&m, &temps, Some(&[true; 3])).unwrap_err();
+    assert!(e.to_string().contains("active_pixels"), "{e}");
 }
 
 fn with(effects: Vec<EffectSpec>) -> Model {

@@ -69,6 +69,7 @@ fn run(model: &Model, steps: usize) -> Vec<Array2<f32>> {
                 &input,
                 &StepContext {
                     focal_plane_temp_k: Some(80.0),
+                    ..Default::default()
                 },
                 &mut Output {
                     flags: &mut flags,

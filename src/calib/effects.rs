@@ -48,6 +48,7 @@ struct Problem<'a> {
     base: ModelParams,
     seq: &'a Sequence,
     samples: &'a Samples,
+    cells: eval::CellIndex,
     slots: Vec<Slot>,
     p: DVector<f64>,
     cache: Cache,
@@ -74,7 +75,7 @@ impl Problem<'_> {
         let z = eval::predict(&m, self.seq, self.samples, false)
             .ok()
             .map(|pr| {
-                let c = eval::cell_z(self.samples, &pr.current);
+                let c = self.cells.z(self.samples, &pr.current);
                 DVector::from_iterator(c.len(), c.iter().map(|(_, g)| g.z))
             });
         let mut cache = self.cache.borrow_mut();
@@ -171,14 +172,16 @@ pub fn fit(
             }
         }
     }
+    let cells = eval::CellIndex::new(samples);
     let before = {
         let pr = eval::predict(base, seq, samples, false)?;
-        eval::rms(&eval::cell_z(samples, &pr.current))
+        eval::rms(&cells.z(samples, &pr.current))
     };
     let problem = Problem {
         base: m.clone(),
         seq,
         samples,
+        cells,
         slots,
         p: DVector::from_vec(start),
         cache: RefCell::new(Vec::new()),

@@ -180,11 +180,17 @@ pub fn quantile(v: &[f64], q: f64) -> f64 {
     if a.is_empty() {
         return f64::NAN;
     }
-    a.sort_by(|x, y| x.total_cmp(y));
     let pos = q.clamp(0.0, 1.0) * (a.len() - 1) as f64;
     let i = pos.floor() as usize;
-    let j = (i + 1).min(a.len() - 1);
-    a[i] + (a[j] - a[i]) * (pos - i as f64)
+    // the i-th and (i+1)-th smallest by selection (the values a full sort would give)
+    let (_, ai, rest) = a.select_nth_unstable_by(i, |x, y| x.total_cmp(y));
+    let ai = *ai;
+    let aj = rest
+        .iter()
+        .copied()
+        .min_by(|x, y| x.total_cmp(y))
+        .unwrap_or(ai);
+    ai + (aj - ai) * (pos - i as f64)
 }
 
 /// The 95th percentile of the *signal* in a set of measurements with Gaussian noise

@@ -72,6 +72,7 @@ use crate::model::params::{EffectSpec, ModelParams};
 use crate::sim::analysis::median;
 use rand::{Rng, SeedableRng};
 use rand_distr::StandardNormal;
+use rayon::prelude::*;
 use serde::Serialize;
 use std::collections::BTreeMap;
 use std::path::Path;
@@ -351,9 +352,8 @@ pub fn held_out(
             .map(|&e| seq.exposures[e].meta.exposure_index)
             .collect()
     };
-    let mut folds = Vec::new();
-    let (mut b, mut a, mut m) = (0.0, 0.0, 0usize);
-    for h in 0..2 {
+    // the two folds in parallel, combined in fold order
+    let fold = |h: usize| -> Result<(f64, usize, f64, usize)> {
         let (fit_ev, test_ev) = (&half[h], &half[1 - h]);
         let fs = samples.rows_where(|e| fit_ev.contains(&e));
         let ts = samples.rows_where(|e| test_ev.contains(&e));
@@ -361,6 +361,14 @@ pub fn held_out(
             crate::calib::effects::fit(start.unwrap_or(params), &[name.to_string()], seq, &fs)?;
         let (rb, mb) = rss_cells(params, seq, &ts)?;
         let (ra, ma) = rss_cells(&fitted, seq, &ts)?;
+        Ok((rb, mb, ra, ma))
+    };
+    let (f0, f1) = rayon::join(|| fold(0), || fold(1));
+    let mut folds = Vec::new();
+    let (mut b, mut a, mut m) = (0.0, 0.0, 0usize);
+    for (h, r) in [f0?, f1?].into_iter().enumerate() {
+        let (fit_ev, test_ev) = (&half[h], &half[1 - h]);
+        let (rb, mb, ra, ma) = r;
         if mb != ma || mb == 0 {
             continue;
         }
@@ -411,28 +419,30 @@ pub fn diagnose(
         .path(input));
     }
     let pp0 = p95s(&cells, &base.current);
-    let mut names: Vec<&'static str> = Vec::new();
-    let mut dp: Vec<Vec<f64>> = Vec::new();
-    for def in REGISTRY.iter() {
-        if params.effects.iter().any(|e| e.name == def.name) {
-            continue;
-        }
-        let Some((p, null)) = def.switch() else {
-            continue;
-        };
-        let h = score_step(p, null);
-        let mut q = params.clone();
-        let mut map = serde_json::Map::new();
-        map.insert(p.name.into(), serde_json::json!(null + h));
-        q.effects.push(EffectSpec {
-            name: def.name.into(),
-            params: map,
-        });
-        let pr = eval::predict(&q, seq, &samples, false)?;
-        let pp = p95s(&cells, &pr.current);
-        names.push(def.name);
-        dp.push(pp.iter().zip(&pp0).map(|(a, b)| (a - b) / h).collect());
-    }
+    // the library effects to test, each predicted at its score step (in parallel;
+    // collected in registry order)
+    let tests: Vec<_> = REGISTRY
+        .iter()
+        .filter(|def| !params.effects.iter().any(|e| e.name == def.name))
+        .filter_map(|def| def.switch().map(|(p, null)| (def, p, null)))
+        .collect();
+    let dp: Vec<Vec<f64>> = tests
+        .par_iter()
+        .map(|(def, p, null)| {
+            let h = score_step(p, *null);
+            let mut q = params.clone();
+            let mut map = serde_json::Map::new();
+            map.insert(p.name.into(), serde_json::json!(null + h));
+            q.effects.push(EffectSpec {
+                name: def.name.into(),
+                params: map,
+            });
+            let pr = eval::predict(&q, seq, &samples, false)?;
+            let pp = p95s(&cells, &pr.current);
+            Ok(pp.iter().zip(&pp0).map(|(a, b)| (a - b) / h).collect())
+        })
+        .collect::<Result<_>>()?;
+    let names: Vec<&'static str> = tests.iter().map(|(def, _, _)| def.name).collect();
     let lm = scores(&cells, &samples.measured, &pp0, &dp, cfg.statistic);
     // parametric bootstrap from the fitted model
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(cfg.seed ^ 0x9e37_79b9_7f4a_7c15);
@@ -482,21 +492,46 @@ pub fn diagnose(
             }
         })
         .collect();
-    for c in ranking.iter_mut().filter(|c| c.passes_score).take(REFIT) {
-        let (fitted, f) =
-            crate::calib::effects::fit(params, std::slice::from_ref(&c.effect), seq, &samples)?;
-        let k = f.params.len() as f64;
-        let mf = f.cells as f64;
-        let rss0 = f.residual_rms_normalised_before.powi(2) * mf;
-        let rss1 = f.residual_rms_normalised_after.powi(2) * mf;
-        let dbic = mf * (rss1 / rss0).ln() + k * mf.ln();
+    // the leading candidates refitted in parallel (each fit is its own computation)
+    let refit: Vec<usize> = ranking
+        .iter()
+        .enumerate()
+        .filter(|(_, c)| c.passes_score)
+        .map(|(i, _)| i)
+        .take(REFIT)
+        .collect();
+    let results: Vec<(usize, f64, f64, f64, Option<HeldOut>)> = refit
+        .par_iter()
+        .map(|&i| {
+            let name = &ranking[i].effect;
+            let (fitted, f) =
+                crate::calib::effects::fit(params, std::slice::from_ref(name), seq, &samples)?;
+            let k = f.params.len() as f64;
+            let mf = f.cells as f64;
+            let rss0 = f.residual_rms_normalised_before.powi(2) * mf;
+            let rss1 = f.residual_rms_normalised_after.powi(2) * mf;
+            let dbic = mf * (rss1 / rss0).ln() + k * mf.ln();
+            let ho = if dbic < DBIC_MAX {
+                held_out(params, Some(&fitted), name, seq, &samples)?
+            } else {
+                None
+            };
+            Ok((
+                i,
+                dbic,
+                f.residual_rms_normalised_before,
+                f.residual_rms_normalised_after,
+                ho,
+            ))
+        })
+        .collect::<Result<_>>()?;
+    for (i, dbic, before, after, ho) in results {
+        let c = &mut ranking[i];
         c.delta_bic = Some(dbic);
-        c.rms_before = Some(f.residual_rms_normalised_before);
-        c.rms_after = Some(f.residual_rms_normalised_after);
-        if dbic < DBIC_MAX {
-            c.held_out = held_out(params, Some(&fitted), &c.effect, seq, &samples)?;
-        }
-        c.significant = dbic < DBIC_MAX && c.held_out.as_ref().is_none_or(|h| h.passes);
+        c.rms_before = Some(before);
+        c.rms_after = Some(after);
+        c.significant = dbic < DBIC_MAX && ho.as_ref().is_none_or(|h| h.passes);
+        c.held_out = ho;
     }
     ranking.sort_by(|a, b| match (a.significant, b.significant) {
         (true, true) => a

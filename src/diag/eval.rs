@@ -226,6 +226,11 @@ pub fn predict(
         current: Vec::with_capacity(samples.len()),
         flagged: Vec::with_capacity(samples.len()),
     };
+    // only the sampled pixels are read: the model may skip the others
+    let mut active = vec![false; ny * nx];
+    for &(y, x) in &samples.pixels {
+        active[y * nx + x] = true;
+    }
     let mut row = 0;
     for (k, e) in seq.exposures.iter().enumerate() {
         let mut flags = e.flags.clone();
@@ -243,6 +248,7 @@ pub fn predict(
             &input,
             &StepContext {
                 focal_plane_temp_k: e.meta.focal_plane_temp_k,
+                active_pixels: Some(&active),
             },
             &mut Output {
                 flags: &mut flags,
@@ -378,6 +384,88 @@ pub fn cell_z(s: &Samples, pred: &[f64]) -> Vec<(Vec<i64>, GroupStat)> {
     groups(s, pred, &["fluence", "time"])
 }
 
+/// The fluence x time cells of one sample set with their measured side computed once:
+/// for fits that evaluate [`cell_z`] for many predictions of the same samples.
+/// [`CellIndex::z`] returns exactly what [`cell_z`] returns (a cell where some
+/// prediction is not finite is recomputed from its remaining samples, as [`groups`]
+/// would).
+#[derive(Debug, Clone)]
+pub struct CellIndex {
+    cells: Vec<IndexedCell>,
+}
+
+#[derive(Debug, Clone)]
+struct IndexedCell {
+    key: Vec<i64>,
+    /// Samples with a finite measurement, in sample order.
+    members: Vec<usize>,
+    /// [`group_stat_p95`] of all members (its `predicted_p95_e_per_s` unused); None
+    /// when fewer than 10.
+    measured: Option<GroupStat>,
+}
+
+impl CellIndex {
+    pub fn new(s: &Samples) -> CellIndex {
+        let all = vec![0.0; s.len()];
+        let mut g: std::collections::BTreeMap<Vec<i64>, Vec<usize>> = Default::default();
+        for i in 0..s.len() {
+            if !s.measured[i].is_finite() {
+                continue;
+            }
+            if let (Some(f), Some(t)) = (bin_of(s, "fluence", i), bin_of(s, "time", i)) {
+                g.entry(vec![f, t]).or_default().push(i);
+            }
+        }
+        let cells = g
+            .into_iter()
+            .map(|(key, members)| {
+                let (meas, noise) = Self::gather(s, &members, &all);
+                let measured = group_stat_p95(&meas, 0.0, median(&noise));
+                IndexedCell {
+                    key,
+                    members,
+                    measured,
+                }
+            })
+            .collect();
+        CellIndex { cells }
+    }
+
+    fn gather(s: &Samples, members: &[usize], pred: &[f64]) -> (Vec<f64>, Vec<f64>) {
+        members
+            .iter()
+            .filter(|&&i| pred[i].is_finite())
+            .map(|&i| (s.measured[i], s.noise[i / s.npix()]))
+            .unzip()
+    }
+
+    /// [`cell_z`] of `pred` on the samples this index was built from.
+    pub fn z(&self, s: &Samples, pred: &[f64]) -> Vec<(Vec<i64>, GroupStat)> {
+        let mut buf = Vec::new();
+        self.cells
+            .iter()
+            .filter_map(|c| {
+                buf.clear();
+                buf.extend(c.members.iter().map(|&i| pred[i]));
+                let st = if buf.iter().all(|v| v.is_finite()) {
+                    let m = c.measured?;
+                    let pp = quantile(&buf, 0.95);
+                    Some(GroupStat {
+                        predicted_p95_e_per_s: pp,
+                        z: (m.measured_p95_e_per_s - pp) / m.sigma_e_per_s,
+                        ..m
+                    })
+                } else {
+                    let (meas, noise) = Self::gather(s, &c.members, pred);
+                    let p: Vec<f64> = buf.iter().copied().filter(|v| v.is_finite()).collect();
+                    group_stat(&meas, &p, median(&noise))
+                };
+                st.map(|st| (c.key.clone(), st))
+            })
+            .collect()
+    }
+}
+
 /// `sqrt(mean z^2)` over the cells.
 pub fn rms(z: &[(Vec<i64>, GroupStat)]) -> f64 {
     if z.is_empty() {
@@ -445,5 +533,102 @@ pub fn flag_quality_of(
         missed_flag_fraction: fr(missed, n),
         missed_of_measured_above: fr(missed, above),
         over_flag_fraction: fr(over, n),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::{Rng, SeedableRng};
+
+    /// Samples of 40 pixels x 6 rows with fluences over a decade, every covariate
+    /// filled, some measurements NaN.
+    fn synthetic() -> Samples {
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(7);
+        let (np, rows) = (40, 6);
+        let n = np * rows;
+        let measured = (0..n)
+            .map(|i| {
+                if i % 17 == 3 {
+                    f64::NAN
+                } else {
+                    rng.random_range(0.0..2.0)
+                }
+            })
+            .collect();
+        Samples {
+            stride: 0,
+            pixels: (0..np).map(|i| (i / 8, i % 8)).collect(),
+            exposures: (1..=rows).collect(),
+            measured,
+            noise: (0..rows).map(|r| 0.01 * (1 + r) as f64).collect(),
+            fluence_e: (0..n)
+                .map(|i| 10f64.powf(3.0 + (i % np) as f64 / 40.0))
+                .collect(),
+            neighbour_excess_e: vec![0.0; n],
+            t_since_s: (0..rows).map(|r| 100.0 * 2f64.powi(r as i32 % 3)).collect(),
+            event: vec![0; rows],
+            illumination_time_s: vec![481.0; rows],
+            temperature_k: vec![80.0; rows],
+            earlier_illuminations: vec![0.0; rows],
+            radius: vec![0.5; np],
+        }
+    }
+
+    /// `CellIndex::z` is an optimisation of `cell_z` for fits: it must return exactly the
+    /// same cells and statistics, also when some predictions are not finite.
+    #[test]
+    fn cell_index_matches_cell_z_bit_for_bit() {
+        let s = synthetic();
+        let index = CellIndex::new(&s);
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(8);
+        for trial in 0..4 {
+            let pred: Vec<f64> = (0..s.len())
+                .map(|i| {
+                    if trial > 1 && i % 29 == trial {
+                        f64::NAN
+                    } else {
+                        rng.random_range(0.0..2.0)
+                    }
+                })
+                .collect();
+            let a = cell_z(&s, &pred);
+            let b = index.z(&s, &pred);
+            assert!(!a.is_empty());
+            assert_eq!(a.len(), b.len(), "trial {trial}");
+            for ((ka, ga), (kb, gb)) in a.iter().zip(&b) {
+                assert_eq!(ka, kb);
+                assert_eq!(format!("{ga:?}"), format!("{gb:?}"), "trial {trial}");
+            }
+        }
+    }
+
+    /// `quantile` and `median` select instead of sorting: same values as a full sort.
+    #[test]
+    fn selection_quantiles_equal_the_sorted_ones() {
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(9);
+        for n in [1usize, 2, 3, 4, 10, 11, 57] {
+            let mut v: Vec<f64> = (0..n)
+                .map(|_| (rng.random_range(-5..5) as f64) * 0.5)
+                .collect();
+            v.push(-0.0);
+            v.push(f64::NAN);
+            let mut a: Vec<f64> = v.iter().copied().filter(|x| x.is_finite()).collect();
+            a.sort_by(|x, y| x.total_cmp(y));
+            for q in [0.0, 0.05, 0.5, 0.95, 1.0] {
+                let pos = q * (a.len() - 1) as f64;
+                let i = pos.floor() as usize;
+                let j = (i + 1).min(a.len() - 1);
+                let want = a[i] + (a[j] - a[i]) * (pos - i as f64);
+                assert_eq!(quantile(&v, q).to_bits(), want.to_bits(), "n {n} q {q}");
+            }
+            let m = a.len();
+            let want = if m % 2 == 1 {
+                a[m / 2]
+            } else {
+                0.5 * (a[m / 2 - 1] + a[m / 2])
+            };
+            assert_eq!(median(&v).to_bits(), want.to_bits(), "n {n}");
+        }
     }
 }

@@ -18,23 +18,47 @@ use crate::flags::pbits;
 use ndarray::{Array2, Array3};
 use rayon::prelude::*;
 
-/// What the step knows beyond the product's image: the exposure's environment.
+/// What the step knows beyond the product's image: the exposure's environment, and
+/// which pixels the caller needs.
 #[derive(Debug, Clone, Copy, Default, PartialEq)]
-pub struct StepContext {
+pub struct StepContext<'a> {
     /// `focal_plane_temp_k` of the exposure, when the product has it.
     pub focal_plane_temp_k: Option<f64>,
+    /// Pixels the caller will read (row-major, `ny * nx`), `None` for all. A model with
+    /// effects advances only these pixels; the state, current and flags of the others
+    /// are left as they were and must not be used afterwards. Exact for the pixels it
+    /// keeps: a pixel's state depends on its own history and on the response planes,
+    /// which are still built for the whole array (spatial hooks see every neighbour).
+    /// The paper's fused kernel ignores it (it advances every pixel). Used by the
+    /// diagnostics, which read predictions at a random subsample of pixels.
+    pub active_pixels: Option<&'a [bool]>,
 }
+
+/// Pixel kinds of the response planes.
+const KNOWN: u8 = 0;
+/// Unknown fluence (transient, fit error, non-finite): the maximum amplitude.
+const UNKNOWN: u8 = 1;
+/// Non-functional: adds nothing.
+const NONFUNC: u8 = 2;
 
 pub(crate) fn step(
     model: &Model,
     effects: &[Box<dyn Effect>],
     state: &mut State,
     input: &Input<'_>,
-    ctx: &StepContext,
+    ctx: &StepContext<'_>,
     out: &mut Output<'_>,
 ) -> Result<StepSummary, Error> {
-    let k = model.prepare(state, input, out)?;
     let (ny, nx) = state.shape();
+    if let Some(a) = ctx.active_pixels {
+        if a.len() != ny * nx {
+            return Err(Error::invalid(
+                "active_pixels",
+                format!("{} entries for a {ny} x {nx} state", a.len()),
+            ));
+        }
+    }
+    let k = model.prepare(state, input, out)?;
     let n = k.n;
     let sum = model.exp_sum();
     let (w, decay) = match state.t_reset_unix_s {
@@ -52,25 +76,36 @@ pub(crate) fn step(
             (w, d)
         }
     };
-    // Response planes.
-    let image = input.image_e_per_s;
+    // Response planes: per pixel the paper's amplitude, its kind and its fluence (rows
+    // in parallel; the same `response_of` as the fused kernel).
+    let image = input.image_e_per_s.as_standard_layout();
+    let image = image.as_slice().expect("standard layout");
+    let flags_in = contiguous(out.flags);
     let mut base = Array2::<f64>::zeros((ny, nx));
-    let mut kind = Array2::<u8>::zeros((ny, nx)); // 0 known, 1 unknown (max), 2 nonfunc
+    let mut kind = Array2::<u8>::zeros((ny, nx)); // KNOWN, UNKNOWN (max) or NONFUNC
     let mut fluence = Array2::<f64>::zeros((ny, nx));
-    for ((y, x), b) in base.indexed_iter_mut() {
-        let m = image[(y, x)];
-        let f = out.flags[(y, x)];
-        let (a, max_used) = k.response_of(m, f);
-        *b = a;
-        if f & k.bits.nonfunc != 0 {
-            kind[(y, x)] = 2;
-        } else if max_used {
-            kind[(y, x)] = 1;
-            fluence[(y, x)] = f64::NAN;
-        } else {
-            fluence[(y, x)] = f64::from(m.max(0.0)) * k.t_illuminated_s;
-        }
-    }
+    (
+        base.as_slice_mut().expect("owned").par_chunks_mut(nx),
+        kind.as_slice_mut().expect("owned").par_chunks_mut(nx),
+        fluence.as_slice_mut().expect("owned").par_chunks_mut(nx),
+        image.par_chunks(nx),
+        flags_in.par_chunks(nx),
+    )
+        .into_par_iter()
+        .for_each(|(b, kd, fl, img, f)| {
+            for x in 0..img.len() {
+                let (a, max_used) = k.response_of(img[x], f[x]);
+                b[x] = a;
+                if f[x] & k.bits.nonfunc != 0 {
+                    kd[x] = NONFUNC;
+                } else if max_used {
+                    kd[x] = UNKNOWN;
+                    fl[x] = f64::NAN;
+                } else {
+                    fl[x] = f64::from(img[x].max(0.0)) * k.t_illuminated_s;
+                }
+            }
+        });
     if effects.iter().any(|e| e.has_fluence()) {
         let mut adjusted = fluence.clone();
         for e in effects.iter().filter(|e| e.has_fluence()) {
@@ -83,7 +118,7 @@ pub(crate) fn step(
             .zip(adjusted.iter())
             .zip(kind.iter())
         {
-            if *kd == 0 && g.to_bits() != f.to_bits() {
+            if *kd == KNOWN && g.to_bits() != f.to_bits() {
                 let g = if g.is_finite() { g.max(0.0) } else { 0.0 };
                 *f = g;
                 *b = k.response.amplitude_e(g);
@@ -91,9 +126,15 @@ pub(crate) fn step(
         }
     }
     let mut ak = Array3::<f64>::zeros((ny, nx, n));
-    for ((y, x, _), a) in ak.indexed_iter_mut() {
-        *a = base[(y, x)];
-    }
+    ak.as_slice_mut()
+        .expect("owned")
+        .par_chunks_mut(nx * n)
+        .zip(base.as_slice().expect("owned").par_chunks(nx))
+        .for_each(|(a_row, b_row)| {
+            for (a, b) in a_row.chunks_exact_mut(n).zip(b_row) {
+                a.fill(*b);
+            }
+        });
     let rctx = ResponseCtx {
         fluence_e: &fluence,
         t_illuminated_s: k.t_illuminated_s,
@@ -103,25 +144,21 @@ pub(crate) fn step(
     for e in effects {
         e.response(&rctx, &mut ak);
     }
-    for ((y, x, _), a) in ak.indexed_iter_mut() {
-        if kind[(y, x)] != 0 || !(a.is_finite() && *a >= 0.0) {
-            *a = if kind[(y, x)] == 0 { 0.0 } else { base[(y, x)] };
-        }
-    }
     let accumulators: Vec<&dyn Effect> = effects
         .iter()
         .filter(|e| e.has_accumulate())
         .map(|e| e.as_ref())
         .collect();
 
+    let zero = vec![0.0; n];
+    let zero = zero.as_slice();
     let amps = state.amplitudes_e.as_slice_mut().expect("owned state");
     let count = state.release_count.as_slice_mut().expect("owned state");
     let pending = state.pending.as_slice_mut().expect("owned state");
     let kind = kind.as_slice().expect("standard layout");
+    let base = base.as_slice().expect("standard layout");
     let ak = ak.as_slice().expect("standard layout");
-    let image = image.as_standard_layout();
-    let image = image.as_slice().expect("standard layout");
-    let flags = contiguous(out.flags);
+    let flags = flags_in;
     let current = contiguous(out.current_e_per_s);
     let pflags = contiguous(out.pflags);
     let mut summary = (
@@ -134,14 +171,19 @@ pub(crate) fn step(
         pflags.par_chunks_mut(nx),
         ak.par_chunks(nx * n),
         kind.par_chunks(nx),
+        base.par_chunks(nx),
     )
         .into_par_iter()
-        .map(|(a_row, c, p, img, f, cur, pf, ak_row, kd)| {
-            let mut s = StepSummary {
-                pixels: img.len() as u64,
-                ..Default::default()
-            };
+        .enumerate()
+        .map(|(y, (a_row, c, p, img, f, cur, pf, ak_row, kd, b_row))| {
+            let mut s = StepSummary::default();
+            let active = ctx.active_pixels.map(|a| &a[y * nx..(y + 1) * nx]);
+            let mut fixed = vec![0.0; n];
             for (x, a) in a_row.chunks_exact_mut(n).enumerate() {
+                if active.is_some_and(|act| !act[x]) {
+                    continue;
+                }
+                s.pixels += 1;
                 let pred = super::decay::weighted_sum(a, &w);
                 let max_prev = p[x] & PENDING_MAX_AMPLITUDE != 0;
                 let mut high = pred > k.high || max_prev;
@@ -164,7 +206,22 @@ pub(crate) fn step(
                 } else {
                     c[x] = 0;
                 }
-                let add = &ak_row[x * n..(x + 1) * n];
+                // Whatever the hooks did: unknown pixels keep the maximum amplitude,
+                // non-functional ones add nothing, and no NaN, Inf or negative
+                // amplitude enters the state.
+                let mut add = &ak_row[x * n..(x + 1) * n];
+                if kd[x] != KNOWN || !add.iter().all(|v| v.is_finite() && *v >= 0.0) {
+                    for (v, raw) in fixed.iter_mut().zip(add) {
+                        *v = if kd[x] != KNOWN {
+                            b_row[x]
+                        } else if raw.is_finite() && *raw >= 0.0 {
+                            *raw
+                        } else {
+                            0.0
+                        };
+                    }
+                    add = &fixed;
+                }
                 for (aj, dj) in a.iter_mut().zip(&decay) {
                     *aj *= dj;
                 }
@@ -174,9 +231,8 @@ pub(crate) fn step(
                     }
                 } else {
                     // the first accumulator adds; later ones see nothing more to add
-                    let zero = vec![0.0; n];
                     for (i, e) in accumulators.iter().enumerate() {
-                        e.accumulate(a, if i == 0 { add } else { &zero });
+                        e.accumulate(a, if i == 0 { add } else { zero });
                     }
                 }
                 for aj in a.iter_mut() {
@@ -184,7 +240,7 @@ pub(crate) fn step(
                         *aj = 0.0;
                     }
                 }
-                let max_used = kd[x] == 1;
+                let max_used = kd[x] == UNKNOWN;
                 p[x] = if max_used { PENDING_MAX_AMPLITUDE } else { 0 };
                 cur[x] = pred as f32;
                 pf[x] = (high as u8 * pbits::HIGH)

@@ -14,12 +14,19 @@ pub fn median(v: &[f64]) -> f64 {
     if a.is_empty() {
         return f64::NAN;
     }
-    a.sort_by(|x, y| x.total_cmp(y));
     let n = a.len();
+    // the middle value(s) by selection (the values a full sort would give)
+    let (low, mid, _) = a.select_nth_unstable_by(n / 2, |x, y| x.total_cmp(y));
+    let mid = *mid;
     if n % 2 == 1 {
-        a[n / 2]
+        mid
     } else {
-        0.5 * (a[n / 2 - 1] + a[n / 2])
+        let below = low
+            .iter()
+            .copied()
+            .max_by(|x, y| x.total_cmp(y))
+            .unwrap_or(mid);
+        0.5 * (below + mid)
     }
 }
 

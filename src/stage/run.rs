@@ -1043,6 +1043,7 @@ impl<'a> Processor<'a> {
         // The step validates before it changes anything: an error leaves the state as it was.
         let env = crate::model::StepContext {
             focal_plane_temp_k: meta.focal_plane_temp_k,
+            ..Default::default()
         };
         let summary = model
             .step_with(

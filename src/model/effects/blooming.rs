@@ -80,9 +80,12 @@ impl Effect for Blooming {
             return;
         }
         let e = neighbour_excess(ctx.fluence_e, self.f_sat_e);
-        for ((y, x, _), a) in ak.indexed_iter_mut() {
-            *a += self.gain_per_e * e[[y, x]];
-        }
+        ndarray::Zip::from(ak.lanes_mut(ndarray::Axis(2)))
+            .and(&e)
+            .for_each(|mut lane, ei| {
+                let add = self.gain_per_e * ei;
+                lane.iter_mut().for_each(|a| *a += add);
+            });
     }
 }
 

@@ -93,9 +93,9 @@ impl Effect for Populations {
         }
         let (ny, nx, _) = ak.dim();
         let s = self.scale(ny, nx);
-        for ((y, x, _), a) in ak.indexed_iter_mut() {
-            *a *= s[[y, x]];
-        }
+        ndarray::Zip::from(ak.lanes_mut(ndarray::Axis(2)))
+            .and(&s)
+            .for_each(|mut lane, si| lane.iter_mut().for_each(|a| *a *= si));
     }
 }
 

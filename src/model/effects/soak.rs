@@ -62,8 +62,10 @@ impl Effect for Soak {
             .iter()
             .map(|r| self.fill(*r, ctx.t_illuminated_s))
             .collect();
-        for ((_, _, n), a) in ak.indexed_iter_mut() {
-            *a *= f[n];
+        for mut lane in ak.lanes_mut(ndarray::Axis(2)) {
+            for (a, fi) in lane.iter_mut().zip(&f) {
+                *a *= fi;
+            }
         }
     }
 }
