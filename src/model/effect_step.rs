@@ -11,10 +11,9 @@
 //! maximum amplitude and non-functional pixels add nothing, whatever the hooks say.
 
 use super::effect::{Effect, IntervalCtx, ResponseCtx};
-use super::state::{State, PENDING_MAX_AMPLITUDE};
+use super::state::State;
 use super::step::{Input, Model, Output, StepSummary};
 use crate::error::Error;
-use crate::flags::pbits;
 use ndarray::{Array2, Array3};
 use rayon::prelude::*;
 
@@ -184,28 +183,7 @@ pub(crate) fn step(
                     continue;
                 }
                 s.pixels += 1;
-                let pred = super::decay::weighted_sum(a, &w);
-                let max_prev = p[x] & PENDING_MAX_AMPLITUDE != 0;
-                let mut high = pred > k.high || max_prev;
-                let mut low = pred > k.low || high;
-                let m = img[x];
-                let mut released = false;
-                if k.er_enabled && high {
-                    if m.is_finite() && f64::from(m) < k.er_threshold {
-                        c[x] = c[x].saturating_add(1);
-                    } else {
-                        c[x] = 0;
-                    }
-                    if c[x] >= k.er_consecutive {
-                        a.fill(0.0);
-                        c[x] = 0;
-                        high = false;
-                        low = false;
-                        released = true;
-                    }
-                } else {
-                    c[x] = 0;
-                }
+                let v = k.predict_flag_release(a, &w, &mut c[x], p[x], img[x]);
                 // Whatever the hooks did: unknown pixels keep the maximum amplitude,
                 // non-functional ones add nothing, and no NaN, Inf or negative
                 // amplitude enters the state.
@@ -240,20 +218,18 @@ pub(crate) fn step(
                         *aj = 0.0;
                     }
                 }
-                let max_used = kd[x] == UNKNOWN;
-                p[x] = if max_used { PENDING_MAX_AMPLITUDE } else { 0 };
-                cur[x] = pred as f32;
-                pf[x] = (high as u8 * pbits::HIGH)
-                    | (low as u8 * pbits::LOW)
-                    | (max_prev as u8 * pbits::MAX_AMPLITUDE)
-                    | (released as u8 * pbits::RELEASED)
-                    | k.history;
-                let fl = f[x];
-                f[x] = (fl & !k.bits.persist) | if high { k.bits.persist } else { 0 };
-                s.above_high += high as u64;
-                s.above_low += low as u64;
-                s.released += released as u64;
-                s.max_amplitude += max_prev as u64;
+                k.write_pixel(
+                    &v,
+                    kd[x] == UNKNOWN,
+                    &mut p[x],
+                    &mut cur[x],
+                    &mut pf[x],
+                    &mut f[x],
+                );
+                s.above_high += v.high as u64;
+                s.above_low += v.low as u64;
+                s.released += v.released as u64;
+                s.max_amplitude += v.max_prev as u64;
             }
             s
         })

@@ -549,10 +549,32 @@ impl Kernel<'_> {
         current: &mut f32,
         pflags: &mut u8,
     ) {
-        // 1. predict (in the order of `weighted_sum`, the same in every implementation)
-        let pred = super::decay::weighted_sum(a.as_ref(), w.as_ref());
+        let v = self.predict_flag_release(a.as_mut(), w.as_ref(), count, *pending, m);
+        // 4 + 5. decay to this exposure's reset and add its response
+        let (ak, max_used) = self.response_of(m, *flags);
+        for (aj, dj) in a.as_mut().iter_mut().zip(decay.as_ref()) {
+            *aj = *aj * dj + ak;
+        }
+        self.write_pixel(&v, max_used, pending, current, pflags, flags);
+    }
+
+    /// Steps 1-3 of one pixel (module docs), shared by the fused kernel and the effect
+    /// path ([`crate::model::effect_step`]): predict from the amplitudes `a` (in the
+    /// order of `weighted_sum`, the same in every implementation), flag, and early
+    /// release (which may zero `a` and updates the release `count`).
+    #[inline(always)]
+    pub(crate) fn predict_flag_release(
+        &self,
+        a: &mut [f64],
+        w: &[f64],
+        count: &mut u8,
+        pending: u8,
+        m: f32,
+    ) -> PixelVerdict {
+        // 1. predict
+        let pred = super::decay::weighted_sum(a, w);
         // 2. flag
-        let max_prev = *pending & PENDING_MAX_AMPLITUDE != 0;
+        let max_prev = pending & PENDING_MAX_AMPLITUDE != 0;
         let mut high = pred > self.high || max_prev;
         let mut low = pred > self.low || high;
         // 3. early release
@@ -564,7 +586,7 @@ impl Kernel<'_> {
                 *count = 0;
             }
             if *count >= self.er_consecutive {
-                a.as_mut().fill(0.0);
+                a.fill(0.0);
                 *count = 0;
                 high = false;
                 low = false;
@@ -573,21 +595,48 @@ impl Kernel<'_> {
         } else {
             *count = 0;
         }
-        // 4 + 5. decay to this exposure's reset and add its response
-        let f = *flags;
-        let (ak, max_used) = self.response_of(m, f);
-        for (aj, dj) in a.as_mut().iter_mut().zip(decay.as_ref()) {
-            *aj = *aj * dj + ak;
+        PixelVerdict {
+            pred,
+            max_prev,
+            high,
+            low,
+            released,
         }
-        *pending = if max_used { PENDING_MAX_AMPLITUDE } else { 0 };
-        *current = pred as f32;
-        *pflags = (high as u8 * pbits::HIGH)
-            | (low as u8 * pbits::LOW)
-            | (max_prev as u8 * pbits::MAX_AMPLITUDE)
-            | (released as u8 * pbits::RELEASED)
-            | self.history;
-        *flags = (f & !self.bits.persist) | if high { self.bits.persist } else { 0 };
     }
+
+    /// The outputs of one pixel after steps 4-5: whether this exposure's response was
+    /// the maximum amplitude (`max_used`, pending for the next exposure), the predicted
+    /// current, the persistence flags, and the product's persistence bit.
+    #[inline(always)]
+    pub(crate) fn write_pixel(
+        &self,
+        v: &PixelVerdict,
+        max_used: bool,
+        pending: &mut u8,
+        current: &mut f32,
+        pflags: &mut u8,
+        flags: &mut u32,
+    ) {
+        *pending = if max_used { PENDING_MAX_AMPLITUDE } else { 0 };
+        *current = v.pred as f32;
+        *pflags = (v.high as u8 * pbits::HIGH)
+            | (v.low as u8 * pbits::LOW)
+            | (v.max_prev as u8 * pbits::MAX_AMPLITUDE)
+            | (v.released as u8 * pbits::RELEASED)
+            | self.history;
+        *flags = (*flags & !self.bits.persist) | if v.high { self.bits.persist } else { 0 };
+    }
+}
+
+/// One pixel's prediction and flag state after steps 1-3.
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct PixelVerdict {
+    pub pred: f64,
+    /// The previous exposure used the maximum amplitude (unknown fluence).
+    pub max_prev: bool,
+    pub high: bool,
+    pub low: bool,
+    pub released: bool,
 }
 
 /// How far ahead of the pixel being computed its amplitudes are prefetched. The
