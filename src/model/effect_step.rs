@@ -9,6 +9,11 @@
 //! ([`Effect::response`]; built only here); then one pass over the pixels with
 //! [`Effect::accumulate`] when an effect has it. Pixels of unknown fluence keep the
 //! maximum amplitude and non-functional pixels add nothing, whatever the hooks say.
+//! The per-pixel prediction, flags, early release and outputs are the fused kernel's
+//! own code (`Kernel::predict_flag_release`, `Kernel::write_pixel`); only the decay and
+//! the per-term response differ. With [`StepContext::active_pixels`] the pixel pass
+//! skips the pixels the caller does not read (the response planes are still built
+//! for the whole array).
 
 use super::effect::{Effect, IntervalCtx, ResponseCtx};
 use super::state::State;
