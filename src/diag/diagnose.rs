@@ -703,8 +703,8 @@ mod tests {
 
     /// The one-sided score (module docs): with the data above the prediction in every
     /// cell, an effect that raises the prediction where the data are highest scores
-    /// > 0; one that lowers it scores 0 when its null is a bound and the same as the
-    /// raising one when it is not (two-sided).
+    /// above 0; one that lowers it scores 0 when its null is a bound and the same as
+    /// the raising one when it is not (two-sided).
     #[test]
     fn one_sided_score_is_zero_against_the_allowed_direction() {
         // 4 cells of 10 equal measurements: P95 = the value, sigma = 2.12 noise / sqrt(10)
