@@ -7,6 +7,7 @@
 
 pub mod blooming;
 pub mod capacity;
+pub mod chord;
 pub mod ipc;
 pub mod linefit_bias;
 pub mod populations;
@@ -20,9 +21,10 @@ use super::params::EffectSpec;
 use std::collections::BTreeMap;
 
 /// Every effect this build knows, sorted by name.
-pub const REGISTRY: [EffectDef; 9] = [
+pub const REGISTRY: [EffectDef; 10] = [
     blooming::DEF,
     capacity::DEF,
+    chord::DEF,
     ipc::DEF,
     linefit_bias::DEF,
     populations::DEF,
