@@ -316,10 +316,14 @@ fn main() {
                 writeln!(
                     md,
                     "| {e} | {seed} | {} | {} | {} | {} | {} | {} | {} | {} | {} |",
-                    rank.map_or("not in library".into(), |c| format!(
-                        "{} ({:.1} vs {:.1})",
-                        c.score_rank, c.score, c.threshold
-                    )),
+                    rank.map_or(
+                        if reference.contains(e) {
+                            "in the reference".into()
+                        } else {
+                            "not in library".into()
+                        },
+                        |c| format!("{} ({:.1} vs {:.1})", c.score_rank, c.score, c.threshold)
+                    ),
                     first.clone().unwrap_or_else(|| "nothing".into()),
                     rank.is_some_and(|c| c.significant),
                     q1.as_ref()

@@ -3,6 +3,15 @@
 //! residuals `z` of [`crate::diag::eval`] (fluence bin x time since illumination), the
 //! paper's calibration held fixed. Parameters are kept inside their bounds (projected
 //! after each step). Uncertainties: `s^2 (J^T J)^-1`, `s^2 = SSR / (m - p)`.
+//!
+//! Start: the model's values (the defaults for an added effect), then, for each switch
+//! parameter (one with a null value) that does not start at its null, a coarse scan of
+//! [`SCAN`] multiples of its distance from the null (others held at their start; within
+//! the bounds) and the best of these as start. Why: an effect whose response is flat at
+//! its null (`soak`: the fill fraction `1 - exp(-t / (r tau))` is 1 to all orders as
+//! `r -> 0`) has no gradient there, so Levenberg-Marquardt started far on the other side
+//! of the optimum steps over it onto the bound and stays at the null (measured: a hidden
+//! truth soak, optimum `capture_ratio` 0.005, fitted from the default 0.1 ended at 0).
 
 use crate::diag::data::Sequence;
 use crate::diag::eval::{self, Samples};
@@ -40,7 +49,11 @@ struct Slot {
     name: &'static str,
     lo: f64,
     hi: f64,
+    null: Option<f64>,
 }
+
+/// Multiples of a switch parameter's distance from its null tried as start.
+pub const SCAN: [f64; 5] = [0.01, 0.05, 0.2, 1.0, 5.0];
 
 type Cache = RefCell<Vec<(Vec<f64>, Option<DVector<f64>>)>>;
 
@@ -123,6 +136,39 @@ impl LeastSquaresProblem<f64, Dyn, Dyn> for Problem<'_> {
     }
 }
 
+/// The coarse scan of the module docs: move each switch parameter's start to the best
+/// of [`SCAN`] multiples of its distance from the null (sum of squared residuals).
+fn scan_start(problem: &mut Problem<'_>) {
+    let rss = |pr: &Problem<'_>, p: &[f64]| {
+        let r = pr.z_at(p).map_or(f64::NAN, |z| z.norm_squared());
+        if r.is_finite() {
+            r
+        } else {
+            f64::INFINITY
+        }
+    };
+    for i in 0..problem.slots.len() {
+        let (lo, hi) = (problem.slots[i].lo, problem.slots[i].hi);
+        let Some(null) = problem.slots[i].null else {
+            continue;
+        };
+        let mut p = problem.p.as_slice().to_vec();
+        let d = p[i] - null;
+        if d == 0.0 {
+            continue;
+        }
+        let mut best = (rss(problem, &p), p[i]);
+        for f in SCAN {
+            p[i] = (null + f * d).clamp(lo, hi);
+            let r = rss(problem, &p);
+            if r < best.0 {
+                best = (r, p[i]);
+            }
+        }
+        problem.p[i] = best.1;
+    }
+}
+
 /// Add the effects `names` (each `NAME`, defaults as start) to `base` and fit their
 /// fitted parameters. Returns the model and the fit.
 pub fn fit(
@@ -166,6 +212,7 @@ pub fn fit(
                     name: p.name,
                     lo: p.lo,
                     hi: p.hi,
+                    null: p.null,
                 });
                 start.push(vals[p.name]);
             }
@@ -175,7 +222,7 @@ pub fn fit(
         let pr = eval::predict(base, seq, samples, false)?;
         eval::rms(&eval::cell_z(samples, &pr.current))
     };
-    let problem = Problem {
+    let mut problem = Problem {
         base: m.clone(),
         seq,
         samples,
@@ -184,6 +231,7 @@ pub fn fit(
         cache: RefCell::new(Vec::new()),
         evals: RefCell::new(0),
     };
+    scan_start(&mut problem);
     let (problem, report) = LevenbergMarquardt::new()
         .with_patience(20)
         .minimize(problem);
