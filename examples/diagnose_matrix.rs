@@ -6,7 +6,8 @@
 //! cargo run --release --example diagnose_matrix -- --size 128 --out docs/diagnose_matrix.md
 //! ```
 //! Options: `--size N` (default 128), `--baseline-seeds K` (10), `--seeds K` (3),
-//! `--effects a,b,...` (default: every simulator effect), `--pair a,b` (two hidden
+//! `--effects a,b,...` (default: every simulator effect; each `NAME` or
+//! `NAME:param=value`, a truth effect with a non-default parameter), `--pair a,b` (two hidden
 //! effects, default `soak,temperature`), `--pixels N`, `--bootstrap B`,
 //! `--statistic within|pooled`, `--reference a,b` (default none: the paper's model),
 //! `--skip-baseline`, `--skip-single`, `--skip-pair`.
@@ -296,17 +297,19 @@ fn main() {
                     .as_ref()
                     .unwrap_or_else(|| baselines[seed as usize - 1].as_ref().unwrap());
                 let (m0, d) = calibrate_and_diagnose(&sim.seq, seed, &cfg, &reference);
-                let rank = d.ranking.iter().find(|c| &c.effect == e);
+                // the model-side name of a truth effect given as `NAME[:param=value]`
+                let name = e.split(':').next().unwrap_or(e).to_string();
+                let rank = d.ranking.iter().find(|c| c.effect == name);
                 let first = declared_first(&d);
                 let s2 = Samples::new(&sim.seq, 2);
                 let t = touched(&s2, &sim, b);
                 let q0 = quality(&m0, &sim.seq, &s2, Some(&t));
-                let in_model = persist::model::effects::lookup(e).is_some();
+                let in_model = persist::model::effects::lookup(&name).is_some();
                 let q1 = in_model.then(|| {
-                    let m1 = fit_with(&m0, &reference, e, &sim.seq, &s2);
+                    let m1 = fit_with(&m0, &reference, &name, &sim.seq, &s2);
                     quality(&m1, &sim.seq, &s2, Some(&t))
                 });
-                let found = first.as_deref() == Some(e.as_str());
+                let found = first.as_deref() == Some(name.as_str());
                 let halved = q1.as_ref().is_some_and(|q| q.rms <= 0.5 * q0.rms);
                 let flags_ok = q1
                     .as_ref()
@@ -317,7 +320,7 @@ fn main() {
                     md,
                     "| {e} | {seed} | {} | {} | {} | {} | {} | {} | {} | {} | {} |",
                     rank.map_or(
-                        if reference.contains(e) {
+                        if reference.contains(&name) {
                             "in the reference".into()
                         } else {
                             "not in library".into()
