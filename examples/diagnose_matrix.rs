@@ -6,13 +6,17 @@
 //! cargo run --release --example diagnose_matrix -- --size 128 --out docs/diagnose_matrix.md
 //! ```
 //! Options: `--size N` (default 128), `--baseline-seeds K` (10), `--seeds K` (3),
-//! `--effects a,b,...` (default: every simulator effect), `--pair a,b` (two hidden
+//! `--effects a,b,...` (default: every simulator effect; each `NAME` or
+//! `NAME:param=value`, a truth effect with a non-default parameter), `--pair a,b` (two hidden
 //! effects, default `soak,temperature`), `--pixels N`, `--bootstrap B`,
-//! `--statistic within|pooled`, `--skip-baseline`, `--skip-single`, `--skip-pair`.
+//! `--statistic within|pooled`, `--reference a,b` (default none: the paper's model),
+//! `--skip-baseline`, `--skip-single`, `--skip-pair`.
 //!
-//! Per scenario, as the CLI would do it: `fit` (paper calibration) -> `diagnose` ->
-//! `fit --with` the hidden effect (stride-2 sample as `persist fit`) -> residual RMS and
-//! flag quality at 0.1 e-/s before and after. Missed-flag fraction: `compare`'s
+//! Per scenario, as the CLI would do it: the reference model (`fit`, the paper's
+//! calibration, or `fit --with a --with b` with `--reference a,b`: the reference effects'
+//! parameters fitted on the same data) -> `diagnose` against it -> `fit --with` the
+//! reference effects and the hidden one, jointly from the reference (stride-2 sample as
+//! `persist fit`) -> residual RMS and flag quality at 0.1 e-/s before and after. Missed-flag fraction: `compare`'s
 //! (missed samples / all samples) and relative to the samples the effect touches: those
 //! where the true persistence current of the run with the effect differs from the run
 //! without it (same seed) by more than 10 % or 0.01 e-/s, whichever is larger.
@@ -105,13 +109,44 @@ fn touched(s: &Samples, with: &Sim, without: &Sim) -> Vec<bool> {
     t
 }
 
-/// The paper's calibration of `seq`, then `diagnose` of it with `cfg` at `seed`.
+/// The reference model of `seq`: the paper's calibration, then (when `reference` is
+/// not empty) the reference effects fitted on the stride-2 sample, as
+/// `persist fit --with a --with b`.
+fn reference_model(seq: &Sequence, reference: &[String]) -> ModelParams {
+    let (m0, _) = calib::calibrate(seq, &CalibConfig::default()).expect("calibrate");
+    if reference.is_empty() {
+        return m0;
+    }
+    let s2 = Samples::new(seq, 2);
+    ceffects::fit(&m0, reference, seq, &s2)
+        .expect("fit reference")
+        .0
+}
+
+/// `fit --with` the reference effects and `extra` (jointly, starting from the reference
+/// model's values).
+fn fit_with(
+    mref: &ModelParams,
+    reference: &[String],
+    extra: &str,
+    seq: &Sequence,
+    s2: &Samples,
+) -> ModelParams {
+    let mut names = reference.to_vec();
+    if !names.iter().any(|n| n == extra) {
+        names.push(extra.to_string());
+    }
+    ceffects::fit(mref, &names, seq, s2).expect("fit").0
+}
+
+/// The reference model of `seq`, then `diagnose` of it with `cfg` at `seed`.
 fn calibrate_and_diagnose(
     seq: &Sequence,
     seed: u64,
     cfg: &Config,
+    reference: &[String],
 ) -> (ModelParams, diagnose::Diagnosis) {
-    let (m0, _) = calib::calibrate(seq, &CalibConfig::default()).expect("calibrate");
+    let m0 = reference_model(seq, reference);
     let d = diagnose_with(&m0, seq, seed, cfg);
     (m0, d)
 }
@@ -155,6 +190,24 @@ fn main() {
         .split(',')
         .map(String::from)
         .collect();
+    let reference: Vec<String> = arg(&args, "--reference").map_or(Vec::new(), |v| {
+        v.split(',')
+            .filter(|s| !s.is_empty())
+            .map(String::from)
+            .collect()
+    });
+    let ref_label = if reference.is_empty() {
+        "the paper's model (`persist fit`)".to_string()
+    } else {
+        format!(
+            "the paper's model + {} (`persist fit{}`)",
+            reference.join(" + "),
+            reference
+                .iter()
+                .map(|r| format!(" --with {r}"))
+                .collect::<String>()
+        )
+    };
     let mut cfg = Config::default();
     if let Some(v) = arg(&args, "--pixels") {
         cfg.pixels = v.parse().unwrap();
@@ -172,7 +225,8 @@ fn main() {
     writeln!(
         md,
         "Command: `cargo run --release --example diagnose_matrix -- {cmdline}`\n\n\
-         Laboratory campaign (`persist simulate lab --campaign`), {size} x {size} pixels; diagnose: \
+         Laboratory campaign (`persist simulate lab --campaign`), {size} x {size} pixels; \
+         **reference model: {ref_label}**; diagnose: \
          statistic {:?}, {} random pixels, {} bootstrap replicas; refit and flag quality on the \
          stride-2 sample of `persist fit`/`compare`.\n",
         cfg.statistic, cfg.pixels, cfg.bootstrap
@@ -182,12 +236,12 @@ fn main() {
     let t_all = Instant::now();
     // --- baseline
     if !skip("--skip-baseline") {
-        writeln!(md, "## No hidden effect\n\n| seed | residual RMS | threshold | top score (effect) | significant | seconds |\n|---|---|---|---|---|---|").unwrap();
+        writeln!(md, "## No hidden effect (reference: {ref_label})\n\n| seed | residual RMS | threshold | top score (effect) | significant | seconds |\n|---|---|---|---|---|---|").unwrap();
         let mut clean = 0;
         for seed in 1..=nbase {
             let sim = simulate(size, seed, &[]);
             let t0 = Instant::now();
-            let (_, d) = calibrate_and_diagnose(&sim.seq, seed, &cfg);
+            let (_, d) = calibrate_and_diagnose(&sim.seq, seed, &cfg, &reference);
             let secs = t0.elapsed().as_secs_f64();
             let sig: Vec<&str> = d
                 .ranking
@@ -227,7 +281,7 @@ fn main() {
     }
     // --- single effects
     if !skip("--skip-single") {
-        writeln!(md, "## One hidden effect\n\n\
+        writeln!(md, "## One hidden effect (reference: {ref_label}; `fit --with` = reference effects + the hidden one)\n\n\
             | effect | seed | rank by score | declared first | significant | RMS before -> after `fit --with` | halved | missed@0.1 before -> after (all samples) | missed@0.1 of touched before -> after | held-out gain | dBIC |\n\
             |---|---|---|---|---|---|---|---|---|---|---|").unwrap();
         let mut passed = Vec::new();
@@ -242,19 +296,20 @@ fn main() {
                 let b = base_sim
                     .as_ref()
                     .unwrap_or_else(|| baselines[seed as usize - 1].as_ref().unwrap());
-                let (m0, d) = calibrate_and_diagnose(&sim.seq, seed, &cfg);
-                let rank = d.ranking.iter().find(|c| &c.effect == e);
+                let (m0, d) = calibrate_and_diagnose(&sim.seq, seed, &cfg, &reference);
+                // the model-side name of a truth effect given as `NAME[:param=value]`
+                let name = e.split(':').next().unwrap_or(e).to_string();
+                let rank = d.ranking.iter().find(|c| c.effect == name);
                 let first = declared_first(&d);
                 let s2 = Samples::new(&sim.seq, 2);
                 let t = touched(&s2, &sim, b);
                 let q0 = quality(&m0, &sim.seq, &s2, Some(&t));
-                let in_model = persist::model::effects::lookup(e).is_some();
+                let in_model = persist::model::effects::lookup(&name).is_some();
                 let q1 = in_model.then(|| {
-                    let (m1, _) =
-                        ceffects::fit(&m0, std::slice::from_ref(e), &sim.seq, &s2).expect("fit");
+                    let m1 = fit_with(&m0, &reference, &name, &sim.seq, &s2);
                     quality(&m1, &sim.seq, &s2, Some(&t))
                 });
-                let found = first.as_deref() == Some(e.as_str());
+                let found = first.as_deref() == Some(name.as_str());
                 let halved = q1.as_ref().is_some_and(|q| q.rms <= 0.5 * q0.rms);
                 let flags_ok = q1
                     .as_ref()
@@ -264,10 +319,14 @@ fn main() {
                 writeln!(
                     md,
                     "| {e} | {seed} | {} | {} | {} | {} | {} | {} | {} | {} | {} |",
-                    rank.map_or("not in library".into(), |c| format!(
-                        "{} ({:.1} vs {:.1})",
-                        c.score_rank, c.score, c.threshold
-                    )),
+                    rank.map_or(
+                        if reference.contains(&name) {
+                            "in the reference".into()
+                        } else {
+                            "not in library".into()
+                        },
+                        |c| format!("{} ({:.1} vs {:.1})", c.score_rank, c.score, c.threshold)
+                    ),
                     first.clone().unwrap_or_else(|| "nothing".into()),
                     rank.is_some_and(|c| c.significant),
                     q1.as_ref()
@@ -313,24 +372,24 @@ fn main() {
     }
     // --- two effects
     if !skip("--skip-pair") {
-        writeln!(md, "## Two hidden effects: {}\n\n| seed | round 1 declared | round 2 declared | RMS m0 -> m1 -> m2 | error falls each round | both found |\n|---|---|---|---|---|---|", pair.join(" + ")).unwrap();
+        writeln!(md, "## Two hidden effects: {} (reference: {ref_label})\n\n| seed | round 1 declared | round 2 declared | RMS m0 -> m1 -> m2 | error falls each round | both found |\n|---|---|---|---|---|---|", pair.join(" + ")).unwrap();
         for seed in 1..=nseed {
             let names: Vec<&str> = pair.iter().map(String::as_str).collect();
             let sim = simulate(size, seed, &names);
             let s2 = Samples::new(&sim.seq, 2);
-            let (m0, d1) = calibrate_and_diagnose(&sim.seq, seed, &cfg);
+            let (m0, d1) = calibrate_and_diagnose(&sim.seq, seed, &cfg, &reference);
             let w1 = declared_first(&d1);
             let r0 = quality(&m0, &sim.seq, &s2, None).rms;
             let (mut r1, mut r2, mut w2) = (f64::NAN, f64::NAN, None);
             if let Some(w) = &w1 {
-                let (m1, _) =
-                    ceffects::fit(&m0, std::slice::from_ref(w), &sim.seq, &s2).expect("fit");
+                let m1 = fit_with(&m0, &reference, w, &sim.seq, &s2);
                 r1 = quality(&m1, &sim.seq, &s2, None).rms;
                 let d2 = diagnose_with(&m1, &sim.seq, seed, &cfg);
                 w2 = declared_first(&d2);
                 if let Some(v) = &w2 {
-                    let (m2, _) =
-                        ceffects::fit(&m0, &[w.clone(), v.clone()], &sim.seq, &s2).expect("fit");
+                    let mut names2 = reference.clone();
+                    names2.push(w.clone());
+                    let m2 = fit_with(&m1, &names2, v, &sim.seq, &s2);
                     r2 = quality(&m2, &sim.seq, &s2, None).rms;
                 }
                 writeln!(

@@ -129,6 +129,8 @@ fn null_effects_are_bit_identical_to_the_paper_model() {
     let base = run(&Model::new(ModelParams::default()).unwrap(), &temps);
     for (name, p) in [
         ("capacity", serde_json::json!({"inv_a_max_per_e": 0.0})),
+        ("refill", serde_json::json!({"beta": 0.0})),
+        ("chord", serde_json::json!({"strength": 0.0})),
         ("soak", serde_json::json!({"capture_ratio": 0.0})),
         ("temperature", serde_json::json!({})), // 80 K = t_ref
         ("linefit_bias", serde_json::json!({"strength": 0.0})),

@@ -7,9 +7,11 @@
 
 pub mod blooming;
 pub mod capacity;
+pub mod chord;
 pub mod ipc;
 pub mod linefit_bias;
 pub mod populations;
+pub mod refill;
 pub mod short_tau_boost;
 pub mod soak;
 pub mod temperature;
@@ -19,12 +21,14 @@ use super::params::EffectSpec;
 use std::collections::BTreeMap;
 
 /// Every effect this build knows, sorted by name.
-pub const REGISTRY: [EffectDef; 8] = [
+pub const REGISTRY: [EffectDef; 10] = [
     blooming::DEF,
     capacity::DEF,
+    chord::DEF,
     ipc::DEF,
     linefit_bias::DEF,
     populations::DEF,
+    refill::DEF,
     short_tau_boost::DEF,
     soak::DEF,
     temperature::DEF,

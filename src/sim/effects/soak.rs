@@ -6,7 +6,7 @@
 //! fluence; Tulloch 2019).
 //! Equation: capture time constants `tau_c,j *= capture_scale` for every interval.
 //! Parameter: `capture_scale` (default 10, bounds [0.01, 1e4]); baseline
-//! `tau_c = 0.01 tau_e`.
+//! `tau_c = 0.002 tau_e` (`TrapParams::capture_ratio`), so 0.02 tau_e at the default.
 //! Visible as: after the laboratory illumination (~10 min) the slow bins are less
 //! filled: the late persistence (hours) drops much more than the first dark
 //! integration's, which is dominated by fast traps that still fill.

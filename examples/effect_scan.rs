@@ -1,0 +1,36 @@
+//! Residual RMS (normalised, `persist fit`'s stride-2 fluence x time cells) of a model
+//! file with one effect parameter set to each of a list of values (the effect is added
+//! with its defaults when the model does not have it). A profile of the fit objective.
+//!
+//! ```sh
+//! target/release/examples/effect_scan LAB_DIR MODEL.json EFFECT PARAM v1,v2,...
+//! ```
+use persist::diag::data::Sequence;
+use persist::diag::eval::{self, Samples};
+use persist::model::ModelParams;
+use std::path::Path;
+fn main() {
+    let a: Vec<String> = std::env::args().collect();
+    let seq = Sequence::load(Path::new(&a[1])).unwrap();
+    let m: ModelParams = serde_json::from_str(&std::fs::read_to_string(&a[2]).unwrap()).unwrap();
+    let (eff, par) = (a[3].clone(), a[4].clone());
+    let s2 = Samples::new(&seq, 2);
+    for v in a[5].split(',') {
+        let v: f64 = v.parse().unwrap();
+        let mut q = m.clone();
+        if !q.effects.iter().any(|e| e.name == eff) {
+            q.effects.push(persist::model::params::EffectSpec {
+                name: eff.clone(),
+                params: serde_json::Map::new(),
+            });
+        }
+        for e in q.effects.iter_mut().filter(|e| e.name == eff) {
+            e.params.insert(par.clone(), serde_json::json!(v));
+        }
+        let pr = eval::predict(&q, &seq, &s2, false).unwrap();
+        println!(
+            "{eff}.{par} = {v}: rms {:.3}",
+            eval::rms(&eval::cell_z(&s2, &pr.current))
+        );
+    }
+}

@@ -1,0 +1,74 @@
+//! `diagnose`'s refit gates (delta BIC, held-out gain) for one candidate effect computed
+//! two ways: the candidate fitted alone with the reference model's effects held fixed
+//! (what `diagnose` does) and fitted jointly with the reference's effects (what
+//! `fit --with` does). Cells: the stride-2 fluence x time cells of `persist fit`, not
+//! `diagnose`'s random pixels, so the numbers are indicative, not `diagnose`'s own.
+//!
+//! ```sh
+//! target/release/examples/joint_refit LAB_DIR REFERENCE.json CANDIDATE
+//! ```
+use persist::calib::effects as ceffects;
+use persist::diag::data::Sequence;
+use persist::diag::eval::{self, Samples};
+use persist::model::ModelParams;
+use std::path::Path;
+
+fn rss(p: &ModelParams, seq: &Sequence, s: &Samples) -> (f64, usize) {
+    let pr = eval::predict(p, seq, s, false).expect("predict");
+    let z = eval::cell_z(s, &pr.current);
+    (z.iter().map(|(_, g)| g.z * g.z).sum(), z.len())
+}
+
+fn main() {
+    let a: Vec<String> = std::env::args().collect();
+    let seq = Sequence::load(Path::new(&a[1])).expect("sequence");
+    let reference: ModelParams =
+        serde_json::from_str(&std::fs::read_to_string(&a[2]).expect("model")).expect("json");
+    let cand = a[3].clone();
+    let k = persist::model::effects::lookup(&cand)
+        .expect("effect")
+        .params
+        .iter()
+        .filter(|p| p.fitted)
+        .count() as f64;
+    let s = Samples::new(&seq, 2);
+    let (r0, m) = rss(&reference, &seq, &s);
+    let mut joint: Vec<String> = reference.effects.iter().map(|e| e.name.clone()).collect();
+    joint.push(cand.clone());
+    let mut events = s.event.clone();
+    events.sort_unstable();
+    events.dedup();
+    let half: Vec<Vec<usize>> = (0..2)
+        .map(|h| events.iter().copied().skip(h).step_by(2).collect())
+        .collect();
+    for (label, names) in [("alone", vec![cand.clone()]), ("joint", joint)] {
+        let (full, _) = ceffects::fit(&reference, &names, &seq, &s).expect("fit");
+        let (r1, _) = rss(&full, &seq, &s);
+        let mf = m as f64;
+        let dbic = mf * (r1 / r0).ln() + k * mf.ln();
+        let (mut b, mut af) = (0.0, 0.0);
+        for h in 0..2 {
+            let fs = s.rows_where(|e| half[h].contains(&e));
+            let ts = s.rows_where(|e| half[1 - h].contains(&e));
+            let (f, _) = ceffects::fit(&full, &names, &seq, &fs).expect("fit");
+            b += rss(&reference, &seq, &ts).0;
+            af += rss(&f, &seq, &ts).0;
+        }
+        let gain = 1.0 - (af / b).sqrt();
+        let vals: Vec<String> = full
+            .effects
+            .iter()
+            .flat_map(|e| {
+                e.params
+                    .iter()
+                    .map(move |(p, v)| format!("{}.{p}={v}", e.name))
+            })
+            .collect();
+        println!(
+            "{cand} {label}: RMS {:.3} -> {:.3} over {m} cells, dBIC {dbic:.1}, held-out gain {gain:.3}; {}",
+            (r0 / mf).sqrt(),
+            (r1 / mf).sqrt(),
+            vals.join(" ")
+        );
+    }
+}
