@@ -20,8 +20,12 @@
 //! 3. [`Effect::response`]: this exposure's response planes `A_k,n` (one per term, all
 //!    equal to the paper's `A_k(fluence)` on entry): blooming reads the neighbours'
 //!    excess fluence, soak the illumination time, short_tau_boost a fluence window;
-//! 4. [`Effect::accumulate`]: replaces `A_n = A_n' exp(-t_elapsed/tau_n) + A_k,n`
-//!    (capacity).
+//! 4. [`Effect::accumulate`]: replaces `A_n = A_n' exp(-t_elapsed/tau_n) + A_k,n`.
+//!    Accumulating effects run by [`AccumulateRole`], not by their order in the model
+//!    file: first the `Combine` ones (how old and new trapped charge combine: refill;
+//!    only the first of them is handed the new response), then the `Saturate` ones (a
+//!    map of the combined amplitude: capacity, called with nothing more to add). So
+//!    `[capacity, refill]` and `[refill, capacity]` are the same model.
 //!
 //! With no effect in the model the step is the paper's, bit for bit (the effect path is
 //! not entered; see [`crate::model::step`]).
@@ -37,6 +41,18 @@
 use ndarray::{Array2, Array3};
 use std::collections::BTreeMap;
 use std::fmt::Debug;
+
+/// Where an accumulating effect runs in the step's accumulate stage (see the module
+/// docs, item 4): all `Combine` effects (in model-file order) before all `Saturate`
+/// ones.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord)]
+pub enum AccumulateRole {
+    /// Combines the decayed amplitude with the new response (the first such effect
+    /// receives the response; later ones are called with zeros).
+    Combine,
+    /// Maps the combined amplitude (called with zeros to add).
+    Saturate,
+}
 
 /// One named parameter of an effect.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -177,6 +193,10 @@ pub trait Effect: Send + Sync + Debug {
     /// True if [`Effect::accumulate`] is implemented.
     fn has_accumulate(&self) -> bool {
         false
+    }
+    /// Where this effect's [`Effect::accumulate`] runs among the accumulating effects.
+    fn accumulate_role(&self) -> AccumulateRole {
+        AccumulateRole::Combine
     }
     /// Replace `a_n = a_n * decay_n + add_n` for one pixel (`a` holds the decayed
     /// amplitudes on entry).

@@ -148,11 +148,13 @@ pub(crate) fn step(
     for e in effects {
         e.response(&rctx, &mut ak);
     }
-    let accumulators: Vec<&dyn Effect> = effects
+    let mut accumulators: Vec<&dyn Effect> = effects
         .iter()
         .filter(|e| e.has_accumulate())
         .map(|e| e.as_ref())
         .collect();
+    // combining effects before saturating ones, whatever the model file's order
+    accumulators.sort_by_key(|e| e.accumulate_role());
 
     let zero = vec![0.0; n];
     let zero = zero.as_slice();

@@ -10,7 +10,7 @@
 //! Covariate: fluence (the largest responses are cut most) and earlier illuminations.
 
 use super::get;
-use crate::model::effect::{Effect, EffectDef, ParamSpec};
+use crate::model::effect::{AccumulateRole, Effect, EffectDef, ParamSpec};
 
 pub const DEF: EffectDef = EffectDef {
     name: "capacity",
@@ -43,6 +43,9 @@ impl Effect for Capacity {
     }
     fn has_accumulate(&self) -> bool {
         true
+    }
+    fn accumulate_role(&self) -> AccumulateRole {
+        AccumulateRole::Saturate
     }
     fn accumulate(&self, a: &mut [f64], add: &[f64]) {
         for (x, y) in a.iter_mut().zip(add) {

@@ -18,13 +18,12 @@
 //! Covariate: earlier illuminations: only pixels lit again while their traps
 //! still hold charge change; a single illumination is not affected.
 //!
-//! In a model with `capacity` as well, list `refill` first: the step hands the new
-//! response to the first accumulating effect only (later ones are called with nothing
-//! to add), so `capacity` after `refill` saturates the refilled amplitude, while
-//! `refill` after `capacity` does nothing.
+//! Role [`AccumulateRole::Combine`]: in a model with `capacity` as well, `refill`
+//! combines old and new charge first and `capacity` saturates the result, whatever
+//! their order in the model file.
 
 use super::get;
-use crate::model::effect::{Effect, EffectDef, ParamSpec};
+use crate::model::effect::{AccumulateRole, Effect, EffectDef, ParamSpec};
 
 pub const DEF: EffectDef = EffectDef {
     name: "refill",
@@ -57,6 +56,9 @@ impl Effect for Refill {
     }
     fn has_accumulate(&self) -> bool {
         true
+    }
+    fn accumulate_role(&self) -> AccumulateRole {
+        AccumulateRole::Combine
     }
     fn accumulate(&self, a: &mut [f64], add: &[f64]) {
         for (d, n) in a.iter_mut().zip(add) {
