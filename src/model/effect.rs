@@ -207,6 +207,25 @@ pub trait Effect: Send + Sync + Debug {
     }
 }
 
+/// The observe hook of a measurement model: each term's weight becomes
+/// `(1 - s) w_n + s c_n factor(r_n)`, a mix of the weight in force and the term's
+/// measured response per unit `C_n` (`chord`: mean current; `linefit_bias`:
+/// least-squares slope). `s` = 0 leaves the weights untouched.
+pub fn mix_observation(
+    w: &mut [f64],
+    c_per_s: &[f64],
+    rate_per_s: &[f64],
+    s: f64,
+    factor: impl Fn(f64) -> f64,
+) {
+    if s == 0.0 {
+        return;
+    }
+    for ((wn, cn), rn) in w.iter_mut().zip(c_per_s).zip(rate_per_s) {
+        *wn = (1.0 - s) * *wn + s * (cn * factor(*rn));
+    }
+}
+
 /// Least-squares slope weight of one exponential term for an integration of
 /// `t_exposure_s` starting `t_slew_s` after the reset, per unit `C_n`:
 /// `(6 / T^3) integral_0^T exp(-r (t_slew + u)) u (T - u) du` (dense, uniform samples;

@@ -19,7 +19,7 @@
 //! with the least-squares slope (its null keeps the chord).
 
 use super::get;
-use crate::model::effect::{Effect, EffectDef, IntervalCtx, ParamSpec};
+use crate::model::effect::{mix_observation, Effect, EffectDef, IntervalCtx, ParamSpec};
 
 pub const DEF: EffectDef = EffectDef {
     name: "chord",
@@ -62,14 +62,9 @@ impl Effect for Chord {
         DEF.name
     }
     fn observe(&self, ctx: &IntervalCtx, c: &[f64], r: &[f64], w: &mut [f64]) {
-        let s = self.strength;
-        if s == 0.0 {
-            return;
-        }
-        for ((wn, cn), rn) in w.iter_mut().zip(c).zip(r) {
-            let m = cn * mean_factor(*rn, ctx.t_slew_s, ctx.t_exposure_s);
-            *wn = (1.0 - s) * *wn + s * m;
-        }
+        mix_observation(w, c, r, self.strength, |rn| {
+            mean_factor(rn, ctx.t_slew_s, ctx.t_exposure_s)
+        });
     }
 }
 

@@ -13,7 +13,9 @@
 //! Covariate: time since illumination (the first integrations after a bright one).
 
 use super::get;
-use crate::model::effect::{ls_slope_factor, Effect, EffectDef, IntervalCtx, ParamSpec};
+use crate::model::effect::{
+    ls_slope_factor, mix_observation, Effect, EffectDef, IntervalCtx, ParamSpec,
+};
 
 pub const DEF: EffectDef = EffectDef {
     name: "linefit_bias",
@@ -45,11 +47,9 @@ impl Effect for LinefitBias {
         DEF.name
     }
     fn observe(&self, ctx: &IntervalCtx, c: &[f64], r: &[f64], w: &mut [f64]) {
-        let s = self.strength;
-        for ((wn, cn), rn) in w.iter_mut().zip(c).zip(r) {
-            let g = cn * ls_slope_factor(*rn, ctx.t_slew_s, ctx.t_exposure_s);
-            *wn = (1.0 - s) * *wn + s * g;
-        }
+        mix_observation(w, c, r, self.strength, |rn| {
+            ls_slope_factor(rn, ctx.t_slew_s, ctx.t_exposure_s)
+        });
     }
 }
 
