@@ -28,9 +28,13 @@
 //! `[start / CN_RANGE_DOWN, start * CN_RANGE_UP]`, no null (not scanned), a 1 % step
 //! in `C_n` for the Jacobian. The rates `1/tau_n` stay; the residuals are the same
 //! fluence x time cells. Why: the simulator's decay after a first illumination is not
-//! `1/(t+1)` (256 x 256, 3e4-1e5 e-: the paper's shape over-predicts by 14 % at 90 s and
-//! 35-40 % from 270 s to 3,500 s), and that shape error, the same in every illumination,
-//! dominated the residual of every reference model.
+//! `1/(t+1)` (256 x 256, 3e4-1e5 e-: predicted over measured medians 1.14 at 90 s, ~1.4
+//! from 270 s to 3,500 s), and that shape error, the same in every illumination,
+//! dominated the residual of every reference model. Measured (docs/diagnose_matrix.md,
+//! fourth session): with `chord`, the residual RMS falls 37-38 % at 64 x 64 and 23 % at
+//! 256 x 256, but the fitted slow terms differ between the two sizes (the truth's shape
+//! depends on fluence; one set of `C_n` is a compromise whose weights follow the cells'
+//! significance), so the fitted `C_n` describe the campaign they were fitted to.
 //!
 //! Scale of the `C_n` against the `A_k` knots: the prediction is `sum_n A_n C_n
 //! e^{-t/tau_n}`, so multiplying every `C_n` by `s` and every knot by `1/s` changes
