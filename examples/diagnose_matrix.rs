@@ -10,6 +10,8 @@
 //! `NAME:param=value`, a truth effect with a non-default parameter), `--pair a,b` (two hidden
 //! effects, default `soak,temperature`), `--pixels N`, `--bootstrap B`,
 //! `--statistic within|pooled`, `--reference a,b` (default none: the paper's model),
+//! `--reference-fit-cn` (the reference also fits the `C_n`, `persist fit --fit-cn`; then
+//! every `fit --with` of the matrix refits them jointly too, from the reference's),
 //! `--skip-baseline`, `--skip-single`, `--skip-pair`.
 //!
 //! Per scenario, as the CLI would do it: the reference model (`fit`, the paper's
@@ -30,6 +32,7 @@ use persist::sim::effect::EffectSpec;
 use persist::sim::lab::{self, Illumination, LabConfig};
 use std::fmt::Write as _;
 use std::path::Path;
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Instant;
 
 struct Sim {
@@ -114,14 +117,18 @@ fn touched(s: &Samples, with: &Sim, without: &Sim) -> Vec<bool> {
 /// `persist fit --with a --with b`.
 fn reference_model(seq: &Sequence, reference: &[String]) -> ModelParams {
     let (m0, _) = calib::calibrate(seq, &CalibConfig::default()).expect("calibrate");
-    if reference.is_empty() {
+    let fit_cn = FIT_CN.load(Ordering::Relaxed);
+    if reference.is_empty() && !fit_cn {
         return m0;
     }
     let s2 = Samples::new(seq, 2);
-    ceffects::fit(&m0, reference, seq, &s2)
+    ceffects::fit_with_cn(&m0, reference, fit_cn, seq, &s2)
         .expect("fit reference")
         .0
 }
+
+/// `--reference-fit-cn`: the reference and every `fit --with` also fit the `C_n`.
+static FIT_CN: AtomicBool = AtomicBool::new(false);
 
 /// `fit --with` the reference effects and `extra` (jointly, starting from the reference
 /// model's values).
@@ -136,7 +143,9 @@ fn fit_with(
     if !names.iter().any(|n| n == extra) {
         names.push(extra.to_string());
     }
-    ceffects::fit(mref, &names, seq, s2).expect("fit").0
+    ceffects::fit_with_cn(mref, &names, FIT_CN.load(Ordering::Relaxed), seq, s2)
+        .expect("fit")
+        .0
 }
 
 /// The reference model of `seq`, then `diagnose` of it with `cfg` at `seed`.
@@ -196,6 +205,15 @@ fn main() {
             .map(String::from)
             .collect()
     });
+    FIT_CN.store(
+        args.iter().any(|a| a == "--reference-fit-cn"),
+        Ordering::Relaxed,
+    );
+    let cn_label = if FIT_CN.load(Ordering::Relaxed) {
+        " + C_n fitted (`--fit-cn`)"
+    } else {
+        ""
+    };
     let ref_label = if reference.is_empty() {
         "the paper's model (`persist fit`)".to_string()
     } else {
@@ -207,7 +225,7 @@ fn main() {
                 .map(|r| format!(" --with {r}"))
                 .collect::<String>()
         )
-    };
+    } + cn_label;
     let mut cfg = Config::default();
     if let Some(v) = arg(&args, "--pixels") {
         cfg.pixels = v.parse().unwrap();

@@ -382,6 +382,10 @@ pub struct FitArgs {
     /// Also fit this effect's parameters (repeatable). Names: see `persist diagnose`.
     #[arg(long = "with")]
     pub with: Vec<String>,
+    /// Also fit the six C_n (the decay shape; the tau_n stay) to the data, jointly with
+    /// the `--with` effects, from the paper's 1/(t+1) fit (the A_k knots are kept).
+    #[arg(long)]
+    pub fit_cn: bool,
     /// Fit report (JSON); default: OUT with extension `.fit.json`.
     #[arg(long)]
     pub report: Option<PathBuf>,
@@ -796,7 +800,7 @@ fn fit(a: &FitArgs) -> persist::Result<ExitCode> {
         .report
         .clone()
         .unwrap_or_else(|| a.out.with_extension("fit.json"));
-    let r = persist::calib::run(&a.input, &cfg, &a.with, &a.out, &report_path)?;
+    let r = persist::calib::run(&a.input, &cfg, &a.with, a.fit_cn, &a.out, &report_path)?;
     println!("{r}");
     Ok(ExitCode::SUCCESS)
 }

@@ -341,11 +341,13 @@ pub struct FitReport {
     pub model_identity: String,
 }
 
-/// `persist fit`: calibrate, fit the `--with` effects, write the model and the report.
+/// `persist fit`: calibrate, fit the `--with` effects (and with `fit_cn` the `C_n`,
+/// [`effects`] module docs), write the model and the report.
 pub fn run(
     input: &std::path::Path,
     cfg: &CalibConfig,
     with: &[String],
+    fit_cn: bool,
     out: &std::path::Path,
     report_path: &std::path::Path,
 ) -> Result<String> {
@@ -353,8 +355,8 @@ pub fn run(
     let (mut params, cal) = calibrate(&seq, cfg).map_err(|e| e.path(input))?;
     let samples = crate::diag::eval::Samples::new(&seq, 2);
     let mut ef = None;
-    if !with.is_empty() {
-        let (p, f) = effects::fit(&params, with, &seq, &samples)?;
+    if !with.is_empty() || fit_cn {
+        let (p, f) = effects::fit_with_cn(&params, with, fit_cn, &seq, &samples)?;
         params = p;
         ef = Some(f);
     }
@@ -388,6 +390,14 @@ pub fn run(
                 "  {}.{} = {:.6e} +- {:.2e}\n",
                 p.effect, p.name, p.value, p.sigma
             );
+        }
+        if let Some(c) = &f.c_n {
+            s += "  C_n fitted / start:";
+            for p in &c.shape {
+                s += &format!(" {:.0} s {:.3},", p.t_s, p.ratio_to_start);
+            }
+            s.pop();
+            s += "\n";
         }
         s += &format!(
             "  residual RMS {:.2} -> {:.2} ({} evaluations)\n",
