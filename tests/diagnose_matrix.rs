@@ -90,11 +90,14 @@ fn data_from_the_fitted_model_declare_nothing() {
     assert!(d.ranking.iter().all(|c| !c.significant), "{text}");
     assert!(d.verdict.starts_with("no library effect"), "{text}");
     assert!(d.threshold > 1.0 && d.threshold < 20.0, "{text}");
-    // Not ~1: the cell statistic's read-noise removal from the 95th percentile
-    // (`signal_p95`, in quadrature) is an approximation that leaves cells of
-    // model-generated data off by up to ~13 sigma_c (measured: RMS 3.29 at this seed),
-    // against 55-76 for the paper's model on the trap-level truth.
-    assert!(d.residual_rms_normalised < 5.0, "{text}");
+    // Measured 2.42 (3.29 before the cells compared the measured 95th percentile with
+    // the predictions' plus each sample's noise, `noisy_quantile`; on samples drawn
+    // directly from a prediction the statistic now gives ~1, `eval` unit test
+    // `cells_of_data_drawn_from_the_model_have_unit_rms`). What keeps this world above
+    // 1 was not traced; one candidate: its measurement is `image - b_k`, with `b_k` the
+    // median over background pixels, which carry the model's own small persistence.
+    // Against 55-76 for the paper's model on the trap-level truth.
+    assert!(d.residual_rms_normalised < 3.0, "{text}");
     assert_eq!(
         serde_json::to_string(&d).unwrap(),
         serde_json::to_string(&run()).unwrap()

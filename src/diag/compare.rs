@@ -234,7 +234,7 @@ pub fn definitions() -> BTreeMap<String, String> {
     BTreeMap::from([
         ("measured".into(), "image minus the median of the background pixels of the same exposure (fluence < 3000 e- in every illumination so far, no on-board flag); noise 1.4826 MAD of the same pixels".into()),
         ("samples".into(), "every 2nd pixel in x and y with fluence > 3000 e- in the last illumination, every exposure after an illumination".into()),
-        ("z".into(), "(P95 of measured signal - P95 of predicted) / (2.12 s / sqrt(n)), s = 1.4826 MAD of measured, at least the noise".into()),
+        ("z".into(), "(P95 of measured - P95 of predicted plus each sample's noise) / (2.12 s / sqrt(n)), s = 1.4826 MAD of measured, at least the noise".into()),
         ("residual_rms_normalised".into(), "RMS of z over cells fluence (5 per decade) x time since illumination (4 per decade)".into()),
         ("missed".into(), "measured > threshold + 2 noise and not flagged".into()),
         ("over_flagged".into(), "flagged and measured < threshold - 2 noise".into()),

@@ -10,8 +10,9 @@
 //! Cells are groups of samples, keyed by fluence bin x time bin (the cells of
 //! [`super::eval`]) and, for the `within` statistic, also by illumination event. Each
 //! cell's normalised residual is [`super::eval::group_stat_p95`]:
-//! `z_c = (P95_signal(measured) - P95(predicted)) / sigma_c`, `sigma_c` from the
-//! measured spread of the cell.
+//! `z_c = (P95(measured) - P95(predicted + noise)) / sigma_c` (the predictions' 95th
+//! percentile as a measurement would show it, [`super::data::noisy_quantile`]),
+//! `sigma_c` from the measured spread of the cell.
 //!
 //! # Score (Lagrange-multiplier) test per library effect
 //! For each registry effect not in the model, its switch parameter `theta` is moved from
@@ -73,7 +74,7 @@
 //! The ranking lists significant effects first (most negative `delta_BIC` first), then
 //! the rest by score; `score_rank` keeps the order by score alone.
 
-use super::data::{quantile, Sequence};
+use super::data::{noisy_quantile, quantile, Sequence};
 use super::eval::{self, Samples};
 use crate::error::{Error, ErrorKind, Result};
 use crate::model::effects::REGISTRY;
@@ -265,10 +266,15 @@ fn make_cells(s: &Samples, pred: &[f64], st: Statistic) -> Cells {
     c
 }
 
-fn p95s(c: &Cells, pred: &[f64]) -> Vec<f64> {
+/// Per cell, the 95th percentile of a measurement of the predictions (eval module docs).
+fn p95s(c: &Cells, s: &Samples, pred: &[f64]) -> Vec<f64> {
     c.members
         .iter()
-        .map(|idx| quantile(&idx.iter().map(|&i| pred[i]).collect::<Vec<_>>(), 0.95))
+        .map(|idx| {
+            let p: Vec<f64> = idx.iter().map(|&i| pred[i]).collect();
+            let sg: Vec<f64> = idx.iter().map(|&i| s.noise[i / s.npix()]).collect();
+            noisy_quantile(&p, &sg, 0.95).0
+        })
         .collect()
 }
 
@@ -444,7 +450,7 @@ pub fn diagnose(
         )
         .path(input));
     }
-    let pp0 = p95s(&cells, &base.current);
+    let pp0 = p95s(&cells, &samples, &base.current);
     // the library effects to test, each predicted at its score step (in parallel;
     // collected in registry order)
     let tests: Vec<_> = REGISTRY
@@ -464,7 +470,7 @@ pub fn diagnose(
                 params: map,
             });
             let pr = eval::predict(&q, seq, &samples, false)?;
-            let pp = p95s(&cells, &pr.current);
+            let pp = p95s(&cells, &samples, &pr.current);
             Ok(pp.iter().zip(&pp0).map(|(a, b)| (a - b) / h).collect())
         })
         .collect::<Result<_>>()?;
