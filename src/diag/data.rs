@@ -249,7 +249,25 @@ pub fn noisy_quantile(pred: &[f64], sigma: &[f64], q: f64) -> (f64, f64) {
     if lo == hi {
         return (lo, f64::INFINITY);
     }
-    let mut x = quantile(&pts.iter().map(|(p, _)| *p).collect::<Vec<_>>(), q).clamp(lo, hi);
+    // Start: the normal approximation, the predictions' own spread and the noise in
+    // quadrature (`median + z_q sqrt(s_p^2 + sigma^2)`, `s_p` from their q-quantile).
+    let preds: Vec<f64> = pts.iter().map(|(p, _)| *p).collect();
+    let sigmas: Vec<f64> = pts.iter().map(|(_, s)| *s).filter(|s| *s > 0.0).collect();
+    let sig = if sigmas.is_empty() {
+        0.0
+    } else {
+        median(&sigmas)
+    };
+    let (pq, pm) = (quantile(&preds, q), median(&preds));
+    let zq = std_normal_quantile(q);
+    let sp = if zq.abs() > 1e-9 { (pq - pm) / zq } else { 0.0 };
+    let mut x = (pm + zq * (sp * sp + sig * sig).sqrt()).clamp(lo, hi);
+    // converged when a step moves less than 1e-9 of the noise (or of the value's scale)
+    let tol = if sig > 0.0 {
+        1e-9 * sig
+    } else {
+        1e-12 * (1.0 + x.abs())
+    };
     let (mut g, mut d) = eval(x);
     for _ in 0..200 {
         if g == 0.0 {
@@ -260,21 +278,37 @@ pub fn noisy_quantile(pred: &[f64], sigma: &[f64], q: f64) -> (f64, f64) {
         } else {
             hi = x;
         }
-        if hi - lo <= 1e-12 * (1.0 + x.abs()) {
+        if hi - lo <= tol {
             break;
         }
         let newton = x - g / d;
-        x = if d > 0.0 && newton > lo && newton < hi {
+        let next = if d > 0.0 && newton > lo && newton < hi {
             newton
         } else {
             0.5 * (lo + hi)
         };
+        let step = (next - x).abs();
+        x = next;
         (g, d) = eval(x);
-        if g.abs() < 1e-13 {
+        if step <= tol {
             break;
         }
     }
     (x, d)
+}
+
+/// `z` with `Phi(z) = q` (standard normal), by bisection to 1e-12.
+fn std_normal_quantile(q: f64) -> f64 {
+    let (mut lo, mut hi) = (-40.0f64, 40.0f64);
+    while hi - lo > 1e-12 {
+        let mid = 0.5 * (lo + hi);
+        if 0.5 * libm::erfc(-mid * std::f64::consts::FRAC_1_SQRT_2) < q {
+            lo = mid;
+        } else {
+            hi = mid;
+        }
+    }
+    0.5 * (lo + hi)
 }
 
 /// The 95th percentile of the *signal* in a set of measurements with Gaussian noise
