@@ -32,7 +32,6 @@ use persist::sim::effect::EffectSpec;
 use persist::sim::lab::{self, Illumination, LabConfig};
 use std::fmt::Write as _;
 use std::path::Path;
-use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Instant;
 
 struct Sim {
@@ -112,38 +111,41 @@ fn touched(s: &Samples, with: &Sim, without: &Sim) -> Vec<bool> {
     t
 }
 
-/// The reference model of `seq`: the paper's calibration, then (when `reference` is
-/// not empty) the reference effects fitted on the stride-2 sample, as
-/// `persist fit --with a --with b`.
-fn reference_model(seq: &Sequence, reference: &[String]) -> ModelParams {
+/// The reference model: `--reference a,b` (its effects) and `--reference-fit-cn` (the
+/// reference and every `fit --with` also fit the `C_n`).
+struct Reference {
+    effects: Vec<String>,
+    fit_cn: bool,
+}
+
+/// The reference model of `seq`: the paper's calibration, then (when the reference has
+/// effects or fits the `C_n`) those fitted on the stride-2 sample, as
+/// `persist fit --with a --with b [--fit-cn]`.
+fn reference_model(seq: &Sequence, reference: &Reference) -> ModelParams {
     let (m0, _) = calib::calibrate(seq, &CalibConfig::default()).expect("calibrate");
-    let fit_cn = FIT_CN.load(Ordering::Relaxed);
-    if reference.is_empty() && !fit_cn {
+    if reference.effects.is_empty() && !reference.fit_cn {
         return m0;
     }
     let s2 = Samples::new(seq, 2);
-    ceffects::fit_with_cn(&m0, reference, fit_cn, seq, &s2)
+    ceffects::fit_with_cn(&m0, &reference.effects, reference.fit_cn, seq, &s2)
         .expect("fit reference")
         .0
 }
-
-/// `--reference-fit-cn`: the reference and every `fit --with` also fit the `C_n`.
-static FIT_CN: AtomicBool = AtomicBool::new(false);
 
 /// `fit --with` the reference effects and `extra` (jointly, starting from the reference
 /// model's values).
 fn fit_with(
     mref: &ModelParams,
-    reference: &[String],
+    reference: &Reference,
     extra: &str,
     seq: &Sequence,
     s2: &Samples,
 ) -> ModelParams {
-    let mut names = reference.to_vec();
+    let mut names = reference.effects.clone();
     if !names.iter().any(|n| n == extra) {
         names.push(extra.to_string());
     }
-    ceffects::fit_with_cn(mref, &names, FIT_CN.load(Ordering::Relaxed), seq, s2)
+    ceffects::fit_with_cn(mref, &names, reference.fit_cn, seq, s2)
         .expect("fit")
         .0
 }
@@ -153,7 +155,7 @@ fn calibrate_and_diagnose(
     seq: &Sequence,
     seed: u64,
     cfg: &Config,
-    reference: &[String],
+    reference: &Reference,
 ) -> (ModelParams, diagnose::Diagnosis) {
     let m0 = reference_model(seq, reference);
     let d = diagnose_with(&m0, seq, seed, cfg);
@@ -199,28 +201,28 @@ fn main() {
         .split(',')
         .map(String::from)
         .collect();
-    let reference: Vec<String> = arg(&args, "--reference").map_or(Vec::new(), |v| {
-        v.split(',')
-            .filter(|s| !s.is_empty())
-            .map(String::from)
-            .collect()
-    });
-    FIT_CN.store(
-        args.iter().any(|a| a == "--reference-fit-cn"),
-        Ordering::Relaxed,
-    );
-    let cn_label = if FIT_CN.load(Ordering::Relaxed) {
+    let reference = Reference {
+        effects: arg(&args, "--reference").map_or(Vec::new(), |v| {
+            v.split(',')
+                .filter(|s| !s.is_empty())
+                .map(String::from)
+                .collect()
+        }),
+        fit_cn: args.iter().any(|a| a == "--reference-fit-cn"),
+    };
+    let cn_label = if reference.fit_cn {
         " + C_n fitted (`--fit-cn`)"
     } else {
         ""
     };
-    let ref_label = if reference.is_empty() {
+    let ref_label = if reference.effects.is_empty() {
         "the paper's model (`persist fit`)".to_string()
     } else {
         format!(
             "the paper's model + {} (`persist fit{}`)",
-            reference.join(" + "),
+            reference.effects.join(" + "),
             reference
+                .effects
                 .iter()
                 .map(|r| format!(" --with {r}"))
                 .collect::<String>()
@@ -338,7 +340,7 @@ fn main() {
                     md,
                     "| {e} | {seed} | {} | {} | {} | {} | {} | {} | {} | {} | {} |",
                     rank.map_or(
-                        if reference.contains(&name) {
+                        if reference.effects.contains(&name) {
                             "in the reference".into()
                         } else {
                             "not in library".into()
@@ -405,9 +407,13 @@ fn main() {
                 let d2 = diagnose_with(&m1, &sim.seq, seed, &cfg);
                 w2 = declared_first(&d2);
                 if let Some(v) = &w2 {
-                    let mut names2 = reference.clone();
+                    let mut names2 = reference.effects.clone();
                     names2.push(w.clone());
-                    let m2 = fit_with(&m1, &names2, v, &sim.seq, &s2);
+                    let ref2 = Reference {
+                        effects: names2,
+                        fit_cn: reference.fit_cn,
+                    };
+                    let m2 = fit_with(&m1, &ref2, v, &sim.seq, &s2);
                     r2 = quality(&m2, &sim.seq, &s2, None).rms;
                 }
                 writeln!(

@@ -7,12 +7,11 @@
 //! ```
 use persist::diag::data::Sequence;
 use persist::diag::eval::{self, Samples};
-use persist::model::ModelParams;
 use std::path::Path;
 fn main() {
     let a: Vec<String> = std::env::args().collect();
     let seq = Sequence::load(Path::new(&a[1])).unwrap();
-    let m: ModelParams = serde_json::from_str(&std::fs::read_to_string(&a[2]).unwrap()).unwrap();
+    let m = persist::model_file::load(Path::new(&a[2])).unwrap();
     let (eff, par) = (a[3].clone(), a[4].clone());
     let s2 = Samples::new(&seq, 2);
     for v in a[5].split(',') {

@@ -9,7 +9,6 @@
 //! ```
 use persist::diag::data::Sequence;
 use persist::diag::eval::{self, Samples};
-use persist::model::ModelParams;
 use std::path::Path;
 fn med(mut v: Vec<f64>) -> f64 {
     v.retain(|x| x.is_finite());
@@ -24,7 +23,7 @@ fn main() {
     let a: Vec<String> = std::env::args().collect();
     let sa = Sequence::load(Path::new(&a[1])).unwrap();
     let sb = Sequence::load(Path::new(&a[2])).unwrap();
-    let m: ModelParams = serde_json::from_str(&std::fs::read_to_string(&a[3]).unwrap()).unwrap();
+    let m = persist::model_file::load(Path::new(&a[3])).unwrap();
     let (flo, fhi): (f64, f64) = (a[4].parse().unwrap(), a[5].parse().unwrap());
     let mut m1 = m.clone();
     m1.effects.push(persist::model::params::EffectSpec {

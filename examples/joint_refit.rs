@@ -14,16 +14,13 @@ use persist::model::ModelParams;
 use std::path::Path;
 
 fn rss(p: &ModelParams, seq: &Sequence, s: &Samples) -> (f64, usize) {
-    let pr = eval::predict(p, seq, s, false).expect("predict");
-    let z = eval::cell_z(s, &pr.current);
-    (z.iter().map(|(_, g)| g.z * g.z).sum(), z.len())
+    eval::rss_cells(p, seq, s).expect("predict")
 }
 
 fn main() {
     let a: Vec<String> = std::env::args().collect();
     let seq = Sequence::load(Path::new(&a[1])).expect("sequence");
-    let reference: ModelParams =
-        serde_json::from_str(&std::fs::read_to_string(&a[2]).expect("model")).expect("json");
+    let reference = persist::model_file::load(Path::new(&a[2])).expect("model");
     let cand = a[3].clone();
     let k = persist::model::effects::lookup(&cand)
         .expect("effect")

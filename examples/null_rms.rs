@@ -8,7 +8,6 @@
 //! ```
 use persist::diag::data::Sequence;
 use persist::diag::eval::{self, Samples};
-use persist::model::ModelParams;
 use rand::{Rng, SeedableRng};
 use rand_distr::StandardNormal;
 use std::path::Path;
@@ -16,8 +15,7 @@ use std::path::Path;
 fn main() {
     let a: Vec<String> = std::env::args().collect();
     let seq = Sequence::load(Path::new(&a[1])).expect("sequence");
-    let model: ModelParams =
-        serde_json::from_str(&std::fs::read_to_string(&a[2]).expect("model")).expect("json");
+    let model = persist::model_file::load(Path::new(&a[2])).expect("model");
     let stride: usize = a.get(3).map_or(2, |s| s.parse().expect("stride"));
     let seed: u64 = a.get(4).map_or(1, |s| s.parse().expect("seed"));
     let mut s = Samples::new(&seq, stride);

@@ -5,22 +5,10 @@
 //! the report says which were fitted. Without `--fit-cn` the report has no `c_n` and the
 //! model keeps the paper's calibration. Only the CLI opens the HDF5 files.
 
-use std::path::Path;
-use std::process::Command;
+mod common;
 
-fn persist(args: &[&str], dir: &Path) -> String {
-    let out = Command::new(env!("CARGO_BIN_EXE_persist"))
-        .current_dir(dir)
-        .args(args)
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{args:?}: {}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    String::from_utf8_lossy(&out.stdout).into_owned()
-}
+use common::persist_ok;
+use std::path::Path;
 
 fn json(path: &Path) -> serde_json::Value {
     serde_json::from_str(&std::fs::read_to_string(path).unwrap()).unwrap()
@@ -30,27 +18,26 @@ fn json(path: &Path) -> serde_json::Value {
 fn fit_cn_lowers_the_residual_with_positive_finite_cn() {
     let tmp = tempfile::tempdir().unwrap();
     let d = tmp.path();
-    persist(
-        &[
-            "simulate",
-            "lab",
-            "--size",
-            "64",
-            "--seed",
-            "1",
-            "--campaign",
-            "--out",
-            "lab",
-        ],
-        d,
-    );
+    let path = |name: &str| d.join(name).to_str().unwrap().to_string();
+    let (lab, ref_json, cn_json) = (path("lab"), path("ref.json"), path("cn.json"));
+    persist_ok(&[
+        "simulate",
+        "lab",
+        "--size",
+        "64",
+        "--seed",
+        "1",
+        "--campaign",
+        "--out",
+        &lab,
+    ]);
     let with = ["--with", "refill", "--with", "capacity", "--with", "chord"];
-    let mut a = vec!["fit", "--input", "lab", "--out", "ref.json"];
+    let mut a = vec!["fit", "--input", &lab, "--out", &ref_json];
     a.extend(with);
-    persist(&a, d);
-    let mut a = vec!["fit", "--input", "lab", "--out", "cn.json", "--fit-cn"];
+    persist_ok(&a);
+    let mut a = vec!["fit", "--input", &lab, "--out", &cn_json, "--fit-cn"];
     a.extend(with);
-    let text = persist(&a, d);
+    let text = persist_ok(&a);
     println!("{text}");
 
     let (r0, r1) = (json(&d.join("ref.fit.json")), json(&d.join("cn.fit.json")));

@@ -201,6 +201,16 @@ impl Problem<'_> {
         cache.push((p.to_vec(), z.clone()));
         z
     }
+
+    /// Sum of squared residuals at `p`; infinite where the model cannot be evaluated.
+    fn rss(&self, p: &[f64]) -> f64 {
+        let r = self.z_at(p).map_or(f64::NAN, |z| z.norm_squared());
+        if r.is_finite() {
+            r
+        } else {
+            f64::INFINITY
+        }
+    }
 }
 
 impl LeastSquaresProblem<f64, Dyn, Dyn> for Problem<'_> {
@@ -247,14 +257,6 @@ impl LeastSquaresProblem<f64, Dyn, Dyn> for Problem<'_> {
 /// The coarse scan of the module docs: move each switch parameter's start to the best
 /// of [`SCAN`] multiples of its distance from the null (sum of squared residuals).
 fn scan_start(problem: &mut Problem<'_>) {
-    let rss = |pr: &Problem<'_>, p: &[f64]| {
-        let r = pr.z_at(p).map_or(f64::NAN, |z| z.norm_squared());
-        if r.is_finite() {
-            r
-        } else {
-            f64::INFINITY
-        }
-    };
     // the effects added by this fit first, while the others hold the base's values
     let mut order: Vec<usize> = (0..problem.slots.len()).collect();
     order.sort_by_key(|&i| !problem.slots[i].added);
@@ -268,10 +270,10 @@ fn scan_start(problem: &mut Problem<'_>) {
         if d == 0.0 {
             continue;
         }
-        let mut best = (rss(problem, &p), p[i]);
+        let mut best = (problem.rss(&p), p[i]);
         for f in SCAN {
             p[i] = (null + f * d).clamp(lo, hi);
-            let r = rss(problem, &p);
+            let r = problem.rss(&p);
             if r < best.0 {
                 best = (r, p[i]);
             }
@@ -391,17 +393,15 @@ pub fn fit_with_cn(
     };
     scan_start(&mut problem);
     let p0 = problem.p.as_slice().to_vec();
-    let rss0 = problem.z_at(&p0).map(|z| z.norm_squared());
+    let rss0 = problem.rss(&p0);
     let (mut problem, report) = LevenbergMarquardt::new()
         .with_patience(20)
         .minimize(problem);
     let mut termination = format!("{:?}", report.termination);
-    if let Some(r0) = rss0 {
-        let r1 = problem.z_at(problem.p.as_slice()).map(|z| z.norm_squared());
-        if !r1.is_some_and(|r1| r1 <= r0) {
-            problem.p = DVector::from_vec(p0);
-            termination.push_str(" (start kept: the projected steps ended worse)");
-        }
+    // (`rss` is never NaN: a fit that cannot be evaluated is infinitely worse)
+    if rss0.is_finite() && problem.rss(problem.p.as_slice()) > rss0 {
+        problem.p = DVector::from_vec(p0);
+        termination.push_str(" (start kept: the projected steps ended worse)");
     }
     let p = problem.p.as_slice().to_vec();
     let fitted = problem.params_at(&p);

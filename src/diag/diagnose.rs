@@ -220,6 +220,9 @@ pub struct Diagnosis {
 /// Cells of the score test: sample indices per cell, the cell's noise, its group.
 struct Cells {
     members: Vec<Vec<usize>>,
+    /// Per member, its exposure's noise (e-/s).
+    sigma: Vec<Vec<f64>>,
+    /// Per cell, the median of `sigma`.
     noise: Vec<f64>,
     group: Vec<usize>,
     n_groups: usize,
@@ -247,6 +250,7 @@ fn make_cells(s: &Samples, pred: &[f64], st: Statistic) -> Cells {
     let mut groups: BTreeMap<Vec<i64>, usize> = BTreeMap::new();
     let mut c = Cells {
         members: Vec::new(),
+        sigma: Vec::new(),
         noise: Vec::new(),
         group: Vec::new(),
         n_groups: 0,
@@ -259,6 +263,7 @@ fn make_cells(s: &Samples, pred: &[f64], st: Statistic) -> Cells {
         let gi = *groups.entry(k[..2].to_vec()).or_insert(n);
         let noise: Vec<f64> = idx.iter().map(|&i| s.noise[i / s.npix()]).collect();
         c.noise.push(median(&noise));
+        c.sigma.push(noise);
         c.members.push(idx);
         c.group.push(gi);
     }
@@ -267,13 +272,13 @@ fn make_cells(s: &Samples, pred: &[f64], st: Statistic) -> Cells {
 }
 
 /// Per cell, the 95th percentile of a measurement of the predictions (eval module docs).
-fn p95s(c: &Cells, s: &Samples, pred: &[f64]) -> Vec<f64> {
+fn p95s(c: &Cells, pred: &[f64]) -> Vec<f64> {
     c.members
         .iter()
-        .map(|idx| {
+        .zip(&c.sigma)
+        .map(|(idx, sg)| {
             let p: Vec<f64> = idx.iter().map(|&i| pred[i]).collect();
-            let sg: Vec<f64> = idx.iter().map(|&i| s.noise[i / s.npix()]).collect();
-            noisy_quantile(&p, &sg, 0.95).0
+            noisy_quantile(&p, sg, 0.95).0
         })
         .collect()
 }
@@ -354,17 +359,13 @@ fn scores(
         .collect()
 }
 
-fn rss_cells(params: &ModelParams, seq: &Sequence, s: &Samples) -> Result<(f64, usize)> {
-    let pr = eval::predict(params, seq, s, false)?;
-    let z = eval::cell_z(s, &pr.current);
-    Ok((z.iter().map(|(_, g)| g.z * g.z).sum(), z.len()))
-}
-
 /// Held-out check of effect `name` (module docs); None with fewer than 2 events.
 /// `start`: a model holding the effect at the values to start the fits from (the
-/// full refit), else its defaults.
+/// full refit), else its defaults. `base_current`: `params`' prediction at `samples`
+/// (early release off, [`eval::predict`]), which the test halves' "before" reuse.
 pub fn held_out(
     params: &ModelParams,
+    base_current: &[f64],
     start: Option<&ModelParams>,
     name: &str,
     seq: &Sequence,
@@ -388,11 +389,16 @@ pub fn held_out(
     let fold = |h: usize| -> Result<(f64, usize, f64, usize)> {
         let (fit_ev, test_ev) = (&half[h], &half[1 - h]);
         let fs = samples.rows_where(|e| fit_ev.contains(&e));
-        let ts = samples.rows_where(|e| test_ev.contains(&e));
+        let test_rows = samples.row_indices(|e| test_ev.contains(&e));
+        let ts = samples.rows(&test_rows);
         let (fitted, _) =
             crate::calib::effects::fit(start.unwrap_or(params), &[name.to_string()], seq, &fs)?;
-        let (rb, mb) = rss_cells(params, seq, &ts)?;
-        let (ra, ma) = rss_cells(&fitted, seq, &ts)?;
+        // `params`' own prediction of the test rows: already computed, not run again
+        let (rb, mb) = eval::rss(&eval::cell_z(
+            &ts,
+            &samples.rows_of(base_current, &test_rows),
+        ));
+        let (ra, ma) = eval::rss_cells(&fitted, seq, &ts)?;
         Ok((rb, mb, ra, ma))
     };
     let (f0, f1) = rayon::join(|| fold(0), || fold(1));
@@ -450,18 +456,20 @@ pub fn diagnose(
         )
         .path(input));
     }
-    let pp0 = p95s(&cells, &samples, &base.current);
+    let pp0 = p95s(&cells, &base.current);
     // the library effects to test, each predicted at its score step (in parallel;
     // collected in registry order)
     let tests: Vec<_> = REGISTRY
         .iter()
         .filter(|def| !params.effects.iter().any(|e| e.name == def.name))
-        .filter_map(|def| def.switch().map(|(p, null)| (def, p, null)))
+        .filter_map(|def| {
+            def.switch()
+                .map(|(p, null)| (def, p, null, score_step(p, null)))
+        })
         .collect();
     let dp: Vec<Vec<f64>> = tests
         .par_iter()
-        .map(|(def, p, null)| {
-            let h = score_step(p, *null);
+        .map(|&(def, p, null, h)| {
             let mut q = params.clone();
             let mut map = serde_json::Map::new();
             map.insert(p.name.into(), serde_json::json!(null + h));
@@ -470,14 +478,14 @@ pub fn diagnose(
                 params: map,
             });
             let pr = eval::predict(&q, seq, &samples, false)?;
-            let pp = p95s(&cells, &samples, &pr.current);
+            let pp = p95s(&cells, &pr.current);
             Ok(pp.iter().zip(&pp0).map(|(a, b)| (a - b) / h).collect())
         })
         .collect::<Result<_>>()?;
-    let names: Vec<&'static str> = tests.iter().map(|(def, _, _)| def.name).collect();
+    let names: Vec<&'static str> = tests.iter().map(|(def, ..)| def.name).collect();
     let dirs: Vec<Option<f64>> = tests
         .iter()
-        .map(|(_, p, null)| one_sided(p, *null, score_step(p, *null)))
+        .map(|&(_, p, null, h)| one_sided(p, null, h))
         .collect();
     let lm = scores(&cells, &samples.measured, &pp0, &dp, &dirs, cfg.statistic);
     // parametric bootstrap from the fitted model
@@ -548,7 +556,7 @@ pub fn diagnose(
             let rss1 = f.residual_rms_normalised_after.powi(2) * mf;
             let dbic = mf * (rss1 / rss0).ln() + k * mf.ln();
             let ho = if dbic < DBIC_MAX {
-                held_out(params, Some(&fitted), name, seq, &samples)?
+                held_out(params, &base.current, Some(&fitted), name, seq, &samples)?
             } else {
                 None
             };
@@ -717,6 +725,7 @@ mod tests {
         let values = [1.0, 2.0, 3.0, 4.0];
         let cells = Cells {
             members: (0..4).map(|k| (10 * k..10 * k + 10).collect()).collect(),
+            sigma: vec![vec![0.1; 10]; 4],
             noise: vec![0.1; 4],
             group: vec![0; 4],
             n_groups: 1,

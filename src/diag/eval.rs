@@ -105,24 +105,20 @@ impl Samples {
 
     /// The rows (exposures) for which `keep(event)` is true.
     pub fn rows_where(&self, keep: impl Fn(usize) -> bool) -> Samples {
-        let np = self.npix();
-        let rows: Vec<usize> = (0..self.exposures.len())
-            .filter(|&r| keep(self.event[r]))
-            .collect();
+        self.rows(&self.row_indices(keep))
+    }
+
+    /// The given rows (indices into `exposures`), in their order.
+    pub fn rows(&self, rows: &[usize]) -> Samples {
         let per_row = |v: &Vec<f64>| rows.iter().map(|&r| v[r]).collect::<Vec<f64>>();
-        let per_sample = |v: &Vec<f64>| {
-            rows.iter()
-                .flat_map(|&r| v[r * np..(r + 1) * np].iter().copied())
-                .collect::<Vec<f64>>()
-        };
         Samples {
             stride: self.stride,
             pixels: self.pixels.clone(),
             exposures: rows.iter().map(|&r| self.exposures[r]).collect(),
-            measured: per_sample(&self.measured),
+            measured: self.rows_of(&self.measured, rows),
             noise: per_row(&self.noise),
-            fluence_e: per_sample(&self.fluence_e),
-            neighbour_excess_e: per_sample(&self.neighbour_excess_e),
+            fluence_e: self.rows_of(&self.fluence_e, rows),
+            neighbour_excess_e: self.rows_of(&self.neighbour_excess_e, rows),
             t_since_s: per_row(&self.t_since_s),
             event: rows.iter().map(|&r| self.event[r]).collect(),
             illumination_time_s: per_row(&self.illumination_time_s),
@@ -130,6 +126,22 @@ impl Samples {
             earlier_illuminations: per_row(&self.earlier_illuminations),
             radius: self.radius.clone(),
         }
+    }
+
+    /// Indices of the rows (exposures) for which `keep(event)` is true.
+    pub fn row_indices(&self, keep: impl Fn(usize) -> bool) -> Vec<usize> {
+        (0..self.exposures.len())
+            .filter(|&r| keep(self.event[r]))
+            .collect()
+    }
+
+    /// Per-sample values `v` (the layout of `measured`, e.g. a prediction) of the
+    /// given rows, in their order: what [`Samples::rows_where`] keeps of them.
+    pub fn rows_of(&self, v: &[f64], rows: &[usize]) -> Vec<f64> {
+        let np = self.npix();
+        rows.iter()
+            .flat_map(|&r| v[r * np..(r + 1) * np].iter().copied())
+            .collect()
     }
 
     /// Samples at the given pixels (every row).
@@ -476,6 +488,17 @@ impl CellIndex {
     }
 }
 
+/// Sum of squared `z` over the cells, and their number.
+pub fn rss(z: &[(Vec<i64>, GroupStat)]) -> (f64, usize) {
+    (z.iter().map(|(_, g)| g.z * g.z).sum(), z.len())
+}
+
+/// `params` run over `seq`: [`rss`] of its [`cell_z`] at the samples `s`.
+pub fn rss_cells(params: &ModelParams, seq: &Sequence, s: &Samples) -> Result<(f64, usize)> {
+    let pr = predict(params, seq, s, false)?;
+    Ok(rss(&cell_z(s, &pr.current)))
+}
+
 /// `sqrt(mean z^2)` over the cells.
 pub fn rms(z: &[(Vec<i64>, GroupStat)]) -> f64 {
     if z.is_empty() {
@@ -594,6 +617,7 @@ mod tests {
     /// below to above the noise, the RMS must be ~1 and the old form must not be.
     #[test]
     fn cells_of_data_drawn_from_the_model_have_unit_rms() {
+        use super::super::data::signal_p95;
         use rand_distr::StandardNormal;
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(11);
         let (np, rows) = (2000, 8);
@@ -644,9 +668,8 @@ mod tests {
             let m: Vec<f64> = idx.iter().map(|&i| s.measured[i]).collect();
             let p: Vec<f64> = idx.iter().map(|&i| pred[i]).collect();
             let nz: Vec<f64> = idx.iter().map(|&i| s.noise[i / np]).collect();
-            let z = (super::super::data::signal_p95(&m, median(&m), median(&nz))
-                - quantile(&p, 0.95))
-                / g.sigma_e_per_s;
+            let z =
+                (signal_p95(&m, median(&m), median(&nz)) - quantile(&p, 0.95)) / g.sigma_e_per_s;
             old += z * z;
         }
         let old = (old / cells.len() as f64).sqrt();
