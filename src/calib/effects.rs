@@ -1,7 +1,10 @@
 //! `fit --with NAME`: the fitted parameters of effects, by Levenberg-Marquardt
 //! (`levenberg-marquardt` 0.15, forward-difference Jacobian) on the normalised cell
 //! residuals `z` of [`crate::diag::eval`] (fluence bin x time since illumination), the
-//! paper's calibration held fixed. Parameters are kept inside their bounds (projected
+//! paper's calibration held fixed except that each trial model's knots carry its
+//! per-pixel response effects ([`super::knots`]: a `short_tau_boost` lowers the knots in
+//! its window by what it adds to the first-dark ramp; listed in the report's
+//! `knots_rescaled`). Parameters are kept inside their bounds (projected
 //! after each step). Uncertainties: `s^2 (J^T J)^-1`, `s^2 = SSR / (m - p)`.
 //!
 //! Start: the model's values (the defaults for an added effect), then, for each switch
@@ -90,6 +93,18 @@ pub struct EffectFit {
     /// With `--fit-cn`: the fitted `C_n` (absent otherwise).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub c_n: Option<CnFitReport>,
+    /// Knots the fitted effects rescaled ([`super::knots`]): fluence, the input model's
+    /// amplitude and the written one (absent when none changed).
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub knots_rescaled: Vec<RescaledKnot>,
+}
+
+/// One knot changed by [`super::knots::rescale`].
+#[derive(Debug, Clone, Serialize)]
+pub struct RescaledKnot {
+    pub fluence_e: f64,
+    pub amplitude_before_e: f64,
+    pub amplitude_e: f64,
 }
 
 /// One fitted `C_n` (`--fit-cn`).
@@ -156,6 +171,9 @@ type Cache = RefCell<Vec<(Vec<f64>, Option<DVector<f64>>)>>;
 
 struct Problem<'a> {
     base: ModelParams,
+    /// The input model (its knots carry its own effects) and the calibration ramp, for
+    /// the knots of each trial model ([`super::knots`]); None without a ramp (sky data).
+    knots_from: Option<(&'a ModelParams, super::knots::CalibRamp)>,
     seq: &'a Sequence,
     samples: &'a Samples,
     cells: eval::CellIndex,
@@ -178,6 +196,10 @@ impl Problem<'_> {
                 }
                 Target::LnC(n) => m.terms[n].c_per_s = v.exp(),
             }
+        }
+        if let Some((from, ramp)) = &self.knots_from {
+            // cannot fail: every entry was built once by `knots::scale` in `fit_with_cn`
+            let _ = super::knots::rescale(from, &mut m, ramp);
         }
         m
     }
@@ -381,8 +403,16 @@ pub fn fit_with_cn(
         let pr = eval::predict(base, seq, samples, false)?;
         eval::rms(&cells.z(samples, &pr.current))
     };
+    let knots_from = match super::knots::CalibRamp::of(seq) {
+        Ok(ramp) => {
+            super::knots::scale(&m, &ramp)?;
+            Some((base, ramp))
+        }
+        Err(_) => None,
+    };
     let mut problem = Problem {
         base: m.clone(),
+        knots_from,
         seq,
         samples,
         cells,
@@ -476,6 +506,17 @@ pub fn fit_with_cn(
     fitted
         .validate()
         .map_err(|e| Error::invalid("effects", e))?;
+    let knots_rescaled: Vec<RescaledKnot> = base
+        .amplitude_knots
+        .iter()
+        .zip(&fitted.amplitude_knots)
+        .filter(|(a, b)| a.amplitude_e.to_bits() != b.amplitude_e.to_bits())
+        .map(|(a, b)| RescaledKnot {
+            fluence_e: a.fluence_e,
+            amplitude_before_e: a.amplitude_e,
+            amplitude_e: b.amplitude_e,
+        })
+        .collect();
     Ok((
         fitted,
         EffectFit {
@@ -486,6 +527,7 @@ pub fn fit_with_cn(
             evaluations: evals,
             termination,
             c_n,
+            knots_rescaled,
         },
     ))
 }

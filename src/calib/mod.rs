@@ -20,6 +20,7 @@
 //!    refitted.
 
 pub mod effects;
+pub mod knots;
 pub mod logfit;
 
 use crate::diag::data::{fluence, quantile, signal_p95, Sequence, BACKGROUND_FLUENCE_E};
@@ -95,28 +96,13 @@ pub fn calibrate(seq: &Sequence, cfg: &CalibConfig) -> Result<(ModelParams, Cali
     if !(cfg.amplification.is_finite() && cfg.amplification > 0.0) {
         return Err(Error::invalid("--amplification", "must be finite and > 0"));
     }
-    let &i0 = seq
-        .illuminations
-        .first()
-        .ok_or_else(|| Error::invalid("t_illuminated_s", "no illuminated exposure in the input"))?;
-    let d = i0 + 1;
-    let dark = seq.exposures.get(d).ok_or_else(|| {
-        Error::invalid("exposure_index", "no dark exposure after the illumination")
-    })?;
-    let (ramp, times) = match (&dark.ramp, &dark.ramp_times_s) {
-        (Some(r), Some(t)) => (r, t),
-        _ => {
-            return Err(Error::invalid(
-                "ramp",
-                format!(
-                    "exposure {}: the first dark integration has no /ramp (laboratory data needed)",
-                    dark.meta.exposure_index
-                ),
-            ))
-        }
-    };
-    let t_slew = seq.t_mid_after_s(i0, d) - 0.5 * dark.meta.t_exposure_s;
-    let t: Vec<f64> = times.iter().map(|x| x + t_slew).collect();
+    let cr = knots::CalibRamp::of(seq)?;
+    let (i0, d) = (cr.illumination, cr.dark);
+    let ramp = seq.exposures[d]
+        .ramp
+        .as_ref()
+        .expect("checked by CalibRamp::of");
+    let t = &cr.t_s;
     let f = fluence(&seq.exposures[i0]);
     let meas = seq.measured(d);
     let noise = seq.noise_e_per_s[d];
@@ -234,7 +220,7 @@ pub fn calibrate(seq: &Sequence, cfg: &CalibConfig) -> Result<(ModelParams, Cali
         CalibReport {
             config: cfg.clone(),
             illumination_exposure_index: seq.exposures[i0].meta.exposure_index,
-            first_dark_exposure_index: dark.meta.exposure_index,
+            first_dark_exposure_index: seq.exposures[d].meta.exposure_index,
             background_e_per_s: seq.background_e_per_s[d],
             noise_e_per_s: noise,
             bins,

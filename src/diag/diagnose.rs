@@ -457,6 +457,8 @@ pub fn diagnose(
         .path(input));
     }
     let pp0 = p95s(&cells, &base.current);
+    // the knots of each stepped model carry its effects, as in the refit
+    let calib_ramp = crate::calib::knots::CalibRamp::of(seq).ok();
     // the library effects to test, each predicted at its score step (in parallel;
     // collected in registry order)
     let tests: Vec<_> = REGISTRY
@@ -477,6 +479,9 @@ pub fn diagnose(
                 name: def.name.into(),
                 params: map,
             });
+            if let Some(r) = &calib_ramp {
+                crate::calib::knots::rescale(params, &mut q, r)?;
+            }
             let pr = eval::predict(&q, seq, &samples, false)?;
             let pp = p95s(&cells, &pr.current);
             Ok(pp.iter().zip(&pp0).map(|(a, b)| (a - b) / h).collect())

@@ -190,6 +190,12 @@ pub trait Effect: Send + Sync + Debug {
     fn fluence(&self, _fluence_e: &mut Array2<f64>) {}
     /// Adjust this exposure's response `A_k,n`, electrons, shape `[ny, nx, n_terms]`.
     fn response(&self, _ctx: &ResponseCtx<'_>, _ak: &mut Array3<f64>) {}
+    /// True if [`Effect::response`] changes a pixel's planes from that pixel's own
+    /// fluence and the exposure alone (not its position or its neighbours): the
+    /// calibration then rescales the knots with it ([`crate::calib::knots`]).
+    fn response_is_per_pixel(&self) -> bool {
+        false
+    }
     /// True if [`Effect::accumulate`] is implemented.
     fn has_accumulate(&self) -> bool {
         false

@@ -77,6 +77,9 @@ impl Effect for ShortTauBoost {
     fn name(&self) -> &'static str {
         DEF.name
     }
+    fn response_is_per_pixel(&self) -> bool {
+        true
+    }
     fn response(&self, ctx: &ResponseCtx<'_>, ak: &mut Array3<f64>) {
         let terms: Vec<usize> = (0..ctx.rate_per_s.len())
             .filter(|&n| 1.0 / ctx.rate_per_s[n] <= self.tau_max_s)

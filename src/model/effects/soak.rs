@@ -53,6 +53,9 @@ impl Effect for Soak {
     fn name(&self) -> &'static str {
         DEF.name
     }
+    fn response_is_per_pixel(&self) -> bool {
+        true
+    }
     fn response(&self, ctx: &ResponseCtx<'_>, ak: &mut Array3<f64>) {
         if self.capture_ratio <= 0.0 {
             return;

@@ -1,0 +1,245 @@
+//! Knots consistent with the model's effects.
+//!
+//! The paper's calibration turns each fluence bin's first-dark ramp into an amplitude:
+//! `A_bin = amplification * A_0`, `A_0` from the fit `q(t) = A_0 ln(t + tau) + q_0`
+//! ([`super::logfit`]). That inversion assumes the paper's model, in which a pixel of
+//! amplitude `A` releases `A sum_n C_n exp(-t/tau_n)` whatever its fluence. An effect
+//! that changes the per-term response of the illuminated exposure (its response hook,
+//! e.g. `short_tau_boost`: the fast terms multiplied by a factor in a fluence window)
+//! changes the first-dark ramp that one unit of `A_k` predicts; the knots must then
+//! change too, or they keep the effect's signature (the ramp's extra charge read as a
+//! larger `A_0`) and the fitted effect double-counts it.
+//!
+//! # Rule
+//! For a knot at fluence `F`, predict the first-dark ramp of one unit of amplitude with
+//! the model's effects and without them,
+//! `q_E(t) = sum_n g_n(F) C_n tau_n (exp(-t_0/tau_n) - exp(-t/tau_n))`
+//! (`g_n` the per-term response factors of the effects, `t_0` the first dark's reset
+//! and `t` its read times, both after the end of the illuminated exposure, as in
+//! [`super::calibrate`]), fit both with Eq. (logfit) and scale the knot by
+//! `s(F) = A_0[q_without] / A_0[q_E]`. Since `A_0` is linear in the ramp's scale, a
+//! measured ramp `A q_E` then calibrates to the knot the paper's rule gives for a ramp
+//! `A q_without`: the knot keeps the paper's meaning and the effect carries the rest.
+//! With no effect (or an effect at its null) every `g_n` is 1 and `s` is exactly 1, so
+//! the paper's calibration and every model without such effects are unchanged.
+//!
+//! Only effects whose response depends on a pixel's own fluence and the exposure
+//! ([`crate::model::effect::Effect::response_is_per_pixel`]: `short_tau_boost`,
+//! `soak`) enter; spatial responses (`ipc`, `populations`, `blooming`), rate hooks
+//! (`temperature`: the calibration illumination's temperature) and accumulation rules
+//! (which act only on charge carried from earlier illuminations, or saturate it) are
+//! left to the knots as the paper calibrates them.
+
+use super::logfit;
+use crate::diag::data::Sequence;
+use crate::error::{Error, Result};
+use crate::model::effect::ResponseCtx;
+use crate::model::effects;
+use crate::model::params::ModelParams;
+use ndarray::{Array2, Array3};
+
+/// The calibration's first dark: its read times after the end of the illuminated
+/// exposure (the model's reference for the decay) and the illuminated exposure's timing.
+#[derive(Debug, Clone, PartialEq)]
+pub struct CalibRamp {
+    /// Index of the illuminated exposure in the sequence.
+    pub illumination: usize,
+    /// Index of the first dark integration (the one with the ramp).
+    pub dark: usize,
+    /// Reset of the first dark, s after the end of the illuminated exposure.
+    pub t_reset_s: f64,
+    /// The first dark's read times, s after the same reference.
+    pub t_s: Vec<f64>,
+    pub t_illuminated_s: f64,
+    pub t_exposure_s: f64,
+}
+
+impl CalibRamp {
+    /// The first illumination of `seq` and the dark after it (which must keep its ramp).
+    pub fn of(seq: &Sequence) -> Result<CalibRamp> {
+        let &i0 = seq.illuminations.first().ok_or_else(|| {
+            Error::invalid("t_illuminated_s", "no illuminated exposure in the input")
+        })?;
+        let d = i0 + 1;
+        let dark = seq.exposures.get(d).ok_or_else(|| {
+            Error::invalid("exposure_index", "no dark exposure after the illumination")
+        })?;
+        let times = dark.ramp_times_s.as_ref().filter(|_| dark.ramp.is_some());
+        let times = times.ok_or_else(|| {
+            Error::invalid(
+                "ramp",
+                format!(
+                    "exposure {}: the first dark integration has no /ramp (laboratory data needed)",
+                    dark.meta.exposure_index
+                ),
+            )
+        })?;
+        let t_reset_s = seq.t_mid_after_s(i0, d) - 0.5 * dark.meta.t_exposure_s;
+        let ill = &seq.exposures[i0].meta;
+        Ok(CalibRamp {
+            illumination: i0,
+            dark: d,
+            t_reset_s,
+            t_s: times.iter().map(|x| x + t_reset_s).collect(),
+            t_illuminated_s: ill.t_illuminated_s(),
+            t_exposure_s: ill.t_exposure_s,
+        })
+    }
+}
+
+/// `s(F)` of the module docs for each knot of `model`; 1 where the effects leave the
+/// response unchanged. Errors name the effect entry that cannot be built.
+pub fn scale(model: &ModelParams, ramp: &CalibRamp) -> Result<Vec<f64>> {
+    let k = model.amplitude_knots.len();
+    let mut built = Vec::new();
+    for (i, spec) in model.effects.iter().enumerate() {
+        let e = effects::build(spec).map_err(|r| Error::invalid(format!("effects[{i}]"), r))?;
+        if e.response_is_per_pixel() {
+            built.push(e);
+        }
+    }
+    if built.is_empty() || k == 0 {
+        return Ok(vec![1.0; k]);
+    }
+    let rates: Vec<f64> = model.terms.iter().map(|t| t.rate_per_s).collect();
+    let n = rates.len();
+    let fluence = Array2::from_shape_fn((1, k), |(_, j)| model.amplitude_knots[j].fluence_e);
+    let mut g = Array3::<f64>::ones((1, k, n));
+    let ctx = ResponseCtx {
+        fluence_e: &fluence,
+        t_illuminated_s: ramp.t_illuminated_s,
+        t_exposure_s: ramp.t_exposure_s,
+        rate_per_s: &rates,
+    };
+    for e in &built {
+        e.response(&ctx, &mut g);
+    }
+    // the ramp of one unit of amplitude, term by term
+    let unit: Vec<Vec<f64>> = model
+        .terms
+        .iter()
+        .map(|t| {
+            let r = t.rate_per_s;
+            let tau = if r > 0.0 { 1.0 / r } else { 0.0 };
+            let e0 = (-ramp.t_reset_s * r).exp();
+            ramp.t_s
+                .iter()
+                .map(|ts| t.c_per_s * tau * (e0 - (-ts * r).exp()))
+                .collect()
+        })
+        .collect();
+    let ramp_of = |w: &dyn Fn(usize) -> f64| -> Vec<f64> {
+        (0..ramp.t_s.len())
+            .map(|s| (0..n).map(|m| w(m) * unit[m][s]).sum())
+            .collect()
+    };
+    let a0 = |q: &[f64]| {
+        logfit::fit(&ramp.t_s, q)
+            .map(|f| f.a0_e)
+            .filter(|a| a.is_finite() && *a > 0.0)
+    };
+    let plain = a0(&ramp_of(&|_| 1.0));
+    Ok((0..k)
+        .map(|j| {
+            if (0..n).all(|m| g[[0, j, m]] == 1.0) {
+                return 1.0;
+            }
+            let with = a0(&ramp_of(&|m| g[[0, j, m]]));
+            match (plain, with) {
+                (Some(p), Some(w)) => p / w,
+                // a ramp the log fit cannot describe: the paper's knot is kept
+                _ => 1.0,
+            }
+        })
+        .collect())
+}
+
+/// Rescale the knots of `to` (a copy of `from` with other effects or parameters) so
+/// that they carry `to`'s effects instead of `from`'s: `A_k *= s_to(F_k) / s_from(F_k)`.
+/// Knots are untouched (bit for bit) where both scales are equal. `to` must have the
+/// same knots as `from`.
+pub fn rescale(from: &ModelParams, to: &mut ModelParams, ramp: &CalibRamp) -> Result<()> {
+    let s_from = scale(from, ramp)?;
+    let s_to = scale(to, ramp)?;
+    for ((kn, a), b) in to.amplitude_knots.iter_mut().zip(&s_from).zip(&s_to) {
+        if a != b {
+            kn.amplitude_e *= b / a;
+        }
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::model::params::{EffectSpec, Knot};
+
+    fn ramp() -> CalibRamp {
+        // the laboratory timing: 613 s integration lit 481 s, a 10 s slew, then a 180 s
+        // dark read every 1.5 s (times after the illuminated exposure's end, as
+        // `Sequence::t_mid_after_s` counts them)
+        CalibRamp {
+            illumination: 0,
+            dark: 1,
+            t_reset_s: 10.0,
+            t_s: (1..=120).map(|i| 10.0 + 1.5 * i as f64).collect(),
+            t_illuminated_s: 481.0,
+            t_exposure_s: 613.0,
+        }
+    }
+
+    fn model(effects: Vec<EffectSpec>) -> ModelParams {
+        ModelParams {
+            amplitude_knots: [1e5, 3e5, 1e6]
+                .iter()
+                .map(|&f| Knot {
+                    fluence_e: f,
+                    amplitude_e: 1000.0,
+                })
+                .collect(),
+            effects,
+            ..ModelParams::default()
+        }
+    }
+
+    fn boost(factor: f64) -> EffectSpec {
+        let mut p = serde_json::Map::new();
+        p.insert("factor".into(), serde_json::json!(factor));
+        EffectSpec {
+            name: "short_tau_boost".into(),
+            params: p,
+        }
+    }
+
+    #[test]
+    fn no_effect_or_null_effect_leaves_knots_bit_identical() {
+        let r = ramp();
+        assert_eq!(scale(&model(vec![]), &r).unwrap(), vec![1.0; 3]);
+        assert_eq!(scale(&model(vec![boost(1.0)]), &r).unwrap(), vec![1.0; 3]);
+        let from = model(vec![]);
+        let mut to = model(vec![boost(1.0)]);
+        rescale(&from, &mut to, &r).unwrap();
+        assert_eq!(to.amplitude_knots, from.amplitude_knots);
+    }
+
+    #[test]
+    fn boost_lowers_only_the_knots_in_its_window() {
+        // short_tau_boost's window is 200,000-500,000 e-: only the 300,000 e- knot moves,
+        // and down (a boosted ramp per unit amplitude is steeper, so less amplitude
+        // explains the same measured ramp)
+        let r = ramp();
+        let s = scale(&model(vec![boost(3.0)]), &r).unwrap();
+        assert_eq!(s[0], 1.0);
+        assert_eq!(s[2], 1.0);
+        assert!(s[1] < 1.0 && s[1] > 0.0, "{s:?}");
+        // and the rescaled knot predicts the unit ramp's A_0 again
+        let from = model(vec![]);
+        let mut to = model(vec![boost(3.0)]);
+        rescale(&from, &mut to, &r).unwrap();
+        assert!((to.amplitude_knots[1].amplitude_e - 1000.0 * s[1]).abs() < 1e-9);
+        let mut back = to.clone();
+        back.effects.clear();
+        rescale(&to, &mut back, &r).unwrap();
+        assert!((back.amplitude_knots[1].amplitude_e - 1000.0).abs() < 1e-9);
+    }
+}
