@@ -108,19 +108,28 @@ pub fn run_batch(input: &Path, root: &Path, extra: &[&str]) -> (i32, String) {
     )
 }
 
-/// Every file under `dir` (relative path -> bytes), skipping the lock file.
+/// Every file under `dir` (relative path -> bytes), skipping the lock file. Also polled
+/// while a stage runs: a file renamed or removed between the listing and the read (a
+/// temporary being published) is skipped, any other error panics.
 pub fn tree(dir: &Path) -> std::collections::BTreeMap<PathBuf, Vec<u8>> {
+    let vanished = |e: &std::io::Error| e.kind() == std::io::ErrorKind::NotFound;
     let mut m = std::collections::BTreeMap::new();
     if !dir.exists() {
         return m;
     }
     for e in walkdir::WalkDir::new(dir) {
-        let e = e.unwrap();
+        let e = match e {
+            Ok(e) => e,
+            Err(err) if err.io_error().is_some_and(vanished) => continue,
+            Err(err) => panic!("{}: {err}", dir.display()),
+        };
         if e.file_type().is_file() && e.file_name() != ".persist.lock" {
-            m.insert(
-                e.path().strip_prefix(dir).unwrap().to_path_buf(),
-                std::fs::read(e.path()).unwrap(),
-            );
+            let bytes = match std::fs::read(e.path()) {
+                Ok(b) => b,
+                Err(err) if vanished(&err) => continue,
+                Err(err) => panic!("{}: {err}", e.path().display()),
+            };
+            m.insert(e.path().strip_prefix(dir).unwrap().to_path_buf(), bytes);
         }
     }
     m
