@@ -171,9 +171,10 @@ type Cache = RefCell<Vec<(Vec<f64>, Option<DVector<f64>>)>>;
 
 struct Problem<'a> {
     base: ModelParams,
-    /// The input model (its knots carry its own effects) and the calibration ramp, for
-    /// the knots of each trial model ([`super::knots`]); None without a ramp (sky data).
-    knots_from: Option<(&'a ModelParams, super::knots::CalibRamp)>,
+    /// The input model's knot scale (its knots carry its own effects) and the
+    /// calibration ramp, for the knots of each trial model ([`super::knots`]); None
+    /// without a ramp (sky data).
+    knots_from: Option<(Vec<f64>, super::knots::CalibRamp)>,
     seq: &'a Sequence,
     samples: &'a Samples,
     cells: eval::CellIndex,
@@ -197,9 +198,9 @@ impl Problem<'_> {
                 Target::LnC(n) => m.terms[n].c_per_s = v.exp(),
             }
         }
-        if let Some((from, ramp)) = &self.knots_from {
-            // cannot fail: every entry was built once by `knots::scale` in `fit_with_cn`
-            let _ = super::knots::rescale(from, &mut m, ramp);
+        if let Some((s_from, ramp)) = &self.knots_from {
+            // cannot fail: every entry was resolved (checked) in `fit_with_cn`
+            let _ = super::knots::rescale(s_from, &mut m, ramp);
         }
         m
     }
@@ -404,10 +405,7 @@ pub fn fit_with_cn(
         eval::rms(&cells.z(samples, &pr.current))
     };
     let knots_from = match super::knots::CalibRamp::of(seq) {
-        Ok(ramp) => {
-            super::knots::scale(&m, &ramp)?;
-            Some((base, ramp))
-        }
+        Ok(ramp) => Some((super::knots::scale(base, &ramp)?, ramp)),
         Err(_) => None,
     };
     let mut problem = Problem {

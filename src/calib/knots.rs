@@ -154,14 +154,14 @@ pub fn scale(model: &ModelParams, ramp: &CalibRamp) -> Result<Vec<f64>> {
         .collect())
 }
 
-/// Rescale the knots of `to` (a copy of `from` with other effects or parameters) so
-/// that they carry `to`'s effects instead of `from`'s: `A_k *= s_to(F_k) / s_from(F_k)`.
-/// Knots are untouched (bit for bit) where both scales are equal. `to` must have the
-/// same knots as `from`.
-pub fn rescale(from: &ModelParams, to: &mut ModelParams, ramp: &CalibRamp) -> Result<()> {
-    let s_from = scale(from, ramp)?;
+/// Rescale the knots of `to` (a copy of a model `from` with other effects or
+/// parameters; `s_from = scale(from, ramp)`, computed once by the caller) so that they
+/// carry `to`'s effects instead of `from`'s: `A_k *= s_to(F_k) / s_from(F_k)`. Knots
+/// are untouched (bit for bit) where both scales are equal. `to` must have the same
+/// knots as `from`.
+pub fn rescale(s_from: &[f64], to: &mut ModelParams, ramp: &CalibRamp) -> Result<()> {
     let s_to = scale(to, ramp)?;
-    for ((kn, a), b) in to.amplitude_knots.iter_mut().zip(&s_from).zip(&s_to) {
+    for ((kn, a), b) in to.amplitude_knots.iter_mut().zip(s_from).zip(&s_to) {
         if a != b {
             kn.amplitude_e *= b / a;
         }
@@ -218,7 +218,7 @@ mod tests {
         assert_eq!(scale(&model(vec![boost(1.0)]), &r).unwrap(), vec![1.0; 3]);
         let from = model(vec![]);
         let mut to = model(vec![boost(1.0)]);
-        rescale(&from, &mut to, &r).unwrap();
+        rescale(&scale(&from, &r).unwrap(), &mut to, &r).unwrap();
         assert_eq!(to.amplitude_knots, from.amplitude_knots);
     }
 
@@ -235,11 +235,11 @@ mod tests {
         // and the rescaled knot predicts the unit ramp's A_0 again
         let from = model(vec![]);
         let mut to = model(vec![boost(3.0)]);
-        rescale(&from, &mut to, &r).unwrap();
+        rescale(&scale(&from, &r).unwrap(), &mut to, &r).unwrap();
         assert!((to.amplitude_knots[1].amplitude_e - 1000.0 * s[1]).abs() < 1e-9);
         let mut back = to.clone();
         back.effects.clear();
-        rescale(&to, &mut back, &r).unwrap();
+        rescale(&scale(&to, &r).unwrap(), &mut back, &r).unwrap();
         assert!((back.amplitude_knots[1].amplitude_e - 1000.0).abs() < 1e-9);
     }
 }

@@ -458,7 +458,10 @@ pub fn diagnose(
     }
     let pp0 = p95s(&cells, &base.current);
     // the knots of each stepped model carry its effects, as in the refit
-    let calib_ramp = crate::calib::knots::CalibRamp::of(seq).ok();
+    let calib_ramp = match crate::calib::knots::CalibRamp::of(seq) {
+        Ok(r) => Some((crate::calib::knots::scale(params, &r)?, r)),
+        Err(_) => None,
+    };
     // the library effects to test, each predicted at its score step (in parallel;
     // collected in registry order)
     let tests: Vec<_> = REGISTRY
@@ -479,8 +482,8 @@ pub fn diagnose(
                 name: def.name.into(),
                 params: map,
             });
-            if let Some(r) = &calib_ramp {
-                crate::calib::knots::rescale(params, &mut q, r)?;
+            if let Some((s_from, r)) = &calib_ramp {
+                crate::calib::knots::rescale(s_from, &mut q, r)?;
             }
             let pr = eval::predict(&q, seq, &samples, false)?;
             let pp = p95s(&cells, &pr.current);
