@@ -367,7 +367,10 @@ fn main() {
                             f3(q.missed_touched.unwrap())
                         )),
                     rank.and_then(|c| c.held_out.as_ref())
-                        .map_or("-".into(), |h| format!("{:.2}", h.gain)),
+                        .map_or("-".into(), |h| format!(
+                            "{:.2} (moved cells: {:.2} of {})",
+                            h.gain, h.gain_moved_cells, h.moved_cells
+                        )),
                     rank.and_then(|c| c.delta_bic)
                         .map_or("-".into(), |v| format!("{v:.1}")),
                 )
