@@ -1,9 +1,10 @@
 //! `persist fit --fit-cn`: on a 64 x 64 simulated laboratory campaign (seed 1), fitting
 //! the six `C_n` jointly with the reference effects (refill, capacity, chord) lowers the
 //! fit's normalised residual RMS to at most 80 % of the paper's `C_n`'s (measured:
-//! 8.15 -> 5.18), the fitted `C_n` are positive and finite, the `tau_n` unchanged, and
-//! the report says which were fitted. Without `--fit-cn` the report has no `c_n` and the
-//! model keeps the paper's calibration. Only the CLI opens the HDF5 files.
+//! 8.15 -> 5.18), the fitted `C_n` are positive and finite, the `tau_n` unchanged, the
+//! report says which were fitted and the model's description records `--fit-cn`.
+//! Without `--fit-cn` the report has no `c_n` and the model keeps the paper's
+//! calibration. Only the CLI opens the HDF5 files.
 
 mod common;
 
@@ -72,5 +73,13 @@ fn fit_cn_lowers_the_residual_with_positive_finite_cn() {
         }
     }
     assert!(moved >= 2, "the C_n did not move: {rep:?}");
+    // the model file says its C_n were fitted to the campaign (diagnose reads it)
+    let desc = |m: &serde_json::Value| m["description"].as_str().unwrap().to_string();
+    assert!(
+        desc(&m1).ends_with(persist::calib::FIT_CN_NOTE),
+        "{}",
+        desc(&m1)
+    );
+    assert!(!desc(&m0).contains("--fit-cn"), "{}", desc(&m0));
     assert!(text.contains("terms.c_per_s[0]"), "{text}");
 }

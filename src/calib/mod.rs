@@ -327,6 +327,18 @@ pub struct FitReport {
     pub model_identity: String,
 }
 
+/// Appended to the description of a model whose `C_n` `persist fit --fit-cn` fitted
+/// to its campaign; [`cn_fitted_to_campaign`] reads it back.
+pub const FIT_CN_NOTE: &str = "; C_n then fitted to this campaign (--fit-cn)";
+
+/// Whether `params`' `C_n` were fitted to a campaign (`--fit-cn`, recorded in its
+/// description): such a model has already taken the decay-shape part of any effect in
+/// that campaign, which `diagnose` then cannot see (docs/diagnose_matrix.md, sixth
+/// session).
+pub fn cn_fitted_to_campaign(params: &ModelParams) -> bool {
+    params.description.ends_with(FIT_CN_NOTE)
+}
+
 /// `persist fit`: calibrate, fit the `--with` effects (and with `fit_cn` the `C_n`,
 /// [`effects`] module docs), write the model and the report.
 pub fn run(
@@ -344,6 +356,9 @@ pub fn run(
     if !with.is_empty() || fit_cn {
         let (p, f) = effects::fit_with_cn(&params, with, fit_cn, &seq, &samples)?;
         params = p;
+        if fit_cn {
+            params.description += FIT_CN_NOTE;
+        }
         ef = Some(f);
     }
     let pr = crate::diag::eval::predict(&params, &seq, &samples, false)?;

@@ -237,6 +237,8 @@ pub struct Diagnosis {
     pub largest_residuals: Vec<eval::GroupStat>,
     pub largest_residual_cells: Vec<(f64, f64)>,
     pub verdict: String,
+    /// What limits the diagnosis of this model (empty when nothing is known to).
+    pub cautions: Vec<String>,
 }
 
 /// Cells of the score test: sample indices per cell, the cell's noise, its group.
@@ -744,7 +746,23 @@ pub fn diagnose(
         largest_residuals: largest.iter().map(|(_, g)| *g).collect(),
         largest_residual_cells: where_cells,
         verdict,
+        cautions: cautions(params),
     })
+}
+
+/// What is known to limit a diagnosis against `params`.
+fn cautions(params: &ModelParams) -> Vec<String> {
+    let mut c = Vec::new();
+    if crate::calib::cn_fitted_to_campaign(params) {
+        c.push(
+            "the model's C_n were fitted to this campaign (persist fit --fit-cn): they have \
+             taken in the decay-shape part of any missing effect (a hidden short_tau_boost \
+             was found at 2 of 3 seeds against a model without --fit-cn, at none with it; \
+             docs/diagnose_matrix.md); diagnose against a model fitted without --fit-cn too"
+                .to_string(),
+        );
+    }
+    c
 }
 
 /// `persist diagnose`.
@@ -808,12 +826,28 @@ pub fn render(d: &Diagnosis) -> String {
         );
     }
     s += &d.verdict;
+    for c in &d.cautions {
+        s += "\ncaution: ";
+        s += c;
+    }
     s
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A model whose `C_n` `persist fit --fit-cn` fitted carries a caution; the same
+    /// model without the mark does not.
+    #[test]
+    fn a_model_with_c_n_fitted_to_the_campaign_is_cautioned() {
+        let mut p = ModelParams::default();
+        assert!(cautions(&p).is_empty());
+        p.description += crate::calib::FIT_CN_NOTE;
+        let c = cautions(&p);
+        assert_eq!(c.len(), 1);
+        assert!(c[0].contains("--fit-cn"), "{c:?}");
+    }
 
     fn cell(key: i64, z: f64) -> (Vec<i64>, eval::GroupStat) {
         let g = eval::GroupStat {
