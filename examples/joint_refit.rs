@@ -27,7 +27,7 @@ fn main() {
         .params
         .iter()
         .filter(|p| p.fitted)
-        .count() as f64;
+        .count();
     let s = Samples::new(&seq, 2);
     let (r0, m) = rss(&reference, &seq, &s);
     let mut joint: Vec<String> = reference.effects.iter().map(|e| e.name.clone()).collect();
@@ -41,8 +41,7 @@ fn main() {
     for (label, names) in [("alone", vec![cand.clone()]), ("joint", joint)] {
         let (full, _) = ceffects::fit(&reference, &names, &seq, &s).expect("fit");
         let (r1, _) = rss(&full, &seq, &s);
-        let mf = m as f64;
-        let dbic = mf * (r1 / r0).ln() + k * mf.ln();
+        let dbic = persist::diag::diagnose::delta_bic(r0, r1, k, m);
         let (mut b, mut af) = (0.0, 0.0);
         for h in 0..2 {
             let fs = s.rows_where(|e| half[h].contains(&e));
@@ -63,8 +62,8 @@ fn main() {
             .collect();
         println!(
             "{cand} {label}: RMS {:.3} -> {:.3} over {m} cells, dBIC {dbic:.1}, held-out gain {gain:.3}; {}",
-            (r0 / mf).sqrt(),
-            (r1 / mf).sqrt(),
+            (r0 / m as f64).sqrt(),
+            (r1 / m as f64).sqrt(),
             vals.join(" ")
         );
     }

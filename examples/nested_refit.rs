@@ -10,7 +10,7 @@
 //! ```
 use persist::calib::effects as ceffects;
 use persist::diag::data::Sequence;
-use persist::diag::diagnose::{Config, DEFAULT_PIXELS};
+use persist::diag::diagnose::{delta_bic, Config, DEFAULT_PIXELS};
 use persist::diag::eval::Samples;
 use std::path::Path;
 
@@ -22,19 +22,19 @@ fn main() {
     let s = Samples::random(&seq, DEFAULT_PIXELS, Config::default().seed);
     let fit = |names: &[String]| {
         let (_, f) = ceffects::fit(&reference, names, &seq, &s).expect("fit");
-        let m = f.cells as f64;
+        let mf = f.cells as f64;
         (
-            f.residual_rms_normalised_before.powi(2) * m,
-            f.residual_rms_normalised_after.powi(2) * m,
-            f.params.len() as f64,
-            m,
+            f.residual_rms_normalised_before.powi(2) * mf,
+            f.residual_rms_normalised_after.powi(2) * mf,
+            f.params.len(),
+            f.cells,
         )
     };
     let (r0, ra, ka, m) = fit(std::slice::from_ref(&ea));
     let (_, rb, kb, _) = fit(std::slice::from_ref(&eb));
     let (_, rab, _, _) = fit(&[ea.clone(), eb.clone()]);
-    let dbic = |r1: f64, r0: f64, k: f64| m * (r1 / r0).ln() + k * m.ln();
-    let rms = |r: f64| (r / m).sqrt();
+    let dbic = |r1: f64, r0: f64, k: usize| delta_bic(r0, r1, k, m);
+    let rms = |r: f64| (r / m as f64).sqrt();
     println!(
         "cells {m}; RMS reference {:.3}, +{ea} {:.3}, +{eb} {:.3}, both {:.3}",
         rms(r0),

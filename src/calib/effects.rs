@@ -404,10 +404,7 @@ pub fn fit_with_cn(
         let pr = eval::predict(base, seq, samples, false)?;
         eval::rms(&cells.z(samples, &pr.current))
     };
-    let knots_from = match super::knots::CalibRamp::of(seq) {
-        Ok(ramp) => Some((super::knots::scale(base, &ramp)?, ramp)),
-        Err(_) => None,
-    };
+    let knots_from = super::knots::scale_of(base, seq)?;
     let mut problem = Problem {
         base: m.clone(),
         knots_from,

@@ -87,6 +87,15 @@ impl CalibRamp {
     }
 }
 
+/// The calibration ramp of `seq` and `model`'s knot scale on it (what [`rescale`] takes);
+/// None when `seq` has no ramp to calibrate from (sky data).
+pub fn scale_of(model: &ModelParams, seq: &Sequence) -> Result<Option<(Vec<f64>, CalibRamp)>> {
+    match CalibRamp::of(seq) {
+        Ok(ramp) => Ok(Some((scale(model, &ramp)?, ramp))),
+        Err(_) => Ok(None),
+    }
+}
+
 /// `s(F)` of the module docs for each knot of `model`; 1 where the effects leave the
 /// response unchanged. Errors name the effect entry that cannot be built.
 pub fn scale(model: &ModelParams, ramp: &CalibRamp) -> Result<Vec<f64>> {

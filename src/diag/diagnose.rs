@@ -126,6 +126,13 @@ pub const DBIC_MAX: f64 = -10.0;
 /// The effect fitted on some illuminations must remove this fraction of the
 /// normalised residual RMS of the others.
 pub const HELD_OUT_MIN_GAIN: f64 = 0.2;
+/// `delta_BIC = m ln(RSS_1/RSS_0) + k ln m` of adding `k` parameters (module docs) over
+/// `m` cells.
+pub fn delta_bic(rss0: f64, rss1: f64, k: usize, m: usize) -> f64 {
+    let m = m as f64;
+    m * (rss1 / rss0).ln() + k as f64 * m.ln()
+}
+
 /// A held-out test cell is "moved" by the candidate when its normalised residual
 /// changes by at least this much (one unit of the cell's own sampling error).
 pub const MOVED_Z: f64 = 1.0;
@@ -433,24 +440,17 @@ pub fn held_out(
             fit_events: idx(fit_ev),
             test_events: idx(test_ev),
             test_cells: r.cells,
-            rms_before: HeldOutSums::rms(r.before, r.cells),
-            rms_after: HeldOutSums::rms(r.after, r.cells),
+            rms_before: r.rms_all().0,
+            rms_after: r.rms_all().1,
             moved_cells: r.moved,
-            rms_before_moved: HeldOutSums::rms(r.before_moved, r.moved),
-            rms_after_moved: HeldOutSums::rms(r.after_moved, r.moved),
+            rms_before_moved: r.rms_moved().0,
+            rms_after_moved: r.rms_moved().1,
         });
     }
     if all.cells == 0 {
         return Ok(None);
     }
-    let (rb, ra) = (
-        HeldOutSums::rms(all.before, all.cells),
-        HeldOutSums::rms(all.after, all.cells),
-    );
-    let (rbm, ram) = (
-        HeldOutSums::rms(all.before_moved, all.moved),
-        HeldOutSums::rms(all.after_moved, all.moved),
-    );
+    let ((rb, ra), (rbm, ram)) = (all.rms_all(), all.rms_moved());
     let gain = 1.0 - ra / rb;
     Ok(Some(HeldOut {
         folds,
@@ -514,6 +514,22 @@ impl HeldOutSums {
         self.after_moved += o.after_moved;
     }
 
+    /// `(before, after)` RMS over all cells.
+    fn rms_all(&self) -> (f64, f64) {
+        (
+            Self::rms(self.before, self.cells),
+            Self::rms(self.after, self.cells),
+        )
+    }
+
+    /// `(before, after)` RMS over the moved cells (NaN when none moved).
+    fn rms_moved(&self) -> (f64, f64) {
+        (
+            Self::rms(self.before_moved, self.moved),
+            Self::rms(self.after_moved, self.moved),
+        )
+    }
+
     fn rms(sum: f64, n: usize) -> f64 {
         if n == 0 {
             f64::NAN
@@ -546,10 +562,7 @@ pub fn diagnose(
     }
     let pp0 = p95s(&cells, &base.current);
     // the knots of each stepped model carry its effects, as in the refit
-    let calib_ramp = match crate::calib::knots::CalibRamp::of(seq) {
-        Ok(r) => Some((crate::calib::knots::scale(params, &r)?, r)),
-        Err(_) => None,
-    };
+    let calib_ramp = crate::calib::knots::scale_of(params, seq)?;
     // the library effects to test, each predicted at its score step (in parallel;
     // collected in registry order)
     let tests: Vec<_> = REGISTRY
@@ -646,11 +659,10 @@ pub fn diagnose(
             let name = &ranking[i].effect;
             let (fitted, f) =
                 crate::calib::effects::fit(params, std::slice::from_ref(name), seq, &samples)?;
-            let k = f.params.len() as f64;
             let mf = f.cells as f64;
             let rss0 = f.residual_rms_normalised_before.powi(2) * mf;
             let rss1 = f.residual_rms_normalised_after.powi(2) * mf;
-            let dbic = mf * (rss1 / rss0).ln() + k * mf.ln();
+            let dbic = delta_bic(rss0, rss1, f.params.len(), f.cells);
             let ho = if dbic < DBIC_MAX {
                 held_out(params, &base.current, Some(&fitted), name, seq, &samples)?
             } else {
