@@ -23,9 +23,13 @@
 //! 4. [`Effect::accumulate`]: replaces `A_n = A_n' exp(-t_elapsed/tau_n) + A_k,n`.
 //!    Accumulating effects run by [`AccumulateRole`], not by their order in the model
 //!    file: first the `Combine` ones (how old and new trapped charge combine: refill;
-//!    only the first of them is handed the new response), then the `Saturate` ones (a
-//!    map of the combined amplitude: capacity, called with nothing more to add). So
-//!    `[capacity, refill]` and `[refill, capacity]` are the same model.
+//!    only the first of them is handed the new response; the plain sum when there is
+//!    none), then the `Saturate` ones ([`Effect::saturate`]: how much of what the
+//!    combination added the pixel can still take, given the decayed amplitudes:
+//!    capacity). So `[capacity, refill]` and `[refill, capacity]` are the same model.
+//!    An exposure that adds nothing leaves the decayed amplitudes as they are, whatever
+//!    the effects (a saturating map of the whole amplitude would compound once per
+//!    exposure).
 //!
 //! With no effect in the model the step is the paper's, bit for bit (the effect path is
 //! not entered; see [`crate::model::step`]).
@@ -50,7 +54,7 @@ pub enum AccumulateRole {
     /// Combines the decayed amplitude with the new response (the first such effect
     /// receives the response; later ones are called with zeros).
     Combine,
-    /// Maps the combined amplitude (called with zeros to add).
+    /// Limits what the combination added ([`Effect::saturate`]).
     Saturate,
 }
 
@@ -211,6 +215,11 @@ pub trait Effect: Send + Sync + Debug {
             *x += y;
         }
     }
+    /// `Saturate` effects (instead of [`Effect::accumulate`]): `a` holds the decayed
+    /// amplitudes combined with this exposure's response, `decayed` the decayed
+    /// amplitudes alone; limit what was added. Must leave `a` unchanged where it equals
+    /// `decayed` (nothing added), and keep it finite and >= 0.
+    fn saturate(&self, _a: &mut [f64], _decayed: &[f64]) {}
 }
 
 /// The observe hook of a measurement model: each term's weight becomes

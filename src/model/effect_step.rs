@@ -15,7 +15,7 @@
 //! skips the pixels the caller does not read (the response planes are still built
 //! for the whole array).
 
-use super::effect::{Effect, IntervalCtx, ResponseCtx};
+use super::effect::{AccumulateRole, Effect, IntervalCtx, ResponseCtx};
 use super::state::State;
 use super::step::{Input, Model, Output, StepSummary};
 use crate::error::Error;
@@ -148,13 +148,12 @@ pub(crate) fn step(
     for e in effects {
         e.response(&rctx, &mut ak);
     }
-    let mut accumulators: Vec<&dyn Effect> = effects
+    // combining effects before saturating ones, whatever the model file's order
+    let (combiners, saturators): (Vec<&dyn Effect>, Vec<&dyn Effect>) = effects
         .iter()
         .filter(|e| e.has_accumulate())
         .map(|e| e.as_ref())
-        .collect();
-    // combining effects before saturating ones, whatever the model file's order
-    accumulators.sort_by_key(|e| e.accumulate_role());
+        .partition(|e| e.accumulate_role() == AccumulateRole::Combine);
 
     let zero = vec![0.0; n];
     let zero = zero.as_slice();
@@ -185,6 +184,7 @@ pub(crate) fn step(
             let mut s = StepSummary::default();
             let active = ctx.active_pixels.map(|a| &a[y * nx..(y + 1) * nx]);
             let mut fixed = vec![0.0; n];
+            let mut decayed = vec![0.0; n];
             for (x, a) in a_row.chunks_exact_mut(n).enumerate() {
                 if active.is_some_and(|act| !act[x]) {
                     continue;
@@ -210,15 +210,21 @@ pub(crate) fn step(
                 for (aj, dj) in a.iter_mut().zip(&decay) {
                     *aj *= dj;
                 }
-                if accumulators.is_empty() {
+                if !saturators.is_empty() {
+                    decayed.copy_from_slice(a);
+                }
+                if combiners.is_empty() {
                     for (aj, bj) in a.iter_mut().zip(add) {
                         *aj += bj;
                     }
                 } else {
-                    // the first accumulator adds; later ones see nothing more to add
-                    for (i, e) in accumulators.iter().enumerate() {
+                    // the first combiner adds; later ones see nothing more to add
+                    for (i, e) in combiners.iter().enumerate() {
                         e.accumulate(a, if i == 0 { add } else { zero });
                     }
+                }
+                for e in &saturators {
+                    e.saturate(a, &decayed);
                 }
                 for aj in a.iter_mut() {
                     if !(aj.is_finite() && *aj >= 0.0) {

@@ -19,7 +19,7 @@
 //! still hold charge change; a single illumination is not affected.
 //!
 //! Role [`AccumulateRole::Combine`]: in a model with `capacity` as well, `refill`
-//! combines old and new charge first and `capacity` saturates the result, whatever
+//! combines old and new charge first and `capacity` limits what that added, whatever
 //! their order in the model file.
 
 use super::get;
