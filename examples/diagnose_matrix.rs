@@ -75,22 +75,8 @@ fn quality(p: &ModelParams, seq: &Sequence, s: &Samples, touched: Option<&[bool]
     let fl = eval::predict(p, seq, s, true).expect("predict");
     let q = eval::flag_quality(s, &fl.current, Some(&fl.flagged), 0.1);
     let missed_touched = touched.map(|t| {
-        let (mut n, mut miss) = (0usize, 0usize);
-        for (i, &touched) in t.iter().enumerate().take(s.len()) {
-            if !touched || !s.measured[i].is_finite() {
-                continue;
-            }
-            n += 1;
-            let sig = s.noise[i / s.npix()];
-            if s.measured[i] > 0.1 + 2.0 * sig && !fl.flagged[i] {
-                miss += 1;
-            }
-        }
-        if n == 0 {
-            0.0
-        } else {
-            miss as f64 / n as f64
-        }
+        eval::flag_quality_of_samples(s, &fl.current, Some(&fl.flagged), 0.1, t)
+            .missed_flag_fraction
     });
     Quality {
         rms: eval::rms(&eval::cell_z(s, &pr.current)),
@@ -100,15 +86,7 @@ fn quality(p: &ModelParams, seq: &Sequence, s: &Samples, touched: Option<&[bool]
 }
 
 fn touched(s: &Samples, with: &Sim, without: &Sim) -> Vec<bool> {
-    let mut t = Vec::with_capacity(s.len());
-    for &k in &s.exposures {
-        for &p in &s.pixels {
-            let a = f64::from(with.truth[k][p]);
-            let b = f64::from(without.truth[k][p]);
-            t.push((a - b).abs() > (0.1 * b.abs()).max(0.01));
-        }
-    }
-    t
+    eval::touched_samples(s, &with.truth, &without.truth)
 }
 
 /// The reference model: `--reference a,b` (its effects) and `--reference-fit-cn` (the

@@ -769,8 +769,9 @@ fn cautions(params: &ModelParams) -> Vec<String> {
         c.push(
             "the model's C_n were fitted to this campaign (persist fit --fit-cn): they have \
              taken in the decay-shape part of any missing effect (a hidden short_tau_boost \
-             was found at 2 of 3 seeds against a model without --fit-cn, at none with it; \
-             docs/diagnose_matrix.md); diagnose against a model fitted without --fit-cn too"
+             was found at 3 of 3 seeds against a model without --fit-cn, at none with it \
+             before the capacity fix; docs/diagnose_matrix.md); diagnose against a model \
+             fitted without --fit-cn too"
                 .to_string(),
         );
     }

@@ -534,10 +534,54 @@ pub fn flag_quality_of(
     thr: f64,
     pixel_mask: Option<&[bool]>,
 ) -> FlagQuality {
+    flag_quality_where(s, pred, flagged, thr, |i| {
+        pixel_mask.is_none_or(|k| k[i % s.npix()])
+    })
+}
+
+/// [`flag_quality`] over the samples `i` where `sample_mask[i]` is true (one entry per
+/// sample, e.g. [`touched_samples`]).
+pub fn flag_quality_of_samples(
+    s: &Samples,
+    pred: &[f64],
+    flagged: Option<&[bool]>,
+    thr: f64,
+    sample_mask: &[bool],
+) -> FlagQuality {
+    flag_quality_where(s, pred, flagged, thr, |i| sample_mask[i])
+}
+
+/// The samples an effect touches: where the true persistence current with it differs
+/// from the same simulation's without it by more than 10 % (and 0.01 e-/s).
+/// `with_truth` and `without_truth` hold one plane per exposure of the sequence
+/// (indexed as [`Samples::exposures`]).
+pub fn touched_samples(
+    s: &Samples,
+    with_truth: &[Array2<f32>],
+    without_truth: &[Array2<f32>],
+) -> Vec<bool> {
+    let mut t = Vec::with_capacity(s.len());
+    for &k in &s.exposures {
+        for &p in &s.pixels {
+            let a = f64::from(with_truth[k][p]);
+            let b = f64::from(without_truth[k][p]);
+            t.push((a - b).abs() > (0.1 * b.abs()).max(0.01));
+        }
+    }
+    t
+}
+
+fn flag_quality_where(
+    s: &Samples,
+    pred: &[f64],
+    flagged: Option<&[bool]>,
+    thr: f64,
+    keep: impl Fn(usize) -> bool,
+) -> FlagQuality {
     let (mut n, mut above, mut fl, mut missed, mut over) = (0, 0, 0, 0, 0);
     for i in 0..s.len() {
         let m = s.measured[i];
-        if !m.is_finite() || pixel_mask.is_some_and(|k| !k[i % s.npix()]) {
+        if !m.is_finite() || !keep(i) {
             continue;
         }
         n += 1;
