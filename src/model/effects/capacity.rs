@@ -2,8 +2,9 @@
 //! charge can take.
 //!
 //! Physics: a pixel has finitely many traps; the more are filled, the fewer remain to
-//! capture. In Langmuir filling, `n' = (1 - n/N) dx` for an exposure `x`, an exposure
-//! that would fill `f` into empty traps fills `f (1 - n/N)` from occupancy `n`. The
+//! capture. In Langmuir filling, `dn = (1 - n/N) dx` for an exposure `x`, an exposure
+//! that would fill `f` into empty traps fills, to first order, `f (1 - n/N)` from
+//! occupancy `n`. The
 //! knots `A_k` are the measured response of empty traps (the calibration's first
 //! illumination), so their own saturation is already in them; what the knots cannot
 //! know is the charge still trapped from earlier illuminations, which takes capacity
