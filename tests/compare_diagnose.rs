@@ -66,6 +66,19 @@ fn compare_summary_is_consistent_and_report_self_contained() {
         "no external resources"
     );
     assert!(!html.contains("<script"));
+
+    // Regression: on a single illumination (the paper's laboratory sequence) the default
+    // within statistic has nothing to compare; the refusal says what to use instead.
+    let out = common::bin()
+        .args(["diagnose", "--input", &d("lab"), "--model", &d("m.json")])
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(2), "{err}");
+    assert!(
+        err.contains("lab") && err.contains("--statistic pooled"),
+        "{err}"
+    );
 }
 
 /// Hidden soak in laboratory data: `diagnose` declares it significant; `fit --with soak`

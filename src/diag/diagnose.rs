@@ -554,8 +554,15 @@ pub fn diagnose(
         return Err(Error::new(
             ErrorKind::Usage,
             format!(
-                "{m} residual cells in {} groups: too few to test (statistic {:?})",
-                cells.n_groups, cfg.statistic
+                "{m} residual cells in {} groups: too few to test (statistic {:?}){}",
+                cells.n_groups,
+                cfg.statistic,
+                if cfg.statistic == Statistic::Within && seq.illuminations.len() < 2 {
+                    "; the within statistic compares illumination events and this input \
+                     has one: use --statistic pooled"
+                } else {
+                    ""
+                }
             ),
         )
         .path(input));
