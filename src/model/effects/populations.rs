@@ -28,6 +28,7 @@
 use super::get;
 use crate::model::effect::{Effect, EffectDef, ParamSpec, ResponseCtx};
 use ndarray::{Array2, Array3};
+use std::sync::OnceLock;
 
 const fn coef(name: &'static str, doc: &'static str) -> ParamSpec {
     ParamSpec {
@@ -52,26 +53,41 @@ pub const DEF: EffectDef = EffectDef {
         coef("gyy", "coefficient of v^2 in log amplitude"),
     ],
     build: |p| {
-        Box::new(Populations {
-            g: [
-                get(p, "gx"),
-                get(p, "gy"),
-                get(p, "gxx"),
-                get(p, "gxy"),
-                get(p, "gyy"),
-            ],
-        })
+        Box::new(Populations::new([
+            get(p, "gx"),
+            get(p, "gy"),
+            get(p, "gxx"),
+            get(p, "gxy"),
+            get(p, "gyy"),
+        ]))
     },
     covariate: "position",
 };
 
-#[derive(Debug, Clone)]
+#[derive(Clone)]
 pub struct Populations {
     /// `gx, gy, gxx, gxy, gyy`.
     pub g: [f64; 5],
+    /// The scale map of the first array size asked for, kept: it depends on the
+    /// parameters and the position only, and a model steps the same array at every
+    /// exposure (one `exp` per pixel per exposure saved).
+    map: OnceLock<Array2<f64>>,
+}
+
+impl std::fmt::Debug for Populations {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Populations").field("g", &self.g).finish()
+    }
 }
 
 impl Populations {
+    pub fn new(g: [f64; 5]) -> Populations {
+        Populations {
+            g,
+            map: OnceLock::new(),
+        }
+    }
+
     /// The amplitude scale map `[ny, nx]` (module docs).
     pub fn scale(&self, ny: usize, nx: usize) -> Array2<f64> {
         let c = |v: usize, n: usize| (v as f64 - (n as f64 - 1.0) / 2.0) / (n as f64 / 2.0);
@@ -92,9 +108,16 @@ impl Effect for Populations {
             return;
         }
         let (ny, nx, _) = ak.dim();
-        let s = self.scale(ny, nx);
+        let kept = self.map.get_or_init(|| self.scale(ny, nx));
+        let other;
+        let s = if kept.dim() == (ny, nx) {
+            kept
+        } else {
+            other = self.scale(ny, nx);
+            &other
+        };
         ndarray::Zip::from(ak.lanes_mut(ndarray::Axis(2)))
-            .and(&s)
+            .and(s)
             .for_each(|mut lane, si| lane.iter_mut().for_each(|a| *a *= si));
     }
 }
@@ -106,16 +129,12 @@ mod tests {
     #[test]
     fn gradient_scales_as_documented() {
         // 1 x 4: u = (x - 1.5) / 2 = -0.75, -0.25, 0.25, 0.75; gx = ln 2 -> scale 2^u
-        let p = Populations {
-            g: [std::f64::consts::LN_2, 0.0, 0.0, 0.0, 0.0],
-        };
+        let p = Populations::new([std::f64::consts::LN_2, 0.0, 0.0, 0.0, 0.0]);
         let s = p.scale(1, 4);
         for (x, u) in [-0.75f64, -0.25, 0.25, 0.75].iter().enumerate() {
             assert!((s[[0, x]] - 2f64.powf(*u)).abs() < 1e-12);
         }
-        let q = Populations {
-            g: [0.0, 0.0, 1.0, 0.0, 1.0],
-        };
+        let q = Populations::new([0.0, 0.0, 1.0, 0.0, 1.0]);
         let s = q.scale(3, 3); // u, v in {-2/3, 0, 2/3}
         assert_eq!(s[[1, 1]], 1.0);
         assert!((s[[0, 0]] - (8.0f64 / 9.0).exp()).abs() < 1e-12);
