@@ -22,13 +22,8 @@ fn main() {
     let s = Samples::random(&seq, DEFAULT_PIXELS, Config::default().seed);
     let fit = |names: &[String]| {
         let (_, f) = ceffects::fit(&reference, names, &seq, &s).expect("fit");
-        let mf = f.cells as f64;
-        (
-            f.residual_rms_normalised_before.powi(2) * mf,
-            f.residual_rms_normalised_after.powi(2) * mf,
-            f.params.len(),
-            f.cells,
-        )
+        let (before, after) = f.rss_before_after();
+        (before, after, f.params.len(), f.cells)
     };
     let (r0, ra, ka, m) = fit(std::slice::from_ref(&ea));
     let (_, rb, kb, _) = fit(std::slice::from_ref(&eb));

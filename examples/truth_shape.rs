@@ -23,6 +23,7 @@
 //! ```
 use persist::diag::data::Sequence;
 use persist::diag::eval::{self, Samples};
+use persist::sim::output::truth_path;
 use std::collections::BTreeMap;
 use std::path::Path;
 
@@ -52,8 +53,8 @@ fn main() {
         if only.is_some_and(|e| s.event[row] != seq.illuminations[e]) {
             continue;
         }
-        let idx = seq.exposures[k].meta.exposure_index;
-        let path = dir.join("truth").join(format!("d1_e{idx:06}.truth.hdf5"));
+        let meta = &seq.exposures[k].meta;
+        let path = truth_path(dir, meta.detector.0, meta.exposure_index);
         let f = hdf5::File::open(&path).expect("truth file");
         let truth: ndarray::Array2<f32> = f.dataset("true_persistence").unwrap().read_2d().unwrap();
         let tb = (s.t_since_s[row].log10() * 4.0).floor() as i64;
@@ -69,8 +70,14 @@ fn main() {
             c.1.push(pr.current[i]);
         }
     }
+    // per cell with at least 5 samples: the truth's median and the model's
+    let medians: BTreeMap<(i64, i64), (f64, f64)> = cells
+        .into_iter()
+        .filter(|(_, c)| c.0.len() >= 5)
+        .map(|(k, (t, m))| (k, (med(t), med(m))))
+        .collect();
     let tbs: Vec<i64> = {
-        let mut v: Vec<i64> = cells.keys().map(|k| k.1).collect();
+        let mut v: Vec<i64> = medians.keys().map(|k| k.1).collect();
         v.sort();
         v.dedup();
         v
@@ -81,18 +88,18 @@ fn main() {
     }
     println!("   (truth/model median, / first bin)");
     let fbs: Vec<i64> = {
-        let mut v: Vec<i64> = cells.keys().map(|k| k.0).collect();
+        let mut v: Vec<i64> = medians.keys().map(|k| k.0).collect();
         v.sort();
         v.dedup();
         v
     };
-    let table = |what: &dyn Fn(&Cell, f64) -> f64, divide: bool| {
+    let table = |what: &dyn Fn((f64, f64), f64) -> f64, divide: bool| {
         for fb in &fbs {
             print!("{:>9.0}", 10f64.powf((*fb as f64 + 0.5) / 2.0));
             let mut first = None;
             for t in &tbs {
-                match cells.get(&(*fb, *t)) {
-                    Some(c) if c.0.len() >= 5 => {
+                match medians.get(&(*fb, *t)) {
+                    Some(&c) => {
                         let r = what(c, 10f64.powf((*t as f64 + 0.5) / 4.0));
                         let f0 = if divide { *first.get_or_insert(r) } else { 1.0 };
                         print!("{:>7.2}", r / f0);
@@ -103,14 +110,14 @@ fn main() {
             println!();
         }
     };
-    let ratio = |c: &Cell, _| med(c.0.clone()) / med(c.1.clone());
+    let ratio = |(truth, model): (f64, f64), _| truth / model;
     table(&ratio, true);
     if only.is_some() {
         println!("truth/model median");
         table(&ratio, false);
     }
     println!("truth x t (/ first bin): 1/t decay is a row of ones");
-    table(&|c, t| med(c.0.clone()) * t, true);
+    table(&|(truth, _), t| truth * t, true);
     println!("model x t (/ first bin)");
-    table(&|c, t| med(c.1.clone()) * t, true);
+    table(&|(_, model), t| model * t, true);
 }

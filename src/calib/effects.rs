@@ -99,6 +99,17 @@ pub struct EffectFit {
     pub knots_rescaled: Vec<RescaledKnot>,
 }
 
+impl EffectFit {
+    /// Sums of squared normalised residuals over the fit's cells, before and after.
+    pub fn rss_before_after(&self) -> (f64, f64) {
+        let m = self.cells as f64;
+        (
+            self.residual_rms_normalised_before.powi(2) * m,
+            self.residual_rms_normalised_after.powi(2) * m,
+        )
+    }
+}
+
 /// One knot changed by [`super::knots::rescale`].
 #[derive(Debug, Clone, Serialize)]
 pub struct RescaledKnot {

@@ -666,9 +666,7 @@ pub fn diagnose(
             let name = &ranking[i].effect;
             let (fitted, f) =
                 crate::calib::effects::fit(params, std::slice::from_ref(name), seq, &samples)?;
-            let mf = f.cells as f64;
-            let rss0 = f.residual_rms_normalised_before.powi(2) * mf;
-            let rss1 = f.residual_rms_normalised_after.powi(2) * mf;
+            let (rss0, rss1) = f.rss_before_after();
             let dbic = delta_bic(rss0, rss1, f.params.len(), f.cells);
             let ho = if dbic < DBIC_MAX {
                 held_out(params, &base.current, Some(&fitted), name, seq, &samples)?
