@@ -94,13 +94,15 @@ fn touched(s: &Samples, with: &Sim, without: &Sim) -> Vec<bool> {
 struct Reference {
     effects: Vec<String>,
     fit_cn: bool,
+    /// The calibration (`--amplification A`, `--rates-per-s r1,r2,...` as on `persist fit`).
+    calib: CalibConfig,
 }
 
 /// The reference model of `seq`: the paper's calibration, then (when the reference has
 /// effects or fits the `C_n`) those fitted on the stride-2 sample, as
 /// `persist fit --with a --with b [--fit-cn]`.
 fn reference_model(seq: &Sequence, reference: &Reference) -> ModelParams {
-    let (m0, _) = calib::calibrate(seq, &CalibConfig::default()).expect("calibrate");
+    let (m0, _) = calib::calibrate(seq, &reference.calib).expect("calibrate");
     if reference.effects.is_empty() && !reference.fit_cn {
         return m0;
     }
@@ -187,11 +189,30 @@ fn main() {
                 .collect()
         }),
         fit_cn: args.iter().any(|a| a == "--reference-fit-cn"),
+        calib: {
+            let mut c = CalibConfig::default();
+            if let Some(v) = arg(&args, "--amplification") {
+                c.amplification = v.parse().unwrap();
+            }
+            if let Some(v) = arg(&args, "--rates-per-s") {
+                c.rates_per_s = v.split(',').map(|r| r.parse().unwrap()).collect();
+            }
+            c
+        },
     };
+    let default_calib = CalibConfig::default();
     let cn_label = if reference.fit_cn {
-        " + C_n fitted (`--fit-cn`)"
+        " + C_n fitted (`--fit-cn`)".to_string()
     } else {
-        ""
+        String::new()
+    } + &if reference.calib.amplification != default_calib.amplification {
+        format!(", amplification {}", reference.calib.amplification)
+    } else {
+        String::new()
+    } + &if reference.calib.rates_per_s != default_calib.rates_per_s {
+        format!(", {} terms", reference.calib.rates_per_s.len())
+    } else {
+        String::new()
     };
     let ref_label = if reference.effects.is_empty() {
         "the paper's model (`persist fit`)".to_string()
@@ -205,7 +226,7 @@ fn main() {
                 .map(|r| format!(" --with {r}"))
                 .collect::<String>()
         )
-    } + cn_label;
+    } + &cn_label;
     let mut cfg = Config::default();
     if let Some(v) = arg(&args, "--pixels") {
         cfg.pixels = v.parse().unwrap();
@@ -393,6 +414,7 @@ fn main() {
                     let ref2 = Reference {
                         effects: names2,
                         fit_cn: reference.fit_cn,
+                        calib: reference.calib.clone(),
                     };
                     let m2 = fit_with(&m1, &ref2, v, &sim.seq, &s2);
                     r2 = quality(&m2, &sim.seq, &s2, None).rms;

@@ -19,7 +19,8 @@
 //! target/release/examples/truth_shape LAB_DIR MODEL.json [EVENT]
 //! ```
 //! `EVENT` (0, 1, ...): only the exposures after that illumination; the first table is
-//! then also printed without the division (the truth's median over the model's).
+//! then also printed without the division (the truth's median over the model's), and
+//! the two medians themselves (e-/s).
 //! ```
 use persist::diag::data::Sequence;
 use persist::diag::eval::{self, Samples};
@@ -93,7 +94,7 @@ fn main() {
         v.dedup();
         v
     };
-    let table = |what: &dyn Fn((f64, f64), f64) -> f64, divide: bool| {
+    let table = |what: &dyn Fn((f64, f64), f64) -> f64, divide: bool, digits: usize| {
         for fb in &fbs {
             print!("{:>9.0}", 10f64.powf((*fb as f64 + 0.5) / 2.0));
             let mut first = None;
@@ -102,7 +103,7 @@ fn main() {
                     Some(&c) => {
                         let r = what(c, 10f64.powf((*t as f64 + 0.5) / 4.0));
                         let f0 = if divide { *first.get_or_insert(r) } else { 1.0 };
-                        print!("{:>7.2}", r / f0);
+                        print!("{:>7.digits$}", r / f0);
                     }
                     _ => print!("{:>7}", "."),
                 }
@@ -111,13 +112,17 @@ fn main() {
         }
     };
     let ratio = |(truth, model): (f64, f64), _| truth / model;
-    table(&ratio, true);
+    table(&ratio, true, 2);
     if only.is_some() {
         println!("truth/model median");
-        table(&ratio, false);
+        table(&ratio, false, 2);
+        println!("truth median, e-/s");
+        table(&|(truth, _), _| truth, false, 3);
+        println!("model median, e-/s");
+        table(&|(_, model), _| model, false, 3);
     }
     println!("truth x t (/ first bin): 1/t decay is a row of ones");
-    table(&|(truth, _), t| truth * t, true);
+    table(&|(truth, _), t| truth * t, true, 2);
     println!("model x t (/ first bin)");
-    table(&|(_, model), t| model * t, true);
+    table(&|(_, model), t| model * t, true, 2);
 }

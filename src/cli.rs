@@ -395,6 +395,10 @@ pub struct FitArgs {
     /// Start of the span over which the C_n follow 1/(t+1): the shortest slew, s.
     #[arg(long, default_value_t = 10.0)]
     pub t_min_s: f64,
+    /// Decay rates 1/tau_n of the terms, 1/s, comma-separated (default: the paper's six,
+    /// 0.1,0.0158,0.00251,0.000398,6.31e-5,1e-5).
+    #[arg(long, value_delimiter = ',')]
+    pub rates_per_s: Vec<f64>,
 }
 
 #[derive(Args, Debug)]
@@ -795,6 +799,14 @@ fn fit(a: &FitArgs) -> persist::Result<ExitCode> {
         amplification: a.amplification,
         t_min_s: a.t_min_s,
         ..Default::default()
+    };
+    let cfg = if a.rates_per_s.is_empty() {
+        cfg
+    } else {
+        persist::calib::CalibConfig {
+            rates_per_s: a.rates_per_s.clone(),
+            ..cfg
+        }
     };
     let report_path = a
         .report

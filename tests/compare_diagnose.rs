@@ -79,6 +79,34 @@ fn compare_summary_is_consistent_and_report_self_contained() {
         err.contains("lab") && err.contains("--statistic pooled"),
         "{err}"
     );
+
+    // `fit --rates-per-s`: the model keeps the chosen terms (C_n fitted to them)
+    persist(&[
+        "fit",
+        "--input",
+        &d("lab"),
+        "--out",
+        &d("m4.json"),
+        "--rates-per-s",
+        "0.1,0.01,0.001,1e-4",
+    ]);
+    let m4: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(d("m4.json")).unwrap()).unwrap();
+    let rates: Vec<f64> = m4["terms"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|t| t["rate_per_s"].as_f64().unwrap())
+        .collect();
+    assert_eq!(rates, vec![0.1, 0.01, 0.001, 1e-4]);
+    let out = common::bin()
+        .args(["fit", "--input", &d("lab"), "--out", &d("m5.json")])
+        .args(["--rates-per-s", "0.1,-0.01"])
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_ne!(out.status.code(), Some(0), "{err}");
+    assert!(err.contains("--rates-per-s"), "{err}");
 }
 
 /// Hidden soak in laboratory data: `diagnose` declares it significant; `fit --with soak`
