@@ -106,7 +106,7 @@ fn reference_model(seq: &Sequence, reference: &Reference) -> ModelParams {
     if reference.effects.is_empty() && !reference.fit_cn {
         return m0;
     }
-    let s2 = Samples::new(seq, 2);
+    let s2 = Samples::new(seq, 2).with_cells(reference.calib.cells);
     ceffects::fit_with_cn(&m0, &reference.effects, reference.fit_cn, seq, &s2)
         .expect("fit reference")
         .0
@@ -197,6 +197,12 @@ fn main() {
             if let Some(v) = arg(&args, "--rates-per-s") {
                 c.rates_per_s = v.split(',').map(|r| r.parse().unwrap()).collect();
             }
+            if let Some(v) = arg(&args, "--t-min-s") {
+                c.t_min_s = v.parse().unwrap();
+            }
+            if let Some(v) = arg(&args, "--cells") {
+                c.cells = v.parse().unwrap();
+            }
             c
         },
     };
@@ -210,7 +216,15 @@ fn main() {
     } else {
         String::new()
     } + &if reference.calib.rates_per_s != default_calib.rates_per_s {
-        format!(", {} terms", reference.calib.rates_per_s.len())
+        format!(
+            ", {} terms from {} s",
+            reference.calib.rates_per_s.len(),
+            reference.calib.t_min_s
+        )
+    } else {
+        String::new()
+    } + &if reference.calib.cells != default_calib.cells {
+        format!(", {} cells", reference.calib.cells.describe())
     } else {
         String::new()
     };
@@ -237,6 +251,7 @@ fn main() {
     if let Some(v) = arg(&args, "--statistic") {
         cfg.statistic = v.parse::<Statistic>().unwrap();
     }
+    cfg.cells = reference.calib.cells;
     let skip = |f: &str| args.iter().any(|a| a == f);
     let mut md = String::new();
     let mut jl = String::new();
@@ -320,7 +335,7 @@ fn main() {
                 let name = e.split(':').next().unwrap_or(e).to_string();
                 let rank = d.ranking.iter().find(|c| c.effect == name);
                 let first = declared_first(&d);
-                let s2 = Samples::new(&sim.seq, 2);
+                let s2 = Samples::new(&sim.seq, 2).with_cells(reference.calib.cells);
                 let t = touched(&s2, &sim, b);
                 let q0 = quality(&m0, &sim.seq, &s2, Some(&t));
                 let in_model = persist::model::effects::lookup(&name).is_some();
@@ -398,7 +413,7 @@ fn main() {
         for seed in 1..=nseed {
             let names: Vec<&str> = pair.iter().map(String::as_str).collect();
             let sim = simulate(size, seed, &names);
-            let s2 = Samples::new(&sim.seq, 2);
+            let s2 = Samples::new(&sim.seq, 2).with_cells(reference.calib.cells);
             let (m0, d1) = calibrate_and_diagnose(&sim.seq, seed, &cfg, &reference);
             let w1 = declared_first(&d1);
             let r0 = quality(&m0, &sim.seq, &s2, None).rms;

@@ -399,6 +399,11 @@ pub struct FitArgs {
     /// 0.1,0.0158,0.00251,0.000398,6.31e-5,1e-5).
     #[arg(long, value_delimiter = ',')]
     pub rates_per_s: Vec<f64>,
+    /// Residual cells of the effect fit and of the report: `pooled` (fluence x time, all illuminations together) or
+    /// `illumination` (one set of fluence x time cells per illumination; see
+    /// `persist::diag::eval` "Why per illumination").
+    #[arg(long, default_value = "pooled")]
+    pub cells: String,
 }
 
 #[derive(Args, Debug)]
@@ -418,6 +423,11 @@ pub struct CompareArgs {
     /// A pixel is touched when its true persistence differs by more than this, e-/s.
     #[arg(long, default_value_t = persist::diag::compare::TOUCHED_MIN_E_PER_S)]
     pub touched_min_e_per_s: f64,
+    /// Residual cells: `pooled` (fluence x time, all illuminations together) or
+    /// `illumination` (one set of fluence x time cells per illumination; see
+    /// `persist::diag::eval` "Why per illumination").
+    #[arg(long, default_value = "pooled")]
+    pub cells: String,
 }
 
 #[derive(Args, Debug)]
@@ -441,6 +451,11 @@ pub struct DiagnoseArgs {
     /// Residuals of the score test: `within` (illumination contrasts) or `pooled`.
     #[arg(long, default_value = "within")]
     pub statistic: String,
+    /// Residual cells of the refits, the held-out check and the reported RMS: `pooled` (fluence x time, all illuminations together) or
+    /// `illumination` (one set of fluence x time cells per illumination; see
+    /// `persist::diag::eval` "Why per illumination").
+    #[arg(long, default_value = "pooled")]
+    pub cells: String,
 }
 
 #[derive(Subcommand, Debug)]
@@ -798,6 +813,7 @@ fn fit(a: &FitArgs) -> persist::Result<ExitCode> {
     let cfg = persist::calib::CalibConfig {
         amplification: a.amplification,
         t_min_s: a.t_min_s,
+        cells: a.cells.parse()?,
         ..Default::default()
     };
     let cfg = if a.rates_per_s.is_empty() {
@@ -822,6 +838,7 @@ fn compare(a: &CompareArgs) -> persist::Result<ExitCode> {
     let opts = persist::diag::compare::Options {
         touched_baseline: a.touched_baseline.clone(),
         touched_min_e_per_s: a.touched_min_e_per_s,
+        cells: a.cells.parse()?,
     };
     let s = persist::diag::compare::run_with(&a.input, &a.models, &a.report, &opts)?;
     println!("{s}");
@@ -835,6 +852,7 @@ fn diagnose(a: &DiagnoseArgs) -> persist::Result<ExitCode> {
         bootstrap: a.bootstrap,
         seed: a.seed,
         statistic: a.statistic.parse()?,
+        cells: a.cells.parse()?,
     };
     let s = persist::diag::diagnose::run(&a.input, &a.model, a.json.as_deref(), &cfg)?;
     println!("{s}");

@@ -80,6 +80,45 @@ fn compare_summary_is_consistent_and_report_self_contained() {
         "{err}"
     );
 
+    // `--cells illumination` on one illumination: the same cells as pooled, each
+    // naming its illumination (exposure 0)
+    persist(&[
+        "compare",
+        "--input",
+        &d("lab"),
+        "--model",
+        &d("m.json"),
+        "--model",
+        &d("paper.json"),
+        "--report",
+        &d("cmpi"),
+        "--cells",
+        "illumination",
+    ]);
+    let si: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(tmp.path().join("cmpi/summary.json")).unwrap(),
+    )
+    .unwrap();
+    assert_eq!(si["cells"], "illumination");
+    assert_eq!(s["cells"], "pooled");
+    for (a, b) in models.iter().zip(si["models"].as_array().unwrap()) {
+        assert_eq!(a["residual_rms_normalised"], b["residual_rms_normalised"]);
+        let (ma, mb) = (a["map"].as_array().unwrap(), b["map"].as_array().unwrap());
+        assert_eq!(ma.len(), mb.len());
+        for (ca, cb) in ma.iter().zip(mb) {
+            assert_eq!(cb["illumination"], 0);
+            assert_eq!(ca["z"], cb["z"]);
+        }
+    }
+    let out = common::bin()
+        .args(["compare", "--input", &d("lab"), "--model", &d("m.json")])
+        .args(["--report", &d("cmpx"), "--cells", "events"])
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(2), "{err}");
+    assert!(err.contains("--cells") && err.contains("events"), "{err}");
+
     // `fit --rates-per-s`: the model keeps the chosen terms (C_n fitted to them)
     persist(&[
         "fit",

@@ -39,6 +39,8 @@ pub struct CalibConfig {
     pub t_min_s: f64,
     /// Decay rates `1/tau_n` of the terms, 1/s.
     pub rates_per_s: Vec<f64>,
+    /// Residual cells of the effect fit and of the report ([`crate::diag::eval::Cells`]).
+    pub cells: crate::diag::eval::Cells,
 }
 
 impl Default for CalibConfig {
@@ -49,6 +51,7 @@ impl Default for CalibConfig {
             min_pixels: 20,
             t_min_s: 10.0,
             rates_per_s: PAPER_TERMS.iter().map(|t| t.1).collect(),
+            cells: crate::diag::eval::Cells::Pooled,
         }
     }
 }
@@ -372,7 +375,7 @@ pub fn run(
 ) -> Result<String> {
     let seq = Sequence::load(input)?;
     let (mut params, cal) = calibrate(&seq, cfg).map_err(|e| e.path(input))?;
-    let samples = crate::diag::eval::Samples::new(&seq, 2);
+    let samples = crate::diag::eval::Samples::new(&seq, 2).with_cells(cfg.cells);
     let mut ef = None;
     if !with.is_empty() || fit_cn {
         let (p, f) = effects::fit_with_cn(&params, with, fit_cn, &seq, &samples)?;
@@ -398,13 +401,14 @@ pub fn run(
     write_text(report_path, &(text + "\n"))?;
     let mut s = format!(
         "persist fit: {} knots, C_n max relative error {:.3} over [{:.0}, {:.0}] s, \
-         normalised residual RMS {:.2} over {} cells\n",
+         normalised residual RMS {:.2} over {} {} cells\n",
         rep.calibration.knots.len(),
         rep.calibration.c_n.max_relative_error,
         rep.calibration.c_n.t_min_s,
         rep.calibration.c_n.t_max_s,
         rep.residual_rms_normalised,
-        rep.cells
+        rep.cells,
+        cfg.cells.describe()
     );
     if let Some(f) = &rep.effects {
         for p in &f.params {

@@ -42,6 +42,9 @@ pub struct Bin {
 
 #[derive(Debug, Clone, Serialize)]
 pub struct Cell {
+    /// With `--cells illumination`: the illumination (exposure index) of the cell.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub illumination: Option<usize>,
     pub fluence_e: f64,
     pub time_s: f64,
     #[serde(flatten)]
@@ -104,6 +107,8 @@ pub const TOUCHED_MIN_E_PER_S: f64 = 0.01;
 pub struct Options {
     pub touched_baseline: Option<std::path::PathBuf>,
     pub touched_min_e_per_s: f64,
+    /// The residual cells (`--cells`, [`eval::Cells`]).
+    pub cells: eval::Cells,
 }
 
 impl Default for Options {
@@ -111,6 +116,7 @@ impl Default for Options {
         Options {
             touched_baseline: None,
             touched_min_e_per_s: TOUCHED_MIN_E_PER_S,
+            cells: eval::Cells::Pooled,
         }
     }
 }
@@ -119,6 +125,8 @@ impl Default for Options {
 pub struct Summary {
     pub input: String,
     pub definitions: BTreeMap<String, String>,
+    /// How the map's cells (and `residual_rms_normalised`) group the samples.
+    pub cells: eval::Cells,
     pub exposures_compared: usize,
     pub pixels_sampled: usize,
     pub pixel_stride: usize,
@@ -163,10 +171,14 @@ pub fn summarise_touched(
         let cells = eval::cell_z(samples, &pr.current);
         let map = cells
             .iter()
-            .map(|(k, g)| Cell {
-                fluence_e: eval::bin_value("fluence", k[0]),
-                time_s: eval::bin_value("time", k[1]),
-                stat: *g,
+            .map(|(k, g)| {
+                let (fluence_e, time_s) = eval::cell_fluence_time(k);
+                Cell {
+                    illumination: eval::cell_illumination(k),
+                    fluence_e,
+                    time_s,
+                    stat: *g,
+                }
             })
             .collect();
         let mut breakdown = BTreeMap::new();
@@ -230,12 +242,16 @@ pub fn summarise_touched(
     Ok(out)
 }
 
-pub fn definitions() -> BTreeMap<String, String> {
+pub fn definitions(cells: eval::Cells) -> BTreeMap<String, String> {
+    let rms = match cells {
+        eval::Cells::Pooled => "RMS of z over cells fluence (5 per decade) x time since illumination (4 per decade), all illuminations together",
+        eval::Cells::Illumination => "RMS of z over cells illumination x fluence (5 per decade) x time since illumination (4 per decade); the map figure shows, per fluence x time, the illumination with the largest |z|",
+    };
     BTreeMap::from([
         ("measured".into(), "image minus the median of the background pixels of the same exposure (fluence < 3000 e- in every illumination so far, no on-board flag); noise 1.4826 MAD of the same pixels".into()),
         ("samples".into(), "every 2nd pixel in x and y with fluence > 3000 e- in the last illumination, every exposure after an illumination".into()),
         ("z".into(), "(P95 of measured - P95 of predicted plus each sample's noise) / (2.12 s / sqrt(n)), s = 1.4826 MAD of measured, at least the noise".into()),
-        ("residual_rms_normalised".into(), "RMS of z over cells fluence (5 per decade) x time since illumination (4 per decade)".into()),
+        ("residual_rms_normalised".into(), rms.into()),
         ("missed".into(), "measured > threshold + 2 noise and not flagged".into()),
         ("over_flagged".into(), "flagged and measured < threshold - 2 noise".into()),
         ("flags".into(), "at the model's high threshold from the model as the stage runs it (early release on); other thresholds: prediction > threshold with early release off".into()),
@@ -375,7 +391,7 @@ pub fn run_with(
     opts: &Options,
 ) -> Result<String> {
     let seq = Sequence::load(input)?;
-    let samples = Samples::new(&seq, STRIDE);
+    let samples = Samples::new(&seq, STRIDE).with_cells(opts.cells);
     let mut loaded = Vec::new();
     for m in models {
         loaded.push((m.display().to_string(), crate::model_file::load(m)?));
@@ -398,7 +414,8 @@ pub fn run_with(
     )?;
     let summary = Summary {
         input: input.display().to_string(),
-        definitions: definitions(),
+        definitions: definitions(samples.cells),
+        cells: samples.cells,
         exposures_compared: samples.exposures.len(),
         pixels_sampled: samples.npix(),
         pixel_stride: STRIDE,

@@ -165,6 +165,9 @@ pub struct Config {
     pub bootstrap: usize,
     pub seed: u64,
     pub statistic: Statistic,
+    /// The residual cells of the refits, the held-out check and the reported RMS
+    /// ([`eval::Cells`]; the score test's groups are the statistic's).
+    pub cells: eval::Cells,
 }
 
 impl Default for Config {
@@ -174,6 +177,7 @@ impl Default for Config {
             bootstrap: DEFAULT_BOOTSTRAP,
             seed: 1,
             statistic: Statistic::Within,
+            cells: eval::Cells::Pooled,
         }
     }
 }
@@ -233,7 +237,9 @@ pub struct Diagnosis {
     pub cells: usize,
     pub groups: usize,
     pub events: usize,
-    /// RMS of the fluence x time cell residuals (as `compare`, on the subsample).
+    /// The residual cells of the refits and of `residual_rms_normalised`.
+    pub residual_cells: eval::Cells,
+    /// RMS of the cell residuals (as `compare`, on the subsample).
     pub residual_rms_normalised: f64,
     pub bootstrap_replicas: usize,
     pub threshold: f64,
@@ -243,6 +249,9 @@ pub struct Diagnosis {
     /// The largest fluence x time residuals (where the model fails).
     pub largest_residuals: Vec<eval::GroupStat>,
     pub largest_residual_cells: Vec<(f64, f64)>,
+    /// With per-illumination cells: the illumination (exposure index) of each of them.
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub largest_residual_illuminations: Vec<usize>,
     pub verdict: String,
     /// What limits the diagnosis of this model (empty when nothing is known to).
     pub cautions: Vec<String>,
@@ -546,7 +555,7 @@ pub fn diagnose(
     input: &Path,
     model_path: &Path,
 ) -> Result<Diagnosis> {
-    let samples = Samples::random(seq, cfg.pixels, cfg.seed);
+    let samples = Samples::random(seq, cfg.pixels, cfg.seed).with_cells(cfg.cells);
     let base = eval::predict(params, seq, &samples, false)?;
     let cells = make_cells(&samples, &base.current, cfg.statistic);
     let m = cells.members.len();
@@ -699,19 +708,18 @@ pub fn diagnose(
         (false, true) => std::cmp::Ordering::Greater,
         (false, false) => b.score.total_cmp(&a.score),
     });
-    let pooled = eval::cell_z(&samples, &base.current);
-    let rms = eval::rms(&pooled);
-    let mut largest: Vec<&(Vec<i64>, eval::GroupStat)> = pooled.iter().collect();
+    let residual = eval::cell_z(&samples, &base.current);
+    let rms = eval::rms(&residual);
+    let mut largest: Vec<&(Vec<i64>, eval::GroupStat)> = residual.iter().collect();
     largest.sort_by(|a, b| b.1.z.abs().total_cmp(&a.1.z.abs()));
     largest.truncate(3);
     let where_cells: Vec<(f64, f64)> = largest
         .iter()
-        .map(|(k, _)| {
-            (
-                eval::bin_value("fluence", k[0]),
-                eval::bin_value("time", k[1]),
-            )
-        })
+        .map(|(k, _)| eval::cell_fluence_time(k))
+        .collect();
+    let where_illuminations: Vec<usize> = largest
+        .iter()
+        .filter_map(|(k, _)| eval::cell_illumination(k))
         .collect();
     let events = {
         let mut e = samples.event.clone();
@@ -735,9 +743,11 @@ pub fn diagnose(
             let w: Vec<String> = largest
                 .iter()
                 .zip(&where_cells)
-                .map(|((_, g), (f, t))| {
+                .map(|((k, g), (f, t))| {
+                    let after = eval::cell_illumination(k)
+                        .map_or(String::new(), |a| format!(" after the illumination at exposure {a}"));
                     format!(
-                        "fluence >= {f:.3e} e-, t >= {t:.0} s: measured {:.3} vs predicted {:.3} e-/s (z {:.1})",
+                        "fluence >= {f:.3e} e-, t >= {t:.0} s{after}: measured {:.3} vs predicted {:.3} e-/s (z {:.1})",
                         g.measured_p95_e_per_s, g.predicted_p95_e_per_s, g.z
                     )
                 })
@@ -755,6 +765,7 @@ pub fn diagnose(
         cells: m,
         groups: cells.n_groups,
         events,
+        residual_cells: samples.cells,
         residual_rms_normalised: rms,
         bootstrap_replicas: b,
         threshold,
@@ -762,6 +773,7 @@ pub fn diagnose(
         ranking,
         largest_residuals: largest.iter().map(|(_, g)| *g).collect(),
         largest_residual_cells: where_cells,
+        largest_residual_illuminations: where_illuminations,
         verdict,
         cautions: cautions(params),
     })
@@ -800,7 +812,7 @@ pub fn run(input: &Path, model: &Path, json: Option<&Path>, cfg: &Config) -> Res
 pub fn render(d: &Diagnosis) -> String {
     let mut s = format!(
         "persist diagnose: statistic {:?}, {} pixels, {} cells in {} groups, {} illumination events, \
-         residual RMS {:.2}\nthreshold {:.2} (95 % of the largest score over {} bootstrap replicas \
+         residual RMS {:.2} ({} cells)\nthreshold {:.2} (95 % of the largest score over {} bootstrap replicas \
          from the fitted model; median {:.2})\n\
          {:<16} {:>10} {:>6} {:>9} {:>15} {:>9} {:>15}  covariate\n",
         d.statistic,
@@ -809,6 +821,7 @@ pub fn render(d: &Diagnosis) -> String {
         d.groups,
         d.events,
         d.residual_rms_normalised,
+        d.residual_cells.describe(),
         d.threshold,
         d.bootstrap_replicas,
         d.bootstrap_median_max,

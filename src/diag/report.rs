@@ -16,9 +16,20 @@ fn esc(s: &str) -> String {
         .replace('>', "&gt;")
 }
 
-/// Heat map of z over fluence x time.
+/// Heat map of z over fluence x time. Per-illumination cells (`--cells illumination`)
+/// share a fluence x time square: the one with the largest |z| is drawn.
 fn map_svg(m: &super::compare::ModelSummary) -> Result<String> {
     crate::plot::ensure_font();
+    let mut shown: std::collections::BTreeMap<(u64, u64), &super::compare::Cell> =
+        Default::default();
+    for c in &m.map {
+        let e = shown
+            .entry((c.fluence_e.to_bits(), c.time_s.to_bits()))
+            .or_insert(c);
+        if c.stat.z.abs() > e.stat.z.abs() {
+            *e = c;
+        }
+    }
     let mut s = String::new();
     {
         let root = SVGBackend::with_string(&mut s, (420, 320)).into_drawing_area();
@@ -48,7 +59,7 @@ fn map_svg(m: &super::compare::ModelSummary) -> Result<String> {
             .disable_mesh()
             .draw()
             .map_err(perr)?;
-        ch.draw_series(m.map.iter().map(|c| {
+        ch.draw_series(shown.values().map(|c| {
             let x = c.fluence_e.log10();
             let y = c.time_s.log10();
             let z = c.stat.z.clamp(-10.0, 10.0) / 10.0;
