@@ -94,8 +94,20 @@ fn touched(s: &Samples, with: &Sim, without: &Sim) -> Vec<bool> {
 struct Reference {
     effects: Vec<String>,
     fit_cn: bool,
+    /// `--reference-fit-amplification`: the reference and every `fit --with` also fit
+    /// the knots' level.
+    fit_amplification: bool,
     /// The calibration (`--amplification A`, `--rates-per-s r1,r2,...` as on `persist fit`).
     calib: CalibConfig,
+}
+
+impl Reference {
+    fn free(&self) -> ceffects::Free {
+        ceffects::Free {
+            c_n: self.fit_cn,
+            knot_scale: self.fit_amplification,
+        }
+    }
 }
 
 /// The reference model of `seq`: the paper's calibration, then (when the reference has
@@ -103,11 +115,11 @@ struct Reference {
 /// `persist fit --with a --with b [--fit-cn]`.
 fn reference_model(seq: &Sequence, reference: &Reference) -> ModelParams {
     let (m0, _) = calib::calibrate(seq, &reference.calib).expect("calibrate");
-    if reference.effects.is_empty() && !reference.fit_cn {
+    if reference.effects.is_empty() && reference.free() == ceffects::Free::default() {
         return m0;
     }
     let s2 = Samples::new(seq, 2).with_cells(reference.calib.cells);
-    ceffects::fit_with_cn(&m0, &reference.effects, reference.fit_cn, seq, &s2)
+    ceffects::fit_with(&m0, &reference.effects, reference.free(), seq, &s2)
         .expect("fit reference")
         .0
 }
@@ -125,7 +137,7 @@ fn fit_with(
     if !names.iter().any(|n| n == extra) {
         names.push(extra.to_string());
     }
-    ceffects::fit_with_cn(mref, &names, reference.fit_cn, seq, s2)
+    ceffects::fit_with(mref, &names, reference.free(), seq, s2)
         .expect("fit")
         .0
 }
@@ -189,6 +201,7 @@ fn main() {
                 .collect()
         }),
         fit_cn: args.iter().any(|a| a == "--reference-fit-cn"),
+        fit_amplification: args.iter().any(|a| a == "--reference-fit-amplification"),
         calib: {
             let mut c = CalibConfig::default();
             if let Some(v) = arg(&args, "--amplification") {
@@ -223,6 +236,10 @@ fn main() {
         )
     } else {
         String::new()
+    } + if reference.fit_amplification {
+        " + knots' level fitted (`--fit-amplification`)"
+    } else {
+        ""
     } + &if reference.calib.cells != default_calib.cells {
         format!(", {} cells", reference.calib.cells.describe())
     } else {
@@ -429,6 +446,7 @@ fn main() {
                     let ref2 = Reference {
                         effects: names2,
                         fit_cn: reference.fit_cn,
+                        fit_amplification: reference.fit_amplification,
                         calib: reference.calib.clone(),
                     };
                     let m2 = fit_with(&m1, &ref2, v, &sim.seq, &s2);

@@ -9,6 +9,24 @@
 //! `--log-json`; the level is `--log-level` (or the `PERSIST_LOG` filter). A batch run
 //! on a terminal draws a progress bar on stderr (the logs are printed above it).
 
+/// `println!` to stdout that does not panic when stdout is gone (`persist ... | head`):
+/// what the command printed is a report, and the work it reports on (files written,
+/// checkpoints) must not depend on whether anyone still reads it.
+macro_rules! out {
+    ($($arg:tt)*) => {{
+        use std::io::Write as _;
+        let _ = writeln!(std::io::stdout().lock(), $($arg)*);
+    }};
+}
+
+/// `print!` without the newline, as [`out!`].
+macro_rules! out_nonl {
+    ($($arg:tt)*) => {{
+        use std::io::Write as _;
+        let _ = write!(std::io::stdout().lock(), $($arg)*);
+    }};
+}
+
 use clap::{Args, Parser, Subcommand};
 use persist::checkpoint::Retention;
 use persist::model::{Model, ModelParams};
@@ -386,6 +404,11 @@ pub struct FitArgs {
     /// the `--with` effects, from the paper's 1/(t+1) fit (the A_k knots are kept).
     #[arg(long)]
     pub fit_cn: bool,
+    /// Also fit one common factor of the A_k knots (the amplification 1.2 of the paper is
+    /// a flagging margin; this is the level the data want), jointly with the `--with`
+    /// effects. Not with --fit-cn.
+    #[arg(long)]
+    pub fit_amplification: bool,
     /// Fit report (JSON); default: OUT with extension `.fit.json`.
     #[arg(long)]
     pub report: Option<PathBuf>,
@@ -493,12 +516,12 @@ pub fn run(cli: Cli) -> persist::Result<ExitCode> {
         Command::Run(args) => run_stage(&args),
         Command::Model { action } => match action {
             ModelAction::Default => {
-                println!("{}", ModelParams::default().to_json_pretty());
+                out!("{}", ModelParams::default().to_json_pretty());
                 Ok(ExitCode::SUCCESS)
             }
             ModelAction::Id { file } => {
                 let m = load_model(Some(&file))?;
-                println!("{}  {}", m.identity(), m.params().name);
+                out!("{}  {}", m.identity(), m.params().name);
                 Ok(ExitCode::SUCCESS)
             }
         },
@@ -550,7 +573,7 @@ fn simulate(scenario: SimScenario) -> persist::Result<ExitCode> {
             (a.out, w.finish(desc)?)
         }
     };
-    println!(
+    out!(
         "persist simulate: {n} products in {}, truth in {}",
         out.display(),
         out.join("truth").display()
@@ -563,7 +586,7 @@ fn validate(files: &[PathBuf]) -> ExitCode {
     let mut failed = false;
     for path in files {
         match persist::product::validate_path(path) {
-            Ok(kind) => println!("ok {kind} {}", path.display()),
+            Ok(kind) => out!("ok {kind} {}", path.display()),
             Err(errors) => {
                 failed = true;
                 for e in errors {
@@ -595,9 +618,9 @@ fn status(args: &StatusArgs) -> persist::Result<ExitCode> {
     if args.json {
         let text = serde_json::to_string_pretty(&st)
             .map_err(|e| Error::new(ErrorKind::Io, format!("status as JSON: {e}")))?;
-        println!("{text}");
+        out!("{text}");
     } else {
-        print!("{}", stage::status::render(&st));
+        out_nonl!("{}", stage::status::render(&st));
     }
     Ok(ExitCode::SUCCESS)
 }
@@ -679,9 +702,16 @@ fn run_stage(args: &RunArgs) -> persist::Result<ExitCode> {
 fn print_summary(report: &RunReport) {
     let mut rows: Vec<&ExposureReport> = report.exposures.iter().collect();
     rows.sort_by_key(|r| (r.detector, r.exposure_index));
-    println!(
+    out!(
         "{:>3} {:>8} {:>10} {:>9} {:>7} {:>9} {:>7} {:>8}  notes",
-        "det", "exposure", "t_meas_s", ">0.1e/s", "%", ">0.01e/s", "%", "released"
+        "det",
+        "exposure",
+        "t_meas_s",
+        ">0.1e/s",
+        "%",
+        ">0.01e/s",
+        "%",
+        "released"
     );
     for r in rows {
         let s = &r.summary;
@@ -696,7 +726,7 @@ fn print_summary(report: &RunReport) {
         if !r.written {
             notes.push("already published".to_string());
         }
-        println!(
+        out!(
             "{:>3} {:>8} {:>10} {:>9} {:>7.2} {:>9} {:>7.2} {:>8}  {}",
             r.detector,
             r.exposure_index,
@@ -755,13 +785,18 @@ fn demo(args: &DemoArgs) -> persist::Result<ExitCode> {
         sky,
     };
     let r = persist::demo::run(&cfg, &|m| eprintln!("persist demo: {m}"))?;
-    println!(
+    out!(
         "{:>8} {:>8} {:>12} {:>12} {:>12} {:>12}",
-        "exposure", "t [h]", "% >0.1 e/s", "% >0.01 e/s", "true % >0.1", "true % >0.01"
+        "exposure",
+        "t [h]",
+        "% >0.1 e/s",
+        "% >0.01 e/s",
+        "true % >0.1",
+        "true % >0.01"
     );
     let step = (r.rows.len() / 24).max(1);
     for row in r.rows.iter().step_by(step) {
-        println!(
+        out!(
             "{:>8} {:>8.2} {:>12.2} {:>12.2} {:>12.2} {:>12.2}",
             row.exposure_index,
             row.t_hours,
@@ -774,32 +809,35 @@ fn demo(args: &DemoArgs) -> persist::Result<ExitCode> {
     let mean = |f: fn(&persist::demo::Row) -> f64| {
         r.rows.iter().map(f).sum::<f64>() / r.rows.len().max(1) as f64
     };
-    println!(
+    out!(
         "after the first 6 h (median over exposures): {:.2}% of pixels above 0.1 e-/s, {:.1}% above 0.01 e-/s",
         100.0 * r.steady_frac_high,
         100.0 * r.steady_frac_low
     );
-    println!(
+    out!(
         "true persistence after the first 6 h (median over exposures): {:.2}% above 0.1 e-/s, {:.1}% above 0.01 e-/s",
         100.0 * r.steady_true_frac_high,
         100.0 * r.steady_true_frac_low
     );
-    println!(
+    out!(
         "median pixel after the first 6 h (median over exposures): true {:.4} e-/s, predicted {:.4} e-/s",
         r.steady_median_true_e_per_s, r.steady_median_pred_e_per_s
     );
-    println!(
+    out!(
         "per exposure (mean): {:.3}% of pixels saturated, {:.3}% hit by a cosmic ray",
         100.0 * mean(|w| w.frac_saturated),
         100.0 * mean(|w| w.frac_transient)
     );
     let above = r.pixel_trace.iter().filter(|t| t.1 > 0.1).count();
-    println!(
+    out!(
         "pixel {:?}: brightest exposure {} ({:.3e} e-); predicted above 0.1 e-/s in {} exposures",
-        r.pixel, r.pixel_event_index, r.pixel_event_fluence_e, above
+        r.pixel,
+        r.pixel_event_index,
+        r.pixel_event_fluence_e,
+        above
     );
     for p in &r.plots {
-        println!("plot: {}", p.display());
+        out!("plot: {}", p.display());
     }
     Ok(if r.errors == 0 {
         ExitCode::SUCCESS
@@ -828,8 +866,12 @@ fn fit(a: &FitArgs) -> persist::Result<ExitCode> {
         .report
         .clone()
         .unwrap_or_else(|| a.out.with_extension("fit.json"));
-    let r = persist::calib::run(&a.input, &cfg, &a.with, a.fit_cn, &a.out, &report_path)?;
-    println!("{r}");
+    let free = persist::calib::effects::Free {
+        c_n: a.fit_cn,
+        knot_scale: a.fit_amplification,
+    };
+    let r = persist::calib::run(&a.input, &cfg, &a.with, free, &a.out, &report_path)?;
+    out!("{r}");
     Ok(ExitCode::SUCCESS)
 }
 
@@ -841,7 +883,7 @@ fn compare(a: &CompareArgs) -> persist::Result<ExitCode> {
         cells: a.cells.parse()?,
     };
     let s = persist::diag::compare::run_with(&a.input, &a.models, &a.report, &opts)?;
-    println!("{s}");
+    out!("{s}");
     Ok(ExitCode::SUCCESS)
 }
 
@@ -855,7 +897,7 @@ fn diagnose(a: &DiagnoseArgs) -> persist::Result<ExitCode> {
         cells: a.cells.parse()?,
     };
     let s = persist::diag::diagnose::run(&a.input, &a.model, a.json.as_deref(), &cfg)?;
-    println!("{s}");
+    out!("{s}");
     Ok(ExitCode::SUCCESS)
 }
 
@@ -866,7 +908,7 @@ fn bench(args: &BenchArgs) -> persist::Result<ExitCode> {
     if let Some(count) = args.prepare {
         let scratch = args.scratch.clone().unwrap_or_else(default_scratch);
         let dir = bench::prepare_inputs(&scratch, args.size, count)?;
-        println!("{}", dir.display());
+        out!("{}", dir.display());
         return Ok(ExitCode::SUCCESS);
     }
     if let Some(case) = &args.case {
@@ -881,7 +923,7 @@ fn bench(args: &BenchArgs) -> persist::Result<ExitCode> {
             scratch: args.scratch.clone().unwrap_or_else(default_scratch),
         };
         let r = bench::run_case(&spec)?;
-        println!(
+        out!(
             "{}",
             serde_json::to_string(&r).map_err(|e| Error::new(ErrorKind::Io, e.to_string()))?
         );
@@ -925,8 +967,8 @@ fn bench(args: &BenchArgs) -> persist::Result<ExitCode> {
         let _ = std::fs::remove_dir_all(&scratch);
     }
     let report = result?;
-    println!("{}", report.markdown);
-    println!("{} ({})", report.date_utc, report.machine);
+    out!("{}", report.markdown);
+    out!("{} ({})", report.date_utc, report.machine);
     if let Some(path) = &args.json {
         let text = serde_json::to_string_pretty(&report)
             .map_err(|e| Error::new(ErrorKind::Io, e.to_string()))?;

@@ -5,6 +5,11 @@
 //! report says which were fitted and the model's description records `--fit-cn`.
 //! Without `--fit-cn` the report has no `c_n` and the model keeps the paper's
 //! calibration. Only the CLI opens the HDF5 files.
+//!
+//! `persist fit --fit-amplification` on the same campaign: one common factor of the
+//! knots, below 1 (the paper's 1.2 is a flagging margin; measured 0.752, i.e. an
+//! amplification of 0.90, with refill and chord), every knot the calibration's times
+//! that factor, a lower residual than the reference's; refused with `--fit-cn`.
 
 mod common;
 
@@ -82,4 +87,61 @@ fn fit_cn_lowers_the_residual_with_positive_finite_cn() {
     );
     assert!(!desc(&m0).contains("--fit-cn"), "{}", desc(&m0));
     assert!(text.contains("terms.c_per_s[0]"), "{text}");
+
+    // --fit-amplification
+    let amp_json = path("amp.json");
+    let a = [
+        "fit",
+        "--input",
+        &lab,
+        "--out",
+        &amp_json,
+        "--with",
+        "refill",
+        "--with",
+        "chord",
+        "--fit-amplification",
+    ];
+    let text = persist_ok(&a);
+    println!("{text}");
+    let (ma, ra) = (json(&d.join("amp.json")), json(&d.join("amp.fit.json")));
+    let scale: Vec<&serde_json::Value> = ra["effects"]["params"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter(|p| p["effect"] == "knots" && p["name"] == "scale")
+        .collect();
+    assert_eq!(scale.len(), 1, "{ra}");
+    let s = scale[0]["value"].as_f64().unwrap();
+    assert!(s > 0.5 && s < 0.95, "knot scale {s}");
+    assert!(scale[0]["sigma"]
+        .as_f64()
+        .is_some_and(|v| v > 0.0 && v < 0.1));
+    for (k0, k1) in m0["amplitude_knots"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .zip(ma["amplitude_knots"].as_array().unwrap())
+    {
+        assert_eq!(k0["fluence_e"], k1["fluence_e"]);
+        let (a0, a1) = (
+            k0["amplitude_e"].as_f64().unwrap(),
+            k1["amplitude_e"].as_f64().unwrap(),
+        );
+        assert!(
+            (a1 - s * a0).abs() <= 1e-12 * a0.abs().max(1.0),
+            "{a0} {a1} {s}"
+        );
+    }
+    let rmsa = ra["residual_rms_normalised"].as_f64().unwrap();
+    assert!(rmsa < rms0, "{rms0} -> {rmsa}");
+    assert!(desc(&ma).contains("--fit-amplification"), "{}", desc(&ma));
+    let out = common::bin()
+        .args(["fit", "--input", &lab, "--out", &path("x.json")])
+        .args(["--fit-amplification", "--fit-cn"])
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(2), "{err}");
+    assert!(err.contains("--fit-amplification"), "{err}");
 }

@@ -24,3 +24,26 @@ fn child_processes_do_not_inherit_hdf5_file_locks() {
     child.wait().unwrap();
     assert!(reopened.is_ok(), "{:?}", reopened.err());
 }
+
+/// `persist fit ... | head -1` panicked ("failed printing to stdout: Broken pipe") once
+/// `head` had closed the pipe: `println!` panics on a write error. What a command prints
+/// is a report of work already done; a reader that went away must not turn it into a
+/// panic. Here stdout is a pipe whose read end is closed before the command starts.
+#[test]
+fn a_closed_stdout_pipe_is_not_a_panic() {
+    use std::os::fd::{FromRawFd, OwnedFd};
+    let mut fds = [0i32; 2];
+    // SAFETY: `fds` has room for the two descriptors `pipe` writes.
+    assert_eq!(unsafe { libc::pipe(fds.as_mut_ptr()) }, 0);
+    // SAFETY: both descriptors were just created by `pipe` and are owned here only.
+    let (read, write) = unsafe { (OwnedFd::from_raw_fd(fds[0]), OwnedFd::from_raw_fd(fds[1])) };
+    drop(read);
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_persist"))
+        .args(["model", "default"])
+        .stdout(std::process::Stdio::from(write))
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!err.contains("panicked"), "{err}");
+    assert_eq!(out.status.code(), Some(0), "{err}");
+}

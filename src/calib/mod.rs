@@ -363,13 +363,13 @@ pub fn cn_fitted_to_campaign(params: &ModelParams) -> bool {
     params.description.ends_with(FIT_CN_NOTE)
 }
 
-/// `persist fit`: calibrate, fit the `--with` effects (and with `fit_cn` the `C_n`,
-/// [`effects`] module docs), write the model and the report.
+/// `persist fit`: calibrate, fit the `--with` effects (and what `free` frees: the `C_n`
+/// or the knots' level, [`effects`] module docs), write the model and the report.
 pub fn run(
     input: &std::path::Path,
     cfg: &CalibConfig,
     with: &[String],
-    fit_cn: bool,
+    free: effects::Free,
     out: &std::path::Path,
     report_path: &std::path::Path,
 ) -> Result<String> {
@@ -377,11 +377,18 @@ pub fn run(
     let (mut params, cal) = calibrate(&seq, cfg).map_err(|e| e.path(input))?;
     let samples = crate::diag::eval::Samples::new(&seq, 2).with_cells(cfg.cells);
     let mut ef = None;
-    if !with.is_empty() || fit_cn {
-        let (p, f) = effects::fit_with_cn(&params, with, fit_cn, &seq, &samples)?;
+    if !with.is_empty() || free != effects::Free::default() {
+        let (p, f) = effects::fit_with(&params, with, free, &seq, &samples)?;
         params = p;
-        if fit_cn {
+        if free.c_n {
             params.description += FIT_CN_NOTE;
+        }
+        if let Some(k) = f.params.iter().find(|q| q.effect == "knots") {
+            params.description += &format!(
+                "; knots then scaled by {:.4} (--fit-amplification: amplification {:.4})",
+                k.value,
+                cfg.amplification * k.value
+            );
         }
         ef = Some(f);
     }
