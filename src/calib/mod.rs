@@ -169,7 +169,7 @@ pub fn calibrate(seq: &Sequence, cfg: &CalibConfig) -> Result<(ModelParams, Cali
         let lf = logfit::fit(&ts, &qs);
         let significant = med > 3.0 * sd / (px.len() as f64).sqrt() && med > 0.0;
         let a_bin = lf
-            .filter(|l| l.a0_e > 0.0)
+            .filter(|l| l.a0_e > 0.0 && !l.undetermined)
             .map(|l| cfg.amplification * l.a0_e);
         let a_95 = a_bin
             .map(|a| a * p95 / med)
