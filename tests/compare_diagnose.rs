@@ -23,17 +23,15 @@ fn compare_summary_is_consistent_and_report_self_contained() {
     persist(&["fit", "--input", &d("lab"), "--out", &d("m.json")]);
     let paper = persist(&["model", "default"]);
     std::fs::write(d("paper.json"), paper).unwrap();
-    persist(&[
-        "compare",
-        "--input",
-        &d("lab"),
-        "--model",
-        &d("m.json"),
-        "--model",
-        &d("paper.json"),
-        "--report",
-        &d("cmp"),
-    ]);
+    // both models side by side into `report`, with `extra` arguments
+    let compare = |report: &str, extra: &[&str]| {
+        let (lab, m, p, r) = (d("lab"), d("m.json"), d("paper.json"), d(report));
+        let mut a = vec!["compare", "--input", &lab, "--model", &m, "--model", &p];
+        a.extend(["--report", &r]);
+        a.extend(extra);
+        persist(&a);
+    };
+    compare("cmp", &[]);
     let s: serde_json::Value = serde_json::from_str(
         &std::fs::read_to_string(tmp.path().join("cmp/summary.json")).unwrap(),
     )
@@ -82,19 +80,7 @@ fn compare_summary_is_consistent_and_report_self_contained() {
 
     // `--cells illumination` on one illumination: the same cells as pooled, each
     // naming its illumination (exposure 0)
-    persist(&[
-        "compare",
-        "--input",
-        &d("lab"),
-        "--model",
-        &d("m.json"),
-        "--model",
-        &d("paper.json"),
-        "--report",
-        &d("cmpi"),
-        "--cells",
-        "illumination",
-    ]);
+    compare("cmpi", &["--cells", "illumination"]);
     let si: serde_json::Value = serde_json::from_str(
         &std::fs::read_to_string(tmp.path().join("cmpi/summary.json")).unwrap(),
     )
