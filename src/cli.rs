@@ -9,6 +9,20 @@
 //! `--log-json`; the level is `--log-level` (or the `PERSIST_LOG` filter). A batch run
 //! on a terminal draws a progress bar on stderr (the logs are printed above it).
 
+use clap::{Args, Parser, Subcommand};
+use persist::checkpoint::Retention;
+use persist::model::{Model, ModelParams};
+use persist::stage::lock::DirLock;
+use persist::stage::{self, ExposureReport, Ops, RunConfig, RunReport, WatchOpts};
+use persist::units::DetectorId;
+use persist::{Error, ErrorKind};
+use std::io::{IsTerminal, Write};
+use std::path::{Path, PathBuf};
+use std::process::ExitCode;
+use std::sync::atomic::AtomicBool;
+use std::sync::{Arc, OnceLock};
+use std::time::Duration;
+
 /// `println!` to stdout that does not panic when stdout is gone (`persist ... | head`):
 /// what the command printed is a report, and the work it reports on (files written,
 /// checkpoints) must not depend on whether anyone still reads it.
@@ -26,20 +40,6 @@ macro_rules! out_nonl {
         let _ = write!(std::io::stdout().lock(), $($arg)*);
     }};
 }
-
-use clap::{Args, Parser, Subcommand};
-use persist::checkpoint::Retention;
-use persist::model::{Model, ModelParams};
-use persist::stage::lock::DirLock;
-use persist::stage::{self, ExposureReport, Ops, RunConfig, RunReport, WatchOpts};
-use persist::units::DetectorId;
-use persist::{Error, ErrorKind};
-use std::io::{IsTerminal, Write};
-use std::path::{Path, PathBuf};
-use std::process::ExitCode;
-use std::sync::atomic::AtomicBool;
-use std::sync::{Arc, OnceLock};
-use std::time::Duration;
 
 #[derive(Parser, Debug)]
 #[command(
@@ -422,9 +422,9 @@ pub struct FitArgs {
     /// 0.1,0.0158,0.00251,0.000398,6.31e-5,1e-5).
     #[arg(long, value_delimiter = ',')]
     pub rates_per_s: Vec<f64>,
-    /// Residual cells of the effect fit and of the report: `pooled` (fluence x time, all illuminations together) or
-    /// `illumination` (one set of fluence x time cells per illumination; see
-    /// `persist::diag::eval` "Why per illumination").
+    /// Residual cells of the effect fit and of the report: `pooled` (fluence x time,
+    /// all illuminations together) or `illumination` (one set of fluence x time cells
+    /// per illumination; see `persist::diag::eval` "Why per illumination").
     #[arg(long, default_value = "pooled")]
     pub cells: String,
 }
@@ -474,9 +474,10 @@ pub struct DiagnoseArgs {
     /// Residuals of the score test: `within` (illumination contrasts) or `pooled`.
     #[arg(long, default_value = "within")]
     pub statistic: String,
-    /// Residual cells of the refits, the held-out check and the reported RMS: `pooled` (fluence x time, all illuminations together) or
-    /// `illumination` (one set of fluence x time cells per illumination; see
-    /// `persist::diag::eval` "Why per illumination").
+    /// Residual cells of the refits, the held-out check and the reported RMS: `pooled`
+    /// (fluence x time, all illuminations together) or `illumination` (one set of
+    /// fluence x time cells per illumination; see `persist::diag::eval` "Why per
+    /// illumination").
     #[arg(long, default_value = "pooled")]
     pub cells: String,
 }
