@@ -109,8 +109,9 @@ pub struct EffectFit {
     /// With `--fit-cn`: the fitted `C_n` (absent otherwise).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub c_n: Option<CnFitReport>,
-    /// Knots the fitted effects rescaled ([`super::knots`]): fluence, the input model's
-    /// amplitude and the written one (absent when none changed).
+    /// Knots the fit changed (the fitted effects' rescaling, [`super::knots`], and the
+    /// `--fit-amplification` factor): fluence, the input model's amplitude and the
+    /// written one (absent when none changed).
     #[serde(skip_serializing_if = "Vec::is_empty")]
     pub knots_rescaled: Vec<RescaledKnot>,
 }

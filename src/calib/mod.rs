@@ -363,6 +363,19 @@ pub fn cn_fitted_to_campaign(params: &ModelParams) -> bool {
     params.description.ends_with(FIT_CN_NOTE)
 }
 
+/// In the description of a model whose knots' level `persist fit --fit-amplification`
+/// fitted to its campaign (followed by the factor); [`level_fitted_to_campaign`] reads
+/// it back.
+pub const FIT_AMPLIFICATION_NOTE: &str = "; knots then scaled by ";
+
+/// Whether `params`' knot level was fitted to a campaign (`--fit-amplification`): such a
+/// model has taken in the level part of any effect in that campaign (a hidden
+/// `short_tau_boost` was declared at 1 of 3 seeds against such a reference, 3 of 3
+/// against the level fixed at 0.85; docs/diagnose_matrix.md, eighth session).
+pub fn level_fitted_to_campaign(params: &ModelParams) -> bool {
+    params.description.contains(FIT_AMPLIFICATION_NOTE)
+}
+
 /// `persist fit`: calibrate, fit the `--with` effects (and what `free` frees: the `C_n`
 /// or the knots' level, [`effects`] module docs), write the model and the report.
 pub fn run(
@@ -385,7 +398,7 @@ pub fn run(
         }
         if let Some(k) = f.params.iter().find(|q| q.effect == "knots") {
             params.description += &format!(
-                "; knots then scaled by {:.4} (--fit-amplification: amplification {:.4})",
+                "{FIT_AMPLIFICATION_NOTE}{:.4} (--fit-amplification: amplification {:.4})",
                 k.value,
                 cfg.amplification * k.value
             );

@@ -792,6 +792,16 @@ fn cautions(params: &ModelParams) -> Vec<String> {
                 .to_string(),
         );
     }
+    if crate::calib::level_fitted_to_campaign(params) {
+        c.push(
+            "the model's knot level was fitted to this campaign (persist fit \
+             --fit-amplification): it has taken in the level part of any missing effect (a \
+             hidden short_tau_boost was declared at 1 of 3 seeds against such a model, at 3 \
+             of 3 with the level fixed; docs/diagnose_matrix.md, eighth session); diagnose \
+             against a model with a fixed --amplification too"
+                .to_string(),
+        );
+    }
     c
 }
 
@@ -878,6 +888,19 @@ mod tests {
         let c = cautions(&p);
         assert_eq!(c.len(), 1);
         assert!(c[0].contains("--fit-cn"), "{c:?}");
+    }
+
+    /// The same for a knot level fitted by `persist fit --fit-amplification`.
+    #[test]
+    fn a_model_with_its_level_fitted_to_the_campaign_is_cautioned() {
+        let mut p = ModelParams::default();
+        p.description += &format!(
+            "{}0.7236 (--fit-amplification: amplification 0.8683)",
+            crate::calib::FIT_AMPLIFICATION_NOTE
+        );
+        let c = cautions(&p);
+        assert_eq!(c.len(), 1);
+        assert!(c[0].contains("--fit-amplification"), "{c:?}");
     }
 
     fn cell(key: i64, z: f64) -> (Vec<i64>, eval::GroupStat) {
