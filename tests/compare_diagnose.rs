@@ -89,6 +89,16 @@ fn compare_summary_is_consistent_and_report_self_contained() {
     assert_eq!(s["cells"], "pooled");
     for (a, b) in models.iter().zip(si["models"].as_array().unwrap()) {
         assert_eq!(a["residual_rms_normalised"], b["residual_rms_normalised"]);
+        // one illumination: its share is the whole; pooled summaries have no shares
+        assert!(a.get("residual_rms_by_illumination").is_none());
+        let by = b["residual_rms_by_illumination"].as_array().unwrap();
+        assert_eq!(by.len(), 1);
+        assert_eq!(by[0]["illumination"], 0);
+        assert_eq!(
+            by[0]["residual_rms_normalised"],
+            b["residual_rms_normalised"]
+        );
+        assert_eq!(by[0]["cells"], b["cells"]);
         let (ma, mb) = (a["map"].as_array().unwrap(), b["map"].as_array().unwrap());
         assert_eq!(ma.len(), mb.len());
         for (ca, cb) in ma.iter().zip(mb) {

@@ -58,6 +58,10 @@ pub struct ModelSummary {
     pub identity: String,
     pub effects: Vec<String>,
     pub residual_rms_normalised: f64,
+    /// With `--cells illumination`: the RMS of `z` over each illumination's cells (where
+    /// a campaign's residual sits), in the order of the illuminations.
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub residual_rms_by_illumination: Vec<IlluminationRms>,
     pub cells: usize,
     pub map: Vec<Cell>,
     pub breakdown: BTreeMap<String, Vec<Bin>>,
@@ -232,6 +236,7 @@ pub fn summarise_touched(
             identity: params.identity(),
             effects: params.effects.iter().map(|e| e.name.clone()).collect(),
             residual_rms_normalised: eval::rms(&cells),
+            residual_rms_by_illumination: rms_by_illumination(&cells),
             cells: cells.len(),
             map,
             breakdown,
@@ -240,6 +245,32 @@ pub fn summarise_touched(
         });
     }
     Ok(out)
+}
+
+/// One illumination's share of the residual (`--cells illumination`).
+#[derive(Debug, Clone, Copy, Serialize)]
+pub struct IlluminationRms {
+    /// The illumination's exposure index.
+    pub illumination: usize,
+    pub cells: usize,
+    pub residual_rms_normalised: f64,
+}
+
+/// RMS of `z` per illumination of per-illumination cells (empty for pooled ones).
+fn rms_by_illumination(cells: &[(Vec<i64>, GroupStat)]) -> Vec<IlluminationRms> {
+    let mut by: BTreeMap<usize, Vec<(Vec<i64>, GroupStat)>> = BTreeMap::new();
+    for c in cells {
+        if let Some(a) = eval::cell_illumination(&c.0) {
+            by.entry(a).or_default().push(c.clone());
+        }
+    }
+    by.into_iter()
+        .map(|(illumination, v)| IlluminationRms {
+            illumination,
+            cells: v.len(),
+            residual_rms_normalised: eval::rms(&v),
+        })
+        .collect()
 }
 
 pub fn definitions(cells: eval::Cells) -> BTreeMap<String, String> {
@@ -455,6 +486,14 @@ pub fn run_with(
             );
         }
         s += "\n";
+        if !m.residual_rms_by_illumination.is_empty() {
+            let per: Vec<String> = m
+                .residual_rms_by_illumination
+                .iter()
+                .map(|r| format!("{}: {:.2}", r.illumination, r.residual_rms_normalised))
+                .collect();
+            s += &format!("    by illumination (exposure: RMS) {}\n", per.join(", "));
+        }
     }
     s += &format!("report {}", out.join("report.html").display());
     Ok(s)
