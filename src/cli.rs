@@ -25,11 +25,15 @@ use std::time::Duration;
 
 /// `println!` to stdout that does not panic when stdout is gone (`persist ... | head`):
 /// what the command printed is a report, and the work it reports on (files written,
-/// checkpoints) must not depend on whether anyone still reads it.
+/// checkpoints) must not depend on whether anyone still reads it. Any other write error
+/// (a full disk under `persist model default > m.json`) is reported and exits 1
+/// ([`stdout_failed`]).
 macro_rules! out {
     ($($arg:tt)*) => {{
         use std::io::Write as _;
-        let _ = writeln!(std::io::stdout().lock(), $($arg)*);
+        if let Err(e) = writeln!(std::io::stdout().lock(), $($arg)*) {
+            stdout_failed(e);
+        }
     }};
 }
 
@@ -37,8 +41,19 @@ macro_rules! out {
 macro_rules! out_nonl {
     ($($arg:tt)*) => {{
         use std::io::Write as _;
-        let _ = write!(std::io::stdout().lock(), $($arg)*);
+        if let Err(e) = write!(std::io::stdout().lock(), $($arg)*) {
+            stdout_failed(e);
+        }
     }};
+}
+
+/// A write to stdout failed: a reader that went away is not an error; anything else is
+/// (what was written is incomplete), reported on stderr with exit code 1.
+fn stdout_failed(e: std::io::Error) {
+    if e.kind() != std::io::ErrorKind::BrokenPipe {
+        eprintln!("persist: writing to standard output: {e}");
+        std::process::exit(1);
+    }
 }
 
 #[derive(Parser, Debug)]
@@ -867,10 +882,12 @@ fn fit(a: &FitArgs) -> persist::Result<ExitCode> {
         .report
         .clone()
         .unwrap_or_else(|| a.out.with_extension("fit.json"));
+    // checked before the data are read
     let free = persist::calib::effects::Free {
         c_n: a.fit_cn,
         knot_scale: a.fit_amplification,
-    };
+    }
+    .check()?;
     let r = persist::calib::run(&a.input, &cfg, &a.with, free, &a.out, &report_path)?;
     out!("{r}");
     Ok(ExitCode::SUCCESS)

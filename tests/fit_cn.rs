@@ -117,9 +117,13 @@ fn fit_cn_lowers_the_residual_with_positive_finite_cn() {
     assert!(scale[0]["sigma"]
         .as_f64()
         .is_some_and(|v| v > 0.0 && v < 0.1));
-    for (k0, k1) in m0["amplitude_knots"]
-        .as_array()
-        .unwrap()
+    // against the calibration's own knots (this fit's report)
+    let calibrated = ra["calibration"]["knots"].as_array().unwrap();
+    assert_eq!(
+        calibrated.len(),
+        ma["amplitude_knots"].as_array().unwrap().len()
+    );
+    for (k0, k1) in calibrated
         .iter()
         .zip(ma["amplitude_knots"].as_array().unwrap())
     {

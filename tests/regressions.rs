@@ -29,6 +29,7 @@ fn child_processes_do_not_inherit_hdf5_file_locks() {
 /// `head` had closed the pipe: `println!` panics on a write error. What a command prints
 /// is a report of work already done; a reader that went away must not turn it into a
 /// panic. Here stdout is a pipe whose read end is closed before the command starts.
+/// A full disk, though, is an error: the output is incomplete.
 #[test]
 fn a_closed_stdout_pipe_is_not_a_panic() {
     use std::os::fd::{FromRawFd, OwnedFd};
@@ -46,4 +47,19 @@ fn a_closed_stdout_pipe_is_not_a_panic() {
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(!err.contains("panicked"), "{err}");
     assert_eq!(out.status.code(), Some(0), "{err}");
+
+    // any other write error is one: a full disk (/dev/full) gives exit 1 and says so
+    let full = std::fs::OpenOptions::new()
+        .write(true)
+        .open("/dev/full")
+        .unwrap();
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_persist"))
+        .args(["model", "default"])
+        .stdout(std::process::Stdio::from(full))
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!err.contains("panicked"), "{err}");
+    assert_eq!(out.status.code(), Some(1), "{err}");
+    assert!(err.contains("standard output"), "{err}");
 }

@@ -1,6 +1,7 @@
 //! `fit --with NAME`: the fitted parameters of effects, by Levenberg-Marquardt
 //! (`levenberg-marquardt` 0.15, forward-difference Jacobian) on the normalised cell
-//! residuals `z` of [`crate::diag::eval`] (fluence bin x time since illumination), the
+//! residuals `z` of [`crate::diag::eval`] (fluence bin x time since illumination, per
+//! illumination with `--cells illumination`), the
 //! paper's calibration held fixed except that each trial model's knots carry its
 //! per-pixel response effects ([`super::knots`]: a `short_tau_boost` lowers the knots in
 //! its window by what it adds to the first-dark ramp; listed in the report's
@@ -23,14 +24,14 @@
 //! effects, the reference at RMS 8.146, ended at 8.177).
 //!
 //! # `--fit-cn`: the decay shape from the data
-//! With `fit_cn` ([`fit_with_cn`], `persist fit --fit-cn`) the six `C_n` are fitted too,
+//! With [`Free::c_n`] ([`fit_with`], `persist fit --fit-cn`) the terms' `C_n` are fitted too,
 //! jointly with the effects' parameters, in the same problem: one slot per term, the
 //! parameter `ln C_n` (so `C_n > 0`), started from the base model's `C_n` (the paper's
 //! `1/(t+1)` fit of [`super::fit_cn`]; a `C_n` the paper's fit set to 0 starts at
 //! [`CN_ZERO_START`] times the smallest positive one), bounded to
 //! `[start / CN_RANGE_DOWN, start * CN_RANGE_UP]`, no null (not scanned), a 1 % step
 //! in `C_n` for the Jacobian. The rates `1/tau_n` stay; the residuals are the same
-//! fluence x time cells. Why: the simulator's decay after a first illumination is not
+//! cells. Why: the simulator's decay after a first illumination is not
 //! `1/(t+1)` (256 x 256, 3e4-1e5 e-: predicted over measured medians 1.14 at 90 s, ~1.4
 //! from 270 s to 3,500 s), and that shape error, the same in every illumination,
 //! dominated the residual of every reference model. Measured (docs/diagnose_matrix.md,
@@ -75,7 +76,8 @@
 //! second illumination 1.5-2.3 times too fast at 25 min) while lowering the level
 //! elsewhere; at amplification 0.85 `capacity` fits to its null and the residual RMS of
 //! refill + chord is 5.62 against 7.57 (docs/diagnose_matrix.md, eighth session). Not
-//! with `--fit-cn`: a common factor of the `C_n` is the same freedom.
+//! with `--fit-cn`: a common factor of the `C_n` is nearly the same freedom (exactly
+//! in the paper's linear model; `capacity` and `refill` act in the knots' units).
 
 use crate::diag::data::Sequence;
 use crate::diag::eval::{self, Samples};
@@ -180,6 +182,21 @@ pub struct Free {
     pub c_n: bool,
     /// One common factor of every `A_k` knot (`--fit-amplification`, module docs).
     pub knot_scale: bool,
+}
+
+impl Free {
+    /// Refuse `--fit-cn` with `--fit-amplification`: a common factor of the `C_n` is
+    /// nearly a factor of the knots (module docs).
+    pub fn check(self) -> Result<Free> {
+        if self.c_n && self.knot_scale {
+            return Err(Error::invalid(
+                "--fit-amplification",
+                "not with --fit-cn: a common factor of the C_n is nearly a factor of the \
+                 knots (the fit would be nearly degenerate)",
+            ));
+        }
+        Ok(self)
+    }
 }
 
 /// `--fit-amplification` bounds of the knots' common factor.
@@ -367,7 +384,7 @@ pub fn fit(
 
 /// [`fit`], and what `free` frees, jointly: the terms' `C_n` (log-parameters; module
 /// docs, "`--fit-cn`") or the knots' common factor ("`--fit-amplification`"), not both
-/// (a common factor of the `C_n` is a factor of the knots).
+/// (a common factor of the `C_n` is nearly a factor of the knots).
 pub fn fit_with(
     base: &ModelParams,
     names: &[String],
@@ -375,14 +392,7 @@ pub fn fit_with(
     seq: &Sequence,
     samples: &Samples,
 ) -> Result<(ModelParams, EffectFit)> {
-    if free.c_n && free.knot_scale {
-        return Err(Error::invalid(
-            "--fit-amplification",
-            "not with --fit-cn: a common factor of the C_n is a factor of the knots (the fit \
-             would be degenerate)",
-        ));
-    }
-    let fit_cn = free.c_n;
+    let fit_cn = free.check()?.c_n;
     let mut m = base.clone();
     let n_base = base.effects.len();
     for n in names {

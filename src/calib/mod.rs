@@ -316,7 +316,7 @@ mod tests {
         assert!((f.terms[0].c_per_s / 0.183 - 1.0).abs() < 0.3, "{f:?}");
     }
 
-    /// `persist fit --rates-per-s`: two terms per decade instead of the paper's 0.8-decade
+    /// `persist fit --rates-per-s`: terms 0.4 decade apart instead of the paper's 0.8-decade
     /// spacing follow `1/(t+1)` more closely over the same span (measured from 10 s to
     /// 1.4e5 s: RMS relative error 1.1 % against 3.3 %, largest 5.8 % against 8.6 %, the
     /// largest at the span's ends for both).

@@ -42,9 +42,9 @@ pub struct Bin {
 
 #[derive(Debug, Clone, Serialize)]
 pub struct Cell {
-    /// With `--cells illumination`: the illumination (exposure index) of the cell.
+    /// With `--cells illumination`: the exposure index of the cell's illumination.
     #[serde(skip_serializing_if = "Option::is_none")]
-    pub illumination: Option<usize>,
+    pub illumination: Option<u64>,
     pub fluence_e: f64,
     pub time_s: f64,
     #[serde(flatten)]
@@ -178,7 +178,8 @@ pub fn summarise_touched(
             .map(|(k, g)| {
                 let (fluence_e, time_s) = eval::cell_fluence_time(k);
                 Cell {
-                    illumination: eval::cell_illumination(k),
+                    illumination: eval::cell_illumination(k)
+                        .map(|a| seq.exposures[a].meta.exposure_index),
                     fluence_e,
                     time_s,
                     stat: *g,
@@ -236,7 +237,7 @@ pub fn summarise_touched(
             identity: params.identity(),
             effects: params.effects.iter().map(|e| e.name.clone()).collect(),
             residual_rms_normalised: eval::rms(&cells),
-            residual_rms_by_illumination: rms_by_illumination(&cells),
+            residual_rms_by_illumination: rms_by_illumination(seq, &cells),
             cells: cells.len(),
             map,
             breakdown,
@@ -251,13 +252,13 @@ pub fn summarise_touched(
 #[derive(Debug, Clone, Copy, Serialize)]
 pub struct IlluminationRms {
     /// The illumination's exposure index.
-    pub illumination: usize,
+    pub illumination: u64,
     pub cells: usize,
     pub residual_rms_normalised: f64,
 }
 
 /// RMS of `z` per illumination of per-illumination cells (empty for pooled ones).
-fn rms_by_illumination(cells: &[(Vec<i64>, GroupStat)]) -> Vec<IlluminationRms> {
+fn rms_by_illumination(seq: &Sequence, cells: &[(Vec<i64>, GroupStat)]) -> Vec<IlluminationRms> {
     let mut by: BTreeMap<usize, Vec<(Vec<i64>, GroupStat)>> = BTreeMap::new();
     for c in cells {
         if let Some(a) = eval::cell_illumination(&c.0) {
@@ -265,8 +266,8 @@ fn rms_by_illumination(cells: &[(Vec<i64>, GroupStat)]) -> Vec<IlluminationRms> 
         }
     }
     by.into_iter()
-        .map(|(illumination, v)| IlluminationRms {
-            illumination,
+        .map(|(a, v)| IlluminationRms {
+            illumination: seq.exposures[a].meta.exposure_index,
             cells: v.len(),
             residual_rms_normalised: eval::rms(&v),
         })

@@ -62,7 +62,8 @@
 //!
 //! # Refit, change in BIC, held-out check (the gates)
 //! The [`REFIT`] leading candidates above the threshold are refitted in full
-//! ([`crate::calib::effects::fit`], fluence x time cells):
+//! ([`crate::calib::effects::fit`], fluence x time cells, per illumination with
+//! `--cells illumination`):
 //! `delta_BIC = m ln(RSS_1/RSS_0) + k ln m`. Held-out check: illumination events are
 //! split alternately into two halves; the effect is fitted on one half and the
 //! normalised residual RMS of the other half is compared with the model's, both ways;
@@ -246,12 +247,12 @@ pub struct Diagnosis {
     /// Median over the replicas of the largest LM (what "nothing missing" looks like).
     pub bootstrap_median_max: f64,
     pub ranking: Vec<Candidate>,
-    /// The largest fluence x time residuals (where the model fails).
+    /// The largest cell residuals (where the model fails).
     pub largest_residuals: Vec<eval::GroupStat>,
     pub largest_residual_cells: Vec<(f64, f64)>,
-    /// With per-illumination cells: the illumination (exposure index) of each of them.
+    /// With per-illumination cells: the exposure index of each one's illumination.
     #[serde(skip_serializing_if = "Vec::is_empty")]
-    pub largest_residual_illuminations: Vec<usize>,
+    pub largest_residual_illuminations: Vec<u64>,
     pub verdict: String,
     /// What limits the diagnosis of this model (empty when nothing is known to).
     pub cautions: Vec<String>,
@@ -717,9 +718,10 @@ pub fn diagnose(
         .iter()
         .map(|(k, _)| eval::cell_fluence_time(k))
         .collect();
-    let where_illuminations: Vec<usize> = largest
+    let exposure_index = |a: usize| seq.exposures[a].meta.exposure_index;
+    let where_illuminations: Vec<u64> = largest
         .iter()
-        .filter_map(|(k, _)| eval::cell_illumination(k))
+        .filter_map(|(k, _)| eval::cell_illumination(k).map(exposure_index))
         .collect();
     let events = {
         let mut e = samples.event.clone();
@@ -744,8 +746,9 @@ pub fn diagnose(
                 .iter()
                 .zip(&where_cells)
                 .map(|((k, g), (f, t))| {
-                    let after = eval::cell_illumination(k)
-                        .map_or(String::new(), |a| format!(" after the illumination at exposure {a}"));
+                    let after = eval::cell_illumination(k).map_or(String::new(), |a| {
+                        format!(" after the illumination at exposure {}", exposure_index(a))
+                    });
                     format!(
                         "fluence >= {f:.3e} e-, t >= {t:.0} s{after}: measured {:.3} vs predicted {:.3} e-/s (z {:.1})",
                         g.measured_p95_e_per_s, g.predicted_p95_e_per_s, g.z

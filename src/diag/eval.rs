@@ -107,14 +107,17 @@ impl Cells {
 /// [`Cells`] kind (the last two elements).
 pub fn cell_fluence_time(key: &[i64]) -> (f64, f64) {
     let n = key.len();
+    if n < 2 {
+        return (f64::NAN, f64::NAN);
+    }
     (
         bin_value("fluence", key[n - 2]),
         bin_value("time", key[n - 1]),
     )
 }
 
-/// The illumination (index into the sequence's exposures) of a per-illumination cell
-/// key; None for a pooled one.
+/// The illumination (position in the sequence's exposures, not the products' exposure
+/// index) of a per-illumination cell key; None for a pooled one.
 pub fn cell_illumination(key: &[i64]) -> Option<usize> {
     (key.len() == 3).then(|| key[0] as usize)
 }
@@ -452,7 +455,7 @@ pub fn bin_value(covariate: &str, b: i64) -> f64 {
     }
 }
 
-/// Groups keyed by bins of one or two covariates.
+/// Groups keyed by bins of the given covariates (in their order).
 pub fn groups(s: &Samples, pred: &[f64], keys: &[&str]) -> Vec<(Vec<i64>, GroupStat)> {
     use std::collections::BTreeMap;
     #[allow(clippy::type_complexity)]
@@ -489,7 +492,7 @@ pub fn cell_z(s: &Samples, pred: &[f64]) -> Vec<(Vec<i64>, GroupStat)> {
     groups(s, pred, s.cells.keys())
 }
 
-/// The fluence x time cells of one sample set with their measured side computed once:
+/// The cells ([`Cells`]) of one sample set with their measured side computed once:
 /// for fits that evaluate [`cell_z`] for many predictions of the same samples.
 /// [`CellIndex::z`] returns exactly what [`cell_z`] returns (a cell where some
 /// prediction is not finite is recomputed from its remaining samples, as [`groups`]
@@ -708,7 +711,7 @@ mod tests {
     use super::*;
     use rand::{Rng, SeedableRng};
 
-    /// Samples of 40 pixels x 6 rows with fluences over a decade, every covariate
+    /// Samples of 120 pixels x 6 rows with fluences over a decade, every covariate
     /// filled, some measurements NaN.
     fn synthetic() -> Samples {
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(7);
@@ -735,7 +738,8 @@ mod tests {
                 .collect(),
             neighbour_excess_e: vec![0.0; n],
             t_since_s: (0..rows).map(|r| 100.0 * 2f64.powi(r as i32 % 3)).collect(),
-            // two illuminations (exposures 0 and 3) with the same times since
+            // rows 0-2 after one illumination, rows 3-5 after another (its event label
+            // 3 is only a key here), with the same times since
             event: (0..rows).map(|r| (r / 3) * 3).collect(),
             illumination_time_s: vec![481.0; rows],
             temperature_k: vec![80.0; rows],
