@@ -16,19 +16,7 @@ fn illumination_cells_recover_the_hidden_activation_energy() {
     let tmp = tempfile::tempdir().unwrap();
     let path = |name: &str| tmp.path().join(name).to_str().unwrap().to_string();
     let lab = path("lab");
-    persist_ok(&[
-        "simulate",
-        "lab",
-        "--size",
-        "64",
-        "--seed",
-        "1",
-        "--campaign",
-        "--effect",
-        "temperature",
-        "--out",
-        &lab,
-    ]);
+    common::lab_campaign(&lab, 64, 1, &["--effect", "temperature"]);
     let rates: Vec<String> = (0..13)
         .map(|k| format!("{:e}", 10f64.powf(-0.4 * k as f64)))
         .collect();

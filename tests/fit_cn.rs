@@ -26,17 +26,7 @@ fn fit_cn_lowers_the_residual_with_positive_finite_cn() {
     let d = tmp.path();
     let path = |name: &str| d.join(name).to_str().unwrap().to_string();
     let (lab, ref_json, cn_json) = (path("lab"), path("ref.json"), path("cn.json"));
-    persist_ok(&[
-        "simulate",
-        "lab",
-        "--size",
-        "64",
-        "--seed",
-        "1",
-        "--campaign",
-        "--out",
-        &lab,
-    ]);
+    common::lab_campaign(&lab, 64, 1, &[]);
     let with = ["--with", "refill", "--with", "capacity", "--with", "chord"];
     let mut a = vec!["fit", "--input", &lab, "--out", &ref_json];
     a.extend(with);

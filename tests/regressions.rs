@@ -1,5 +1,7 @@
 //! Regression tests named after the problem they pin.
 
+mod common;
+
 /// libhdf5 opens files without O_CLOEXEC and flocks them: a child process spawned while
 /// a file was open inherited the descriptor and its lock, so re-opening the file after
 /// closing it failed with "unable to lock file" for as long as the child lived (seen in
@@ -39,7 +41,7 @@ fn a_closed_stdout_pipe_is_not_a_panic() {
     // SAFETY: both descriptors were just created by `pipe` and are owned here only.
     let (read, write) = unsafe { (OwnedFd::from_raw_fd(fds[0]), OwnedFd::from_raw_fd(fds[1])) };
     drop(read);
-    let out = std::process::Command::new(env!("CARGO_BIN_EXE_persist"))
+    let out = common::bin()
         .args(["model", "default"])
         .stdout(std::process::Stdio::from(write))
         .output()
@@ -53,7 +55,7 @@ fn a_closed_stdout_pipe_is_not_a_panic() {
         .write(true)
         .open("/dev/full")
         .unwrap();
-    let out = std::process::Command::new(env!("CARGO_BIN_EXE_persist"))
+    let out = common::bin()
         .args(["model", "default"])
         .stdout(std::process::Stdio::from(full))
         .output()
@@ -76,26 +78,9 @@ fn a_straight_first_dark_ramp_does_not_become_a_knot() {
     let tmp = tempfile::tempdir().unwrap();
     let path = |n: &str| tmp.path().join(n).to_str().unwrap().to_string();
     let lab = path("lab");
-    let ok = |args: &[&str]| {
-        let o = std::process::Command::new(env!("CARGO_BIN_EXE_persist"))
-            .args(args)
-            .output()
-            .unwrap();
-        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-    };
-    ok(&[
-        "simulate",
-        "lab",
-        "--size",
-        "64",
-        "--seed",
-        "7",
-        "--campaign",
-        "--out",
-        &lab,
-    ]);
+    common::lab_campaign(&lab, 64, 7, &[]);
     let m = path("m.json");
-    ok(&["fit", "--input", &lab, "--out", &m]);
+    common::persist_ok(&["fit", "--input", &lab, "--out", &m]);
     let model: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(&m).unwrap()).unwrap();
     for k in model["amplitude_knots"].as_array().unwrap() {

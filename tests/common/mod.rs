@@ -216,3 +216,21 @@ pub fn persist_ok(args: &[&str]) -> String {
     );
     String::from_utf8_lossy(&o.stdout).to_string()
 }
+
+/// `persist simulate lab --size SIZE --seed SEED --campaign [EXTRA...] --out OUT`: the
+/// laboratory campaign of the fit / diagnose tests.
+pub fn lab_campaign(out: &str, size: u32, seed: u64, extra: &[&str]) {
+    let (size, seed) = (size.to_string(), seed.to_string());
+    let mut a = vec![
+        "simulate",
+        "lab",
+        "--size",
+        &size,
+        "--seed",
+        &seed,
+        "--campaign",
+    ];
+    a.extend(extra);
+    a.extend(["--out", out]);
+    persist_ok(&a);
+}
