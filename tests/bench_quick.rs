@@ -1,13 +1,13 @@
 //! `persist bench --quick` on tiny images: the benchmark code runs end to end (every
 //! case in its child process, the table, the JSON), so it cannot rot.
 
-use std::process::Command;
+mod common;
 
 #[test]
 fn quick_bench_runs_every_case_and_writes_the_table_and_json() {
     let tmp = tempfile::tempdir().unwrap();
     let json = tmp.path().join("bench.json");
-    let out = Command::new(env!("CARGO_BIN_EXE_persist"))
+    let out = common::persist_cmd()
         .args([
             "bench",
             "--quick",

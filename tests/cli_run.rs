@@ -1,10 +1,12 @@
 //! The real binary in temporary directories: `run`, `model`, model-change refusal.
 
+mod common;
+
 use std::path::Path;
-use std::process::{Command, Output};
+use std::process::Output;
 
 fn persist(args: &[&str], cwd: &Path) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_persist"))
+    common::persist_cmd()
         .args(args)
         .current_dir(cwd)
         .env("SOURCE_DATE_EPOCH", "1772323200")

@@ -1,13 +1,8 @@
 //! `persist compare --touched-baseline`: the flag quality over the pixels a hidden effect
 //! touches (src/diag/compare.rs module docs).
 
-use std::process::Command;
-
 fn persist(args: &[&str]) -> std::process::Output {
-    Command::new(env!("CARGO_BIN_EXE_persist"))
-        .args(args)
-        .output()
-        .unwrap()
+    common::persist_cmd().args(args).output().unwrap()
 }
 
 mod common;

@@ -2,13 +2,14 @@
 //! the paper's numbers: A_bin / A_0 = 1.2; A_bin near Table 1; the fitted C_n follow
 //! 1/(t+1) within 10 % over their span. And the fitted model flags through `persist run`.
 
+mod common;
+
 use persist::calib::{calibrate, CalibConfig};
 use persist::diag::data::Sequence;
 use persist::model::params::PAPER_TABLE1_A_BIN;
-use std::process::Command;
 
 fn lab(dir: &std::path::Path, extra: &[&str]) {
-    let st = Command::new(env!("CARGO_BIN_EXE_persist"))
+    let st = common::persist_cmd()
         .args(["simulate", "lab", "--size", "128", "--seed", "1", "--out"])
         .arg(dir)
         .args(extra)

@@ -2,6 +2,8 @@
 //! paper's model at their null values, the documented direction and size when active,
 //! and used by `persist run` when a model file lists them.
 
+mod common;
+
 use ndarray::Array2;
 use persist::model::params::EffectSpec;
 use persist::model::response::Response;
@@ -9,7 +11,6 @@ use persist::model::{Input, Model, ModelParams, Output, StepContext};
 use persist::product::synthetic::tiny_exposure;
 use persist::units::UtcSeconds;
 use std::path::Path;
-use std::process::Command;
 
 const N: usize = 9;
 const C: usize = 4; // the centre
@@ -175,7 +176,7 @@ fn populations_scales_the_prediction_by_its_surface() {
 }
 
 fn persist(args: &[&str]) -> std::process::Output {
-    Command::new(env!("CARGO_BIN_EXE_persist"))
+    common::persist_cmd()
         .args(args)
         .env("SOURCE_DATE_EPOCH", "1772323200")
         .output()

@@ -1,6 +1,8 @@
 //! Products, checkpoints and model files on disk: round trips, byte identity, and every
 //! kind of malformed file refused with an error naming the file and the field.
 
+mod common;
+
 use ndarray::{Array1, Array2, Array3};
 use persist::checkpoint::{self, CheckpointMeta};
 use persist::flags::{bits, pbits};
@@ -13,7 +15,6 @@ use persist::product::{
 use persist::units::DetectorId;
 use persist::{Error, ErrorKind};
 use std::path::{Path, PathBuf};
-use std::process::Command;
 
 const T0: &str = "2026-03-01T00:02:31.500000Z";
 
@@ -585,7 +586,7 @@ fn persist_validate_binary() {
     std::fs::write(&model, ModelParams::default().to_json_pretty()).unwrap();
 
     let run = |files: &[&Path]| {
-        Command::new(env!("CARGO_BIN_EXE_persist"))
+        common::persist_cmd()
             .arg("validate")
             .args(files)
             .output()

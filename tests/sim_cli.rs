@@ -1,10 +1,12 @@
 //! `persist simulate` through the real binary: products that validate, truth beside
 //! them, clear errors for bad arguments.
 
+mod common;
+
 use std::process::Command;
 
 fn persist() -> Command {
-    Command::new(env!("CARGO_BIN_EXE_persist"))
+    common::persist_cmd()
 }
 
 #[test]

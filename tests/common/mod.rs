@@ -72,8 +72,33 @@ pub fn write_stream(dir: &Path, dets: &[u8], ks: std::ops::Range<u64>, n: usize)
     out
 }
 
-pub fn bin() -> Command {
+/// The real binary, spawned without the test process's leaked descriptors: libhdf5
+/// opens files without O_CLOEXEC and flocks them, and the tests mark them close-on-exec
+/// only after the open returns; a child forked by a parallel test thread in between
+/// kept the lock for its lifetime ("unable to lock file", CI flake in
+/// `products::ramp_times_not_increasing`, twice). In the child, before exec, every
+/// descriptor above stderr that is not close-on-exec is closed.
+pub fn persist_cmd() -> Command {
+    use std::os::unix::process::CommandExt;
     let mut c = Command::new(env!("CARGO_BIN_EXE_persist"));
+    // SAFETY: between fork and exec only async-signal-safe calls (fcntl, close), on
+    // descriptors of the child's own table.
+    unsafe {
+        c.pre_exec(|| {
+            for fd in 3..4096 {
+                let flags = libc::fcntl(fd, libc::F_GETFD);
+                if flags >= 0 && flags & libc::FD_CLOEXEC == 0 {
+                    libc::close(fd);
+                }
+            }
+            Ok(())
+        });
+    }
+    c
+}
+
+pub fn bin() -> Command {
+    let mut c = persist_cmd();
     c.env("SOURCE_DATE_EPOCH", SOURCE_DATE_EPOCH)
         .env_remove("PERSIST_LOG")
         .env_remove("RUST_LOG");
@@ -205,10 +230,7 @@ pub fn log_events(path: &Path, msg: &str) -> Vec<serde_json::Value> {
 
 /// Run the real binary with `args`; it must succeed. Its standard output.
 pub fn persist_ok(args: &[&str]) -> String {
-    let o = Command::new(env!("CARGO_BIN_EXE_persist"))
-        .args(args)
-        .output()
-        .unwrap();
+    let o = persist_cmd().args(args).output().unwrap();
     assert!(
         o.status.success(),
         "{args:?}: {}",
