@@ -7,6 +7,7 @@
 //! ```sh
 //! target/release/examples/pixel_track LAB_DIR MODEL.json Y,X [Y,X ...]
 //! ```
+use persist::diag::compare::read_truth;
 use persist::diag::data::Sequence;
 use persist::diag::eval::{self, Samples};
 use persist::sim::output::truth_path;
@@ -27,20 +28,29 @@ fn main() {
     let s = Samples::with_pixels(&seq, pixels.clone(), 1);
     let pr = eval::predict(&model, &seq, &s, false).expect("predict");
     let np = s.npix();
+    // the truth at the pixels, each exposure's file read once: [row * np + pixel]
+    let truth: Vec<f64> = s
+        .exposures
+        .iter()
+        .flat_map(|&k| {
+            let meta = &seq.exposures[k].meta;
+            let path = truth_path(dir, meta.detector.0, meta.exposure_index);
+            let plane = read_truth(&path, (seq.ny, seq.nx)).expect("truth file");
+            pixels
+                .iter()
+                .map(move |&(y, x)| f64::from(plane[[y, x]]))
+                .collect::<Vec<f64>>()
+        })
+        .collect();
     for (p, &(y, x)) in pixels.iter().enumerate() {
         println!("pixel ({y}, {x})");
         println!(
             "{:>5} {:>9} {:>11} {:>10} {:>10} {:>6}",
             "event", "t_s", "fluence_e", "truth", "model", "ratio"
         );
-        for (row, &k) in s.exposures.iter().enumerate() {
-            let meta = &seq.exposures[k].meta;
-            let f = hdf5::File::open(truth_path(dir, meta.detector.0, meta.exposure_index))
-                .expect("truth file");
-            let truth: ndarray::Array2<f32> =
-                f.dataset("true_persistence").unwrap().read_2d().unwrap();
+        for row in 0..s.exposures.len() {
             let i = row * np + p;
-            let t = f64::from(truth[[y, x]]);
+            let t = truth[i];
             println!(
                 "{:>5} {:>9.0} {:>11.4e} {:>10.4} {:>10.4} {:>6.2}",
                 s.event[row],

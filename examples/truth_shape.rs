@@ -22,6 +22,7 @@
 //! then also printed without the division (the truth's median over the model's), and
 //! the two medians themselves (e-/s).
 //! ```
+use persist::diag::compare::read_truth;
 use persist::diag::data::Sequence;
 use persist::diag::eval::{self, Samples};
 use persist::sim::output::truth_path;
@@ -56,8 +57,7 @@ fn main() {
         }
         let meta = &seq.exposures[k].meta;
         let path = truth_path(dir, meta.detector.0, meta.exposure_index);
-        let f = hdf5::File::open(&path).expect("truth file");
-        let truth: ndarray::Array2<f32> = f.dataset("true_persistence").unwrap().read_2d().unwrap();
+        let truth = read_truth(&path, (seq.ny, seq.nx)).expect("truth file");
         let tb = (s.t_since_s[row].log10() * 4.0).floor() as i64;
         for (p, &(y, x)) in s.pixels.iter().enumerate() {
             let i = row * np + p;

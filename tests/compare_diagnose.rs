@@ -67,12 +67,9 @@ fn compare_summary_is_consistent_and_report_self_contained() {
 
     // Regression: on a single illumination (the paper's laboratory sequence) the default
     // within statistic has nothing to compare; the refusal says what to use instead.
-    let out = common::bin()
-        .args(["diagnose", "--input", &d("lab"), "--model", &d("m.json")])
-        .output()
-        .unwrap();
-    let err = String::from_utf8_lossy(&out.stderr);
-    assert_eq!(out.status.code(), Some(2), "{err}");
+    let (code, err) =
+        common::persist_status(&["diagnose", "--input", &d("lab"), "--model", &d("m.json")]);
+    assert_eq!(code, Some(2), "{err}");
     assert!(
         err.contains("lab") && err.contains("--statistic pooled"),
         "{err}"
@@ -106,13 +103,11 @@ fn compare_summary_is_consistent_and_report_self_contained() {
             assert_eq!(ca["z"], cb["z"]);
         }
     }
-    let out = common::bin()
-        .args(["compare", "--input", &d("lab"), "--model", &d("m.json")])
-        .args(["--report", &d("cmpx"), "--cells", "events"])
-        .output()
-        .unwrap();
-    let err = String::from_utf8_lossy(&out.stderr);
-    assert_eq!(out.status.code(), Some(2), "{err}");
+    let (lab, m, r) = (d("lab"), d("m.json"), d("cmpx"));
+    let (code, err) = common::persist_status(&[
+        "compare", "--input", &lab, "--model", &m, "--report", &r, "--cells", "events",
+    ]);
+    assert_eq!(code, Some(2), "{err}");
     assert!(err.contains("--cells") && err.contains("events"), "{err}");
 
     // `fit --rates-per-s`: the model keeps the chosen terms (C_n fitted to them)
@@ -134,13 +129,17 @@ fn compare_summary_is_consistent_and_report_self_contained() {
         .map(|t| t["rate_per_s"].as_f64().unwrap())
         .collect();
     assert_eq!(rates, vec![0.1, 0.01, 0.001, 1e-4]);
-    let out = common::bin()
-        .args(["fit", "--input", &d("lab"), "--out", &d("m5.json")])
-        .args(["--rates-per-s", "0.1,-0.01"])
-        .output()
-        .unwrap();
-    let err = String::from_utf8_lossy(&out.stderr);
-    assert_ne!(out.status.code(), Some(0), "{err}");
+    let (lab, m5) = (d("lab"), d("m5.json"));
+    let (code, err) = common::persist_status(&[
+        "fit",
+        "--input",
+        &lab,
+        "--out",
+        &m5,
+        "--rates-per-s",
+        "0.1,-0.01",
+    ]);
+    assert_ne!(code, Some(0), "{err}");
     assert!(err.contains("--rates-per-s"), "{err}");
 }
 

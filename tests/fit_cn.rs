@@ -130,12 +130,16 @@ fn fit_cn_lowers_the_residual_with_positive_finite_cn() {
     let rmsa = ra["residual_rms_normalised"].as_f64().unwrap();
     assert!(rmsa < rms0, "{rms0} -> {rmsa}");
     assert!(desc(&ma).contains("--fit-amplification"), "{}", desc(&ma));
-    let out = common::bin()
-        .args(["fit", "--input", &lab, "--out", &path("x.json")])
-        .args(["--fit-amplification", "--fit-cn"])
-        .output()
-        .unwrap();
-    let err = String::from_utf8_lossy(&out.stderr);
-    assert_eq!(out.status.code(), Some(2), "{err}");
+    let x = path("x.json");
+    let (code, err) = common::persist_status(&[
+        "fit",
+        "--input",
+        &lab,
+        "--out",
+        &x,
+        "--fit-amplification",
+        "--fit-cn",
+    ]);
+    assert_eq!(code, Some(2), "{err}");
     assert!(err.contains("--fit-amplification"), "{err}");
 }

@@ -41,28 +41,30 @@ fn a_closed_stdout_pipe_is_not_a_panic() {
     // SAFETY: both descriptors were just created by `pipe` and are owned here only.
     let (read, write) = unsafe { (OwnedFd::from_raw_fd(fds[0]), OwnedFd::from_raw_fd(fds[1])) };
     drop(read);
-    let out = common::bin()
-        .args(["model", "default"])
-        .stdout(std::process::Stdio::from(write))
-        .output()
-        .unwrap();
-    let err = String::from_utf8_lossy(&out.stderr);
+    // `persist model default` printing into `stdout`: exit code and standard error
+    let model_default_into = |stdout: std::process::Stdio| {
+        let out = common::bin()
+            .args(["model", "default"])
+            .stdout(stdout)
+            .output()
+            .unwrap();
+        (
+            out.status.code(),
+            String::from_utf8_lossy(&out.stderr).to_string(),
+        )
+    };
+    let (code, err) = model_default_into(write.into());
     assert!(!err.contains("panicked"), "{err}");
-    assert_eq!(out.status.code(), Some(0), "{err}");
+    assert_eq!(code, Some(0), "{err}");
 
     // any other write error is one: a full disk (/dev/full) gives exit 1 and says so
     let full = std::fs::OpenOptions::new()
         .write(true)
         .open("/dev/full")
         .unwrap();
-    let out = common::bin()
-        .args(["model", "default"])
-        .stdout(std::process::Stdio::from(full))
-        .output()
-        .unwrap();
-    let err = String::from_utf8_lossy(&out.stderr);
+    let (code, err) = model_default_into(full.into());
     assert!(!err.contains("panicked"), "{err}");
-    assert_eq!(out.status.code(), Some(1), "{err}");
+    assert_eq!(code, Some(1), "{err}");
     assert!(err.contains("standard output"), "{err}");
 }
 

@@ -257,19 +257,19 @@ pub struct IlluminationRms {
     pub residual_rms_normalised: f64,
 }
 
-/// RMS of `z` per illumination of per-illumination cells (empty for pooled ones).
+/// RMS of `z` per illumination of per-illumination cells (empty for pooled ones). The
+/// cells come sorted by key, whose first element is the illumination, so each
+/// illumination's cells are one run.
 fn rms_by_illumination(seq: &Sequence, cells: &[(Vec<i64>, GroupStat)]) -> Vec<IlluminationRms> {
-    let mut by: BTreeMap<usize, Vec<(Vec<i64>, GroupStat)>> = BTreeMap::new();
-    for c in cells {
-        if let Some(a) = eval::cell_illumination(&c.0) {
-            by.entry(a).or_default().push(c.clone());
-        }
-    }
-    by.into_iter()
-        .map(|(a, v)| IlluminationRms {
-            illumination: seq.exposures[a].meta.exposure_index,
-            cells: v.len(),
-            residual_rms_normalised: eval::rms(&v),
+    cells
+        .chunk_by(|a, b| a.0[0] == b.0[0])
+        .filter_map(|run| {
+            let a = eval::cell_illumination(&run[0].0)?;
+            Some(IlluminationRms {
+                illumination: seq.exposures[a].meta.exposure_index,
+                cells: run.len(),
+                residual_rms_normalised: eval::rms(run),
+            })
         })
         .collect()
 }
@@ -296,7 +296,9 @@ fn read_json(path: &Path) -> Result<serde_json::Value> {
         .map_err(|e| Error::new(ErrorKind::Invalid, format!("not JSON: {e}")).path(path))
 }
 
-fn read_truth(path: &Path, shape: (usize, usize)) -> Result<ndarray::Array2<f32>> {
+/// The simulator's noise-free persistence current of one exposure
+/// (`truth/*.truth.hdf5` `/true_persistence`), checked against the products' shape.
+pub fn read_truth(path: &Path, shape: (usize, usize)) -> Result<ndarray::Array2<f32>> {
     let f = h5io::open(path)?;
     let a: ndarray::Array2<f32> = f
         .dataset("true_persistence")

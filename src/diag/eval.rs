@@ -522,11 +522,9 @@ impl CellIndex {
             if !s.measured[i].is_finite() {
                 continue;
             }
-            if let (Some(f), Some(t)) = (bin_of(s, "fluence", i), bin_of(s, "time", i)) {
-                let key = match s.cells {
-                    Cells::Pooled => vec![f, t],
-                    Cells::Illumination => vec![s.event[i / s.npix()] as i64, f, t],
-                };
+            // the keys of `groups` (same covariates, same order)
+            let key: Option<Vec<i64>> = s.cells.keys().iter().map(|k| bin_of(s, k, i)).collect();
+            if let Some(key) = key {
                 g.entry(key).or_default().push(i);
             }
         }

@@ -239,6 +239,16 @@ pub fn persist_ok(args: &[&str]) -> String {
     String::from_utf8_lossy(&o.stdout).to_string()
 }
 
+/// Run the real binary with `args` (as [`bin`]): its exit code and standard error, for
+/// the tests of refusals.
+pub fn persist_status(args: &[&str]) -> (Option<i32>, String) {
+    let o = bin().args(args).output().unwrap();
+    (
+        o.status.code(),
+        String::from_utf8_lossy(&o.stderr).to_string(),
+    )
+}
+
 /// `persist simulate lab --size SIZE --seed SEED --campaign [EXTRA...] --out OUT`: the
 /// laboratory campaign of the fit / diagnose tests.
 pub fn lab_campaign(out: &str, size: u32, seed: u64, extra: &[&str]) {
