@@ -118,7 +118,9 @@ fn reference_model(seq: &Sequence, reference: &Reference) -> ModelParams {
     if reference.effects.is_empty() && reference.free() == ceffects::Free::default() {
         return m0;
     }
-    let s2 = Samples::new(seq, 2).with_cells(reference.calib.cells);
+    let s2 = Samples::new(seq, 2)
+        .with_cells(reference.calib.cells)
+        .with_statistic(reference.calib.cell_statistic);
     ceffects::fit_with(&m0, &reference.effects, reference.free(), seq, &s2)
         .expect("fit reference")
         .0
@@ -216,6 +218,9 @@ fn main() {
             if let Some(v) = arg(&args, "--cells") {
                 c.cells = v.parse().unwrap();
             }
+            if let Some(v) = arg(&args, "--cell-statistic") {
+                c.cell_statistic = v.parse().unwrap();
+            }
             c
         },
     };
@@ -244,6 +249,10 @@ fn main() {
         format!(", {} cells", reference.calib.cells.describe())
     } else {
         String::new()
+    } + if reference.calib.cell_statistic != default_calib.cell_statistic {
+        ", paired cell statistic"
+    } else {
+        ""
     };
     let ref_label = if reference.effects.is_empty() {
         "the paper's model (`persist fit`)".to_string()
@@ -269,6 +278,10 @@ fn main() {
         cfg.statistic = v.parse::<Statistic>().unwrap();
     }
     cfg.cells = reference.calib.cells;
+    cfg.cell_statistic = reference.calib.cell_statistic;
+    if let Some(v) = arg(&args, "--refit") {
+        cfg.refit = v.parse().unwrap();
+    }
     let skip = |f: &str| args.iter().any(|a| a == f);
     let mut md = String::new();
     let mut jl = String::new();
@@ -278,9 +291,9 @@ fn main() {
         "Command: `cargo run --release --example diagnose_matrix -- {cmdline}`\n\n\
          Laboratory campaign (`persist simulate lab --campaign`), {size} x {size} pixels; \
          **reference model: {ref_label}**; diagnose: \
-         statistic {:?}, {} random pixels, {} bootstrap replicas; refit and flag quality on the \
-         stride-2 sample of `persist fit`/`compare`.\n",
-        cfg.statistic, cfg.pixels, cfg.bootstrap
+         statistic {:?}, {} random pixels, {} bootstrap replicas, refit {:?}; refit and flag \
+         quality on the stride-2 sample of `persist fit`/`compare`.\n",
+        cfg.statistic, cfg.pixels, cfg.bootstrap, cfg.refit
     )
     .unwrap();
     let mut baselines: Vec<Option<Sim>> = Vec::new();
@@ -352,7 +365,9 @@ fn main() {
                 let name = e.split(':').next().unwrap_or(e).to_string();
                 let rank = d.ranking.iter().find(|c| c.effect == name);
                 let first = declared_first(&d);
-                let s2 = Samples::new(&sim.seq, 2).with_cells(reference.calib.cells);
+                let s2 = Samples::new(&sim.seq, 2)
+                    .with_cells(reference.calib.cells)
+                    .with_statistic(reference.calib.cell_statistic);
                 let t = touched(&s2, &sim, b);
                 let q0 = quality(&m0, &sim.seq, &s2, Some(&t));
                 let in_model = persist::model::effects::lookup(&name).is_some();
@@ -430,7 +445,9 @@ fn main() {
         for seed in 1..=nseed {
             let names: Vec<&str> = pair.iter().map(String::as_str).collect();
             let sim = simulate(size, seed, &names);
-            let s2 = Samples::new(&sim.seq, 2).with_cells(reference.calib.cells);
+            let s2 = Samples::new(&sim.seq, 2)
+                .with_cells(reference.calib.cells)
+                .with_statistic(reference.calib.cell_statistic);
             let (m0, d1) = calibrate_and_diagnose(&sim.seq, seed, &cfg, &reference);
             let w1 = declared_first(&d1);
             let r0 = quality(&m0, &sim.seq, &s2, None).rms;

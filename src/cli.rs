@@ -442,6 +442,11 @@ pub struct FitArgs {
     /// per illumination; see `persist::diag::eval` "Why per illumination").
     #[arg(long, default_value = "pooled")]
     pub cells: String,
+    /// What a residual cell compares: `levels` (its measured 95th percentile against its
+    /// predictions') or `paired` (the 95th percentile of each sample's measured minus
+    /// predicted current; see `persist::diag::eval` "Paired statistic").
+    #[arg(long, default_value = "levels")]
+    pub cell_statistic: String,
 }
 
 #[derive(Args, Debug)]
@@ -466,6 +471,11 @@ pub struct CompareArgs {
     /// `persist::diag::eval` "Why per illumination").
     #[arg(long, default_value = "pooled")]
     pub cells: String,
+    /// What a residual cell compares: `levels` (its measured 95th percentile against its
+    /// predictions') or `paired` (the 95th percentile of each sample's measured minus
+    /// predicted current; see `persist::diag::eval` "Paired statistic").
+    #[arg(long, default_value = "levels")]
+    pub cell_statistic: String,
 }
 
 #[derive(Args, Debug)]
@@ -495,6 +505,16 @@ pub struct DiagnoseArgs {
     /// illumination").
     #[arg(long, default_value = "pooled")]
     pub cells: String,
+    /// What a residual cell compares: `levels` (its measured 95th percentile against its
+    /// predictions') or `paired` (the 95th percentile of each sample's measured minus
+    /// predicted current; see `persist::diag::eval` "Paired statistic").
+    #[arg(long, default_value = "levels")]
+    pub cell_statistic: String,
+    /// What the refit of a candidate frees: `candidate` (its parameters only) or `full`
+    /// (its parameters and the model's own effects' jointly, compared with the model's
+    /// effects refitted alone; also in the held-out check).
+    #[arg(long, default_value = "candidate")]
+    pub refit: String,
 }
 
 #[derive(Subcommand, Debug)]
@@ -868,6 +888,7 @@ fn fit(a: &FitArgs) -> persist::Result<ExitCode> {
         amplification: a.amplification,
         t_min_s: a.t_min_s,
         cells: a.cells.parse()?,
+        cell_statistic: a.cell_statistic.parse()?,
         ..Default::default()
     };
     let cfg = if a.rates_per_s.is_empty() {
@@ -899,6 +920,7 @@ fn compare(a: &CompareArgs) -> persist::Result<ExitCode> {
         touched_baseline: a.touched_baseline.clone(),
         touched_min_e_per_s: a.touched_min_e_per_s,
         cells: a.cells.parse()?,
+        cell_statistic: a.cell_statistic.parse()?,
     };
     let s = persist::diag::compare::run_with(&a.input, &a.models, &a.report, &opts)?;
     out!("{s}");
@@ -913,6 +935,8 @@ fn diagnose(a: &DiagnoseArgs) -> persist::Result<ExitCode> {
         seed: a.seed,
         statistic: a.statistic.parse()?,
         cells: a.cells.parse()?,
+        cell_statistic: a.cell_statistic.parse()?,
+        refit: a.refit.parse()?,
     };
     let s = persist::diag::diagnose::run(&a.input, &a.model, a.json.as_deref(), &cfg)?;
     out!("{s}");

@@ -17,10 +17,7 @@ fn illumination_cells_recover_the_hidden_activation_energy() {
     let path = |name: &str| tmp.path().join(name).to_str().unwrap().to_string();
     let lab = path("lab");
     common::lab_campaign(&lab, 64, 1, &["--effect", "temperature"]);
-    let rates: Vec<String> = (0..13)
-        .map(|k| format!("{:e}", 10f64.powf(-0.4 * k as f64)))
-        .collect();
-    let rates = rates.join(",");
+    let rates = common::rates_13_terms();
     let fit = |out: &str, cells: &str| -> (f64, f64) {
         let out = path(out);
         persist_ok(&[

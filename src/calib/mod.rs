@@ -41,6 +41,8 @@ pub struct CalibConfig {
     pub rates_per_s: Vec<f64>,
     /// Residual cells of the effect fit and of the report ([`crate::diag::eval::Cells`]).
     pub cells: crate::diag::eval::Cells,
+    /// What those cells compare ([`crate::diag::eval::CellStatistic`]).
+    pub cell_statistic: crate::diag::eval::CellStatistic,
 }
 
 impl Default for CalibConfig {
@@ -52,6 +54,7 @@ impl Default for CalibConfig {
             t_min_s: 10.0,
             rates_per_s: PAPER_TERMS.iter().map(|t| t.1).collect(),
             cells: crate::diag::eval::Cells::Pooled,
+            cell_statistic: crate::diag::eval::CellStatistic::Levels,
         }
     }
 }
@@ -348,6 +351,8 @@ pub struct FitReport {
     /// RMS of the normalised cell residuals of the written model (diag::eval docs).
     pub residual_rms_normalised: f64,
     pub cells: usize,
+    /// What the cells compare.
+    pub cell_statistic: crate::diag::eval::CellStatistic,
     pub model_identity: String,
 }
 
@@ -388,7 +393,9 @@ pub fn run(
 ) -> Result<String> {
     let seq = Sequence::load(input)?;
     let (mut params, cal) = calibrate(&seq, cfg).map_err(|e| e.path(input))?;
-    let samples = crate::diag::eval::Samples::new(&seq, 2).with_cells(cfg.cells);
+    let samples = crate::diag::eval::Samples::new(&seq, 2)
+        .with_cells(cfg.cells)
+        .with_statistic(cfg.cell_statistic);
     let mut ef = None;
     if !with.is_empty() || free != effects::Free::default() {
         let (p, f) = effects::fit_with(&params, with, free, &seq, &samples)?;
@@ -413,6 +420,7 @@ pub fn run(
         effects: ef,
         residual_rms_normalised: crate::diag::eval::rms(&cells),
         cells: cells.len(),
+        cell_statistic: cfg.cell_statistic,
         model_identity: params.identity(),
     };
     write_text(out, &(params.to_json_pretty() + "\n"))?;

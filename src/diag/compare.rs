@@ -113,6 +113,8 @@ pub struct Options {
     pub touched_min_e_per_s: f64,
     /// The residual cells (`--cells`, [`eval::Cells`]).
     pub cells: eval::Cells,
+    /// What they compare (`--cell-statistic`, [`eval::CellStatistic`]).
+    pub cell_statistic: eval::CellStatistic,
 }
 
 impl Default for Options {
@@ -121,6 +123,7 @@ impl Default for Options {
             touched_baseline: None,
             touched_min_e_per_s: TOUCHED_MIN_E_PER_S,
             cells: eval::Cells::Pooled,
+            cell_statistic: eval::CellStatistic::Levels,
         }
     }
 }
@@ -131,6 +134,8 @@ pub struct Summary {
     pub definitions: BTreeMap<String, String>,
     /// How the map's cells (and `residual_rms_normalised`) group the samples.
     pub cells: eval::Cells,
+    /// What a cell's `z` compares.
+    pub cell_statistic: eval::CellStatistic,
     pub exposures_compared: usize,
     pub pixels_sampled: usize,
     pub pixel_stride: usize,
@@ -274,7 +279,7 @@ fn rms_by_illumination(seq: &Sequence, cells: &[(Vec<i64>, GroupStat)]) -> Vec<I
         .collect()
 }
 
-pub fn definitions(cells: eval::Cells) -> BTreeMap<String, String> {
+pub fn definitions(cells: eval::Cells, statistic: eval::CellStatistic) -> BTreeMap<String, String> {
     let rms = match cells {
         eval::Cells::Pooled => "RMS of z over cells fluence (5 per decade) x time since illumination (4 per decade), all illuminations together",
         eval::Cells::Illumination => "RMS of z over cells illumination x fluence (5 per decade) x time since illumination (4 per decade); the map figure shows, per fluence x time, the illumination with the largest |z|",
@@ -282,7 +287,10 @@ pub fn definitions(cells: eval::Cells) -> BTreeMap<String, String> {
     BTreeMap::from([
         ("measured".into(), "image minus the median of the background pixels of the same exposure (fluence < 3000 e- in every illumination so far, no on-board flag); noise 1.4826 MAD of the same pixels".into()),
         ("samples".into(), "every 2nd pixel in x and y with fluence > 3000 e- in the last illumination, every exposure after an illumination".into()),
-        ("z".into(), "(P95 of measured - P95 of predicted plus each sample's noise) / (2.12 s / sqrt(n)), s = 1.4826 MAD of measured, at least the noise".into()),
+        ("z".into(), match statistic {
+            eval::CellStatistic::Levels => "(P95 of measured - P95 of predicted plus each sample's noise) / (2.12 s / sqrt(n)), s = 1.4826 MAD of measured, at least the noise",
+            eval::CellStatistic::Paired => "(P95 of measured - predicted, sample by sample - P95 of the samples' noise alone) / (2.12 s / sqrt(n)), s = 1.4826 MAD of measured - predicted, at least the noise; the figures' P95 are of measured and of predicted plus noise",
+        }.into()),
         ("residual_rms_normalised".into(), rms.into()),
         ("missed".into(), "measured > threshold + 2 noise and not flagged".into()),
         ("over_flagged".into(), "flagged and measured < threshold - 2 noise".into()),
@@ -425,7 +433,9 @@ pub fn run_with(
     opts: &Options,
 ) -> Result<String> {
     let seq = Sequence::load(input)?;
-    let samples = Samples::new(&seq, STRIDE).with_cells(opts.cells);
+    let samples = Samples::new(&seq, STRIDE)
+        .with_cells(opts.cells)
+        .with_statistic(opts.cell_statistic);
     let mut loaded = Vec::new();
     for m in models {
         loaded.push((m.display().to_string(), crate::model_file::load(m)?));
@@ -448,8 +458,9 @@ pub fn run_with(
     )?;
     let summary = Summary {
         input: input.display().to_string(),
-        definitions: definitions(samples.cells),
+        definitions: definitions(samples.cells, samples.statistic),
         cells: samples.cells,
+        cell_statistic: samples.statistic,
         exposures_compared: samples.exposures.len(),
         pixels_sampled: samples.npix(),
         pixel_stride: STRIDE,

@@ -266,3 +266,12 @@ pub fn lab_campaign(out: &str, size: u32, seed: u64, extra: &[&str]) {
     a.extend(["--out", out]);
     persist_ok(&a);
 }
+
+/// `--rates-per-s` of the eighth and ninth sessions' references: thirteen terms 0.4 decade apart,
+/// 1 to 1.6e-5 per second.
+pub fn rates_13_terms() -> String {
+    (0..13)
+        .map(|k| format!("{:e}", 10f64.powf(-0.4 * k as f64)))
+        .collect::<Vec<_>>()
+        .join(",")
+}
