@@ -188,3 +188,91 @@ fn baseline_declares_nothing_against_the_paper_c_n_reference() {
     println!("{text}");
     assert!(d.ranking.iter().all(|c| !c.significant), "{text}");
 }
+
+/// The ninth session's reference (docs/diagnose_matrix.md, "Ninth session"): the
+/// paper's calibration with the knots' level at amplification 1.0 and thirteen terms
+/// 0.4 decade apart from 1 s, plus refill, chord and `extra`, fitted jointly on the
+/// stride-2 cells per illumination with the paired cell statistic (`persist fit
+/// --with refill --with chord [--with EXTRA] --amplification 1.0 --rates-per-s ...
+/// --t-min-s 1 --cells illumination --cell-statistic paired`).
+fn paired_reference(seq: &Sequence, extra: &[&str]) -> persist::model::ModelParams {
+    use persist::diag::eval::{CellStatistic, Cells, Samples};
+    let cfg = CalibConfig {
+        amplification: 1.0,
+        t_min_s: 1.0,
+        rates_per_s: (0..13).map(|k| 10f64.powf(-0.4 * k as f64)).collect(),
+        cells: Cells::Illumination,
+        cell_statistic: CellStatistic::Paired,
+        ..CalibConfig::default()
+    };
+    let (m0, _) = calib::calibrate(seq, &cfg).unwrap();
+    let names: Vec<String> = ["refill", "chord"]
+        .iter()
+        .chain(extra)
+        .map(|s| s.to_string())
+        .collect();
+    let s2 = Samples::new(seq, 2)
+        .with_cells(cfg.cells)
+        .with_statistic(cfg.cell_statistic);
+    persist::calib::effects::fit(&m0, &names, seq, &s2)
+        .unwrap()
+        .0
+}
+
+/// `diagnose --cells illumination --cell-statistic paired --refit full` (bootstrap 49
+/// replicas) of `seq` against `m`, at seed 1.
+fn diagnose_paired_seed_1(m: &persist::model::ModelParams, seq: &Sequence) -> diagnose::Diagnosis {
+    use persist::diag::eval::{CellStatistic, Cells};
+    let cfg = Config {
+        seed: 1,
+        bootstrap: 49,
+        cells: Cells::Illumination,
+        cell_statistic: CellStatistic::Paired,
+        refit: diagnose::Refit::Full,
+        ..Config::default()
+    };
+    diagnose::diagnose(m, seq, &cfg, Path::new("lab"), Path::new("m.json")).unwrap()
+}
+
+/// A hidden `temperature` (seed 1) against the ninth session's reference: declared
+/// first and significant, and `fit --with` it lowers the residual RMS of the stride-2
+/// cells by about half. Measured here: score 304.9 against a threshold of 7.3, dBIC
+/// -963, held-out gain 0.33, and `populations` second, also significant (dBIC -521,
+/// held-out 0.37; with the candidate-only refit it came first, dBIC -660 against
+/// temperature's -487, docs/diagnose_matrix.md); RMS 2.53 -> 1.21. Not pinned because
+/// not met: the missed flags among the touched samples, 1.8 % -> 1.4 % (the criterion
+/// is 1 %). Its specificity:
+/// [`baseline_declares_nothing_against_the_paired_reference`].
+#[test]
+fn hidden_temperature_is_declared_against_the_paired_reference() {
+    use persist::diag::eval::{self, CellStatistic, Cells, Samples};
+    let seq = campaign(1, &["temperature"]);
+    let m = paired_reference(&seq, &[]);
+    let d = diagnose_paired_seed_1(&m, &seq);
+    let text = diagnose::render(&d);
+    println!("{text}");
+    let first = &d.ranking[0];
+    assert_eq!(first.effect, "temperature", "{text}");
+    assert!(first.significant, "{text}");
+    assert!(first.delta_bic.is_some_and(|b| b < -100.0), "{text}");
+    let with = paired_reference(&seq, &["temperature"]);
+    let s2 = Samples::new(&seq, 2)
+        .with_cells(Cells::Illumination)
+        .with_statistic(CellStatistic::Paired);
+    let rms = |p: &persist::model::ModelParams| {
+        let pr = eval::predict(p, &seq, &s2, false).unwrap();
+        eval::rms(&eval::cell_z(&s2, &pr.current))
+    };
+    let (before, after) = (rms(&m), rms(&with));
+    assert!(after <= 0.55 * before, "RMS {before} -> {after}");
+}
+
+/// The baseline criterion at one seed against the ninth session's reference.
+#[test]
+fn baseline_declares_nothing_against_the_paired_reference() {
+    let seq = campaign(1, &[]);
+    let d = diagnose_paired_seed_1(&paired_reference(&seq, &[]), &seq);
+    let text = diagnose::render(&d);
+    println!("{text}");
+    assert!(d.ranking.iter().all(|c| !c.significant), "{text}");
+}
