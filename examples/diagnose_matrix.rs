@@ -12,6 +12,10 @@
 //! `--statistic within|pooled`, `--reference a,b` (default none: the paper's model),
 //! `--reference-fit-cn` (the reference also fits the `C_n`, `persist fit --fit-cn`; then
 //! every `fit --with` of the matrix refits them jointly too, from the reference's),
+//! `--reference-fit-amplification`, `--amplification A`, `--rates-per-s r1,r2,...`,
+//! `--t-min-s T`, `--cells pooled|illumination`, `--cell-statistic levels|paired` (the
+//! reference's `persist fit` options, also used by every fit and diagnosis of the
+//! matrix), `--refit candidate|full` (`persist diagnose --refit`),
 //! `--skip-baseline`, `--skip-single`, `--skip-pair`.
 //!
 //! Per scenario, as the CLI would do it: the reference model (`fit`, the paper's

@@ -279,7 +279,13 @@ fn fit_candidate(
 ) -> Result<(ModelParams, crate::calib::effects::EffectFit)> {
     let mut m = base.clone();
     if let Some(e) = start.and_then(|s| s.effects.iter().find(|e| e.name == name)) {
+        // `base`'s knots were calibrated without the candidate: rescale them for it at
+        // its start values, as the fit does for every value it tries
+        let from = crate::calib::knots::scale_of(base, seq)?;
         m.effects.push(e.clone());
+        if let Some((s_from, ramp)) = from {
+            crate::calib::knots::rescale(&s_from, &mut m, &ramp)?;
+        }
     }
     let mut names = own.to_vec();
     names.push(name.to_string());
@@ -493,6 +499,10 @@ impl Steps<'_> {
                             .iter()
                             .zip(&p0)
                             .map(|(idx, p)| {
+                                if idx.iter().any(|&i| !pred[i].is_finite()) {
+                                    // not comparable with the base's cell: no direction
+                                    return 0.0;
+                                }
                                 buf.clear();
                                 buf.extend(idx.iter().map(|&i| y[i] - pred[i]));
                                 -(quantile(&buf, 0.95) - p) / h
@@ -563,7 +573,9 @@ fn scores(c: &Cells, y: &[f64], steps: &Steps, dirs: &[Option<f64>], st: Statist
 /// Held-out check of effect `name` (module docs); None with fewer than 2 events.
 /// `start`: a model holding the effect at the values to start the fits from (the
 /// full refit), else its defaults. `base_current`: `params`' prediction at `samples`
-/// (early release off, [`eval::predict`]), which the test halves' "before" reuse.
+/// (early release off, [`eval::predict`]), which the test halves' "before" reuse when
+/// `refit` is [`Refit::Candidate`] (with [`Refit::Full`] "before" is the model's own
+/// effects refitted on the fit half).
 pub fn held_out(
     params: &ModelParams,
     base_current: &[f64],
@@ -601,8 +613,8 @@ pub fn held_out(
             let before = eval::cell_z(&ts, &samples.rows_of(base_current, &test_rows));
             (fitted, before)
         } else {
-            // the model's own effects refitted on the fit half, alone and with the
-            // candidate: nothing of the test half enters either
+            // the model's own effects refitted on the fit half's samples, alone and
+            // with the candidate (both fits start from values fitted on all samples)
             let base = refit_own(params, &own, seq, &fs)?;
             let (fitted, _) = fit_candidate(&base, &own, start, name, seq, &fs)?;
             let before = eval::cell_z(&ts, &eval::predict(&base, seq, &ts, false)?.current);
@@ -793,11 +805,7 @@ pub fn diagnose(
         },
         eval::CellStatistic::Paired => Steps::Paired {
             pred0: &base.current,
-            noise_p95: cells
-                .sigma
-                .iter()
-                .map(|sg| noisy_quantile(&vec![0.0; sg.len()], sg, 0.95).0)
-                .collect(),
+            noise_p95: cells.sigma.iter().map(|sg| eval::noise_p95(sg)).collect(),
             at_step,
         },
     };

@@ -495,6 +495,12 @@ pub fn group_stat_p95(meas: &[f64], pp: f64, noise: f64) -> Option<GroupStat> {
     })
 }
 
+/// The 95th percentile of the noise alone of samples with exposure noise `sigma`
+/// (e-/s): of the mixture `N(0, sigma_i^2)`, the paired statistic's reference.
+pub fn noise_p95(sigma: &[f64]) -> f64 {
+    noisy_quantile(&vec![0.0; sigma.len()], sigma, 0.95).0
+}
+
 /// [`CellStatistic::Paired`] of one group (arguments as [`cell_stat`]; samples whose
 /// measurement or prediction is not finite are left out). `z` compares the residuals
 /// `measured - predicted`; the reported 95th percentiles and median are those of
@@ -513,7 +519,7 @@ pub fn group_stat_paired(
     let d: Vec<f64> = idx.iter().map(|&i| meas[i] - pred[i]).collect();
     let sg: Vec<f64> = idx.iter().map(|&i| pred_sigma[i]).collect();
     let (dp, sigma, _) = p95_sigma_median(&d, noise);
-    let noise_p95 = noisy_quantile(&vec![0.0; d.len()], &sg, 0.95).0;
+    let noise_p95 = noise_p95(&sg);
     let m: Vec<f64> = idx.iter().map(|&i| meas[i]).collect();
     let p: Vec<f64> = idx.iter().map(|&i| pred[i]).collect();
     Some(GroupStat {
