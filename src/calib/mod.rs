@@ -429,14 +429,15 @@ pub fn run(
     write_text(report_path, &(text + "\n"))?;
     let mut s = format!(
         "persist fit: {} knots, C_n max relative error {:.3} over [{:.0}, {:.0}] s, \
-         normalised residual RMS {:.2} over {} {} cells\n",
+         normalised residual RMS {:.2} over {} {} cells{}\n",
         rep.calibration.knots.len(),
         rep.calibration.c_n.max_relative_error,
         rep.calibration.c_n.t_min_s,
         rep.calibration.c_n.t_max_s,
         rep.residual_rms_normalised,
         rep.cells,
-        cfg.cells.describe()
+        cfg.cells.describe(),
+        cfg.cell_statistic.note()
     );
     if let Some(f) = &rep.effects {
         for p in &f.params {

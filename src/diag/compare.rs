@@ -475,8 +475,11 @@ pub fn run_with(
     let html = super::report::html(&summary).map_err(|e| e.path(out.join("report.html")))?;
     crate::calib::write_text(&out.join("report.html"), &html)?;
     let mut s = format!(
-        "persist compare: {} exposures, {} pixels sampled\n",
-        summary.exposures_compared, summary.pixels_sampled
+        "persist compare: {} exposures, {} pixels sampled ({} cells{})\n",
+        summary.exposures_compared,
+        summary.pixels_sampled,
+        summary.cells.describe(),
+        summary.cell_statistic.note()
     );
     if let Some(t) = &summary.touched {
         s += &format!(

@@ -1045,7 +1045,7 @@ pub fn run(input: &Path, model: &Path, json: Option<&Path>, cfg: &Config) -> Res
 pub fn render(d: &Diagnosis) -> String {
     let mut s = format!(
         "persist diagnose: statistic {:?}, {} pixels, {} cells in {} groups, {} illumination events, \
-         residual RMS {:.2} ({} cells)\nthreshold {:.2} (95 % of the largest score over {} bootstrap replicas \
+         residual RMS {:.2} ({} cells{}{})\nthreshold {:.2} (95 % of the largest score over {} bootstrap replicas \
          from the fitted model; median {:.2})\n\
          {:<16} {:>10} {:>6} {:>9} {:>15} {:>9} {:>15}  covariate\n",
         d.statistic,
@@ -1055,6 +1055,12 @@ pub fn render(d: &Diagnosis) -> String {
         d.events,
         d.residual_rms_normalised,
         d.residual_cells.describe(),
+        d.cell_statistic.note(),
+        if d.refit == Refit::Full {
+            "; candidates refitted with the model's own effects (--refit full)"
+        } else {
+            ""
+        },
         d.threshold,
         d.bootstrap_replicas,
         d.bootstrap_median_max,

@@ -147,15 +147,11 @@ impl std::str::FromStr for CellStatistic {
 }
 
 impl CellStatistic {
-    /// What a cell's `z` compares, in words.
-    pub fn describe(self) -> &'static str {
+    /// What the printed outputs add for this statistic: nothing for the default.
+    pub fn note(self) -> &'static str {
         match self {
-            CellStatistic::Levels => {
-                "z = (P95(measured) - P95(predicted + noise)) / sigma_q, sigma_q from the spread of the measured values"
-            }
-            CellStatistic::Paired => {
-                "z = (P95(measured - predicted) - P95(noise)) / sigma_q, sigma_q from the spread of measured - predicted"
-            }
+            CellStatistic::Levels => "",
+            CellStatistic::Paired => ", paired: each sample against its own prediction",
         }
     }
 }
