@@ -122,9 +122,7 @@ fn reference_model(seq: &Sequence, reference: &Reference) -> ModelParams {
     if reference.effects.is_empty() && reference.free() == ceffects::Free::default() {
         return m0;
     }
-    let s2 = Samples::new(seq, 2)
-        .with_cells(reference.calib.cells)
-        .with_statistic(reference.calib.cell_statistic);
+    let s2 = reference.calib.samples(seq);
     ceffects::fit_with(&m0, &reference.effects, reference.free(), seq, &s2)
         .expect("fit reference")
         .0
@@ -369,9 +367,7 @@ fn main() {
                 let name = e.split(':').next().unwrap_or(e).to_string();
                 let rank = d.ranking.iter().find(|c| c.effect == name);
                 let first = declared_first(&d);
-                let s2 = Samples::new(&sim.seq, 2)
-                    .with_cells(reference.calib.cells)
-                    .with_statistic(reference.calib.cell_statistic);
+                let s2 = reference.calib.samples(&sim.seq);
                 let t = touched(&s2, &sim, b);
                 let q0 = quality(&m0, &sim.seq, &s2, Some(&t));
                 let in_model = persist::model::effects::lookup(&name).is_some();
@@ -449,9 +445,7 @@ fn main() {
         for seed in 1..=nseed {
             let names: Vec<&str> = pair.iter().map(String::as_str).collect();
             let sim = simulate(size, seed, &names);
-            let s2 = Samples::new(&sim.seq, 2)
-                .with_cells(reference.calib.cells)
-                .with_statistic(reference.calib.cell_statistic);
+            let s2 = reference.calib.samples(&sim.seq);
             let (m0, d1) = calibrate_and_diagnose(&sim.seq, seed, &cfg, &reference);
             let w1 = declared_first(&d1);
             let r0 = quality(&m0, &sim.seq, &s2, None).rms;

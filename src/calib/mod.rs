@@ -45,6 +45,16 @@ pub struct CalibConfig {
     pub cell_statistic: crate::diag::eval::CellStatistic,
 }
 
+impl CalibConfig {
+    /// The samples of the effect fit and of the report: every second pixel, grouped and
+    /// compared as this configuration says.
+    pub fn samples(&self, seq: &Sequence) -> crate::diag::eval::Samples {
+        crate::diag::eval::Samples::new(seq, 2)
+            .with_cells(self.cells)
+            .with_statistic(self.cell_statistic)
+    }
+}
+
 impl Default for CalibConfig {
     fn default() -> Self {
         CalibConfig {
@@ -393,9 +403,7 @@ pub fn run(
 ) -> Result<String> {
     let seq = Sequence::load(input)?;
     let (mut params, cal) = calibrate(&seq, cfg).map_err(|e| e.path(input))?;
-    let samples = crate::diag::eval::Samples::new(&seq, 2)
-        .with_cells(cfg.cells)
-        .with_statistic(cfg.cell_statistic);
+    let samples = cfg.samples(&seq);
     let mut ef = None;
     if !with.is_empty() || free != effects::Free::default() {
         let (p, f) = effects::fit_with(&params, with, free, &seq, &samples)?;
