@@ -292,6 +292,34 @@ fn fit_candidate(
     crate::calib::effects::fit(&m, &names, seq, samples)
 }
 
+/// The `persist fit` command that adds effect `name` to the model at `model_path`: its
+/// own effects and the candidate, with the residual cells of this diagnosis when they
+/// are not the defaults. The calibration options (`--amplification`, `--rates-per-s`,
+/// `--t-min-s`) are those the model was fitted with; its description records them.
+fn fit_command(
+    input: &Path,
+    model_path: &Path,
+    params: &ModelParams,
+    name: &str,
+    cfg: &Config,
+) -> String {
+    let mut s = format!(
+        "persist fit --input {} --out {}+{name}.json",
+        input.display(),
+        model_path.with_extension("").display()
+    );
+    for e in params.effects.iter().map(|e| e.name.as_str()).chain([name]) {
+        s += &format!(" --with {e}");
+    }
+    if cfg.cells != eval::Cells::default() {
+        s += " --cells illumination";
+    }
+    if cfg.cell_statistic != eval::CellStatistic::default() {
+        s += " --cell-statistic paired";
+    }
+    s
+}
+
 /// One half of the held-out check.
 #[derive(Debug, Clone, Serialize)]
 pub struct Fold {
@@ -855,11 +883,7 @@ pub fn diagnose(
                 held_out: None,
                 significant: false,
                 covariate: def.covariate.into(),
-                command: format!(
-                    "persist fit --input {} --out {} --with {name}",
-                    input.display(),
-                    model_path.with_extension("").display().to_string() + &format!("+{name}.json")
-                ),
+                command: fit_command(input, model_path, params, name, cfg),
             }
         })
         .collect();
@@ -1253,6 +1277,33 @@ mod tests {
             let (p, sigma, _) = eval::p95_sigma_median(&d, 0.1);
             assert_eq!((z[k], sg[k]), (p / sigma, sigma));
         }
+    }
+
+    /// The command that adds a candidate keeps the model's own effects and the
+    /// diagnosis's cells (it named the candidate alone, so following it dropped them).
+    #[test]
+    fn the_suggested_fit_keeps_the_model_s_effects_and_cells() {
+        let mut p = ModelParams::default();
+        p.effects.push(EffectSpec {
+            name: "refill".into(),
+            params: serde_json::Map::new(),
+        });
+        let cmd =
+            |cfg: &Config| fit_command(Path::new("lab"), Path::new("m.json"), &p, "soak", cfg);
+        assert_eq!(
+            cmd(&Config::default()),
+            "persist fit --input lab --out m+soak.json --with refill --with soak"
+        );
+        let cfg = Config {
+            cells: eval::Cells::Illumination,
+            cell_statistic: eval::CellStatistic::Paired,
+            ..Config::default()
+        };
+        assert_eq!(
+            cmd(&cfg),
+            "persist fit --input lab --out m+soak.json --with refill --with soak \
+             --cells illumination --cell-statistic paired"
+        );
     }
 
     /// `--refit full` frees the model's own effects that have fitted parameters (with
