@@ -124,6 +124,17 @@ fn fit_on_reference(seq: &Sequence, extra: &[&str]) -> persist::model::ModelPara
         .0
 }
 
+/// The normalised residual RMS of `p` over the cells of `s` (what `persist fit`
+/// reports), as `eval::rss_cells` sums it.
+fn cell_rms(
+    p: &persist::model::ModelParams,
+    seq: &Sequence,
+    s: &persist::diag::eval::Samples,
+) -> f64 {
+    let (rss, n) = persist::diag::eval::rss_cells(p, seq, s).unwrap();
+    (rss / n as f64).sqrt()
+}
+
 /// `diagnose` (bootstrap 49 replicas instead of 199; otherwise its defaults) of `seq`
 /// against `m`, at seed 1.
 fn diagnose_seed_1(m: &persist::model::ModelParams, seq: &Sequence) -> diagnose::Diagnosis {
@@ -164,10 +175,7 @@ fn hidden_short_tau_boost_meets_the_three_criteria_at_seed_1() {
 
     let with = fit_on_reference(&seq, &["short_tau_boost"]);
     let s2 = Samples::new(&seq, 2);
-    let rms = |p: &persist::model::ModelParams| {
-        let pr = eval::predict(p, &seq, &s2, false).unwrap();
-        eval::rms(&eval::cell_z(&s2, &pr.current))
-    };
+    let rms = |p: &persist::model::ModelParams| cell_rms(p, &seq, &s2);
     let (before, after) = (rms(&m), rms(&with));
     assert!(after <= 0.5 * before, "RMS {before} -> {after}");
     let (_, truth_without) = campaign_with_truth(1, &[]);
@@ -249,7 +257,6 @@ fn diagnose_paired_seed_1(m: &persist::model::ModelParams, seq: &Sequence) -> di
 /// [`baseline_declares_nothing_against_the_paired_reference`].
 #[test]
 fn hidden_temperature_is_declared_against_the_paired_reference() {
-    use persist::diag::eval;
     let seq = campaign(1, &["temperature"]);
     let m = paired_reference(&seq, &[]);
     let d = diagnose_paired_seed_1(&m, &seq);
@@ -261,10 +268,7 @@ fn hidden_temperature_is_declared_against_the_paired_reference() {
     assert!(first.delta_bic.is_some_and(|b| b < -100.0), "{text}");
     let with = paired_reference(&seq, &["temperature"]);
     let s2 = paired_config().samples(&seq);
-    let rms = |p: &persist::model::ModelParams| {
-        let pr = eval::predict(p, &seq, &s2, false).unwrap();
-        eval::rms(&eval::cell_z(&s2, &pr.current))
-    };
+    let rms = |p: &persist::model::ModelParams| cell_rms(p, &seq, &s2);
     let (before, after) = (rms(&m), rms(&with));
     assert!(after <= 0.55 * before, "RMS {before} -> {after}");
 }

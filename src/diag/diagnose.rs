@@ -515,8 +515,8 @@ impl Steps<'_> {
                 for (k, idx) in c.members.iter().enumerate() {
                     buf.clear();
                     buf.extend(idx.iter().map(|&i| y[i] - pred0[i]));
-                    let (p, sigma, _) = eval::p95_sigma_median(&buf, c.noise[k]);
-                    z.push((p - noise_p95[k]) / sigma);
+                    let (p, sigma, zk) = eval::paired_z(&buf, c.noise[k], noise_p95[k]);
+                    z.push(zk);
                     sg.push(sigma);
                     p0.push(p);
                 }
@@ -791,7 +791,6 @@ pub fn diagnose(
         )
         .path(input));
     }
-    let pp0 = p95s(&cells, &base.current);
     // the knots of each stepped model carry its effects, as in the refit
     let calib_ramp = crate::calib::knots::scale_of(params, seq)?;
     // the library effects to test, each predicted at its score step (in parallel;
@@ -821,16 +820,19 @@ pub fn diagnose(
         })
         .collect::<Result<_>>()?;
     let steps = match samples.statistic {
-        eval::CellStatistic::Levels => Steps::Levels {
-            dp: at_step
-                .iter()
-                .map(|(h, pred)| {
-                    let pp = p95s(&cells, pred);
-                    pp.iter().zip(&pp0).map(|(a, b)| (a - b) / h).collect()
-                })
-                .collect(),
-            pp0,
-        },
+        eval::CellStatistic::Levels => {
+            let pp0 = p95s(&cells, &base.current);
+            Steps::Levels {
+                dp: at_step
+                    .iter()
+                    .map(|(h, pred)| {
+                        let pp = p95s(&cells, pred);
+                        pp.iter().zip(&pp0).map(|(a, b)| (a - b) / h).collect()
+                    })
+                    .collect(),
+                pp0,
+            }
+        }
         eval::CellStatistic::Paired => Steps::Paired {
             pred0: &base.current,
             noise_p95: cells.sigma.iter().map(|sg| eval::noise_p95(sg)).collect(),

@@ -507,6 +507,25 @@ pub fn group_stat_paired(
     pred_sigma: &[f64],
     noise: f64,
 ) -> Option<GroupStat> {
+    paired_stat(meas, pred, pred_sigma, noise, None)
+}
+
+/// `(P95(d), sigma_q, z)` of the paired statistic for the differences `d` (module
+/// docs), `noise_p95` the 95th percentile of their noise alone ([`noise_p95`]).
+pub fn paired_z(d: &[f64], noise: f64, noise_p95: f64) -> (f64, f64, f64) {
+    let (p, sigma, _) = p95_sigma_median(d, noise);
+    (p, sigma, (p - noise_p95) / sigma)
+}
+
+/// [`group_stat_paired`], with the noise's 95th percentile of all samples given when
+/// already known (used only if every sample is kept).
+fn paired_stat(
+    meas: &[f64],
+    pred: &[f64],
+    pred_sigma: &[f64],
+    noise: f64,
+    all_noise_p95: Option<f64>,
+) -> Option<GroupStat> {
     let keep = |i: &usize| meas[*i].is_finite() && pred[*i].is_finite();
     let idx: Vec<usize> = (0..meas.len().min(pred.len())).filter(keep).collect();
     if idx.len() < 10 {
@@ -514,8 +533,11 @@ pub fn group_stat_paired(
     }
     let d: Vec<f64> = idx.iter().map(|&i| meas[i] - pred[i]).collect();
     let sg: Vec<f64> = idx.iter().map(|&i| pred_sigma[i]).collect();
-    let (dp, sigma, _) = p95_sigma_median(&d, noise);
-    let noise_p95 = noise_p95(&sg);
+    let np95 = match all_noise_p95 {
+        Some(v) if idx.len() == meas.len() => v,
+        _ => noise_p95(&sg),
+    };
+    let (_, sigma, z) = paired_z(&d, noise, np95);
     let m: Vec<f64> = idx.iter().map(|&i| meas[i]).collect();
     let p: Vec<f64> = idx.iter().map(|&i| pred[i]).collect();
     Some(GroupStat {
@@ -524,7 +546,7 @@ pub fn group_stat_paired(
         predicted_p95_e_per_s: noisy_quantile(&p, &sg, 0.95).0,
         measured_median_e_per_s: median(&m),
         sigma_e_per_s: sigma,
-        z: (dp - noise_p95) / sigma,
+        z,
     })
 }
 
@@ -632,8 +654,11 @@ struct IndexedCell {
     sigma: Vec<f64>,
     /// The median of `sigma`.
     noise: f64,
+    /// [`noise_p95`] of `sigma` (the paired statistic's reference, whatever the
+    /// predictions; NaN with the levels statistic).
+    noise_p95: f64,
     /// [`group_stat_p95`] of all members (its `predicted_p95_e_per_s` unused); None
-    /// when fewer than 10.
+    /// when fewer than 10, and with the paired statistic (not used there).
     measured: Option<GroupStat>,
 }
 
@@ -656,12 +681,16 @@ impl CellIndex {
             .map(|(key, members)| {
                 let (meas, sigma) = Self::gather(s, &members, &all);
                 let noise = median(&sigma);
-                let measured = group_stat_p95(&meas, 0.0, noise);
+                let (measured, noise_p95) = match s.statistic {
+                    CellStatistic::Levels => (group_stat_p95(&meas, 0.0, noise), f64::NAN),
+                    CellStatistic::Paired => (None, noise_p95(&sigma)),
+                };
                 IndexedCell {
                     key,
                     members,
                     sigma,
                     noise,
+                    noise_p95,
                     measured,
                 }
             })
@@ -696,7 +725,7 @@ impl CellIndex {
                     } else {
                         median(&Self::gather(s, &c.members, pred).1)
                     };
-                    group_stat_paired(&meas, &buf, &c.sigma, noise)
+                    paired_stat(&meas, &buf, &c.sigma, noise, Some(c.noise_p95))
                 } else if all_finite {
                     let m = c.measured?;
                     let pp = noisy_quantile(&buf, &c.sigma, 0.95).0;
