@@ -16,6 +16,7 @@
 //! `--t-min-s T`, `--cells pooled|illumination`, `--cell-statistic levels|paired` (the
 //! reference's `persist fit` options, also used by every fit and diagnosis of the
 //! matrix), `--refit candidate|full` (`persist diagnose --refit`),
+//! `--spots centred|shifted` (the campaign, `persist simulate lab --campaign --spots`),
 //! `--skip-baseline`, `--skip-single`, `--skip-pair`.
 //!
 //! Per scenario, as the CLI would do it: the reference model (`fit`, the paper's
@@ -43,11 +44,11 @@ struct Sim {
     truth: Vec<ndarray::Array2<f32>>,
 }
 
-fn simulate(size: usize, seed: u64, effects: &[&str]) -> Sim {
+fn simulate(size: usize, seed: u64, effects: &[&str], campaign: &[Illumination]) -> Sim {
     let cfg = LabConfig {
         size,
         seed,
-        campaign: Some(Illumination::default_campaign()),
+        campaign: Some(campaign.to_vec()),
         effects: effects
             .iter()
             .map(|e| e.parse::<EffectSpec>().expect("effect name"))
@@ -185,6 +186,11 @@ fn main() {
     let size: usize = arg(&args, "--size").map_or(128, |v| v.parse().unwrap());
     let nbase: u64 = arg(&args, "--baseline-seeds").map_or(10, |v| v.parse().unwrap());
     let nseed: u64 = arg(&args, "--seeds").map_or(3, |v| v.parse().unwrap());
+    let (campaign, spots) = match arg(&args, "--spots").as_deref() {
+        None | Some("centred") => (Illumination::default_campaign(), ""),
+        Some("shifted") => (Illumination::shifted_campaign(), " --spots shifted"),
+        Some(v) => panic!("--spots centred|shifted, got {v}"),
+    };
     let out = arg(&args, "--out").unwrap_or_else(|| "docs/diagnose_matrix.md".into());
     let effects_arg = arg(&args, "--effects");
     let all: Vec<&str> = persist::sim::effects::NAMES.to_vec();
@@ -291,7 +297,7 @@ fn main() {
     writeln!(
         md,
         "Command: `cargo run --release --example diagnose_matrix -- {cmdline}`\n\n\
-         Laboratory campaign (`persist simulate lab --campaign`), {size} x {size} pixels; \
+         Laboratory campaign (`persist simulate lab --campaign{spots}`), {size} x {size} pixels; \
          **reference model: {ref_label}**; diagnose: \
          statistic {:?}, {} random pixels, {} bootstrap replicas, refit {:?}; refit and flag \
          quality on the stride-2 sample of `persist fit`/`compare`.\n",
@@ -305,7 +311,7 @@ fn main() {
         writeln!(md, "## No hidden effect (reference: {ref_label})\n\n| seed | residual RMS | threshold | top score (effect) | significant | seconds |\n|---|---|---|---|---|---|").unwrap();
         let mut clean = 0;
         for seed in 1..=nbase {
-            let sim = simulate(size, seed, &[]);
+            let sim = simulate(size, seed, &[], &campaign);
             let t0 = Instant::now();
             let (_, d) = calibrate_and_diagnose(&sim.seq, seed, &cfg, &reference);
             let secs = t0.elapsed().as_secs_f64();
@@ -354,10 +360,10 @@ fn main() {
         for e in &effects {
             let mut ok_all = true;
             for seed in 1..=nseed {
-                let sim = simulate(size, seed, &[e.as_str()]);
+                let sim = simulate(size, seed, &[e.as_str()], &campaign);
                 let base_sim = match baselines.get(seed as usize - 1) {
                     Some(Some(_)) => None,
-                    _ => Some(simulate(size, seed, &[])),
+                    _ => Some(simulate(size, seed, &[], &campaign)),
                 };
                 let b = base_sim
                     .as_ref()
@@ -444,7 +450,7 @@ fn main() {
         writeln!(md, "## Two hidden effects: {} (reference: {ref_label})\n\n| seed | round 1 declared | round 2 declared | RMS m0 -> m1 -> m2 | error falls each round | both found |\n|---|---|---|---|---|---|", pair.join(" + ")).unwrap();
         for seed in 1..=nseed {
             let names: Vec<&str> = pair.iter().map(String::as_str).collect();
-            let sim = simulate(size, seed, &names);
+            let sim = simulate(size, seed, &names, &campaign);
             let s2 = reference.calib.samples(&sim.seq);
             let (m0, d1) = calibrate_and_diagnose(&sim.seq, seed, &cfg, &reference);
             let w1 = declared_first(&d1);

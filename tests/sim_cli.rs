@@ -76,6 +76,8 @@ fn bad_arguments_are_named_and_nothing_is_written() {
         ),
         (vec!["lab", "--effect", "ipc:alpha=x"], "alpha"),
         (vec!["lab", "--size", "2"], "--size"),
+        (vec!["lab", "--spots", "shifted"], "--campaign"),
+        (vec!["lab", "--campaign", "--spots", "moved"], "moved"),
         (vec!["sky", "--detectors", "7"], "--detectors"),
         (vec!["sky", "--exposures", "0"], "--exposures"),
     ] {

@@ -32,6 +32,29 @@
 //!
 //! Each illuminated integration lasts `t_illuminated + 132 s` (the paper's 613 - 481);
 //! the focal plane changes temperature during the dark gap before the illumination.
+//!
+//! # Shifted spots (`--spots shifted`, [`Illumination::shifted_campaign`])
+//! In the default campaign every illumination is the same pattern, scaled, so a pixel's
+//! fluence is a function of its radius from the array centre in every illumination:
+//! an effect that differs between illuminations can then be mimicked by a smooth
+//! surface over the array (the model's `populations`; docs/diagnose_matrix.md, ninth
+//! session, the pair). The shifted campaign is the same five illuminations with the
+//! spot's centre moved for illuminations 2-5, as a laboratory would move the
+//! pinhole, so that radius and fluence no longer go together across illuminations:
+//!
+//! | # | spot centre offset (y, x), fraction of the array size |
+//! |---|---|
+//! | 1 | (0, 0): the calibration's illumination is the default campaign's |
+//! | 2 | (+0.15, -0.20) |
+//! | 3 | (+0.15, -0.20) (repeat of 2, same place) |
+//! | 4 | (-0.20, -0.15) |
+//! | 5 | (+0.20, -0.20) |
+//!
+//! The leak along the left edge and the scattered-light floor do not move. The spot
+//! moves up, down and to the left only, so that the two right-hand corners stay below
+//! 3,000 e- (`diag::data::BACKGROUND_FLUENCE_E`) in every illumination: `compare` and
+//! `diagnose` measure each exposure's dark level on pixels that were never lit, and a
+//! campaign that lights every pixel leaves them none.
 
 use super::detector::DetectorParams;
 use super::effect::{EffectSet, EffectSpec};
@@ -51,6 +74,15 @@ pub struct Illumination {
     pub flux_scale: f64,
     pub temp_k: f64,
     pub darks_after: usize,
+    /// Offset of the spot's centre from its default place, (y, x) in fractions of the
+    /// array size ([`pinhole_at`]); (0, 0) in the default campaign (and then not
+    /// written to `truth.json`, which stays as it was).
+    #[serde(skip_serializing_if = "is_centred")]
+    pub spot_offset: [f64; 2],
+}
+
+fn is_centred(o: &[f64; 2]) -> bool {
+    *o == [0.0, 0.0]
 }
 
 impl Illumination {
@@ -60,6 +92,7 @@ impl Illumination {
             flux_scale: s,
             temp_k: k,
             darks_after: d,
+            spot_offset: [0.0, 0.0],
         };
         vec![
             i(481.0, 1.0, 80.0, 20),
@@ -68,6 +101,23 @@ impl Illumination {
             i(120.0, 4.0, 78.0, 20),
             i(481.0, 0.25, 82.0, 60),
         ]
+    }
+
+    /// The default campaign with the spot moved for illuminations 2-5 (module docs,
+    /// "Shifted spots").
+    pub fn shifted_campaign() -> Vec<Illumination> {
+        const OFFSETS: [[f64; 2]; 5] = [
+            [0.0, 0.0],
+            [0.15, -0.20],
+            [0.15, -0.20],
+            [-0.20, -0.15],
+            [0.20, -0.20],
+        ];
+        Self::default_campaign()
+            .into_iter()
+            .zip(OFFSETS)
+            .map(|(i, spot_offset)| Illumination { spot_offset, ..i })
+            .collect()
     }
 }
 
@@ -113,10 +163,17 @@ impl Default for LabConfig {
 
 /// The pinhole illumination, e-/s.
 pub fn pinhole(size: usize) -> Array2<f32> {
+    pinhole_at(size, [0.0, 0.0])
+}
+
+/// The pinhole illumination with the spot's centre moved by `offset` (y, x) times the
+/// array size; the leak and the floor stay.
+pub fn pinhole_at(size: usize, offset: [f64; 2]) -> Array2<f32> {
     let c = (size as f64 - 1.0) / 2.0 + 0.3;
+    let (cy, cx) = (c + offset[0] * size as f64, c + offset[1] * size as f64);
     let r0 = size as f64 / 2.0;
     Array2::from_shape_fn((size, size), |(y, x)| {
-        let r = ((y as f64 - c).powi(2) + (x as f64 - c).powi(2)).sqrt();
+        let r = ((y as f64 - cy).powi(2) + (x as f64 - cx).powi(2)).sqrt();
         let spot = 2e5 * 10f64.powf(-4.0 * r / r0);
         let leak = 300.0 * 10f64.powf(-(x as f64) / 6.0);
         (spot + leak + 0.05) as f32
@@ -154,13 +211,19 @@ fn steps(cfg: &LabConfig) -> crate::Result<Vec<Illumination>> {
             flux_scale: 1.0,
             temp_k: cfg.temp_k,
             darks_after: cfg.darks,
+            spot_offset: [0.0, 0.0],
         }],
     };
     for s in &steps {
-        if !(s.t_illuminated_s > 0.0 && s.flux_scale >= 0.0 && s.temp_k > 0.0) {
+        if !(s.t_illuminated_s > 0.0
+            && s.flux_scale >= 0.0
+            && s.temp_k > 0.0
+            && s.spot_offset.iter().all(|o| o.abs() <= 1.0))
+        {
             return Err(crate::Error::invalid(
                 "--campaign",
-                "each illumination needs t > 0, flux scale >= 0, temperature > 0",
+                "each illumination needs t > 0, flux scale >= 0, temperature > 0, \
+                 spot offsets within [-1, 1]",
             ));
         }
     }
@@ -186,14 +249,13 @@ pub fn run(
         cfg.seed,
         1,
     )?;
-    let pattern = pinhole(n);
     let zero = Array2::<f32>::zeros((n, n));
     let t0 = epoch();
     let mut t = 0.0f64; // seconds since t0 of the next integration's start
     let mut index = 0u64;
     let mut first_dark = true;
     for s in &steps {
-        let flux = pattern.mapv(|v| v * s.flux_scale as f32);
+        let flux = pinhole_at(n, s.spot_offset).mapv(|v| v * s.flux_scale as f32);
         let t_exp = s.t_illuminated_s + cfg.after_shutter_s;
         let temp = temp_at(s.temp_k, t);
         let out = sim.expose(&ExposureSpec {
@@ -319,6 +381,72 @@ mod tests {
         assert!((d_lin / D_LIN_DEFAULT - 1.0).abs() < 0.01, "d_lin {d_lin}");
         assert!((d_mid / D_SAT_MID - 1.0).abs() < 0.01, "mid {d_mid}");
         assert!((d_high / D_SAT_HIGH - 1.0).abs() < 0.01, "high {d_high}");
+    }
+
+    #[test]
+    fn shifted_spots_move_the_centre_and_keep_the_first_illumination() {
+        let n = 64;
+        let argmax = |p: &Array2<f32>| {
+            let (i, _) = p
+                .iter()
+                .enumerate()
+                .max_by(|a, b| a.1.total_cmp(b.1))
+                .unwrap();
+            (i / n, i % n)
+        };
+        let shifted = Illumination::shifted_campaign();
+        let centred = Illumination::default_campaign();
+        assert_eq!(shifted.len(), centred.len());
+        // the calibration's illumination is the default campaign's, bit for bit
+        assert_eq!(shifted[0], centred[0]);
+        assert_eq!(pinhole_at(n, shifted[0].spot_offset), pinhole(n));
+        // the spot's brightest pixel moves by the offset (centre 31.8 + 64 * offset)
+        assert_eq!(argmax(&pinhole(n)), (32, 32));
+        assert_eq!(argmax(&pinhole_at(n, shifted[1].spot_offset)), (41, 19));
+        assert_eq!(argmax(&pinhole_at(n, shifted[3].spot_offset)), (19, 22));
+        assert_eq!(argmax(&pinhole_at(n, shifted[4].spot_offset)), (45, 19));
+        // the repeat stays where the illumination it repeats was
+        assert_eq!(shifted[1], shifted[2]);
+        // the right-hand corners stay dark enough to be background pixels in every
+        // illumination (module docs), at the matrix's size and the issue's
+        for size in [64, 256] {
+            for s in &shifted {
+                let f = pinhole_at(size, s.spot_offset);
+                for y in [0, size - 1] {
+                    let fluence = f64::from(f[[y, size - 1]]) * s.flux_scale * s.t_illuminated_s;
+                    assert!(
+                        fluence < crate::diag::data::BACKGROUND_FLUENCE_E,
+                        "{size}: {s:?} corner {y}: {fluence} e-"
+                    );
+                }
+            }
+        }
+        // everything but the spot's place is the default campaign's
+        for (s, c) in shifted.iter().zip(&centred) {
+            assert_eq!(
+                Illumination {
+                    spot_offset: [0.0, 0.0],
+                    ..s.clone()
+                },
+                *c
+            );
+        }
+    }
+
+    #[test]
+    fn a_spot_offset_outside_the_array_is_refused() {
+        let mut c = Illumination::shifted_campaign();
+        c[2].spot_offset = [0.0, 1.5];
+        let cfg = LabConfig {
+            size: 16,
+            campaign: Some(c),
+            ..LabConfig::default()
+        };
+        let e = validate(&cfg).unwrap_err().to_string();
+        assert!(
+            e.contains("--campaign") && e.contains("spot offsets"),
+            "{e}"
+        );
     }
 
     #[test]
