@@ -46,6 +46,7 @@ fn hand_model() -> Model {
             threshold_e_per_s: 0.5,
             consecutive: 3,
             subtract_background: true,
+            ..EarlyRelease::default()
         },
         ..ModelParams::default()
     })
@@ -460,5 +461,82 @@ fn sky_level_is_the_median_of_finite_pixels() {
     assert_eq!(
         sky_level_e_per_s(&Array2::from_elem((3, 3), f32::NAN).view()),
         0.0
+    );
+}
+
+/// Regression (docs/diagnose_matrix.md, tenth session): where most of the array carries
+/// persistence (a laboratory spot), the image median does too, and subtracting it as
+/// the background released pixels still above the flag threshold. An 8 x 8 array, 48
+/// pixels lit at 1e6 e- (predicted ~2 e-/s over the darks that follow, the default
+/// model), then dark exposures in which the lit pixels measure 0.6 e-/s of persistence
+/// and the 16 others the 0.02 e-/s dark current. The image median is 0.6: with
+/// `image_median` the lit pixels pass `0.6 < 0.1 + 0.6` and are released at the third
+/// dark exposure; with `quiet_pixels` the background is the 16 unlit pixels' 0.02 e-/s,
+/// `0.6 > 0.12`, and nothing is released.
+#[test]
+fn a_lit_median_pixel_does_not_release_persistent_pixels() {
+    use persist::model::BackgroundEstimate;
+    for (estimate, released_at) in [
+        (BackgroundEstimate::ImageMedian, Some(3u64)),
+        (BackgroundEstimate::QuietPixels, None),
+    ] {
+        let mut params = ModelParams::default();
+        params.early_release.background = estimate;
+        let mut r = Run::new(Model::new(params).unwrap(), 8, 8);
+        r.background = None; // estimated by the step
+        let lit = |y: usize, _x: usize| y < 6;
+        let spot = Array2::from_shape_fn((8, 8), |(y, x)| if lit(y, x) { 1e4f32 } else { 0.02 });
+        r.step(0, 0.0, spot, Array2::zeros((8, 8)));
+        let dark = Array2::from_shape_fn((8, 8), |(y, x)| if lit(y, x) { 0.6f32 } else { 0.02 });
+        let mut first_release = None;
+        for k in 1..8u64 {
+            let (s, _) = r.step(k, k as f64 * 130.0, dark.clone(), Array2::zeros((8, 8)));
+            if k == 1 {
+                assert_eq!(s.above_high, 48, "{estimate:?}: the lit pixels are flagged");
+            }
+            if s.released > 0 && first_release.is_none() {
+                first_release = Some(k);
+                assert_eq!(s.released, 48);
+            }
+        }
+        assert_eq!(first_release, released_at, "{estimate:?}");
+    }
+}
+
+/// With an empty state (the first exposure) every pixel is quiet: `quiet_pixels` is the
+/// image median; on a sky whose few persistent pixels the model knows, it is the
+/// median of the others.
+#[test]
+fn quiet_pixel_background_is_the_median_of_the_unpersistent_pixels() {
+    use persist::model::step::{background_e_per_s, sky_level_e_per_s};
+    use persist::model::BackgroundEstimate::{ImageMedian, QuietPixels};
+    let image = Array2::from_shape_fn((10, 10), |(y, x)| (y * 10 + x) as f32);
+    let zeros = ndarray::Array3::<f64>::zeros((10, 10, 2));
+    let w = [0.5, 0.25];
+    let median = sky_level_e_per_s(&image.view());
+    assert_eq!(median, 50.0);
+    assert_eq!(
+        background_e_per_s(QuietPixels, &image.view(), &zeros, &w, 0.01),
+        median
+    );
+    // the model predicts persistence (A = 1 e-: 0.75 e-/s > 0.01) in the 40 pixels of
+    // rows 6-9 (values 60..=99): the quiet ones are 0..=59, median (upper) 30
+    let mut amps = zeros.clone();
+    amps.slice_mut(ndarray::s![6.., .., ..]).fill(1.0);
+    assert_eq!(
+        background_e_per_s(QuietPixels, &image.view(), &amps, &w, 0.01),
+        30.0
+    );
+    assert_eq!(
+        background_e_per_s(ImageMedian, &image.view(), &amps, &w, 0.01),
+        median
+    );
+    // every pixel persistent (rows 0-1 at A = 1, rows 2-9 at A = 2): at least the 16 (of
+    // 100) with the lowest prediction, here the 20 that tie at A = 1, 0..=19: median 10
+    amps.fill(2.0);
+    amps.slice_mut(ndarray::s![..2, .., ..]).fill(1.0);
+    assert_eq!(
+        background_e_per_s(QuietPixels, &image.view(), &amps, &w, 0.01),
+        10.0
     );
 }

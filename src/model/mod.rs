@@ -17,7 +17,7 @@ pub mod step;
 
 pub use decay::ExpSum;
 pub use effect_step::StepContext;
-pub use params::{EarlyRelease, Knot, ModelParams, Term, Thresholds};
+pub use params::{BackgroundEstimate, EarlyRelease, Knot, ModelParams, Term, Thresholds};
 pub use response::Response;
 pub use state::State;
 pub use step::{FlagBits, Input, Model, Output, StepSummary};

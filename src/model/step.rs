@@ -7,8 +7,8 @@
 //!    previous response used the maximum amplitude (unknown fluence) is flagged high
 //!    whatever the prediction, and marked `MAX_AMPLITUDE`;
 //! 3. **early release**: a pixel flagged high whose measured current, less the
-//!    exposure's background (sky + dark, [`sky_level_e_per_s`], when the model asks for
-//!    it), is finite and below the early-release threshold counts one more; at `consecutive` it is released: its
+//!    exposure's background (sky + dark, [`background_e_per_s`], when the model asks for
+//!    it: by default the median over the pixels the model predicts quiet), is finite and below the early-release threshold counts one more; at `consecutive` it is released: its
 //!    amplitudes become zero, it is not flagged in this exposure, it is marked
 //!    `RELEASED`. A non-finite measurement or an unflagged pixel resets the count;
 //! 4. **decay** the amplitudes over `t_elapsed = t_reset(k+1) - t_reset(k)`;
@@ -27,7 +27,7 @@
 //! [`crate::model::reference`] implementation, so the two agree bit for bit.
 
 use super::decay::ExpSum;
-use super::params::ModelParams;
+use super::params::{BackgroundEstimate, ModelParams};
 use super::response::Response;
 use super::state::{State, PENDING_MAX_AMPLITUDE};
 use crate::error::{Error, ErrorKind};
@@ -277,9 +277,15 @@ impl Model {
         let er = &self.params.early_release;
         // Comparing `m - background < threshold` is comparing `m < threshold + background`.
         let background = if er.enabled && er.subtract_background {
-            input
-                .background_e_per_s
-                .unwrap_or_else(|| sky_level_e_per_s(&input.image_e_per_s))
+            input.background_e_per_s.unwrap_or_else(|| {
+                background_e_per_s(
+                    er.background,
+                    &input.image_e_per_s,
+                    &state.amplitudes_e,
+                    &w,
+                    self.params.thresholds.low_e_per_s,
+                )
+            })
         } else {
             0.0
         };
@@ -334,28 +340,75 @@ pub struct Input<'a> {
     pub history_incomplete: bool,
     /// The sky + dark level of this exposure, e-/s, subtracted from the measured current
     /// before the early-release comparison (when the model asks for it). `None`: the
-    /// step estimates it with [`sky_level_e_per_s`].
+    /// step estimates it with [`background_e_per_s`].
     pub background_e_per_s: Option<f64>,
 }
+
+/// Pixels of the regular sample the background estimates look at, at most.
+const BACKGROUND_SAMPLE: usize = 65_536;
 
 /// A robust estimate of an exposure's background (sky + dark), e-/s: the median of the
 /// finite pixels, on a regular sample of at most 65,536 of them (the zodiacal light
 /// varies slowly across an array; stars and persistence are a minority of pixels).
-/// 0 when no pixel is finite.
+/// 0 when no pixel is finite. [`BackgroundEstimate::ImageMedian`].
 pub fn sky_level_e_per_s(image: &ArrayView2<'_, f32>) -> f64 {
-    let n = image.len();
-    let stride = n.div_ceil(65_536).max(1);
+    let stride = image.len().div_ceil(BACKGROUND_SAMPLE).max(1);
     let mut sample: Vec<f32> = image
         .iter()
         .step_by(stride)
         .copied()
         .filter(|v| v.is_finite())
         .collect();
+    median_f32(&mut sample)
+}
+
+/// The early-release background of an exposure, e-/s ([`BackgroundEstimate`]):
+/// `amplitudes_e` the state before this exposure (`[ny, nx, n]`, standard layout as
+/// [`State`] keeps it), `w` the weights `C_n exp(-t_meas/tau_n)` of its prediction.
+/// The same regular sample as [`sky_level_e_per_s`]; 0 when no sampled pixel is finite.
+pub fn background_e_per_s(
+    estimate: BackgroundEstimate,
+    image: &ArrayView2<'_, f32>,
+    amplitudes_e: &ndarray::Array3<f64>,
+    w: &[f64],
+    low_e_per_s: f64,
+) -> f64 {
+    let amps = match (estimate, amplitudes_e.as_slice()) {
+        (BackgroundEstimate::QuietPixels, Some(a)) if a.len() == image.len() * w.len() => a,
+        _ => return sky_level_e_per_s(image),
+    };
+    let n = w.len();
+    let stride = image.len().div_ceil(BACKGROUND_SAMPLE).max(1);
+    // (predicted current, measured current) of the finite sampled pixels
+    let mut sample: Vec<(f64, f32)> = image
+        .iter()
+        .enumerate()
+        .step_by(stride)
+        .filter(|(_, v)| v.is_finite())
+        .map(|(i, v)| (super::decay::weighted_sum(&amps[i * n..(i + 1) * n], w), *v))
+        .collect();
     if sample.is_empty() {
         return 0.0;
     }
-    let mid = sample.len() / 2;
-    let (_, m, _) = sample.select_nth_unstable_by(mid, f32::total_cmp);
+    // at least the 1/256 of the sample (and 16 pixels) with the lowest prediction
+    let m = (sample.len() / 256).max(16).min(sample.len());
+    let (_, mth, _) = sample.select_nth_unstable_by(m - 1, |a, b| a.0.total_cmp(&b.0));
+    let cut = mth.0.max(low_e_per_s);
+    let mut quiet: Vec<f32> = sample
+        .iter()
+        .filter(|(p, _)| *p <= cut)
+        .map(|(_, v)| *v)
+        .collect();
+    median_f32(&mut quiet)
+}
+
+/// The median (upper middle element) of `v`, reordered; 0 when empty.
+fn median_f32(v: &mut [f32]) -> f64 {
+    if v.is_empty() {
+        return 0.0;
+    }
+    let mid = v.len() / 2;
+    let (_, m, _) = v.select_nth_unstable_by(mid, f32::total_cmp);
     f64::from(*m)
 }
 
