@@ -116,7 +116,7 @@ pub struct EarlyRelease {
 }
 
 /// How the early-release background is estimated from the exposure's image
-/// ([`crate::model::step::background_e_per_s`]), on a regular sample of at most 65,536
+/// ([`crate::model::step::background_e_per_s`]), on a sample of at most 65,536
 /// pixels.
 ///
 /// Why not the image median: where a large part of the array carries persistence, the

@@ -365,7 +365,8 @@ pub fn sky_level_e_per_s(image: &ArrayView2<'_, f32>) -> f64 {
 /// The early-release background of an exposure, e-/s ([`BackgroundEstimate`]):
 /// `amplitudes_e` the state before this exposure (`[ny, nx, n]`, standard layout as
 /// [`State`] keeps it), `w` the weights `C_n exp(-t_meas/tau_n)` of its prediction.
-/// The same regular sample as [`sky_level_e_per_s`]; 0 when no sampled pixel is finite.
+/// On a sample of at most 65,536 pixels in whole rows (every pixel below 256 x 256);
+/// 0 when no sampled pixel is finite.
 pub fn background_e_per_s(
     estimate: BackgroundEstimate,
     image: &ArrayView2<'_, f32>,
@@ -374,19 +375,30 @@ pub fn background_e_per_s(
     low_e_per_s: f64,
 ) -> f64 {
     let amps = match (estimate, amplitudes_e.as_slice()) {
-        (BackgroundEstimate::QuietPixels, Some(a)) if a.len() == image.len() * w.len() => a,
+        (BackgroundEstimate::QuietPixels, Some(a))
+            if !w.is_empty() && a.len() == image.len() * w.len() =>
+        {
+            a
+        }
         _ => return sky_level_e_per_s(image),
     };
     let n = w.len();
-    let stride = image.len().div_ceil(BACKGROUND_SAMPLE).max(1);
+    let (ny, nx) = image.dim();
+    // Whole rows, every `row_stride`-th: the rows' amplitudes are contiguous in the
+    // state, so the sample's predictions stream through memory (a pixel sample spread
+    // over the array costs a cache miss per pixel: 15 % of the step at 2040 x 2040).
+    let row_stride = image.len().div_ceil(BACKGROUND_SAMPLE).max(1);
     // (predicted current, measured current) of the finite sampled pixels
-    let mut sample: Vec<(f64, f32)> = image
-        .iter()
-        .enumerate()
-        .step_by(stride)
-        .filter(|(_, v)| v.is_finite())
-        .map(|(i, v)| (super::decay::weighted_sum(&amps[i * n..(i + 1) * n], w), *v))
-        .collect();
+    let mut sample: Vec<(f64, f32)> = Vec::with_capacity(ny.div_ceil(row_stride) * nx);
+    for y in (0..ny).step_by(row_stride) {
+        let a = &amps[y * nx * n..(y + 1) * nx * n];
+        for (x, a) in a.chunks_exact(n).enumerate() {
+            let v = image[[y, x]];
+            if v.is_finite() {
+                sample.push((super::decay::weighted_sum(a, w), v));
+            }
+        }
+    }
     if sample.is_empty() {
         return 0.0;
     }
