@@ -87,9 +87,9 @@ impl Default for Thresholds {
 /// largest value that cannot release a pixel whose persistence is really above the flag
 /// threshold in expectation: the measured current is persistence + dark + sky, so a
 /// background-subtracted measurement below 0.1 e-/s bounds the persistence below the flag
-/// threshold, up to noise, as long as the background (the image median) carries little
-/// persistence itself: in crowded fields it does, and the bound fails (docs/floor_scan.md,
-/// `--n12 1660`: ~0.06 e-/s of true persistence in the median); the three-in-a-row rule guards against noise (at the paper's
+/// threshold, up to noise, as long as the background carries little persistence itself
+/// ([`BackgroundEstimate`]: the image median does not where much of the array is
+/// persistent); the three-in-a-row rule guards against noise (at the paper's
 /// 0.1 e-/s noise a pixel at 0.15 e-/s passes three times running with probability
 /// about 0.31^3 = 3%).
 ///
