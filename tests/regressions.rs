@@ -97,3 +97,51 @@ fn a_straight_first_dark_ramp_does_not_become_a_knot() {
     let rms = report["residual_rms_normalised"].as_f64().unwrap();
     assert!(rms < 60.0, "{rms}");
 }
+
+/// A laboratory sequence in which every pixel was lit above 3,000 e- leaves `compare` no
+/// background pixel to measure the dark level on (`diag::data`, "Background"): it then
+/// took 0 e-/s and a noise of 0.1 e-/s without a word, and a first layout of the
+/// moved-spot campaign scored z of -15 to -24 from it (docs/diagnose_matrix.md, tenth
+/// session). At 8 x 8 the edge leak lights every column.
+#[test]
+fn a_sequence_without_background_pixels_is_reported() {
+    let t = tempfile::tempdir().unwrap();
+    let p = |n: &str| t.path().join(n).to_string_lossy().to_string();
+    let (lab, model, report) = (p("lab"), p("m.json"), p("cmp"));
+    common::persist_ok(&[
+        "simulate", "lab", "--size", "8", "--darks", "4", "--out", &lab,
+    ]);
+    std::fs::write(&model, common::persist_ok(&["model", "default"])).unwrap();
+    let o = common::persist_cmd()
+        .args([
+            "compare", "--input", &lab, "--model", &model, "--report", &report,
+        ])
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{err}");
+    assert!(
+        err.contains("no background pixel") && err.contains("exposures=5"),
+        "{err}"
+    );
+    // a sequence with dark corners says nothing of the kind
+    let lab16 = p("lab16");
+    common::persist_ok(&[
+        "simulate", "lab", "--size", "16", "--darks", "4", "--out", &lab16,
+    ]);
+    let o = common::persist_cmd()
+        .args([
+            "compare",
+            "--input",
+            &lab16,
+            "--model",
+            &model,
+            "--report",
+            &p("cmp16"),
+        ])
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{err}");
+    assert!(!err.contains("no background pixel"), "{err}");
+}

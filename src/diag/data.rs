@@ -9,6 +9,9 @@
 //! every illumination so far and that carry no on-board flag. This removes the dark
 //! current (and its temperature drift) exposure by exposure. The per-pixel noise
 //! `sigma_k` is 1.4826 times the median absolute deviation of the same pixels.
+//! When no pixel qualifies (every pixel was lit above the limit by some illumination),
+//! `b_k` is 0 and `sigma_k` 0.1 e-/s, and a warning names how many exposures and the
+//! first.
 //! On sky data (no `t_illuminated_s`), every exposure counts as an illumination and
 //! `b_k` is the same statistic, i.e. the faint sky plus dark.
 
@@ -85,6 +88,7 @@ impl Sequence {
         let mut noise = Vec::new();
         let mut last = Vec::new();
         let mut cur_last = None;
+        let mut no_background = Vec::new();
         for (i, e) in exposures.iter().enumerate() {
             last.push(cur_last);
             let is_ill = illuminations.contains(&i);
@@ -110,6 +114,9 @@ impl Sequence {
                 })
                 .map(|((v, _), _)| f64::from(*v))
                 .collect();
+            if vals.is_empty() {
+                no_background.push(e.meta.exposure_index);
+            }
             let b = median(&vals);
             let dev: Vec<f64> = vals.iter().map(|v| (v - b).abs()).collect();
             background.push(if b.is_finite() { b } else { 0.0 });
@@ -118,6 +125,16 @@ impl Sequence {
             if is_ill {
                 cur_last = Some(i);
             }
+        }
+        if let Some(first) = no_background.first() {
+            // every pixel was lit above BACKGROUND_FLUENCE_E by some illumination: the
+            // measured current of these exposures is the raw image and their noise 0.1
+            tracing::warn!(
+                exposures = no_background.len(),
+                first_exposure_index = first,
+                "no background pixel (every pixel lit above {BACKGROUND_FLUENCE_E} e- so far): \
+                 their measured current is not dark-subtracted and their noise is taken as 0.1 e-/s"
+            );
         }
         Ok(Sequence {
             exposures,
