@@ -8,8 +8,9 @@
 //!    whatever the prediction, and marked `MAX_AMPLITUDE`;
 //! 3. **early release**: a pixel flagged high whose measured current, less the
 //!    exposure's background (sky + dark, [`background_e_per_s`], when the model asks for
-//!    it: by default the median over the pixels the model predicts quiet), is finite and below the early-release threshold counts one more; at `consecutive` it is released: its
-//!    amplitudes become zero, it is not flagged in this exposure, it is marked
+//!    it: by default the median over the pixels the model predicts quiet), is finite
+//!    and below the early-release threshold counts one more; at `consecutive` it is
+//!    released: its amplitudes become zero, it is not flagged in this exposure, it is marked
 //!    `RELEASED`. A non-finite measurement or an unflagged pixel resets the count;
 //! 4. **decay** the amplitudes over `t_elapsed = t_reset(k+1) - t_reset(k)`;
 //! 5. **respond**: add this exposure's `A_k` to every term.
