@@ -152,7 +152,8 @@ fn compare_summary_is_consistent_and_report_self_contained() {
 /// `cargo test --release --test compare_diagnose -- --ignored`. Written for the
 /// defaults of then, passed here: `diagnose --statistic pooled` (since `within` became
 /// the default, a single illumination is refused without it), pooled cells, the levels
-/// statistic, the candidate-only refit.
+/// statistic, the candidate-only refit. Run on commit fdbe6c7 it fails: `short_tau_boost`
+/// is declared besides `soak` (`["soak", "short_tau_boost"]`); not investigated.
 #[test]
 #[ignore]
 fn hidden_soak_is_found_and_fitted() {
