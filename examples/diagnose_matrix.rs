@@ -253,15 +253,11 @@ fn main() {
         " + knots' level fitted (`--fit-amplification`)"
     } else {
         ""
-    } + &if reference.calib.cells != default_calib.cells {
-        format!(", {} cells", reference.calib.cells.describe())
-    } else {
-        String::new()
-    } + if reference.calib.cell_statistic != default_calib.cell_statistic {
-        ", paired cell statistic"
-    } else {
-        ""
-    };
+    } + &format!(
+        ", {} cells, {} cell statistic",
+        reference.calib.cells.describe(),
+        reference.calib.cell_statistic
+    );
     let ref_label = if reference.effects.is_empty() {
         "the paper's model (`persist fit`)".to_string()
     } else {

@@ -28,7 +28,11 @@ fn main() {
         .iter()
         .filter(|p| p.fitted)
         .count();
-    let s = Samples::new(&seq, 2);
+    // the cells of the figures measured with this example (docs/diagnose_matrix.md),
+    // the library's defaults then; the defaults are now per illumination and paired
+    let s = Samples::new(&seq, 2)
+        .with_cells(persist::diag::eval::Cells::Pooled)
+        .with_statistic(persist::diag::eval::CellStatistic::Levels);
     let (r0, m) = rss(&reference, &seq, &s);
     let mut joint: Vec<String> = reference.effects.iter().map(|e| e.name.clone()).collect();
     joint.push(cand.clone());

@@ -19,7 +19,11 @@ fn main() {
     let seq = Sequence::load(Path::new(&a[1])).expect("sequence");
     let reference = persist::model_file::load(Path::new(&a[2])).expect("model");
     let (ea, eb) = (a[3].clone(), a[4].clone());
-    let s = Samples::random(&seq, DEFAULT_PIXELS, Config::default().seed);
+    // the cells of the figures measured with this example (docs/diagnose_matrix.md),
+    // the library's defaults then; the defaults are now per illumination and paired
+    let s = Samples::random(&seq, DEFAULT_PIXELS, Config::default().seed)
+        .with_cells(persist::diag::eval::Cells::Pooled)
+        .with_statistic(persist::diag::eval::CellStatistic::Levels);
     let fit = |names: &[String]| {
         let (_, f) = ceffects::fit(&reference, names, &seq, &s).expect("fit");
         let (before, after) = f.rss_before_after();

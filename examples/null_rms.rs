@@ -18,7 +18,11 @@ fn main() {
     let model = persist::model_file::load(Path::new(&a[2])).expect("model");
     let stride: usize = a.get(3).map_or(2, |s| s.parse().expect("stride"));
     let seed: u64 = a.get(4).map_or(1, |s| s.parse().expect("seed"));
-    let mut s = Samples::new(&seq, stride);
+    // the cells of the figures measured with this example (docs/diagnose_matrix.md),
+    // the library's defaults then; the defaults are now per illumination and paired
+    let mut s = Samples::new(&seq, stride)
+        .with_cells(eval::Cells::Pooled)
+        .with_statistic(eval::CellStatistic::Levels);
     let pr = eval::predict(&model, &seq, &s, false).expect("predict");
     let real = eval::cell_z(&s, &pr.current);
     println!("measured: cells {} rms {:.3}", real.len(), eval::rms(&real));

@@ -11,6 +11,8 @@
 
 use clap::{Args, Parser, Subcommand};
 use persist::checkpoint::Retention;
+use persist::diag::diagnose::Refit;
+use persist::diag::eval::{CellStatistic, Cells};
 use persist::model::{Model, ModelParams};
 use persist::stage::lock::DirLock;
 use persist::stage::{self, ExposureReport, Ops, RunConfig, RunReport, WatchOpts};
@@ -449,16 +451,32 @@ pub struct FitArgs {
     /// 0.1,0.0158,0.00251,0.000398,6.31e-5,1e-5).
     #[arg(long, value_delimiter = ',')]
     pub rates_per_s: Vec<f64>,
-    /// Residual cells of the effect fit and of the report: `pooled` (fluence x time,
-    /// all illuminations together) or `illumination` (one set of fluence x time cells
-    /// per illumination; see `persist::diag::eval` "Why per illumination").
-    #[arg(long, default_value = "pooled")]
-    pub cells: String,
-    /// What a residual cell compares: `levels` (its measured 95th percentile against its
-    /// predictions') or `paired` (the 95th percentile of each sample's measured minus
-    /// predicted current; see `persist::diag::eval` "Paired statistic").
-    #[arg(long, default_value = "levels")]
-    pub cell_statistic: String,
+    #[command(flatten)]
+    pub cells: CellArgs,
+}
+
+/// The residual cells of `fit` (its effect fit and report), `compare` (its map and RMS)
+/// and `diagnose` (its score test, refits, held-out check and reported RMS). Defaults:
+/// the library's ([`persist::diag::eval::Cells`], [`persist::diag::eval::CellStatistic`]).
+#[derive(Args, Debug, Clone, Copy)]
+pub struct CellArgs {
+    /// Residual cells: `illumination` (one set of fluence x time cells per
+    /// illumination; see `persist::diag::eval` "Why per illumination") or `pooled`
+    /// (fluence x time, all illuminations together). On one illumination the two are
+    /// the same cells.
+    #[arg(long, default_value_t = Cells::default(), value_parser = parse_flag::<Cells>)]
+    pub cells: Cells,
+    /// What a residual cell compares: `paired` (the 95th percentile of each sample's
+    /// measured minus predicted current; see `persist::diag::eval` "Paired statistic")
+    /// or `levels` (the cell's measured 95th percentile against its predictions').
+    #[arg(long, default_value_t = CellStatistic::default(), value_parser = parse_flag::<CellStatistic>)]
+    pub cell_statistic: CellStatistic,
+}
+
+/// A flag's value through the library's `FromStr` (whose error names the flag and the
+/// values it takes).
+fn parse_flag<T: std::str::FromStr<Err = Error>>(s: &str) -> Result<T, String> {
+    s.parse().map_err(|e: Error| e.to_string())
 }
 
 #[derive(Args, Debug)]
@@ -478,16 +496,8 @@ pub struct CompareArgs {
     /// A pixel is touched when its true persistence differs by more than this, e-/s.
     #[arg(long, default_value_t = persist::diag::compare::TOUCHED_MIN_E_PER_S)]
     pub touched_min_e_per_s: f64,
-    /// Residual cells: `pooled` (fluence x time, all illuminations together) or
-    /// `illumination` (one set of fluence x time cells per illumination; see
-    /// `persist::diag::eval` "Why per illumination").
-    #[arg(long, default_value = "pooled")]
-    pub cells: String,
-    /// What a residual cell compares: `levels` (its measured 95th percentile against its
-    /// predictions') or `paired` (the 95th percentile of each sample's measured minus
-    /// predicted current; see `persist::diag::eval` "Paired statistic").
-    #[arg(long, default_value = "levels")]
-    pub cell_statistic: String,
+    #[command(flatten)]
+    pub cells: CellArgs,
 }
 
 #[derive(Args, Debug)]
@@ -511,22 +521,15 @@ pub struct DiagnoseArgs {
     /// Residuals of the score test: `within` (illumination contrasts) or `pooled`.
     #[arg(long, default_value = "within")]
     pub statistic: String,
-    /// Residual cells of the refits, the held-out check and the reported RMS: `pooled`
-    /// (fluence x time, all illuminations together) or `illumination` (one set of
-    /// fluence x time cells per illumination; see `persist::diag::eval` "Why per
-    /// illumination").
-    #[arg(long, default_value = "pooled")]
-    pub cells: String,
-    /// What a residual cell compares: `levels` (its measured 95th percentile against its
-    /// predictions') or `paired` (the 95th percentile of each sample's measured minus
-    /// predicted current; see `persist::diag::eval` "Paired statistic").
-    #[arg(long, default_value = "levels")]
-    pub cell_statistic: String,
-    /// What the refit of a candidate frees: `candidate` (its parameters only) or `full`
-    /// (its parameters and the model's own effects' jointly, compared with the model's
-    /// effects refitted alone; also in the held-out check).
-    #[arg(long, default_value = "candidate")]
-    pub refit: String,
+    // the score test's groups are the `--statistic`'s; `--cells` keys the refits, the
+    // held-out check and the reported RMS
+    #[command(flatten)]
+    pub cells: CellArgs,
+    /// What the refit of a candidate frees: `full` (its parameters and the model's own
+    /// effects' jointly, compared with the model's effects refitted alone; also in the
+    /// held-out check) or `candidate` (its parameters only).
+    #[arg(long, default_value_t = Refit::default(), value_parser = parse_flag::<Refit>)]
+    pub refit: Refit,
 }
 
 #[derive(Subcommand, Debug)]
@@ -902,8 +905,8 @@ fn fit(a: &FitArgs) -> persist::Result<ExitCode> {
     let cfg = persist::calib::CalibConfig {
         amplification: a.amplification,
         t_min_s: a.t_min_s,
-        cells: a.cells.parse()?,
-        cell_statistic: a.cell_statistic.parse()?,
+        cells: a.cells.cells,
+        cell_statistic: a.cells.cell_statistic,
         ..Default::default()
     };
     let cfg = if a.rates_per_s.is_empty() {
@@ -934,8 +937,8 @@ fn compare(a: &CompareArgs) -> persist::Result<ExitCode> {
     let opts = persist::diag::compare::Options {
         touched_baseline: a.touched_baseline.clone(),
         touched_min_e_per_s: a.touched_min_e_per_s,
-        cells: a.cells.parse()?,
-        cell_statistic: a.cell_statistic.parse()?,
+        cells: a.cells.cells,
+        cell_statistic: a.cells.cell_statistic,
     };
     let s = persist::diag::compare::run_with(&a.input, &a.models, &a.report, &opts)?;
     out!("{s}");
@@ -949,9 +952,9 @@ fn diagnose(a: &DiagnoseArgs) -> persist::Result<ExitCode> {
         bootstrap: a.bootstrap,
         seed: a.seed,
         statistic: a.statistic.parse()?,
-        cells: a.cells.parse()?,
-        cell_statistic: a.cell_statistic.parse()?,
-        refit: a.refit.parse()?,
+        cells: a.cells.cells,
+        cell_statistic: a.cells.cell_statistic,
+        refit: a.refit,
     };
     let s = persist::diag::diagnose::run(&a.input, &a.model, a.json.as_deref(), &cfg)?;
     out!("{s}");

@@ -31,7 +31,8 @@ fn compare_summary_is_consistent_and_report_self_contained() {
         a.extend(extra);
         persist(&a);
     };
-    compare("cmp", &[]);
+    // the cells that were the defaults when this was written (pooled, levels)
+    compare("cmp", &common::OLD_CELLS);
     let s: serde_json::Value = serde_json::from_str(
         &std::fs::read_to_string(tmp.path().join("cmp/summary.json")).unwrap(),
     )
@@ -77,7 +78,10 @@ fn compare_summary_is_consistent_and_report_self_contained() {
 
     // `--cells illumination` on one illumination: the same cells as pooled, each
     // naming its illumination (exposure 0)
-    compare("cmpi", &["--cells", "illumination"]);
+    compare(
+        "cmpi",
+        &["--cells", "illumination", "--cell-statistic", "levels"],
+    );
     let si: serde_json::Value = serde_json::from_str(
         &std::fs::read_to_string(tmp.path().join("cmpi/summary.json")).unwrap(),
     )
@@ -145,7 +149,11 @@ fn compare_summary_is_consistent_and_report_self_contained() {
 
 /// Hidden soak in laboratory data: `diagnose` declares it significant; `fit --with soak`
 /// halves the normalised residual RMS. Minutes in the test profile; run with
-/// `cargo test --release --test compare_diagnose -- --ignored`.
+/// `cargo test --release --test compare_diagnose -- --ignored`. Written for the
+/// defaults of then, passed here: `diagnose --statistic pooled` (since `within` became
+/// the default, a single illumination is refused without it), pooled cells, the levels
+/// statistic, the candidate-only refit. Run on commit fdbe6c7 it fails: `short_tau_boost`
+/// is declared besides `soak` (`["soak", "short_tau_boost"]`); not investigated.
 #[test]
 #[ignore]
 fn hidden_soak_is_found_and_fitted() {
@@ -163,16 +171,16 @@ fn hidden_soak_is_found_and_fitted() {
         "--out",
         &d("lab"),
     ]);
-    persist(&["fit", "--input", &d("lab"), "--out", &d("m0.json")]);
-    persist(&[
-        "diagnose",
-        "--input",
-        &d("lab"),
-        "--model",
-        &d("m0.json"),
-        "--json",
-        &d("d.json"),
-    ]);
+    let (lab, m0) = (d("lab"), d("m0.json"));
+    let mut a = vec!["fit", "--input", &lab, "--out", &m0];
+    a.extend(common::OLD_CELLS);
+    persist(&a);
+    let dj = d("d.json");
+    let mut a = vec!["diagnose", "--input", &lab, "--model", &m0, "--json", &dj];
+    a.extend(["--statistic", "pooled"]);
+    a.extend(common::OLD_CELLS);
+    a.extend(common::OLD_REFIT);
+    persist(&a);
     let dj: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(d("d.json")).unwrap()).unwrap();
     let sig: Vec<&str> = dj["ranking"]
@@ -183,15 +191,10 @@ fn hidden_soak_is_found_and_fitted() {
         .map(|c| c["effect"].as_str().unwrap())
         .collect();
     assert_eq!(sig, vec!["soak"]);
-    persist(&[
-        "fit",
-        "--input",
-        &d("lab"),
-        "--out",
-        &d("m1.json"),
-        "--with",
-        "soak",
-    ]);
+    let m1 = d("m1.json");
+    let mut a = vec!["fit", "--input", &lab, "--out", &m1, "--with", "soak"];
+    a.extend(common::OLD_CELLS);
+    persist(&a);
     let r = |f: &str| {
         let v: serde_json::Value =
             serde_json::from_str(&std::fs::read_to_string(d(f)).unwrap()).unwrap();

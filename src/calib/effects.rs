@@ -1,7 +1,7 @@
 //! `fit --with NAME`: the fitted parameters of effects, by Levenberg-Marquardt
 //! (`levenberg-marquardt` 0.15, forward-difference Jacobian) on the normalised cell
 //! residuals `z` of [`crate::diag::eval`] (fluence bin x time since illumination, per
-//! illumination with `--cells illumination`), the
+//! illumination with `--cells illumination`, the default), the
 //! paper's calibration held fixed except that each trial model's knots carry its
 //! per-pixel response effects ([`super::knots`]: a `short_tau_boost` lowers the knots in
 //! its window by what it adds to the first-dark ramp; listed in the report's

@@ -63,8 +63,8 @@ impl Default for CalibConfig {
             min_pixels: 20,
             t_min_s: 10.0,
             rates_per_s: PAPER_TERMS.iter().map(|t| t.1).collect(),
-            cells: crate::diag::eval::Cells::Pooled,
-            cell_statistic: crate::diag::eval::CellStatistic::Levels,
+            cells: crate::diag::eval::Cells::default(),
+            cell_statistic: crate::diag::eval::CellStatistic::default(),
         }
     }
 }

@@ -122,8 +122,8 @@ impl Default for Options {
         Options {
             touched_baseline: None,
             touched_min_e_per_s: TOUCHED_MIN_E_PER_S,
-            cells: eval::Cells::Pooled,
-            cell_statistic: eval::CellStatistic::Levels,
+            cells: eval::Cells::default(),
+            cell_statistic: eval::CellStatistic::default(),
         }
     }
 }

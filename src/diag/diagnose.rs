@@ -12,8 +12,8 @@
 //! cell's normalised residual is [`super::eval::group_stat_p95`]:
 //! `z_c = (P95(measured) - P95(predicted + noise)) / sigma_c` (the predictions' 95th
 //! percentile as a measurement would show it, [`super::data::noisy_quantile`]),
-//! `sigma_c` from the measured spread of the cell. With `--cell-statistic paired`
-//! ([`super::eval::CellStatistic::Paired`]) it is
+//! `sigma_c` from the measured spread of the cell (`--cell-statistic levels`). With
+//! `--cell-statistic paired` (the default, [`super::eval::CellStatistic::Paired`]) it is
 //! `z_c = (P95(measured - predicted) - P95(noise)) / sigma_c`, `sigma_c` from the spread
 //! of the differences, and a score step's change of the cell's 95th percentile is taken
 //! from the differences at the step, anew for each bootstrap replica.
@@ -67,15 +67,17 @@
 //! # Refit, change in BIC, held-out check (the gates)
 //! The [`REFIT`] leading candidates above the threshold are refitted ([`Refit`];
 //! [`crate::calib::effects::fit`], fluence x time cells, per illumination with
-//! `--cells illumination`):
+//! `--cells illumination`, the default):
 //! `delta_BIC = m ln(RSS_1/RSS_0) + k ln m`, `k` the candidate's parameters.
 //!
 //! # Refit
-//! `--refit candidate` (default) frees the candidate's parameters alone: the model's own
+//! `--refit candidate` frees the candidate's parameters alone: the model's own
 //! effects stay at the values fitted without it, so a missing effect that those effects
 //! partly stood in for (the fitted `refill` leans on temperature's signature: `beta`
 //! 0.90 without it, at its bound 1 with it) is judged with that help undone in
-//! neither direction. `--refit full` frees the candidate's parameters and those of the
+//! neither direction. `--refit full` (the default since the baseline declared nothing
+//! with it at 10 of 10 seeds, docs/diagnose_matrix.md, ninth session, where every
+//! earlier configuration gave 9 of 10) frees the candidate's parameters and those of the
 //! model's own effects jointly, and `RSS_0` is then the model's own effects refitted
 //! alone on the same samples (nested, so only the candidate's parameters count in
 //! `k`); in the held-out check both are refitted on the fit half only. Measured (64 x
@@ -180,16 +182,27 @@ impl std::str::FromStr for Statistic {
     }
 }
 
-/// What a candidate's refit frees (module docs, "Refit").
+/// What a candidate's refit frees (module docs, "Refit"). The default, [`Refit::Full`],
+/// is that of `persist diagnose` (`--refit`, whose default is this one).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize)]
 #[serde(rename_all = "snake_case")]
 pub enum Refit {
     /// The candidate's parameters only; the model's own effects stay as fitted.
-    #[default]
     Candidate,
     /// The candidate's parameters and those of the model's own effects, jointly,
     /// against the model's effects refitted alone on the same samples.
+    #[default]
     Full,
+}
+
+impl std::fmt::Display for Refit {
+    /// The name `--refit` takes (and the JSON output records).
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            Refit::Candidate => "candidate",
+            Refit::Full => "full",
+        })
+    }
 }
 
 impl std::str::FromStr for Refit {
@@ -228,9 +241,9 @@ impl Default for Config {
             bootstrap: DEFAULT_BOOTSTRAP,
             seed: 1,
             statistic: Statistic::Within,
-            cells: eval::Cells::Pooled,
-            cell_statistic: eval::CellStatistic::Levels,
-            refit: Refit::Candidate,
+            cells: eval::Cells::default(),
+            cell_statistic: eval::CellStatistic::default(),
+            refit: Refit::default(),
         }
     }
 }
@@ -311,11 +324,12 @@ fn fit_command(
     for e in params.effects.iter().map(|e| e.name.as_str()).chain([name]) {
         s += &format!(" --with {e}");
     }
+    // `fit`'s defaults are the library's (src/cli.rs takes them from there)
     if cfg.cells != eval::Cells::default() {
-        s += " --cells illumination";
+        s += &format!(" --cells {}", cfg.cells);
     }
     if cfg.cell_statistic != eval::CellStatistic::default() {
-        s += " --cell-statistic paired";
+        s += &format!(" --cell-statistic {}", cfg.cell_statistic);
     }
     s
 }
@@ -1082,10 +1096,9 @@ pub fn render(d: &Diagnosis) -> String {
         d.residual_rms_normalised,
         d.residual_cells.describe(),
         d.cell_statistic.note(),
-        if d.refit == Refit::Full {
-            "; candidates refitted with the model's own effects (--refit full)"
-        } else {
-            ""
+        match d.refit {
+            Refit::Full => "; candidates refitted with the model's own effects (--refit full)",
+            Refit::Candidate => "; candidates refitted alone (--refit candidate)",
         },
         d.threshold,
         d.bootstrap_replicas,
@@ -1282,7 +1295,9 @@ mod tests {
     }
 
     /// The command that adds a candidate keeps the model's own effects and the
-    /// diagnosis's cells (it named the candidate alone, so following it dropped them).
+    /// diagnosis's cells (it named the candidate alone, so following it dropped them),
+    /// naming the cells only where they differ from `fit`'s defaults, which are the
+    /// library's: per illumination, paired.
     #[test]
     fn the_suggested_fit_keeps_the_model_s_effects_and_cells() {
         let mut p = ModelParams::default();
@@ -1292,20 +1307,26 @@ mod tests {
         });
         let cmd =
             |cfg: &Config| fit_command(Path::new("lab"), Path::new("m.json"), &p, "soak", cfg);
+        let base = "persist fit --input lab --out m+soak.json --with refill --with soak";
         assert_eq!(
-            cmd(&Config::default()),
-            "persist fit --input lab --out m+soak.json --with refill --with soak"
+            (Config::default().cells, Config::default().cell_statistic),
+            (eval::Cells::Illumination, eval::CellStatistic::Paired)
         );
+        assert_eq!(cmd(&Config::default()), base);
         let cfg = Config {
-            cells: eval::Cells::Illumination,
-            cell_statistic: eval::CellStatistic::Paired,
+            cells: eval::Cells::Pooled,
+            cell_statistic: eval::CellStatistic::Levels,
             ..Config::default()
         };
         assert_eq!(
             cmd(&cfg),
-            "persist fit --input lab --out m+soak.json --with refill --with soak \
-             --cells illumination --cell-statistic paired"
+            format!("{base} --cells pooled --cell-statistic levels")
         );
+        let cfg = Config {
+            cell_statistic: eval::CellStatistic::Levels,
+            ..Config::default()
+        };
+        assert_eq!(cmd(&cfg), format!("{base} --cell-statistic levels"));
     }
 
     /// `--refit full` frees the model's own effects that have fitted parameters (with

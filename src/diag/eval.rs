@@ -24,9 +24,10 @@
 //! the earlier form, noise removed from the measured side in quadrature
 //! ([`super::data::signal_p95`], still what the paper's calibration uses), gave 2.9-5.0
 //! there. `residual_rms_normalised` is the RMS of `z` over the cells fluence bin (5 per
-//! decade) x time since illumination (4 per decade), by default pooling the
-//! illuminations ([`Cells::Pooled`]), or one set of cells per illumination
-//! ([`Cells::Illumination`], `--cells illumination`).
+//! decade) x time since illumination (4 per decade), by default one set of cells per
+//! illumination ([`Cells::Illumination`], `--cells illumination`), or pooling the
+//! illuminations ([`Cells::Pooled`], `--cells pooled`, formerly the default;
+//! on one illumination the two are the same cells).
 //!
 //! # Why per illumination
 //! The model predicts the 95th percentile of the pixels of one history. A pooled cell of
@@ -44,7 +45,8 @@
 //! the two are the same cells.
 //!
 //! # Paired statistic
-//! `--cell-statistic paired` ([`CellStatistic::Paired`]) compares each sample with its
+//! `--cell-statistic paired` ([`CellStatistic::Paired`], the default; `levels`, the
+//! statistic above, was formerly the default) compares each sample with its
 //! own prediction: `z = (P95(measured_i - predicted_i) - P95(noise)) / sigma_q`, the
 //! second term the 95th percentile of the mixture `N(0, sigma_i^2)` of the samples'
 //! exposure noise, `sigma_q = 2.12 s / sqrt(n)` with `s` = 1.4826 MAD of the
@@ -78,14 +80,16 @@ use crate::sim::analysis::median;
 use ndarray::Array2;
 use serde::Serialize;
 
-/// How samples are grouped into the residual's cells (module docs).
+/// How samples are grouped into the residual's cells (module docs). The default,
+/// [`Cells::Illumination`], is that of `persist fit`, `compare` and `diagnose`
+/// (`--cells`, whose default is this one).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize)]
 #[serde(rename_all = "snake_case")]
 pub enum Cells {
     /// Fluence x time since illumination, all illuminations together.
-    #[default]
     Pooled,
     /// Illumination x fluence x time since illumination.
+    #[default]
     Illumination,
 }
 
@@ -100,6 +104,16 @@ impl std::str::FromStr for Cells {
                 format!("`{s}`: expected `pooled` or `illumination`"),
             )),
         }
+    }
+}
+
+impl std::fmt::Display for Cells {
+    /// The name `--cells` takes (and the JSON outputs record).
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            Cells::Pooled => "pooled",
+            Cells::Illumination => "illumination",
+        })
     }
 }
 
@@ -121,14 +135,16 @@ impl Cells {
     }
 }
 
-/// What a cell compares (module docs, "Paired statistic").
+/// What a cell compares (module docs, "Paired statistic"). The default,
+/// [`CellStatistic::Paired`], is that of `persist fit`, `compare` and `diagnose`
+/// (`--cell-statistic`, whose default is this one).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize)]
 #[serde(rename_all = "snake_case")]
 pub enum CellStatistic {
     /// The cell's measured 95th percentile against its predictions' 95th percentile.
-    #[default]
     Levels,
     /// The 95th percentile of each sample's measured minus predicted current.
+    #[default]
     Paired,
 }
 
@@ -146,11 +162,23 @@ impl std::str::FromStr for CellStatistic {
     }
 }
 
+impl std::fmt::Display for CellStatistic {
+    /// The name `--cell-statistic` takes (and the JSON outputs record).
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            CellStatistic::Levels => "levels",
+            CellStatistic::Paired => "paired",
+        })
+    }
+}
+
 impl CellStatistic {
-    /// What the printed outputs add for this statistic: nothing for the default.
+    /// What the printed outputs add after the cells' description, for either
+    /// statistic (the default changed from `levels` to `paired`; an output that names
+    /// neither would be ambiguous).
     pub fn note(self) -> &'static str {
         match self {
-            CellStatistic::Levels => "",
+            CellStatistic::Levels => ", levels: measured 95th percentile against the predictions'",
             CellStatistic::Paired => ", paired: each sample against its own prediction",
         }
     }
