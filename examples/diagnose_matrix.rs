@@ -186,10 +186,13 @@ fn main() {
     let size: usize = arg(&args, "--size").map_or(128, |v| v.parse().unwrap());
     let nbase: u64 = arg(&args, "--baseline-seeds").map_or(10, |v| v.parse().unwrap());
     let nseed: u64 = arg(&args, "--seeds").map_or(3, |v| v.parse().unwrap());
-    let (campaign, spots) = match arg(&args, "--spots").as_deref() {
-        None | Some("centred") => (Illumination::default_campaign(), ""),
-        Some("shifted") => (Illumination::shifted_campaign(), " --spots shifted"),
-        Some(v) => panic!("--spots centred|shifted, got {v}"),
+    let spots: lab::Spots =
+        arg(&args, "--spots").map_or(lab::Spots::default(), |v| v.parse().unwrap());
+    let campaign = spots.campaign();
+    let spots = if spots == lab::Spots::default() {
+        String::new()
+    } else {
+        format!(" --spots {spots}")
     };
     let out = arg(&args, "--out").unwrap_or_else(|| "docs/diagnose_matrix.md".into());
     let effects_arg = arg(&args, "--effects");

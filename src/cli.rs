@@ -126,13 +126,6 @@ pub enum SimScenario {
     Sky(SkyArgs),
 }
 
-/// The laboratory campaign's spot positions (`persist simulate lab --spots`).
-#[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
-pub enum Spots {
-    Centred,
-    Shifted,
-}
-
 #[derive(Args, Debug)]
 pub struct LabArgs {
     /// Output directory (products; truth in OUT/truth).
@@ -154,8 +147,9 @@ pub struct LabArgs {
     /// Where the campaign's spot is: `centred` (every illumination the same pattern,
     /// scaled) or `shifted` (the spot moved for illuminations 2-5, so that radius and
     /// fluence do not go together; `persist::sim::lab`, "Shifted spots").
-    #[arg(long, value_enum, default_value = "centred", requires = "campaign")]
-    pub spots: Spots,
+    #[arg(long, default_value_t = persist::sim::lab::Spots::default(),
+          value_parser = parse_flag::<persist::sim::lab::Spots>, requires = "campaign")]
+    pub spots: persist::sim::lab::Spots,
     /// Switch on a truth effect: NAME[:param=value,...] (repeatable). Names: blooming,
     /// capacity, ipc, linefit_bias, populations, short_tau_boost, soak, temperature.
     #[arg(long = "effect")]
@@ -599,10 +593,7 @@ fn simulate(scenario: SimScenario) -> persist::Result<ExitCode> {
                 size: a.size,
                 seed: a.seed,
                 darks: a.darks,
-                campaign: a.campaign.then(|| match a.spots {
-                    Spots::Centred => lab::Illumination::default_campaign(),
-                    Spots::Shifted => lab::Illumination::shifted_campaign(),
-                }),
+                campaign: a.campaign.then(|| a.spots.campaign()),
                 effects: specs(&a.effects)?,
                 ..lab::LabConfig::default()
             };

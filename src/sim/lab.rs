@@ -121,6 +121,50 @@ impl Illumination {
     }
 }
 
+/// Where a campaign's spot is (`persist simulate lab --spots`; module docs).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub enum Spots {
+    /// Every illumination the same pattern, scaled ([`Illumination::default_campaign`]).
+    #[default]
+    Centred,
+    /// The spot moved for illuminations 2-5 ([`Illumination::shifted_campaign`]).
+    Shifted,
+}
+
+impl Spots {
+    /// The campaign's illuminations.
+    pub fn campaign(self) -> Vec<Illumination> {
+        match self {
+            Spots::Centred => Illumination::default_campaign(),
+            Spots::Shifted => Illumination::shifted_campaign(),
+        }
+    }
+}
+
+impl std::str::FromStr for Spots {
+    type Err = crate::Error;
+    fn from_str(s: &str) -> crate::Result<Spots> {
+        match s {
+            "centred" => Ok(Spots::Centred),
+            "shifted" => Ok(Spots::Shifted),
+            _ => Err(crate::Error::invalid(
+                "--spots",
+                format!("`{s}`: expected `centred` or `shifted`"),
+            )),
+        }
+    }
+}
+
+impl std::fmt::Display for Spots {
+    /// The name `--spots` takes.
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            Spots::Centred => "centred",
+            Spots::Shifted => "shifted",
+        })
+    }
+}
+
 /// Laboratory scenario configuration.
 #[derive(Debug, Clone, Serialize)]
 pub struct LabConfig {
