@@ -36,6 +36,7 @@ use crate::error::{Error, Result};
 use crate::model::effect::ResponseCtx;
 use crate::model::effects;
 use crate::model::params::ModelParams;
+use crate::model::Response;
 use ndarray::{Array2, Array3};
 
 /// The calibration's first dark: its read times after the end of the illuminated
@@ -114,11 +115,13 @@ pub fn scale(model: &ModelParams, ramp: &CalibRamp) -> Result<Vec<f64>> {
     let n = rates.len();
     let fluence = Array2::from_shape_fn((1, k), |(_, j)| model.amplitude_knots[j].fluence_e);
     let mut g = Array3::<f64>::ones((1, k, n));
+    let response = Response::new(&model.amplitude_knots);
     let ctx = ResponseCtx {
         fluence_e: &fluence,
         t_illuminated_s: ramp.t_illuminated_s,
         t_exposure_s: ramp.t_exposure_s,
         rate_per_s: &rates,
+        response: &response,
     };
     for e in &built {
         e.response(&ctx, &mut g);

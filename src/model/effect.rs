@@ -42,6 +42,7 @@
 //! Everything else (model file validation, `fit --with NAME`, `compare`, `diagnose`,
 //! `run`) finds it through the registry.
 
+use super::response::Response;
 use ndarray::{Array2, Array3};
 use std::collections::BTreeMap;
 use std::fmt::Debug;
@@ -166,6 +167,8 @@ pub struct ResponseCtx<'a> {
     pub t_exposure_s: f64,
     /// Decay rates `1/tau_n` of the model (before any rate hook), 1/s.
     pub rate_per_s: &'a [f64],
+    /// The model's `A_k` table (its knots), which `A_k,n` starts from.
+    pub response: &'a Response,
 }
 
 /// A model effect (module docs). Parameters come from the model file through

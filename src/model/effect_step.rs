@@ -144,6 +144,7 @@ pub(crate) fn step(
         t_illuminated_s: k.t_illuminated_s,
         t_exposure_s: input.t_exposure_s,
         rate_per_s: &sum.rate_per_s,
+        response: k.response,
     };
     for e in effects {
         e.response(&rctx, &mut ak);

@@ -61,6 +61,18 @@ impl Response {
         (self.x[1], self.y[0], self.slope[0], self.x[0])
     }
 
+    /// The segments of the table below `fluence_e`, each `(from_e, to_e, slope)`, the
+    /// last one cut at `fluence_e`: `amplitude_e(F)` is the sum of `slope * (to - from)`
+    /// over `segments_below(F)`. Nothing for `fluence_e <= 0` or NaN; beyond the last knot
+    /// the table is flat and adds nothing.
+    pub fn segments_below(&self, fluence_e: f64) -> impl Iterator<Item = (f64, f64, f64)> + '_ {
+        self.x
+            .windows(2)
+            .zip(&self.slope)
+            .take_while(move |(xs, _)| xs[0] < fluence_e)
+            .map(move |(xs, s)| (xs[0], xs[1].min(fluence_e), *s))
+    }
+
     /// The largest amplitude of the table: used when the fluence is unknown.
     pub fn max_e(&self) -> f64 {
         self.max_e
@@ -74,6 +86,17 @@ mod tests {
 
     fn table1() -> Response {
         Response::new(&ModelParams::default().amplitude_knots)
+    }
+
+    #[test]
+    fn segments_below_sum_to_the_amplitude() {
+        let r = table1();
+        for f in [1.0, 5e3, 101_000.0, 3e5, 4e6, 1e8] {
+            let sum: f64 = r.segments_below(f).map(|(a, b, s)| s * (b - a)).sum();
+            assert!((sum - r.amplitude_e(f)).abs() < 1e-9 * r.max_e(), "{f}");
+        }
+        assert_eq!(r.segments_below(0.0).count(), 0);
+        assert_eq!(r.segments_below(f64::NAN).count(), 0);
     }
 
     #[test]

@@ -112,6 +112,9 @@ mod tests {
                 t_illuminated_s: 481.0,
                 t_exposure_s: 613.0,
                 rate_per_s: &rates,
+                response: &crate::model::Response::new(
+                    &crate::model::ModelParams::default().amplitude_knots,
+                ),
             },
             &mut ak,
         );

@@ -3,15 +3,33 @@
 //! Physics: traps capture with finite time constants; the charge trapped depends on how
 //! long the pixel is held charged, not only on the fluence (Long et al. 2015; Tulloch
 //! 2019). A trap population emitting with `tau_n` and capturing with
-//! `tau_c = capture_ratio * tau_n` fills to `1 - exp(-t_ill / tau_c)` in `t_ill`.
-//! Equation (response hook): `A_k,n *= 1 - exp(-t_illuminated * rate_n / capture_ratio)`
-//! (1 when `capture_ratio` = 0).
+//! `tau_c = capture_ratio * tau_n`, held charged for `t`, fills to `1 - exp(-t / tau_c)`.
+//!
+//! # Levels
+//! Traps are exposed level by level as charge accumulates (the depletion region shrinks
+//! with it). Under a constant flux a pixel of extrapolated fluence `F` lit for `t_ill`
+//! reaches level `L` at `t_ill L / F` (beyond full well the excess charge keeps
+//! counting, so the same holds with `F` the extrapolated fluence), so the traps at `L`
+//! are held for `t_ill (1 - L / F)`. The trap charge per level is read from the model's
+//! own `A_k` table: `A'(L)`. Hence, per term, with `k = t_ill rate_n / capture_ratio`,
+//! `fill_n(F) = (1/A(F)) integral_0^F A'(L) (1 - exp(-k (1 - L/F))) dL`, in closed form per
+//! linear segment of the table ([`Soak::fill_at`]). A pixel whose charge is mostly
+//! reached early (far above saturation) fills almost as if held the whole time; a
+//! pixel just above the saturation jump holds its forward-bias traps only briefly.
+//! Where `F` is unknown (transient, SUR error) the level-blind `1 - exp(-k)` is used.
+//! Equation (response hook): `A_k,n *= fill_n(F)` (1 when `capture_ratio` = 0).
 //! Parameter: `capture_ratio` (default 0.1, bounds [0, 100], null 0).
 //! Covariate: illumination (soak) time, and time since illumination (the slow tail).
+//!
+//! The eleventh session replaced the level-blind form `A_k,n *= 1 - exp(-k)` by this
+//! one (docs/diagnose_matrix.md, "Eleventh session"): a fitted `capture_ratio` of the
+//! old form does not carry over.
 
 use super::get;
 use crate::model::effect::{Effect, EffectDef, ParamSpec, ResponseCtx};
-use ndarray::Array3;
+use crate::model::Response;
+use ndarray::parallel::prelude::*;
+use ndarray::{Array3, Axis};
 
 pub const DEF: EffectDef = EffectDef {
     name: "soak",
@@ -39,12 +57,64 @@ pub struct Soak {
 }
 
 impl Soak {
-    /// Fill fraction of term `rate_per_s` after `t_ill_s` of illumination.
-    pub fn fill(&self, rate_per_s: f64, t_ill_s: f64) -> f64 {
+    /// Fill fraction of term `rate_per_s` for charge held `t_held_s` (the old,
+    /// level-blind form: every trap held for the whole illumination).
+    pub fn fill(&self, rate_per_s: f64, t_held_s: f64) -> f64 {
         if self.capture_ratio <= 0.0 {
             1.0
         } else {
-            -(-t_ill_s * rate_per_s / self.capture_ratio).exp_m1()
+            -(-t_held_s * rate_per_s / self.capture_ratio).exp_m1()
+        }
+    }
+
+    /// Fill fraction of term `rate_per_s` in a pixel of extrapolated fluence
+    /// `fluence_e` lit for `t_ill_s`, with `A_k` = `response` (module docs, "Levels"):
+    /// `(1/A(F)) integral_0^F A'(L) (1 - exp(-k (1 - L/F))) dL`, `k = t_ill rate / ratio`.
+    /// The level-blind [`Soak::fill`] where `F` is unknown (NaN) or `A(F)` is 0.
+    pub fn fill_at(
+        &self,
+        response: &Response,
+        fluence_e: f64,
+        rate_per_s: f64,
+        t_ill_s: f64,
+    ) -> f64 {
+        if self.capture_ratio <= 0.0 {
+            return 1.0;
+        }
+        let a = response.amplitude_e(fluence_e);
+        if fluence_e.is_nan() || fluence_e <= 0.0 || a.is_nan() || a <= 0.0 {
+            return self.fill(rate_per_s, t_ill_s);
+        }
+        let k = t_ill_s * rate_per_s / self.capture_ratio;
+        if k < 1e-6 {
+            // first order in k: k * integral A'(L) (1 - L/F) dL / A(F)
+            let m: f64 = response
+                .segments_below(fluence_e)
+                .map(|(l0, l1, s)| s * ((l1 - l0) - (l1 * l1 - l0 * l0) / (2.0 * fluence_e)))
+                .sum();
+            return (k * m / a).clamp(0.0, 1.0);
+        }
+        // per segment [l0, l1], slope s: s [(l1 - l0) - (F/k) (e1 - e0)],
+        // e_i = exp(-k (1 - l_i/F)) <= 1; e1 - e0 = e0 expm1(k (l1 - l0)/F) where that
+        // argument is small (no cancellation), the plain difference elsewhere (no overflow)
+        let held: f64 = response
+            .segments_below(fluence_e)
+            .map(|(l0, l1, s)| {
+                let e0 = (-k * (1.0 - l0 / fluence_e)).exp();
+                let x = k * (l1 - l0) / fluence_e;
+                let de = if x < 1.0 {
+                    e0 * x.exp_m1()
+                } else {
+                    (-k * (1.0 - l1 / fluence_e)).exp() - e0
+                };
+                s * ((l1 - l0) - fluence_e / k * de)
+            })
+            .sum();
+        let f = held / a;
+        if f.is_finite() {
+            f.clamp(0.0, 1.0)
+        } else {
+            self.fill(rate_per_s, t_ill_s)
         }
     }
 }
@@ -60,40 +130,99 @@ impl Effect for Soak {
         if self.capture_ratio <= 0.0 {
             return;
         }
-        let f: Vec<f64> = ctx
-            .rate_per_s
-            .iter()
-            .map(|r| self.fill(*r, ctx.t_illuminated_s))
-            .collect();
-        for mut lane in ak.lanes_mut(ndarray::Axis(2)) {
-            for (a, fi) in lane.iter_mut().zip(&f) {
-                *a *= fi;
-            }
-        }
+        let t = ctx.t_illuminated_s;
+        ak.axis_iter_mut(Axis(0))
+            .into_par_iter()
+            .zip(ctx.fluence_e.axis_iter(Axis(0)).into_par_iter())
+            .for_each(|(mut a_row, f_row)| {
+                for (mut lane, f) in a_row.outer_iter_mut().zip(f_row) {
+                    for (a, r) in lane.iter_mut().zip(ctx.rate_per_s) {
+                        *a *= self.fill_at(ctx.response, *f, *r, t);
+                    }
+                }
+            });
     }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::model::params::Knot;
     use ndarray::Array2;
+
+    fn linear() -> Response {
+        // A(L) = L / 1000 up to 1e6 e-
+        Response::new(&[Knot {
+            fluence_e: 1e6,
+            amplitude_e: 1e3,
+        }])
+    }
+
+    #[test]
+    fn a_uniform_trap_density_fills_as_a_ramp() {
+        // A linear in L: traps at level L are held t (1 - L/F), so the fill is
+        // integral_0^1 (1 - e^{-k(1-x)}) dx = 1 - (1 - e^{-k})/k.
+        let s = Soak { capture_ratio: 1.0 };
+        for k in [1e-9f64, 1e-3, 0.1, 1.0, 10.0, 1e3, 1e6] {
+            let want = if k < 1e-6 {
+                k / 2.0
+            } else {
+                1.0 + (-k).exp_m1() / k
+            };
+            let got = s.fill_at(&linear(), 5e5, k / 100.0, 100.0);
+            assert!(
+                (got - want).abs() < 1e-9 * want.max(1e-9),
+                "k {k}: {got} vs {want}"
+            );
+        }
+    }
+
+    #[test]
+    fn charge_reached_early_is_held_longer() {
+        // a step at 1e3 e- (all of A reached in the first 1 % of the illumination) fills
+        // as if held the whole time; an unknown fluence takes the level-blind form.
+        let step = Response::new(&[
+            Knot {
+                fluence_e: 1e3,
+                amplitude_e: 10.0,
+            },
+            Knot {
+                fluence_e: 1e5,
+                amplitude_e: 10.0,
+            },
+        ]);
+        let s = Soak { capture_ratio: 1.0 };
+        let (r, t) = (0.01, 100.0);
+        let blind = s.fill(r, t);
+        let got = s.fill_at(&step, 1e5, r, t);
+        // held between 0.99 t and t
+        assert!(got > s.fill(r, 0.99 * t) && got < blind, "{got}");
+        assert_eq!(s.fill_at(&step, f64::NAN, r, t), blind);
+    }
 
     #[test]
     fn slow_terms_fill_partly() {
-        // ratio 1, t_ill 100 s: tau 10 s -> 1 - e^-10; tau 1000 s -> 1 - e^-0.1 = 0.09516
-        let f = Array2::<f64>::from_elem((1, 1), 1e5);
+        // ratio 1, t_ill 100 s, a pixel far above the table's last knot (A flat beyond
+        // 1e3 e-, so all of it is reached in the first 1e-4 of the time): tau 10 s ->
+        // 1 - e^-10; tau 1000 s -> close to 1 - e^-0.1 = 0.09516
+        let f = Array2::<f64>::from_elem((1, 1), 1e7);
         let rates = [0.1, 0.001];
         let mut ak = Array3::from_elem((1, 1, 2), 100.0);
+        let response = Response::new(&[Knot {
+            fluence_e: 1e3,
+            amplitude_e: 100.0,
+        }]);
         Soak { capture_ratio: 1.0 }.response(
             &ResponseCtx {
                 fluence_e: &f,
                 t_illuminated_s: 100.0,
                 t_exposure_s: 200.0,
                 rate_per_s: &rates,
+                response: &response,
             },
             &mut ak,
         );
-        assert!((ak[[0, 0, 0]] - 100.0 * (1.0 - (-10.0f64).exp())).abs() < 1e-9);
-        assert!((ak[[0, 0, 1]] - 9.516_258_196).abs() < 1e-6);
+        assert!((ak[[0, 0, 0]] - 100.0 * (1.0 - (-10.0f64).exp())).abs() < 1e-3);
+        assert!((ak[[0, 0, 1]] - 9.516_258_196).abs() < 1e-3);
     }
 }
