@@ -2,7 +2,7 @@
 //! active one changes the prediction as its equation says, and bad entries are refused.
 
 use ndarray::Array2;
-use persist::model::params::EffectSpec;
+use persist::model::params::{BackgroundEstimate, EffectSpec};
 use persist::model::{Input, Model, ModelParams, Output, StepContext};
 
 fn spec(name: &str, params: serde_json::Value) -> EffectSpec {
@@ -97,19 +97,33 @@ fn active_pixels_predict_bit_identically_to_the_whole_array() {
         if name != "capacity" {
             effects.push(spec("capacity", serde_json::json!({})));
         }
-        let m = with(effects);
-        let whole = run_masked(&m, &temps, Some(&all), &[0]).unwrap();
-        let part = run_masked(&m, &temps, Some(&keep), &[0]).unwrap();
-        for (k, (w, q)) in whole.iter().zip(&part).enumerate() {
-            for (i, (a, b)) in w.iter().zip(q.iter()).enumerate() {
-                if keep[i] {
-                    assert_eq!(a.to_bits(), b.to_bits(), "{name}: exposure {k} pixel {i}");
+        // the quiet-pixel background reads every row of so small an array, so every
+        // pixel is advanced there; the image median reads no state
+        for background in [
+            BackgroundEstimate::QuietPixels,
+            BackgroundEstimate::ImageMedian,
+        ] {
+            let mut params = ModelParams {
+                effects: effects.clone(),
+                ..ModelParams::default()
+            };
+            params.early_release.background = background;
+            let m = Model::new(params).unwrap();
+            let whole = run_masked(&m, &temps, Some(&all), &[0]).unwrap();
+            let part = run_masked(&m, &temps, Some(&keep), &[0]).unwrap();
+            for (k, (w, q)) in whole.iter().zip(&part).enumerate() {
+                for (i, (a, b)) in w.iter().zip(q.iter()).enumerate() {
+                    if keep[i] {
+                        assert_eq!(a.to_bits(), b.to_bits(), "{name}: exposure {k} pixel {i}");
+                    }
                 }
             }
+            assert!(whole[1].iter().all(|v| *v > 0.0), "{name}");
+            if background == BackgroundEstimate::ImageMedian {
+                // the masked-out pixels were really skipped (their current stays 0)
+                assert!(part[1].iter().zip(&keep).any(|(v, k)| !k && *v == 0.0));
+            }
         }
-        // the masked-out pixels were really skipped (their current stays 0)
-        assert!(part[1].iter().zip(&keep).any(|(v, k)| !k && *v == 0.0));
-        assert!(whole[1].iter().all(|v| *v > 0.0), "{name}");
     }
     // a mask of the wrong size is refused, naming the field
     let m = with(vec![spec("capacity", serde_json::json!({}))]);
@@ -240,4 +254,84 @@ fn bad_effect_entries_are_refused_with_their_field() {
     .validate()
     .unwrap_err();
     assert!(e.contains("twice"), "{e}");
+}
+
+/// Regression: the early-release background (`quiet_pixels`) was taken over every
+/// pixel of the sample, and the pixels a caller does not read
+/// (`StepContext::active_pixels`) are not advanced: their amplitudes stay 0, so they all
+/// counted as quiet whatever their image. Where most of the array is lit (the
+/// laboratory spot), that put lit pixels' persistence into the background and released
+/// read pixels whose persistence was still above the threshold: `compare` (which reads
+/// every second pixel) missed flags that the stage, advancing every pixel, would not.
+#[test]
+fn unread_pixels_do_not_enter_the_early_release_background() {
+    let (ny, nx) = (16, 16);
+    // three quarters of the array lit far above saturation, the rest dark
+    let lit = |x: usize| x < 12;
+    let m = with(vec![spec("refill", serde_json::json!({"beta": 0.5}))]);
+    assert!(m.params().early_release.enabled);
+    // read: two lit pixels and two dark ones
+    let mut read = vec![false; ny * nx];
+    for (y, x) in [(2, 2), (8, 6), (4, 14), (12, 13)] {
+        read[y * nx + x] = true;
+    }
+    let run = |active: Option<&[bool]>| {
+        let mut st = m.new_state(ny, nx);
+        let mut t = 0.0;
+        let mut out = Vec::new();
+        for k in 0..6u64 {
+            let bright = k == 0;
+            // after the illumination the lit pixels show 0.15 e-/s of persistence: above
+            // the 0.1 e-/s threshold over a 0.01 e-/s dark level, below the prediction
+            let img = Array2::from_shape_fn((ny, nx), |(_, x)| match (bright, lit(x)) {
+                (true, true) => 5000.0f32,
+                (false, true) => 0.16,
+                _ => 0.01,
+            });
+            let t_exp = if bright { 613.0 } else { 180.0 };
+            let input = Input {
+                image_e_per_s: img.view(),
+                exposure_index: k,
+                t_start_unix_s: 1e9 + t,
+                t_exposure_s: t_exp,
+                t_illuminated_s: if bright { 481.0 } else { t_exp },
+                history_incomplete: false,
+                background_e_per_s: None,
+            };
+            let mut flags = Array2::<u32>::zeros((ny, nx));
+            let mut cur = Array2::<f32>::zeros((ny, nx));
+            let mut pf = Array2::<u8>::zeros((ny, nx));
+            m.step_with(
+                &mut st,
+                &input,
+                &StepContext {
+                    focal_plane_temp_k: None,
+                    active_pixels: active,
+                },
+                &mut Output {
+                    flags: &mut flags,
+                    current_e_per_s: &mut cur,
+                    pflags: &mut pf,
+                },
+            )
+            .unwrap();
+            out.push((cur, pf));
+            t += t_exp + 10.0;
+        }
+        out
+    };
+    let whole = run(None);
+    let part = run(Some(&read));
+    for (k, ((cw, fw), (cp, fp))) in whole.iter().zip(&part).enumerate() {
+        for (i, _) in read.iter().enumerate().filter(|(_, r)| **r) {
+            let (y, x) = (i / nx, i % nx);
+            assert_eq!(
+                (cw[[y, x]].to_bits(), fw[[y, x]]),
+                (cp[[y, x]].to_bits(), fp[[y, x]]),
+                "exposure {k}, pixel ({y}, {x})"
+            );
+        }
+    }
+    // and the lit pixels are still flagged at the end (not released)
+    assert!(whole[5].1[[2, 2]] != 0, "{:?}", whole[5].0[[2, 2]]);
 }

@@ -13,7 +13,8 @@
 //! own code (`Kernel::predict_flag_release`, `Kernel::write_pixel`); only the decay and
 //! the per-term response differ. With [`StepContext::active_pixels`] the pixel pass
 //! skips the pixels the caller does not read (the response planes are still built
-//! for the whole array).
+//! for the whole array), except in the rows the early-release background samples
+//! ([`Model::quiet_rows`]): their states are read, so they are always advanced.
 
 use super::effect::{AccumulateRole, Effect, IntervalCtx, ResponseCtx};
 use super::state::State;
@@ -31,8 +32,10 @@ pub struct StepContext<'a> {
     /// Pixels the caller will read (row-major, `ny * nx`), `None` for all. A model with
     /// effects advances only these pixels; the state, current and flags of the others
     /// are left as they were and must not be used afterwards. Exact for the pixels it
-    /// keeps: a pixel's state depends on its own history and on the response planes,
-    /// which are still built for the whole array (spatial hooks see every neighbour).
+    /// keeps: a pixel's state depends on its own history, on the response planes,
+    /// which are still built for the whole array (spatial hooks see every neighbour),
+    /// and on the early-release background, whose sample rows ([`Model::quiet_rows`])
+    /// are always advanced.
     /// The paper's fused kernel ignores it (it advances every pixel). Used by the
     /// diagnostics, which read predictions at a random subsample of pixels.
     pub active_pixels: Option<&'a [bool]>,
@@ -63,6 +66,7 @@ pub(crate) fn step(
         }
     }
     let k = model.prepare(state, input, out)?;
+    let quiet_rows = model.quiet_rows(input);
     let n = k.n;
     let sum = model.exp_sum();
     let (w, decay) = match state.t_reset_unix_s {
@@ -183,7 +187,11 @@ pub(crate) fn step(
         .enumerate()
         .map(|(y, (a_row, c, p, img, f, cur, pf, ak_row, kd, b_row))| {
             let mut s = StepSummary::default();
-            let active = ctx.active_pixels.map(|a| &a[y * nx..(y + 1) * nx]);
+            // the early-release background's rows are read next exposure: advanced always
+            let active = ctx
+                .active_pixels
+                .filter(|_| quiet_rows.is_none_or(|r| y % r != 0))
+                .map(|a| &a[y * nx..(y + 1) * nx]);
             let mut fixed = vec![0.0; n];
             let mut decayed = vec![0.0; n];
             for (x, a) in a_row.chunks_exact_mut(n).enumerate() {

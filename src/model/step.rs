@@ -94,6 +94,23 @@ impl Model {
         self
     }
 
+    /// The row stride of the early-release background's sample when this exposure's
+    /// background is estimated from the model's own quiet pixels
+    /// ([`BackgroundEstimate::QuietPixels`], no background given in `input`): those rows'
+    /// states are read, so a step that advances only some pixels must advance them too.
+    /// `None` when the background reads no state.
+    pub fn quiet_rows(&self, input: &Input<'_>) -> Option<usize> {
+        let er = &self.params.early_release;
+        let reads_state = er.enabled
+            && er.subtract_background
+            && er.background == BackgroundEstimate::QuietPixels
+            && input.background_e_per_s.is_none();
+        reads_state.then(|| {
+            let (ny, nx) = input.image_e_per_s.dim();
+            quiet_row_stride(ny, nx)
+        })
+    }
+
     pub fn params(&self) -> &ModelParams {
         &self.params
     }
@@ -348,6 +365,12 @@ pub struct Input<'a> {
 /// Pixels of the regular sample the background estimates look at, at most.
 const BACKGROUND_SAMPLE: usize = 65_536;
 
+/// The rows [`background_e_per_s`] samples with `quiet_pixels`: every
+/// `quiet_row_stride(ny, nx)`-th row from row 0.
+pub fn quiet_row_stride(ny: usize, nx: usize) -> usize {
+    (ny * nx).div_ceil(BACKGROUND_SAMPLE).max(1)
+}
+
 /// A robust estimate of an exposure's background (sky + dark), e-/s: the median of the
 /// finite pixels, on a regular sample of at most 65,536 of them (the zodiacal light
 /// varies slowly across an array; stars and persistence are a minority of pixels).
@@ -388,7 +411,7 @@ pub fn background_e_per_s(
     // Whole rows, every `row_stride`-th: the rows' amplitudes are contiguous in the
     // state, so the sample's predictions stream through memory (a pixel sample spread
     // over the array costs a cache miss per pixel: 15 % of the step at 2040 x 2040).
-    let row_stride = image.len().div_ceil(BACKGROUND_SAMPLE).max(1);
+    let row_stride = quiet_row_stride(ny, nx);
     // (predicted current, measured current) of the finite sampled pixels
     let mut sample: Vec<(f64, f32)> = Vec::with_capacity(ny.div_ceil(row_stride) * nx);
     for y in (0..ny).step_by(row_stride) {
