@@ -68,53 +68,58 @@ impl Soak {
     }
 
     /// Fill fraction of term `rate_per_s` in a pixel of extrapolated fluence
-    /// `fluence_e` lit for `t_ill_s`, with `A_k` = `response` (module docs, "Levels"):
-    /// `(1/A(F)) integral_0^F A'(L) (1 - exp(-k (1 - L/F))) dL`, `k = t_ill rate / ratio`.
-    /// The level-blind [`Soak::fill`] where `F` is unknown (NaN) or `A(F)` is 0.
+    /// `fluence_e` lit for `t_ill_s` of an integration of `t_exp_s`, with `A_k` =
+    /// `response` (module docs, "Levels"). Traps at level `L` are held
+    /// `t_exp (1 - L/G)`, `G = F t_exp / t_ill`, so with `k = t_exp rate / ratio`:
+    /// `(1/A(F)) integral_0^F A'(L) (1 - exp(-k (1 - L/G))) dL`. The level-blind
+    /// [`Soak::fill`] over `t_exp` where `F` is unknown (NaN) or `A(F)` is 0.
     pub fn fill_at(
         &self,
         response: &Response,
         fluence_e: f64,
         rate_per_s: f64,
         t_ill_s: f64,
+        t_exp_s: f64,
     ) -> f64 {
         if self.capture_ratio <= 0.0 {
             return 1.0;
         }
+        let t_exp_s = t_exp_s.max(t_ill_s);
         let a = response.amplitude_e(fluence_e);
-        if fluence_e.is_nan() || fluence_e <= 0.0 || a.is_nan() || a <= 0.0 {
-            return self.fill(rate_per_s, t_ill_s);
+        if fluence_e.is_nan() || fluence_e <= 0.0 || a.is_nan() || a <= 0.0 || t_ill_s <= 0.0 {
+            return self.fill(rate_per_s, t_exp_s);
         }
-        let k = t_ill_s * rate_per_s / self.capture_ratio;
+        let g = fluence_e * (t_exp_s / t_ill_s);
+        let k = t_exp_s * rate_per_s / self.capture_ratio;
         if k < 1e-6 {
-            // first order in k: k * integral A'(L) (1 - L/F) dL / A(F)
+            // first order in k: k * integral A'(L) (1 - L/G) dL / A(F)
             let m: f64 = response
                 .segments_below(fluence_e)
-                .map(|(l0, l1, s)| s * ((l1 - l0) - (l1 * l1 - l0 * l0) / (2.0 * fluence_e)))
+                .map(|(l0, l1, s)| s * ((l1 - l0) - (l1 * l1 - l0 * l0) / (2.0 * g)))
                 .sum();
             return (k * m / a).clamp(0.0, 1.0);
         }
-        // per segment [l0, l1], slope s: s [(l1 - l0) - (F/k) (e1 - e0)],
-        // e_i = exp(-k (1 - l_i/F)) <= 1; e1 - e0 = e0 expm1(k (l1 - l0)/F) where that
+        // per segment [l0, l1], slope s: s [(l1 - l0) - (G/k) (e1 - e0)],
+        // e_i = exp(-k (1 - l_i/G)) <= 1; e1 - e0 = e0 expm1(k (l1 - l0)/G) where that
         // argument is small (no cancellation), the plain difference elsewhere (no overflow)
         let held: f64 = response
             .segments_below(fluence_e)
             .map(|(l0, l1, s)| {
-                let e0 = (-k * (1.0 - l0 / fluence_e)).exp();
-                let x = k * (l1 - l0) / fluence_e;
+                let e0 = (-k * (1.0 - l0 / g)).exp();
+                let x = k * (l1 - l0) / g;
                 let de = if x < 1.0 {
                     e0 * x.exp_m1()
                 } else {
-                    (-k * (1.0 - l1 / fluence_e)).exp() - e0
+                    (-k * (1.0 - l1 / g)).exp() - e0
                 };
-                s * ((l1 - l0) - fluence_e / k * de)
+                s * ((l1 - l0) - g / k * de)
             })
             .sum();
         let f = held / a;
         if f.is_finite() {
             f.clamp(0.0, 1.0)
         } else {
-            self.fill(rate_per_s, t_ill_s)
+            self.fill(rate_per_s, t_exp_s)
         }
     }
 }
@@ -130,14 +135,14 @@ impl Effect for Soak {
         if self.capture_ratio <= 0.0 {
             return;
         }
-        let t = ctx.t_illuminated_s;
+        let (t, t_exp) = (ctx.t_illuminated_s, ctx.t_exposure_s);
         ak.axis_iter_mut(Axis(0))
             .into_par_iter()
             .zip(ctx.fluence_e.axis_iter(Axis(0)).into_par_iter())
             .for_each(|(mut a_row, f_row)| {
                 for (mut lane, f) in a_row.outer_iter_mut().zip(f_row) {
                     for (a, r) in lane.iter_mut().zip(ctx.rate_per_s) {
-                        *a *= self.fill_at(ctx.response, *f, *r, t);
+                        *a *= self.fill_at(ctx.response, *f, *r, t, t_exp);
                     }
                 }
             });
@@ -169,7 +174,7 @@ mod tests {
             } else {
                 1.0 + (-k).exp_m1() / k
             };
-            let got = s.fill_at(&linear(), 5e5, k / 100.0, 100.0);
+            let got = s.fill_at(&linear(), 5e5, k / 100.0, 100.0, 100.0);
             assert!(
                 (got - want).abs() < 1e-9 * want.max(1e-9),
                 "k {k}: {got} vs {want}"
@@ -194,10 +199,24 @@ mod tests {
         let s = Soak { capture_ratio: 1.0 };
         let (r, t) = (0.01, 100.0);
         let blind = s.fill(r, t);
-        let got = s.fill_at(&step, 1e5, r, t);
+        let got = s.fill_at(&step, 1e5, r, t, t);
         // held between 0.99 t and t
         assert!(got > s.fill(r, 0.99 * t) && got < blind, "{got}");
-        assert_eq!(s.fill_at(&step, f64::NAN, r, t), blind);
+        assert_eq!(s.fill_at(&step, f64::NAN, r, t, t), blind);
+    }
+
+    #[test]
+    fn charge_is_held_until_the_reset() {
+        // lit 100 s of a 200 s integration: the charge stays until the reset, so traps
+        // at level L are held 200 - 100 L/F s; for a linear table that is
+        // integral_0^1 (1 - e^{-k (1 - x/2)}) dx, k = 200 rate / ratio
+        let s = Soak { capture_ratio: 1.0 };
+        let r = 0.004;
+        let k = 200.0 * r;
+        let want = 1.0 - 2.0 / k * ((-k / 2.0f64).exp() - (-k).exp());
+        let got = s.fill_at(&linear(), 5e5, r, 100.0, 200.0);
+        assert!((got - want).abs() < 1e-12, "{got} vs {want}");
+        assert!(got > s.fill_at(&linear(), 5e5, r, 100.0, 100.0));
     }
 
     #[test]
@@ -216,7 +235,7 @@ mod tests {
             &ResponseCtx {
                 fluence_e: &f,
                 t_illuminated_s: 100.0,
-                t_exposure_s: 200.0,
+                t_exposure_s: 100.0,
                 rate_per_s: &rates,
                 response: &response,
             },
