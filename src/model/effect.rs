@@ -203,6 +203,13 @@ pub trait Effect: Send + Sync + Debug {
     fn response_is_per_pixel(&self) -> bool {
         false
     }
+    /// True if [`Effect::response`] multiplies `A_k,n` by the fraction (in [0, 1]) of the
+    /// exposed traps that fill during the exposure (`soak`). Such hooks run after the
+    /// other response hooks, and the combining effects see the fraction
+    /// ([`Effect::accumulate`]'s `fill`).
+    fn response_is_fill(&self) -> bool {
+        false
+    }
     /// True if [`Effect::accumulate`] is implemented.
     fn has_accumulate(&self) -> bool {
         false
@@ -212,8 +219,10 @@ pub trait Effect: Send + Sync + Debug {
         AccumulateRole::Combine
     }
     /// Replace `a_n = a_n * decay_n + add_n` for one pixel (`a` holds the decayed
-    /// amplitudes on entry).
-    fn accumulate(&self, a: &mut [f64], add: &[f64]) {
+    /// amplitudes on entry). `fill_n` is the fraction of the exposed traps of term `n`
+    /// that this exposure fills ([`Effect::response_is_fill`]; 1 without such an
+    /// effect): `add_n = fill_n` times the charge the exposed traps could hold.
+    fn accumulate(&self, a: &mut [f64], add: &[f64], _fill: &[f64]) {
         for (x, y) in a.iter_mut().zip(add) {
             *x += y;
         }

@@ -150,15 +150,21 @@ pub(crate) fn step(
         rate_per_s: &sum.rate_per_s,
         response: k.response,
     };
-    for e in effects {
-        e.response(&rctx, &mut ak);
-    }
     // combining effects before saturating ones, whatever the model file's order
     let (combiners, saturators): (Vec<&dyn Effect>, Vec<&dyn Effect>) = effects
         .iter()
         .filter(|e| e.has_accumulate())
         .map(|e| e.as_ref())
         .partition(|e| e.accumulate_role() == AccumulateRole::Combine);
+    // filling hooks last; what the exposed traps could hold is kept for the combiners
+    for e in effects.iter().filter(|e| !e.response_is_fill()) {
+        e.response(&rctx, &mut ak);
+    }
+    let capacity =
+        (!combiners.is_empty() && effects.iter().any(|e| e.response_is_fill())).then(|| ak.clone());
+    for e in effects.iter().filter(|e| e.response_is_fill()) {
+        e.response(&rctx, &mut ak);
+    }
 
     let zero = vec![0.0; n];
     let zero = zero.as_slice();
@@ -168,6 +174,9 @@ pub(crate) fn step(
     let kind = kind.as_slice().expect("standard layout");
     let base = base.as_slice().expect("standard layout");
     let ak = ak.as_slice().expect("standard layout");
+    let capacity = capacity
+        .as_ref()
+        .map(|c| c.as_slice().expect("standard layout"));
     let flags = flags_in;
     let current = contiguous(out.current_e_per_s);
     let pflags = contiguous(out.pflags);
@@ -194,6 +203,8 @@ pub(crate) fn step(
                 .map(|a| &a[y * nx..(y + 1) * nx]);
             let mut fixed = vec![0.0; n];
             let mut decayed = vec![0.0; n];
+            let ones = vec![1.0; n];
+            let mut fill = vec![1.0; n];
             for (x, a) in a_row.chunks_exact_mut(n).enumerate() {
                 if active.is_some_and(|act| !act[x]) {
                     continue;
@@ -227,9 +238,23 @@ pub(crate) fn step(
                         *aj += bj;
                     }
                 } else {
+                    let fill = match capacity {
+                        Some(c) if kd[x] == KNOWN => {
+                            let c = &c[(y * nx + x) * n..(y * nx + x + 1) * n];
+                            for ((f, cj), aj) in fill.iter_mut().zip(c).zip(add) {
+                                *f = if *cj > 0.0 && cj.is_finite() {
+                                    (aj / cj).clamp(0.0, 1.0)
+                                } else {
+                                    1.0
+                                };
+                            }
+                            &fill
+                        }
+                        _ => &ones,
+                    };
                     // the first combiner adds; later ones see nothing more to add
                     for (i, e) in combiners.iter().enumerate() {
-                        e.accumulate(a, if i == 0 { add } else { zero });
+                        e.accumulate(a, if i == 0 { add } else { zero }, fill);
                     }
                 }
                 for e in &saturators {

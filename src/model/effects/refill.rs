@@ -11,8 +11,13 @@
 //! are over-predicted by the linear rule.
 //! Equation (accumulate hook), per term, with the decayed amplitude
 //! `D = A_n' exp(-t_elapsed/tau_n)` and the new response `A = A_k,n`:
-//! `A_n = D + A - beta min(D, A)`: `D + A` (the paper) at `beta` = 0, `max(D, A)` (a trap
-//! cannot fill twice) at `beta` = 1.
+//! `A_n = D + A - beta min(f D, A)`: `D + A` (the paper) at `beta` = 0, `max(D, A)` (a trap
+//! cannot fill twice) at `beta` = 1 when the exposure fills every exposed trap (`f` = 1).
+//! `f` is the fraction of the exposed traps the exposure fills (`soak`,
+//! [`Effect::response_is_fill`]; 1 without it), `A = f Cap` with `Cap` what the exposed
+//! traps could hold: at `beta` = 1 the occupancy relaxes toward `Cap` by the fraction
+//! `f`, `D + f max(0, Cap - D)` (the truth simulator's relaxation, `sim::traps`). With
+//! `f` = 1 in every term the old `min(D, A)` (bit for bit).
 //! Parameter: `beta` (dimensionless; default 0.5, the start of the fit; bounds [0, 1],
 //! null 0).
 //! Covariate: earlier illuminations: only pixels lit again while their traps
@@ -60,9 +65,9 @@ impl Effect for Refill {
     fn accumulate_role(&self) -> AccumulateRole {
         AccumulateRole::Combine
     }
-    fn accumulate(&self, a: &mut [f64], add: &[f64]) {
-        for (d, n) in a.iter_mut().zip(add) {
-            *d = *d + n - self.beta * d.min(*n);
+    fn accumulate(&self, a: &mut [f64], add: &[f64], fill: &[f64]) {
+        for ((d, n), f) in a.iter_mut().zip(add).zip(fill) {
+            *d = *d + n - self.beta * (f * *d).min(*n);
         }
     }
 }
@@ -77,14 +82,23 @@ mod tests {
         // D = 0 (never lit): the paper's A = 50; A = 0 (dark): D = 80 decays on.
         let r = Refill { beta: 0.5 };
         let mut a = [300.0, 0.0, 80.0];
-        r.accumulate(&mut a, &[200.0, 50.0, 0.0]);
+        r.accumulate(&mut a, &[200.0, 50.0, 0.0], &[1.0; 3]);
         assert_eq!(a, [400.0, 50.0, 80.0]);
         // beta 1: the larger; beta 0: the sum (the paper)
         let mut a = [300.0, 100.0];
-        Refill { beta: 1.0 }.accumulate(&mut a, &[200.0, 250.0]);
+        Refill { beta: 1.0 }.accumulate(&mut a, &[200.0, 250.0], &[1.0; 2]);
         assert_eq!(a, [300.0, 250.0]);
         let mut a = [300.0];
-        Refill { beta: 0.0 }.accumulate(&mut a, &[200.0]);
+        Refill { beta: 0.0 }.accumulate(&mut a, &[200.0], &[1.0]);
         assert_eq!(a, [500.0]);
+    }
+
+    #[test]
+    fn partly_filling_traps_relax_toward_their_capacity() {
+        // beta 1, D + f max(0, Cap - D): D = 100, Cap = 400, f = 0.25 (A = 100) -> 175;
+        // D = 300 above Cap = 200, f = 0.5 (A = 100): nothing added -> 300
+        let mut a = [100.0, 300.0];
+        Refill { beta: 1.0 }.accumulate(&mut a, &[100.0, 100.0], &[0.25, 0.5]);
+        assert_eq!(a, [175.0, 300.0]);
     }
 }

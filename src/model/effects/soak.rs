@@ -131,6 +131,9 @@ impl Effect for Soak {
     fn response_is_per_pixel(&self) -> bool {
         true
     }
+    fn response_is_fill(&self) -> bool {
+        true
+    }
     fn response(&self, ctx: &ResponseCtx<'_>, ak: &mut Array3<f64>) {
         if self.capture_ratio <= 0.0 {
             return;
