@@ -10,7 +10,7 @@
 //!   the bytes the step moves (reads amplitudes, release counters, pending bits, image,
 //!   flags; writes amplitudes, counters, pending bits, current, persistence flags, flags),
 //!   in the same parallel row layout, with trivial arithmetic.
-//! - **(c) `stage`**: the whole stage per exposure, through [`crate::stage::run`] itself
+//! - **(c) `stage`**: the whole stage per exposure, through [`crate::stage::run()`] itself
 //!   (no copy of its code): read and validate an input product, step, publish the
 //!   output (write, validate, fsync, rename), checkpoint (every exposure by default,
 //!   `checkpoint_every` otherwise) and prune. The time per exposure is the interval

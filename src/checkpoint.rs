@@ -127,7 +127,7 @@ pub enum Staged {
 
 /// The first half of [`save`]: every check, and the write under the temporary name.
 /// The amplitudes are checked block by block as they are written
-/// ([`write_amplitudes`]), not in a pass of their own (200 MB at 2040 x 2040).
+/// (`write_amplitudes`), not in a pass of their own (200 MB at 2040 x 2040).
 pub fn stage(dir: &Path, meta: &CheckpointMeta, state: &State) -> Result<Staged> {
     let path = path_for(dir, meta.detector, meta.exposure_index);
     let fail = |e: Error| {

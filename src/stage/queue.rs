@@ -3,7 +3,7 @@
 //! A file is a candidate when its name ends in `.h5` and neither starts with `.` nor
 //! ends in `.part` (ICD: upstream writes under such temporary names and renames when
 //! done); folders whose names start with `.` (the quarantine among them) are not
-//! searched. Ordering, gaps and duplicates are the stage's ([`super::run`]).
+//! searched. Ordering, gaps and duplicates are the stage's ([`super::run()`]).
 
 use crate::error::{Error, ErrorKind, Result};
 use std::path::{Path, PathBuf};

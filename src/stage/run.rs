@@ -3,7 +3,7 @@
 //!
 //! # One code path for batch and watch
 //!
-//! A [`Stage`] owns one long-lived [`Processor`] per detector (its state, bookkeeping,
+//! A [`Stage`] owns one long-lived `Processor` per detector (its state, bookkeeping,
 //! buffers and the queue of products waiting for their turn). Products are *observed*
 //! (root attributes read, routed to their detector's queue), then processors *advance*:
 //! each processes its queued products while the next one is ready (module rules below).
