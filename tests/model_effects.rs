@@ -335,3 +335,76 @@ fn unread_pixels_do_not_enter_the_early_release_background() {
     // and the lit pixels are still flagged at the end (not released)
     assert!(whole[5].1[[2, 2]] != 0, "{:?}", whole[5].0[[2, 2]]);
 }
+
+/// `soak` with `refill` (beta 1): a second illumination relaxes each term's occupancy
+/// toward what the exposed traps can hold by the fraction soak fills,
+/// `D + f (Cap - D)` (src/model/effects/refill.rs), not `max(D, f Cap)`. `Cap` from
+/// the model without soak, `f Cap` from the first illumination with it, `D` (the decayed
+/// first illumination) from soak alone, which adds.
+#[test]
+fn soak_with_refill_relaxes_toward_capacity() {
+    let amplitudes = |effects: Vec<EffectSpec>| {
+        let mut p = ModelParams {
+            effects,
+            ..ModelParams::default()
+        };
+        p.early_release.enabled = false;
+        let m = Model::new(p).unwrap();
+        let mut st = m.new_state(1, 1);
+        let mut after = Vec::new();
+        for k in 0..2u64 {
+            let img = Array2::from_elem((1, 1), 400.0f32);
+            let input = Input {
+                image_e_per_s: img.view(),
+                exposure_index: k,
+                t_start_unix_s: 1e9 + 700.0 * k as f64,
+                t_exposure_s: 613.0,
+                t_illuminated_s: 481.0,
+                history_incomplete: false,
+                background_e_per_s: None,
+            };
+            let (mut flags, mut cur, mut pf) = (
+                Array2::<u32>::zeros((1, 1)),
+                Array2::<f32>::zeros((1, 1)),
+                Array2::<u8>::zeros((1, 1)),
+            );
+            m.step_with(
+                &mut st,
+                &input,
+                &StepContext::default(),
+                &mut Output {
+                    flags: &mut flags,
+                    current_e_per_s: &mut cur,
+                    pflags: &mut pf,
+                },
+            )
+            .unwrap();
+            after.push(st.amplitudes_e.iter().copied().collect::<Vec<f64>>());
+        }
+        after
+    };
+    let soak = || spec("soak", serde_json::json!({"capture_ratio": 0.05}));
+    let refill = || spec("refill", serde_json::json!({"beta": 1.0}));
+    let cap = &amplitudes(vec![refill()])[0];
+    let s = amplitudes(vec![soak()]);
+    let rs = amplitudes(vec![soak(), refill()]);
+    let mut partly = 0;
+    for n in 0..cap.len() {
+        let fcap = s[0][n];
+        let d = s[1][n] - fcap;
+        let f = fcap / cap[n];
+        let want = d + f * (cap[n] - d);
+        assert!((rs[0][n] - fcap).abs() <= 1e-12 * fcap, "term {n}");
+        assert!(
+            (rs[1][n] - want).abs() <= 1e-9 * want,
+            "term {n}: {} vs {want}",
+            rs[1][n]
+        );
+        if f < 0.9 && d > 0.1 * cap[n] {
+            // where it matters: above max(D, f Cap)
+            assert!(rs[1][n] > d.max(fcap) * 1.01, "term {n}");
+            partly += 1;
+        }
+    }
+    assert!(partly > 0, "no term fills partly: {cap:?} {s:?}");
+}
