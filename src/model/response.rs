@@ -65,12 +65,13 @@ impl Response {
     /// last one cut at `fluence_e`: `amplitude_e(F)` is the sum of `slope * (to - from)`
     /// over `segments_below(F)`. Nothing for `fluence_e <= 0` or NaN; beyond the last knot
     /// the table is flat and adds nothing.
-    pub fn segments_below(&self, fluence_e: f64) -> impl Iterator<Item = (f64, f64, f64)> + '_ {
-        self.x
-            .windows(2)
-            .zip(&self.slope)
-            .take_while(move |(xs, _)| xs[0] < fluence_e)
-            .map(move |(xs, s)| (xs[0], xs[1].min(fluence_e), *s))
+    pub fn segments_below(
+        &self,
+        fluence_e: f64,
+    ) -> impl DoubleEndedIterator<Item = (f64, f64, f64)> + '_ {
+        // segments starting below the fluence (none for NaN)
+        let m = self.x[..self.x.len() - 1].partition_point(|&x0| x0 < fluence_e);
+        (0..m).map(move |i| (self.x[i], self.x[i + 1].min(fluence_e), self.slope[i]))
     }
 
     /// The largest amplitude of the table: used when the fluence is unknown.

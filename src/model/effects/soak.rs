@@ -16,7 +16,10 @@
 //! linear segment of the table ([`Soak::fill_at`]). A pixel whose charge is mostly
 //! reached early (far above saturation) fills almost as if held the whole time; a
 //! pixel just above the saturation jump holds its forward-bias traps only briefly.
-//! Where `F` is unknown (transient, SUR error) the level-blind `1 - exp(-k)` is used.
+//! Where `F` is unknown (transient, SUR error) the step keeps the maximum amplitude
+//! whatever the hooks do; [`Soak::fill_at`] gives the level-blind `1 - exp(-k)` there.
+//! Below the first knot the table is linear through 0 and the fill does not depend on
+//! `F`: one value per term and exposure (every dark pixel).
 //! Equation (response hook): `A_k,n *= fill_n(F)` (1 when `capture_ratio` = 0).
 //! Parameter: `capture_ratio` (default 0.1, bounds [0, 100], null 0).
 //! Covariate: illumination (soak) time, and time since illumination (the slow tail).
@@ -99,22 +102,28 @@ impl Soak {
                 .sum();
             return (k * m / a).clamp(0.0, 1.0);
         }
-        // per segment [l0, l1], slope s: s [(l1 - l0) - (G/k) (e1 - e0)],
-        // e_i = exp(-k (1 - l_i/G)) <= 1; e1 - e0 = e0 expm1(k (l1 - l0)/G) where that
-        // argument is small (no cancellation), the plain difference elsewhere (no overflow)
-        let held: f64 = response
-            .segments_below(fluence_e)
-            .map(|(l0, l1, s)| {
-                let e0 = (-k * (1.0 - l0 / g)).exp();
-                let x = k * (l1 - l0) / g;
-                let de = if x < 1.0 {
-                    e0 * x.exp_m1()
-                } else {
-                    (-k * (1.0 - l1 / g)).exp() - e0
-                };
-                s * ((l1 - l0) - g / k * de)
-            })
-            .sum();
+        // per segment [l0, l1], slope s: s [(l1 - l0) - (G/k) (e1 - e0)], so
+        // held = A(F) - (G/k) sum s (e1 - e0), e_i = exp(-k (1 - l_i/G)) <= 1. From the top
+        // segment down: below the level where e1 < e^-60 the terms are below rounding
+        // (a fast term of a laboratory exposure, lit 481 s of 613, adds none at all).
+        // e1 - e0 = e0 expm1(k (l1 - l0)/G) where that argument is small (no
+        // cancellation), the plain difference elsewhere (no overflow).
+        let mut sum = 0.0;
+        for (l0, l1, s) in response.segments_below(fluence_e).rev() {
+            let arg1 = k * (1.0 - l1 / g);
+            if arg1 > 60.0 {
+                break;
+            }
+            let e0 = (-k * (1.0 - l0 / g)).exp();
+            let x = k * (l1 - l0) / g;
+            let de = if x < 1.0 {
+                e0 * x.exp_m1()
+            } else {
+                (-arg1).exp() - e0
+            };
+            sum += s * de;
+        }
+        let held = a - g / k * sum;
         let f = held / a;
         if f.is_finite() {
             f.clamp(0.0, 1.0)
@@ -139,13 +148,32 @@ impl Effect for Soak {
             return;
         }
         let (t, t_exp) = (ctx.t_illuminated_s, ctx.t_exposure_s);
+        // Below the first knot the table is linear through 0, so the fill does not depend
+        // on the fluence (the ramp is self-similar): one value per term and exposure for
+        // most pixels (every dark pixel), the integral only above it.
+        let x1 = ctx.response.first_segment().0;
+        let first: Vec<f64> = ctx
+            .rate_per_s
+            .iter()
+            .map(|r| self.fill_at(ctx.response, x1, *r, t, t_exp))
+            .collect();
         ak.axis_iter_mut(Axis(0))
             .into_par_iter()
             .zip(ctx.fluence_e.axis_iter(Axis(0)).into_par_iter())
             .for_each(|(mut a_row, f_row)| {
                 for (mut lane, f) in a_row.outer_iter_mut().zip(f_row) {
-                    for (a, r) in lane.iter_mut().zip(ctx.rate_per_s) {
-                        *a *= self.fill_at(ctx.response, *f, *r, t, t_exp);
+                    if f.is_nan() || *f <= 0.0 {
+                        // no charge (A_k = 0), or unknown: the step keeps the maximum
+                        continue;
+                    }
+                    if *f <= x1 {
+                        for (a, fi) in lane.iter_mut().zip(&first) {
+                            *a *= fi;
+                        }
+                    } else {
+                        for (a, r) in lane.iter_mut().zip(ctx.rate_per_s) {
+                            *a *= self.fill_at(ctx.response, *f, *r, t, t_exp);
+                        }
                     }
                 }
             });
@@ -206,6 +234,30 @@ mod tests {
         // held between 0.99 t and t
         assert!(got > s.fill(r, 0.99 * t) && got < blind, "{got}");
         assert_eq!(s.fill_at(&step, f64::NAN, r, t, t), blind);
+    }
+
+    #[test]
+    fn below_the_first_knot_the_fill_does_not_depend_on_the_fluence() {
+        let r = Response::new(&[
+            Knot {
+                fluence_e: 3e3,
+                amplitude_e: 3.0,
+            },
+            Knot {
+                fluence_e: 2e5,
+                amplitude_e: 400.0,
+            },
+        ]);
+        let s = Soak {
+            capture_ratio: 0.05,
+        };
+        for rate in [1.0, 1e-2, 1e-4] {
+            let at_knot = s.fill_at(&r, 3e3, rate, 481.0, 613.0);
+            for f in [1.0, 10.0, 2999.0] {
+                let v = s.fill_at(&r, f, rate, 481.0, 613.0);
+                assert!((v - at_knot).abs() < 1e-9, "{rate} {f}: {v} vs {at_knot}");
+            }
+        }
     }
 
     #[test]
