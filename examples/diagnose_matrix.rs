@@ -17,6 +17,7 @@
 //! reference's `persist fit` options, also used by every fit and diagnosis of the
 //! matrix), `--refit candidate|full` (`persist diagnose --refit`),
 //! `--spots centred|shifted` (the campaign, `persist simulate lab --campaign --spots`),
+//! `--first-seed S` (default 1: the seeds are S, S+1, ...),
 //! `--skip-baseline`, `--skip-single`, `--skip-pair`.
 //!
 //! Per scenario, as the CLI would do it: the reference model (`fit`, the paper's
@@ -186,6 +187,7 @@ fn main() {
     let size: usize = arg(&args, "--size").map_or(128, |v| v.parse().unwrap());
     let nbase: u64 = arg(&args, "--baseline-seeds").map_or(10, |v| v.parse().unwrap());
     let nseed: u64 = arg(&args, "--seeds").map_or(3, |v| v.parse().unwrap());
+    let first: u64 = arg(&args, "--first-seed").map_or(1, |v| v.parse().unwrap());
     let spots: lab::Spots =
         arg(&args, "--spots").map_or(lab::Spots::default(), |v| v.parse().unwrap());
     let campaign = spots.campaign();
@@ -309,7 +311,7 @@ fn main() {
     if !skip("--skip-baseline") {
         writeln!(md, "## No hidden effect (reference: {ref_label})\n\n| seed | residual RMS | threshold | top score (effect) | significant | seconds |\n|---|---|---|---|---|---|").unwrap();
         let mut clean = 0;
-        for seed in 1..=nbase {
+        for seed in first..first + nbase {
             let sim = simulate(size, seed, &[], &campaign);
             let t0 = Instant::now();
             let (_, d) = calibrate_and_diagnose(&sim.seq, seed, &cfg, &reference);
@@ -358,7 +360,7 @@ fn main() {
         let mut passed = Vec::new();
         for e in &effects {
             let mut ok_all = true;
-            for seed in 1..=nseed {
+            for seed in first..first + nseed {
                 let sim = simulate(size, seed, &[e.as_str()], &campaign);
                 let base_sim = match baselines.get(seed as usize - 1) {
                     Some(Some(_)) => None,
@@ -447,7 +449,7 @@ fn main() {
     // --- two effects
     if !skip("--skip-pair") {
         writeln!(md, "## Two hidden effects: {} (reference: {ref_label})\n\n| seed | round 1 declared | round 2 declared | RMS m0 -> m1 -> m2 | error falls each round | both found |\n|---|---|---|---|---|---|", pair.join(" + ")).unwrap();
-        for seed in 1..=nseed {
+        for seed in first..first + nseed {
             let names: Vec<&str> = pair.iter().map(String::as_str).collect();
             let sim = simulate(size, seed, &names, &campaign);
             let s2 = reference.calib.samples(&sim.seq);
