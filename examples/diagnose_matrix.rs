@@ -8,7 +8,8 @@
 //! Options: `--size N` (default 128), `--baseline-seeds K` (10), `--seeds K` (3),
 //! `--effects a,b,...` (default: every simulator effect; each `NAME` or
 //! `NAME:param=value`, a truth effect with a non-default parameter), `--pair a,b` (two hidden
-//! effects, default `soak,temperature`), `--pixels N`, `--bootstrap B`,
+//! effects, default `short_tau_boost,soak`: found one per round at 3 of 3 seeds at 64 x 64,
+//! docs/diagnose_matrix.md, "Twelfth session"; `soak,temperature` is not), `--pixels N`, `--bootstrap B`,
 //! `--statistic within|pooled`, `--reference a,b` (default none: the paper's model),
 //! `--reference-fit-cn` (the reference also fits the `C_n`, `persist fit --fit-cn`; then
 //! every `fit --with` of the matrix refits them jointly too, from the reference's),
@@ -204,7 +205,7 @@ fn main() {
             v.split(',').map(String::from).collect()
         });
     let pair: Vec<String> = arg(&args, "--pair")
-        .unwrap_or_else(|| "soak,temperature".into())
+        .unwrap_or_else(|| "short_tau_boost,soak".into())
         .split(',')
         .map(String::from)
         .collect();
