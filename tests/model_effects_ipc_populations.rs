@@ -157,6 +157,82 @@ fn ipc_gives_neighbours_alpha_of_the_star_instead_of_their_measured_fluence() {
     assert!(close(s, f64::from(base[1][[C, C]]), 2e-3), "{s}");
 }
 
+/// Regression: the model's coupling skipped pixels of unknown fluence as neighbours. A
+/// star too bright for the on-board fit (fewer than three samples below half the full
+/// well, so no slope and no fluence) is given the largest amplitude, and in the darks
+/// after it the readout couples its persistence into its neighbours as it couples any
+/// pixel's: the simulator's one-pixel pinholes brighter than ~22,000 e-/s
+/// (docs/diagnose_matrix.md, "Twelfth session") left the neighbours' first darks
+/// under-predicted by half.
+#[test]
+fn a_star_without_a_slope_still_leaks_its_persistence_into_its_neighbours() {
+    // the star has no slope (NaN); its neighbours read what the readout adds of the
+    // measured image: nothing from a NaN, so their faint own level only
+    let run_nan = |model: &Model| {
+        let mut st = model.new_state(N, N);
+        let mut out = Vec::new();
+        for k in 0..3 {
+            let mut img = Array2::from_elem((N, N), 0.01f32);
+            if k == 0 {
+                img[[C, C]] = f32::NAN;
+            }
+            let input = Input {
+                image_e_per_s: img.view(),
+                exposure_index: k as u64,
+                t_start_unix_s: t_start(k),
+                t_exposure_s: T_EXP,
+                t_illuminated_s: T_EXP,
+                history_incomplete: false,
+                background_e_per_s: None,
+            };
+            let mut flags = Array2::<u32>::zeros((N, N));
+            let mut cur = Array2::<f32>::zeros((N, N));
+            let mut pf = Array2::<u8>::zeros((N, N));
+            model
+                .step_with(
+                    &mut st,
+                    &input,
+                    &StepContext::default(),
+                    &mut Output {
+                        flags: &mut flags,
+                        current_e_per_s: &mut cur,
+                        pflags: &mut pf,
+                    },
+                )
+                .unwrap();
+            out.push(cur);
+        }
+        out
+    };
+    let base = run_nan(&Model::new(ModelParams::default()).unwrap());
+    let ipc = run_nan(&with(vec![spec(
+        "ipc",
+        serde_json::json!({"alpha": ALPHA}),
+    )]));
+    for k in 1..3 {
+        let star = f64::from(base[k][[C, C]]);
+        assert!(
+            star > 1.0,
+            "the star is predicted at the largest amplitude: {star}"
+        );
+        // the star keeps its own amplitude (the step restores it)
+        assert_eq!(ipc[k][[C, C]], base[k][[C, C]]);
+        for (y, x) in [(C - 1, C), (C + 1, C), (C, C - 1), (C, C + 1)] {
+            let (nb, nb0) = (f64::from(ipc[k][[y, x]]), f64::from(base[k][[y, x]]));
+            // alpha of the star's persistence plus (1 - 4 alpha) of its own faint level
+            let want = ALPHA * star + (1.0 - 4.0 * ALPHA) * nb0;
+            assert!(close(nb, want, 1e-3), "k {k} ({y},{x}): {nb} vs {want}");
+            assert!(nb > 10.0 * nb0);
+        }
+        // the diagonal pixel is not a nearest neighbour
+        assert!(close(
+            f64::from(ipc[k][[C - 1, C - 1]]),
+            f64::from(base[k][[C - 1, C - 1]]),
+            1e-3
+        ));
+    }
+}
+
 #[test]
 fn populations_scales_the_prediction_by_its_surface() {
     let base = run(&Model::new(ModelParams::default()).unwrap(), 3);

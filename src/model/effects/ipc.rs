@@ -17,7 +17,9 @@
 //!    largest fluence, at most [`MAX_ITERATIONS`]), negative values set to 0;
 //! 2. evaluate the paper's `A_k(F)` on it (done by the step for the pixels it changes);
 //! 3. predict what the readout will show of the trapped charge: the response planes are
-//!    coupled the same way, `A_k,n <- K A_k,n` (response hook). The decay is the same
+//!    coupled the same way, `A_k,n <- K A_k,n` (response hook); a pixel of unknown
+//!    fluence in the illumination (no slope: saturated, a cosmic ray) has the largest
+//!    amplitude and a value in the later exposures, so it couples too. The decay is the same
 //!    for every pixel, so coupling each exposure's addition couples the whole
 //!    prediction: the predicted current is `K` of the uncoupled one.
 //!
@@ -131,9 +133,13 @@ impl Effect for Ipc {
         if self.alpha == 0.0 {
             return;
         }
-        // `K` on every term plane in one pass (the same arithmetic as [`couple`]):
-        // pixels of unknown fluence add nothing to their neighbours (an unknown value
-        // counts 0, as in the readout model); the step restores their own amplitude
+        // `K` on every term plane in one pass (the same arithmetic as [`couple`]). A
+        // pixel of unknown fluence (no slope in the illuminated exposure: saturated, a
+        // cosmic ray) is given the largest amplitude by the step, which also restores its
+        // own amplitude after this hook; it reads a value in the later exposures, so its
+        // persistence is coupled into its neighbours like any other's (regression test
+        // `a_star_without_a_slope_still_leaks_its_persistence_into_its_neighbours`).
+        // Non-finite amplitudes add nothing.
         let (ny, nx, n) = ak.dim();
         let src = ak.as_standard_layout().into_owned();
         let src = src.as_slice().expect("standard layout");
@@ -148,11 +154,9 @@ impl Effect for Ipc {
                 }
                 sum.fill(0.0);
                 let mut add = |q: usize| {
-                    if known[q] {
-                        for (s, v) in sum.iter_mut().zip(&src[q * n..(q + 1) * n]) {
-                            if v.is_finite() {
-                                *s += v;
-                            }
+                    for (s, v) in sum.iter_mut().zip(&src[q * n..(q + 1) * n]) {
+                        if v.is_finite() {
+                            *s += v;
                         }
                     }
                 };
