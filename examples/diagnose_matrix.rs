@@ -14,10 +14,10 @@
 //! `--reference-fit-cn` (the reference also fits the `C_n`, `persist fit --fit-cn`; then
 //! every `fit --with` of the matrix refits them jointly too, from the reference's),
 //! `--reference-fit-amplification`, `--amplification A`, `--rates-per-s r1,r2,...`,
-//! `--t-min-s T`, `--cells pooled|illumination`, `--cell-statistic levels|paired` (the
+//! `--t-min-s T`, `--cells pooled|illumination|neighbours`, `--cell-statistic levels|paired` (the
 //! reference's `persist fit` options, also used by every fit and diagnosis of the
 //! matrix), `--refit candidate|full` (`persist diagnose --refit`),
-//! `--spots centred|shifted` (the campaign, `persist simulate lab --campaign --spots`),
+//! `--spots centred|shifted|pinholes` (the campaign, `persist simulate lab --campaign --spots`),
 //! `--first-seed S` (default 1: the seeds are S, S+1, ...),
 //! `--skip-baseline`, `--skip-single`, `--skip-pair`.
 //!

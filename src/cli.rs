@@ -145,8 +145,10 @@ pub struct LabArgs {
     #[arg(long)]
     pub campaign: bool,
     /// Where the campaign's spot is: `centred` (every illumination the same pattern,
-    /// scaled) or `shifted` (the spot moved for illuminations 2-5, so that radius and
-    /// fluence do not go together; `persist::sim::lab`, "Shifted spots").
+    /// scaled), `shifted` (the spot moved for illuminations 2-5, so that radius and
+    /// fluence do not go together; `persist::sim::lab`, "Shifted spots") or `pinholes`
+    /// (the centred campaign plus a grid of one-pixel pinholes, for effects that couple
+    /// neighbours; "Sharp pinholes").
     #[arg(long, default_value_t = persist::sim::lab::Spots::default(),
           value_parser = parse_flag::<persist::sim::lab::Spots>, requires = "campaign")]
     pub spots: persist::sim::lab::Spots,
@@ -456,8 +458,10 @@ pub struct FitArgs {
 pub struct CellArgs {
     /// Residual cells: `illumination` (one set of fluence x time cells per
     /// illumination; see `persist::diag::eval` "Why per illumination") or `pooled`
-    /// (fluence x time, all illuminations together). On one illumination the two are
-    /// the same cells.
+    /// (fluence x time, all illuminations together), or `neighbours` (the
+    /// per-illumination cells, split by whether a nearest neighbour is far brighter
+    /// than the pixel; "Neighbour contrast"). On one illumination `illumination` and
+    /// `pooled` are the same cells.
     #[arg(long, default_value_t = Cells::default(), value_parser = parse_flag::<Cells>)]
     pub cells: Cells,
     /// What a residual cell compares: `paired` (the 95th percentile of each sample's

@@ -283,6 +283,7 @@ pub fn definitions(cells: eval::Cells, statistic: eval::CellStatistic) -> BTreeM
     let rms = match cells {
         eval::Cells::Pooled => "RMS of z over cells fluence (5 per decade) x time since illumination (4 per decade), all illuminations together",
         eval::Cells::Illumination => "RMS of z over cells illumination x fluence (5 per decade) x time since illumination (4 per decade); the map figure shows, per fluence x time, the illumination with the largest |z|",
+        eval::Cells::Neighbours => "RMS of z over cells illumination x neighbour contrast (1 where the four nearest neighbours' mean fluence above 2e5 e- exceeds the pixel's own) x fluence (5 per decade) x time since illumination (4 per decade); the map figure shows, per fluence x time, the cell with the largest |z|",
     };
     BTreeMap::from([
         ("measured".into(), "image minus the median of the background pixels of the same exposure (fluence < 3000 e- in every illumination so far, no on-board flag); noise 1.4826 MAD of the same pixels".into()),

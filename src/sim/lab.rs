@@ -55,6 +55,18 @@
 //! 3,000 e- (`diag::data::BACKGROUND_FLUENCE_E`) in every illumination: `compare` and
 //! `diagnose` measure each exposure's dark level on pixels that were never lit, and a
 //! campaign that lights every pixel leaves them none.
+//!
+//! # Sharp pinholes (`--spots pinholes`, [`Illumination::pinholes_campaign`])
+//! The centred spot falls by four decades over half the array, so neighbouring pixels
+//! see nearly the same flux and an effect that couples neighbours (the simulator's
+//! `ipc`) changes little: of order its coupling times the image's curvature. A
+//! laboratory tests coupling with sources smaller than a pixel. This campaign is the
+//! default one with a grid of such pinholes added to every illumination
+//! ([`point_sources`]): one pixel each, every [`POINT_SPACING_PX`] pixels, fluxes
+//! [`POINT_FLUX_E_PER_S`] in turn (0.5 to 7 million e- in the first illumination, every
+//! one with a slope),
+//! outside the spot's bright centre (above 500 e-/s), the leak's columns and the
+//! right-hand quarter that keeps the background pixels.
 
 use super::detector::DetectorParams;
 use super::effect::{EffectSet, EffectSpec};
@@ -79,6 +91,10 @@ pub struct Illumination {
     /// written to `truth.json`, which stays as it was).
     #[serde(skip_serializing_if = "is_centred")]
     pub spot_offset: [f64; 2],
+    /// Add the grid of sharp pinholes ([`point_sources`]; module docs, "Sharp
+    /// pinholes"); false in the default campaign (and then not written to `truth.json`).
+    #[serde(skip_serializing_if = "std::ops::Not::not")]
+    pub points: bool,
 }
 
 fn is_centred(o: &[f64; 2]) -> bool {
@@ -93,6 +109,7 @@ impl Illumination {
             temp_k: k,
             darks_after: d,
             spot_offset: [0.0, 0.0],
+            points: false,
         };
         vec![
             i(481.0, 1.0, 80.0, 20),
@@ -119,6 +136,15 @@ impl Illumination {
             .map(|(i, spot_offset)| Illumination { spot_offset, ..i })
             .collect()
     }
+
+    /// The default campaign with the grid of sharp pinholes added to every
+    /// illumination (module docs, "Sharp pinholes").
+    pub fn pinholes_campaign() -> Vec<Illumination> {
+        Self::default_campaign()
+            .into_iter()
+            .map(|i| Illumination { points: true, ..i })
+            .collect()
+    }
 }
 
 /// Where a campaign's spot is (`persist simulate lab --spots`; module docs).
@@ -129,6 +155,9 @@ pub enum Spots {
     Centred,
     /// The spot moved for illuminations 2-5 ([`Illumination::shifted_campaign`]).
     Shifted,
+    /// The default campaign plus a grid of sharp pinholes
+    /// ([`Illumination::pinholes_campaign`]).
+    Pinholes,
 }
 
 impl Spots {
@@ -137,6 +166,7 @@ impl Spots {
         match self {
             Spots::Centred => Illumination::default_campaign(),
             Spots::Shifted => Illumination::shifted_campaign(),
+            Spots::Pinholes => Illumination::pinholes_campaign(),
         }
     }
 }
@@ -147,9 +177,10 @@ impl std::str::FromStr for Spots {
         match s {
             "centred" => Ok(Spots::Centred),
             "shifted" => Ok(Spots::Shifted),
+            "pinholes" => Ok(Spots::Pinholes),
             _ => Err(crate::Error::invalid(
                 "--spots",
-                format!("`{s}`: expected `centred` or `shifted`"),
+                format!("`{s}`: expected `centred`, `shifted` or `pinholes`"),
             )),
         }
     }
@@ -161,6 +192,7 @@ impl std::fmt::Display for Spots {
         f.write_str(match self {
             Spots::Centred => "centred",
             Spots::Shifted => "shifted",
+            Spots::Pinholes => "pinholes",
         })
     }
 }
@@ -224,6 +256,36 @@ pub fn pinhole_at(size: usize, offset: [f64; 2]) -> Array2<f32> {
     })
 }
 
+/// Spacing of the sharp pinholes, pixels (even: every pinhole keeps the parity below).
+pub const POINT_SPACING_PX: usize = 4;
+/// The pinholes' fluxes, e-/s, taken in turn along the grid.
+/// All below ~22,000 e-/s, above which the on-board fit has fewer than three samples
+/// under half the full well and the pinhole has no slope and no fluence
+/// (`sim::detector`), so that the model knows what each pinhole received.
+pub const POINT_FLUX_E_PER_S: [f32; 4] = [1e3, 3e3, 7e3, 15e3];
+
+/// The grid of sharp pinholes (module docs, "Sharp pinholes"): `(y, x, flux e-/s)`, all
+/// the light of each pinhole in one pixel. Rows are even and columns odd, so two of each
+/// pinhole's four nearest neighbours are on the stride-2 sample of `fit` (even rows and
+/// columns) and the pinhole itself is not. Left out where the centred spot is above
+/// 500 e-/s, in the leak's eight columns and in the right-hand quarter (the corners
+/// that stay dark).
+pub fn point_sources(size: usize) -> Vec<(usize, usize, f32)> {
+    let spot = pinhole(size);
+    let mut out = Vec::new();
+    let mut k = 0;
+    for y in (2..size).step_by(POINT_SPACING_PX) {
+        for x in (9..size * 3 / 4).step_by(POINT_SPACING_PX) {
+            if spot[[y, x]] > 500.0 {
+                continue;
+            }
+            out.push((y, x, POINT_FLUX_E_PER_S[k % POINT_FLUX_E_PER_S.len()]));
+            k += 1;
+        }
+    }
+    out
+}
+
 fn temp_at(base: f64, t: f64) -> f64 {
     base + 0.005 * (2.0 * std::f64::consts::PI * t / 7200.0).sin()
 }
@@ -256,6 +318,7 @@ fn steps(cfg: &LabConfig) -> crate::Result<Vec<Illumination>> {
             temp_k: cfg.temp_k,
             darks_after: cfg.darks,
             spot_offset: [0.0, 0.0],
+            points: false,
         }],
     };
     for s in &steps {
@@ -299,7 +362,13 @@ pub fn run(
     let mut index = 0u64;
     let mut first_dark = true;
     for s in &steps {
-        let flux = pinhole_at(n, s.spot_offset).mapv(|v| v * s.flux_scale as f32);
+        let mut flux = pinhole_at(n, s.spot_offset);
+        if s.points {
+            for (y, x, f) in point_sources(n) {
+                flux[[y, x]] += f;
+            }
+        }
+        let flux = flux.mapv(|v| v * s.flux_scale as f32);
         let t_exp = s.t_illuminated_s + cfg.after_shutter_s;
         let temp = temp_at(s.temp_k, t);
         let out = sim.expose(&ExposureSpec {
@@ -470,10 +539,61 @@ mod tests {
             assert_eq!(
                 Illumination {
                     spot_offset: [0.0, 0.0],
+                    points: false,
                     ..s.clone()
                 },
                 *c
             );
+        }
+    }
+
+    #[test]
+    fn sharp_pinholes_keep_their_sampled_neighbours_and_the_dark_corners() {
+        for size in [64, 256] {
+            let pts = point_sources(size);
+            let spot = pinhole(size);
+            assert!(pts.len() >= size / 2, "{size}: {} pinholes", pts.len());
+            for &(y, x, f) in &pts {
+                // two nearest neighbours on the stride-2 sample, the pinhole off it
+                assert!(y % 2 == 0 && x % 2 == 1, "{y} {x}");
+                assert!(spot[[y, x]] <= 500.0 && x >= 8 && x < size * 3 / 4);
+                assert!(POINT_FLUX_E_PER_S.contains(&f));
+            }
+            // every flux level is used
+            for f in POINT_FLUX_E_PER_S {
+                assert!(pts.iter().any(|p| p.2 == f), "{size}: {f}");
+            }
+        }
+        // the campaign is the default one with the pinholes added; illumination 1, from
+        // which `fit` calibrates, too
+        let c = Illumination::pinholes_campaign();
+        for (p, d) in c.iter().zip(Illumination::default_campaign()) {
+            assert!(p.points);
+            assert_eq!(
+                Illumination {
+                    points: false,
+                    ..p.clone()
+                },
+                d
+            );
+        }
+        // the right-hand corners stay background pixels
+        let cfg = LabConfig {
+            size: 64,
+            campaign: Some(c.clone()),
+            ..LabConfig::default()
+        };
+        let steps = steps(&cfg).unwrap();
+        let n = cfg.size;
+        let mut flux = pinhole(n);
+        for (y, x, f) in point_sources(n) {
+            flux[[y, x]] += f;
+        }
+        for s in &steps {
+            for y in [0, n - 1] {
+                let fluence = f64::from(flux[[y, n - 1]]) * s.flux_scale * s.t_illuminated_s;
+                assert!(fluence < crate::diag::data::BACKGROUND_FLUENCE_E);
+            }
         }
     }
 
