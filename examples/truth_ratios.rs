@@ -1,0 +1,91 @@
+//! What hidden effects change in the simulator's truth, illumination by illumination:
+//! for a laboratory campaign simulated in memory without and with each effect (same
+//! seed), the array-mean true persistence current of chosen dark integrations after each
+//! illumination, as the ratio with the effect to without. Two effects whose ratios move
+//! together across the illuminations are hard to tell apart on this campaign; two that
+//! move in opposite directions in one illumination cancel there
+//! (docs/diagnose_matrix.md, "Twelfth session", the pair soak + temperature).
+//!
+//! ```sh
+//! target/release/examples/truth_ratios [--size 64] [--seed 1] [--spots centred] EFFECT[+EFFECT] ...
+//! ```
+//! Each argument is one hidden set, effects joined by `+` (e.g. `soak temperature
+//! soak+temperature`).
+use persist::sim::effect::EffectSpec;
+use persist::sim::lab::{self, LabConfig, Spots};
+
+/// Per exposure: (kind, array-mean true persistence e-/s, focal-plane temperature K).
+fn run(size: usize, seed: u64, spots: Spots, effects: &[&str]) -> Vec<(String, f64, f64)> {
+    let cfg = LabConfig {
+        size,
+        seed,
+        campaign: Some(spots.campaign()),
+        effects: effects
+            .iter()
+            .map(|e| e.parse::<EffectSpec>().expect("effect"))
+            .collect(),
+        ..LabConfig::default()
+    };
+    let mut out = Vec::new();
+    lab::run(&cfg, |s| {
+        let p = &s.true_persistence;
+        let mean = p.iter().map(|&v| f64::from(v)).sum::<f64>() / p.len() as f64;
+        let t = s.exposure.meta.focal_plane_temp_k.unwrap_or(f64::NAN);
+        out.push((s.kind.clone(), mean, t));
+        Ok(())
+    })
+    .expect("simulation");
+    out
+}
+
+fn main() {
+    let args: Vec<String> = std::env::args().skip(1).collect();
+    let opt = |name: &str| {
+        args.iter()
+            .position(|a| a == name)
+            .and_then(|i| args.get(i + 1).cloned())
+    };
+    let size = opt("--size").map_or(64, |v| v.parse().expect("--size"));
+    let seed = opt("--seed").map_or(1, |v| v.parse().expect("--seed"));
+    let spots: Spots = opt("--spots").map_or(Spots::default(), |v| v.parse().expect("--spots"));
+    let mut sets = Vec::new();
+    let mut skip = false;
+    for a in &args {
+        if skip {
+            skip = false;
+        } else if a.starts_with("--") {
+            skip = true;
+        } else {
+            sets.push(a.clone());
+        }
+    }
+    let base = run(size, seed, spots, &[]);
+    let runs: Vec<_> = sets
+        .iter()
+        .map(|s| run(size, seed, spots, &s.split('+').collect::<Vec<_>>()))
+        .collect();
+    println!(
+        "| illumination | dark | T (K) | truth without (e-/s) | {} |",
+        sets.join(" | ")
+    );
+    println!("|---|---|---|---|{}", "---|".repeat(sets.len()));
+    let (mut ill, mut k) = (0, 0);
+    for (i, (kind, mean, temp)) in base.iter().enumerate() {
+        if kind == "illuminated" {
+            ill += 1;
+            k = 0;
+            continue;
+        }
+        k += 1;
+        if [1, 2, 5, 10, 20, 40, 60].contains(&k) {
+            let r: Vec<String> = runs
+                .iter()
+                .map(|r| format!("{:.3}", r[i].1 / mean))
+                .collect();
+            println!(
+                "| {ill} | {k} | {temp:.1} | {mean:.4} | {} |",
+                r.join(" | ")
+            );
+        }
+    }
+}
