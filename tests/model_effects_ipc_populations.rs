@@ -44,14 +44,16 @@ fn t_start(k: usize) -> f64 {
 
 /// The star, then darks; the predicted current of every step.
 fn run(model: &Model, steps: usize) -> Vec<Array2<f32>> {
+    run_after(model, steps, star_image())
+}
+
+/// `first`, then darks; the predicted current of every step.
+fn run_after(model: &Model, steps: usize, first: Array2<f32>) -> Vec<Array2<f32>> {
     let mut st = model.new_state(N, N);
     let mut out = Vec::new();
+    let dark = Array2::from_elem((N, N), 0.01f32);
     for k in 0..steps {
-        let img = if k == 0 {
-            star_image()
-        } else {
-            Array2::from_elem((N, N), 0.01f32)
-        };
+        let img = if k == 0 { &first } else { &dark };
         let input = Input {
             image_e_per_s: img.view(),
             exposure_index: k as u64,
@@ -168,42 +170,9 @@ fn ipc_gives_neighbours_alpha_of_the_star_instead_of_their_measured_fluence() {
 fn a_star_without_a_slope_still_leaks_its_persistence_into_its_neighbours() {
     // the star has no slope (NaN); its neighbours read what the readout adds of the
     // measured image: nothing from a NaN, so their faint own level only
-    let run_nan = |model: &Model| {
-        let mut st = model.new_state(N, N);
-        let mut out = Vec::new();
-        for k in 0..3 {
-            let mut img = Array2::from_elem((N, N), 0.01f32);
-            if k == 0 {
-                img[[C, C]] = f32::NAN;
-            }
-            let input = Input {
-                image_e_per_s: img.view(),
-                exposure_index: k as u64,
-                t_start_unix_s: t_start(k),
-                t_exposure_s: T_EXP,
-                t_illuminated_s: T_EXP,
-                history_incomplete: false,
-                background_e_per_s: None,
-            };
-            let mut flags = Array2::<u32>::zeros((N, N));
-            let mut cur = Array2::<f32>::zeros((N, N));
-            let mut pf = Array2::<u8>::zeros((N, N));
-            model
-                .step_with(
-                    &mut st,
-                    &input,
-                    &StepContext::default(),
-                    &mut Output {
-                        flags: &mut flags,
-                        current_e_per_s: &mut cur,
-                        pflags: &mut pf,
-                    },
-                )
-                .unwrap();
-            out.push(cur);
-        }
-        out
-    };
+    let mut first = Array2::from_elem((N, N), 0.01f32);
+    first[[C, C]] = f32::NAN;
+    let run_nan = |model: &Model| run_after(model, 3, first.clone());
     let base = run_nan(&Model::new(ModelParams::default()).unwrap());
     let ipc = run_nan(&with(vec![spec(
         "ipc",
