@@ -47,6 +47,10 @@ pub struct Cell {
     pub illumination: Option<u64>,
     pub fluence_e: f64,
     pub time_s: f64,
+    /// With `--cells neighbours`: the cell of the pixels next to a far brighter one
+    /// (`eval::cell_next_to_brighter`; written only when true).
+    #[serde(skip_serializing_if = "std::ops::Not::not")]
+    pub next_to_brighter: bool,
     #[serde(flatten)]
     pub stat: GroupStat,
 }
@@ -187,6 +191,7 @@ pub fn summarise_touched(
                         .map(|a| seq.exposures[a].meta.exposure_index),
                     fluence_e,
                     time_s,
+                    next_to_brighter: eval::cell_next_to_brighter(k),
                     stat: *g,
                 }
             })

@@ -1004,9 +1004,12 @@ pub fn diagnose(
                 .iter()
                 .zip(&where_cells)
                 .map(|((k, g), (f, t))| {
-                    let after = eval::cell_illumination(k).map_or(String::new(), |a| {
+                    let mut after = eval::cell_illumination(k).map_or(String::new(), |a| {
                         format!(" after the illumination at exposure {}", exposure_index(a))
                     });
+                    if eval::cell_next_to_brighter(k) {
+                        after.push_str(", next to a far brighter pixel");
+                    }
                     format!(
                         "fluence >= {f:.3e} e-, t >= {t:.0} s{after}: measured {:.3} vs predicted {:.3} e-/s (z {:.1})",
                         g.measured_p95_e_per_s, g.predicted_p95_e_per_s, g.z

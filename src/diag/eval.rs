@@ -223,6 +223,12 @@ pub fn cell_illumination(key: &[i64]) -> Option<usize> {
     (key.len() >= 3).then(|| key[0] as usize)
 }
 
+/// Whether a cell key of [`Cells::Neighbours`] holds the pixels next to a far brighter
+/// one (module docs, "Neighbour contrast"); false for the other kinds.
+pub fn cell_next_to_brighter(key: &[i64]) -> bool {
+    key.len() == 4 && key[1] == 1
+}
+
 /// Samples and their covariates.
 #[derive(Debug, Clone)]
 pub struct Samples {
@@ -1084,6 +1090,17 @@ mod tests {
         let per_contrast = |p: &[f64]| rms(&cell_z(&nb, p));
         assert_eq!(cell_z(&s, &good).len(), 2);
         assert_eq!(cell_z(&nb, &good).len(), 4);
+        let split = cell_z(&nb, &good);
+        assert_eq!(
+            split
+                .iter()
+                .filter(|(k, _)| cell_next_to_brighter(k))
+                .count(),
+            2
+        );
+        assert!(!cell_z(&s, &good)
+            .iter()
+            .any(|(k, _)| cell_next_to_brighter(k)));
         let (ig, ib) = (per_illumination(&good), per_illumination(&bad));
         let (ng, nbad) = (per_contrast(&good), per_contrast(&bad));
         println!("illumination {ig:.2} -> {ib:.2}; neighbours {ng:.2} -> {nbad:.2}");
