@@ -137,6 +137,19 @@ impl Illumination {
             .collect()
     }
 
+    /// What this illumination shines on an `n` x `n` array, e-/s: the spot at its place
+    /// ([`pinhole_at`]), the sharp pinholes if asked ([`point_sources`]), times the flux
+    /// scale.
+    pub fn flux(&self, n: usize) -> Array2<f32> {
+        let mut flux = pinhole_at(n, self.spot_offset);
+        if self.points {
+            for (y, x, f) in point_sources(n) {
+                flux[[y, x]] += f;
+            }
+        }
+        flux.mapv(|v| v * self.flux_scale as f32)
+    }
+
     /// The default campaign with the grid of sharp pinholes added to every
     /// illumination (module docs, "Sharp pinholes").
     pub fn pinholes_campaign() -> Vec<Illumination> {
@@ -362,13 +375,7 @@ pub fn run(
     let mut index = 0u64;
     let mut first_dark = true;
     for s in &steps {
-        let mut flux = pinhole_at(n, s.spot_offset);
-        if s.points {
-            for (y, x, f) in point_sources(n) {
-                flux[[y, x]] += f;
-            }
-        }
-        let flux = flux.mapv(|v| v * s.flux_scale as f32);
+        let flux = s.flux(n);
         let t_exp = s.t_illuminated_s + cfg.after_shutter_s;
         let temp = temp_at(s.temp_k, t);
         let out = sim.expose(&ExposureSpec {
@@ -583,15 +590,11 @@ mod tests {
             campaign: Some(c.clone()),
             ..LabConfig::default()
         };
-        let steps = steps(&cfg).unwrap();
         let n = cfg.size;
-        let mut flux = pinhole(n);
-        for (y, x, f) in point_sources(n) {
-            flux[[y, x]] += f;
-        }
-        for s in &steps {
+        for s in &steps(&cfg).unwrap() {
+            let flux = s.flux(n);
             for y in [0, n - 1] {
-                let fluence = f64::from(flux[[y, n - 1]]) * s.flux_scale * s.t_illuminated_s;
+                let fluence = f64::from(flux[[y, n - 1]]) * s.t_illuminated_s;
                 assert!(fluence < crate::diag::data::BACKGROUND_FLUENCE_E);
             }
         }

@@ -19,8 +19,8 @@
 //! 3. predict what the readout will show of the trapped charge: the response planes are
 //!    coupled the same way, `A_k,n <- K A_k,n` (response hook); a pixel of unknown
 //!    fluence in the illumination (no slope: saturated, a cosmic ray) has the largest
-//!    amplitude and a value in the later exposures, so it couples too. The decay is the same
-//!    for every pixel, so coupling each exposure's addition couples the whole
+//!    amplitude and a value in the later exposures, so it couples too. The decay is
+//!    the same for every pixel, so coupling each exposure's addition couples the whole
 //!    prediction: the predicted current is `K` of the uncoupled one.
 //!
 //! Effect on predictions: next to a bright isolated pixel (a star, a saturated spot) a
@@ -143,15 +143,14 @@ impl Effect for Ipc {
         let (ny, nx, n) = ak.dim();
         let src = ak.as_standard_layout().into_owned();
         let src = src.as_slice().expect("standard layout");
-        let known: Vec<bool> = ctx.fluence_e.iter().map(|f| f.is_finite()).collect();
         let c = 1.0 - 4.0 * self.alpha;
         let mut sum = vec![0.0f64; n];
         for y in 0..ny {
             for x in 0..nx {
-                let p = y * nx + x;
-                if !known[p] {
-                    continue;
+                if !ctx.fluence_e[[y, x]].is_finite() {
+                    continue; // the step restores its own amplitude
                 }
+                let p = y * nx + x;
                 sum.fill(0.0);
                 let mut add = |q: usize| {
                     for (s, v) in sum.iter_mut().zip(&src[q * n..(q + 1) * n]) {
