@@ -18,6 +18,7 @@
 //! reference's `persist fit` options, also used by every fit and diagnosis of the
 //! matrix), `--refit candidate|full` (`persist diagnose --refit`),
 //! `--spots centred|shifted|pinholes` (the campaign, `persist simulate lab --campaign --spots`),
+//! `--dark-lengths uniform|varied` (`persist simulate lab --campaign --dark-lengths`),
 //! `--first-seed S` (default 1: the seeds are S, S+1, ...),
 //! `--skip-baseline`, `--skip-single`, `--skip-pair`.
 //!
@@ -191,12 +192,17 @@ fn main() {
     let first: u64 = arg(&args, "--first-seed").map_or(1, |v| v.parse().unwrap());
     let spots: lab::Spots =
         arg(&args, "--spots").map_or(lab::Spots::default(), |v| v.parse().unwrap());
-    let campaign = spots.campaign();
-    let spots = if spots == lab::Spots::default() {
+    let dark_lengths: lab::DarkLengths =
+        arg(&args, "--dark-lengths").map_or(lab::DarkLengths::default(), |v| v.parse().unwrap());
+    let campaign = dark_lengths.apply(spots.campaign());
+    let mut spots = if spots == lab::Spots::default() {
         String::new()
     } else {
         format!(" --spots {spots}")
     };
+    if dark_lengths != lab::DarkLengths::default() {
+        spots += &format!(" --dark-lengths {dark_lengths}");
+    }
     let out = arg(&args, "--out").unwrap_or_else(|| "docs/diagnose_matrix.md".into());
     let effects_arg = arg(&args, "--effects");
     let all: Vec<&str> = persist::sim::effects::NAMES.to_vec();

@@ -152,6 +152,14 @@ pub struct LabArgs {
     #[arg(long, default_value_t = persist::sim::lab::Spots::default(),
           value_parser = parse_flag::<persist::sim::lab::Spots>, requires = "campaign")]
     pub spots: persist::sim::lab::Spots,
+    /// How long the campaign's dark integrations are: `uniform` (180 s) or `varied`
+    /// (illumination 2's darks 60 s; its repeat's 540 s, after a reset 12 s after the
+    /// shutter, so that the on-board line fit's bias, which grows with the
+    /// integration's length and the decay's curvature, differs between two otherwise
+    /// equal illuminations; `persist::sim::lab`, "Dark lengths").
+    #[arg(long, default_value_t = persist::sim::lab::DarkLengths::default(),
+          value_parser = parse_flag::<persist::sim::lab::DarkLengths>, requires = "campaign")]
+    pub dark_lengths: persist::sim::lab::DarkLengths,
     /// Switch on a truth effect: NAME[:param=value,...] (repeatable). Names: blooming,
     /// capacity, ipc, linefit_bias, populations, short_tau_boost, soak, temperature.
     #[arg(long = "effect")]
@@ -597,7 +605,7 @@ fn simulate(scenario: SimScenario) -> persist::Result<ExitCode> {
                 size: a.size,
                 seed: a.seed,
                 darks: a.darks,
-                campaign: a.campaign.then(|| a.spots.campaign()),
+                campaign: a.campaign.then(|| a.dark_lengths.apply(a.spots.campaign())),
                 effects: specs(&a.effects)?,
                 ..lab::LabConfig::default()
             };

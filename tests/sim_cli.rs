@@ -78,6 +78,8 @@ fn bad_arguments_are_named_and_nothing_is_written() {
         (vec!["lab", "--size", "2"], "--size"),
         (vec!["lab", "--spots", "shifted"], "--campaign"),
         (vec!["lab", "--campaign", "--spots", "moved"], "moved"),
+        (vec!["lab", "--dark-lengths", "varied"], "--campaign"),
+        (vec!["lab", "--campaign", "--dark-lengths", "long"], "long"),
         (vec!["sky", "--detectors", "7"], "--detectors"),
         (vec!["sky", "--exposures", "0"], "--exposures"),
     ] {

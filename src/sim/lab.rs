@@ -67,6 +67,25 @@
 //! one with a slope),
 //! outside the spot's bright centre (above 500 e-/s), the leak's columns and the
 //! right-hand quarter that keeps the background pixels.
+//!
+//! # Dark lengths (`--dark-lengths varied`, [`DarkLengths::apply`])
+//! Every dark integration of the default campaign lasts 180 s, and every illumination's
+//! first dark starts 132 s after its shutter closes. An effect of the integration's
+//! *length*, such as the on-board least-squares line reading a curved ramp lower than
+//! its mean current (the simulator's `linefit_bias`: about 2.4 % in such a first dark,
+//! 8 % in a 540 s one, 0.5 % in a 60 s one, for a `1/t` decay), is then the same factor
+//! in every illumination, which a calibration takes in. The varied campaign changes the
+//! darks after illuminations 2 and 3, equal illuminations otherwise:
+//!
+//! | # | reset after the shutter | darks after |
+//! |---|---|---|
+//! | 2 | 132 s | 30 of 60 s (30 min, as before) |
+//! | 3 | 12 s | 10 of 540 s (90 min) |
+//!
+//! Illumination 3's reset comes 12 s after its shutter, so its first dark starts on the
+//! steep part of the decay, where the bias is largest (about 32 % for a `1/t` decay;
+//! docs/diagnose_matrix.md, thirteenth session). The others, illumination 1 (the
+//! calibration's) included, keep 180 s darks and the 132 s wait.
 
 use super::detector::DetectorParams;
 use super::effect::{EffectSet, EffectSpec};
@@ -95,6 +114,16 @@ pub struct Illumination {
     /// pinholes"); false in the default campaign (and then not written to `truth.json`).
     #[serde(skip_serializing_if = "std::ops::Not::not")]
     pub points: bool,
+    /// Length of each dark integration after this illumination, s; `None` (the default
+    /// campaign, and then not written to `truth.json`) takes the configuration's
+    /// `dark_s` (module docs, "Dark lengths").
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub dark_s: Option<f64>,
+    /// Time from the shutter closing to the end of the illuminated integration (the
+    /// reset), s; `None` (the default campaign, and then not written to `truth.json`)
+    /// takes the configuration's `after_shutter_s` (module docs, "Dark lengths").
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub after_shutter_s: Option<f64>,
 }
 
 fn is_centred(o: &[f64; 2]) -> bool {
@@ -110,6 +139,8 @@ impl Illumination {
             darks_after: d,
             spot_offset: [0.0, 0.0],
             points: false,
+            dark_s: None,
+            after_shutter_s: None,
         };
         vec![
             i(481.0, 1.0, 80.0, 20),
@@ -210,6 +241,73 @@ impl std::fmt::Display for Spots {
     }
 }
 
+/// How long the campaign's dark integrations are (`persist simulate lab --dark-lengths`;
+/// module docs, "Dark lengths").
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub enum DarkLengths {
+    /// Every dark integration lasts the configuration's `dark_s` (180 s).
+    #[default]
+    Uniform,
+    /// Illumination 2's darks last 60 s and its repeat's (3) 540 s
+    /// ([`DarkLengths::apply`]).
+    Varied,
+}
+
+/// `--dark-lengths varied`: (illumination index, dark length in s, darks after), chosen so
+/// that illumination 2's gap keeps its 30 minutes.
+const VARIED_DARKS: [(usize, f64, usize, f64); 2] =
+    [(1, 60.0, 30, AFTER_SHUTTER_S), (2, 540.0, 10, 12.0)];
+
+/// The paper's time from the shutter closing to the reset, 613 - 481 s.
+const AFTER_SHUTTER_S: f64 = 132.0;
+
+impl DarkLengths {
+    /// `campaign` with this choice of dark lengths. Illumination 1, from which `fit`
+    /// calibrates, is never changed.
+    pub fn apply(self, campaign: Vec<Illumination>) -> Vec<Illumination> {
+        match self {
+            DarkLengths::Uniform => campaign,
+            DarkLengths::Varied => campaign
+                .into_iter()
+                .enumerate()
+                .map(|(k, i)| match VARIED_DARKS.iter().find(|v| v.0 == k) {
+                    Some(&(_, dark_s, darks_after, after_shutter_s)) => Illumination {
+                        dark_s: Some(dark_s),
+                        darks_after,
+                        after_shutter_s: Some(after_shutter_s),
+                        ..i
+                    },
+                    None => i,
+                })
+                .collect(),
+        }
+    }
+}
+
+impl std::str::FromStr for DarkLengths {
+    type Err = crate::Error;
+    fn from_str(s: &str) -> crate::Result<DarkLengths> {
+        match s {
+            "uniform" => Ok(DarkLengths::Uniform),
+            "varied" => Ok(DarkLengths::Varied),
+            _ => Err(crate::Error::invalid(
+                "--dark-lengths",
+                format!("`{s}`: expected `uniform` or `varied`"),
+            )),
+        }
+    }
+}
+
+impl std::fmt::Display for DarkLengths {
+    /// The name `--dark-lengths` takes.
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            DarkLengths::Uniform => "uniform",
+            DarkLengths::Varied => "varied",
+        })
+    }
+}
+
 /// Laboratory scenario configuration.
 #[derive(Debug, Clone, Serialize)]
 pub struct LabConfig {
@@ -236,7 +334,7 @@ impl Default for LabConfig {
             seed: 1,
             darks: 280,
             dark_s: 180.0,
-            after_shutter_s: 132.0,
+            after_shutter_s: AFTER_SHUTTER_S,
             t_illuminated_s: 481.0,
             temp_k: 80.0,
             campaign: None,
@@ -315,9 +413,8 @@ fn steps(cfg: &LabConfig) -> crate::Result<Vec<Illumination>> {
             format!("must be 4..=8192, got {}", cfg.size),
         ));
     }
-    if cfg.dark_s.partial_cmp(&(3.0 * cfg.detector.frame_time_s)) == Some(std::cmp::Ordering::Less)
-        || cfg.dark_s.is_nan()
-    {
+    let short = |d: f64| !(d >= 3.0 * cfg.detector.frame_time_s && d.is_finite());
+    if short(cfg.dark_s) {
         return Err(crate::Error::invalid("dark_s", "shorter than three frames"));
     }
     let steps = match &cfg.campaign {
@@ -332,6 +429,8 @@ fn steps(cfg: &LabConfig) -> crate::Result<Vec<Illumination>> {
             darks_after: cfg.darks,
             spot_offset: [0.0, 0.0],
             points: false,
+            dark_s: None,
+            after_shutter_s: None,
         }],
     };
     for s in &steps {
@@ -344,6 +443,20 @@ fn steps(cfg: &LabConfig) -> crate::Result<Vec<Illumination>> {
                 "--campaign",
                 "each illumination needs t > 0, flux scale >= 0, temperature > 0, \
                  spot offsets within [-1, 1]",
+            ));
+        }
+        if s.after_shutter_s
+            .is_some_and(|a| !(a >= 0.0 && a.is_finite()))
+        {
+            return Err(crate::Error::invalid(
+                "--campaign",
+                "an illumination's time after the shutter is negative",
+            ));
+        }
+        if s.dark_s.is_some_and(short) {
+            return Err(crate::Error::invalid(
+                "--campaign",
+                "an illumination's dark integrations are shorter than three frames",
             ));
         }
     }
@@ -376,7 +489,7 @@ pub fn run(
     let mut first_dark = true;
     for s in &steps {
         let flux = s.flux(n);
-        let t_exp = s.t_illuminated_s + cfg.after_shutter_s;
+        let t_exp = s.t_illuminated_s + s.after_shutter_s.unwrap_or(cfg.after_shutter_s);
         let temp = temp_at(s.temp_k, t);
         let out = sim.expose(&ExposureSpec {
             index,
@@ -407,19 +520,20 @@ pub fn run(
         })?;
         index += 1;
         t += t_exp;
+        let dark_s = s.dark_s.unwrap_or(cfg.dark_s);
         for _ in 0..s.darks_after {
             let temp = temp_at(s.temp_k, t);
             let out = sim.expose(&ExposureSpec {
                 index,
                 flux: &zero,
-                t_exposure_s: cfg.dark_s,
-                t_on_s: cfg.dark_s,
+                t_exposure_s: dark_s,
+                t_on_s: dark_s,
                 temp_k: temp,
                 write_ramp: first_dark,
             })?;
             sink(SimExposure {
                 exposure: Exposure {
-                    meta: meta(1, index, t0.plus(Seconds(t)), cfg.dark_s, temp, None),
+                    meta: meta(1, index, t0.plus(Seconds(t)), dark_s, temp, None),
                     image: out.image,
                     flags: out.flags,
                     ramp: out.ramp,
@@ -431,7 +545,7 @@ pub fn run(
             })?;
             first_dark = false;
             index += 1;
-            t += cfg.dark_s;
+            t += dark_s;
         }
     }
     Ok(serde_json::json!({
@@ -612,6 +726,93 @@ mod tests {
         let e = validate(&cfg).unwrap_err().to_string();
         assert!(
             e.contains("--campaign") && e.contains("spot offsets"),
+            "{e}"
+        );
+    }
+
+    #[test]
+    fn varied_dark_lengths_change_only_the_darks_of_illuminations_2_and_3() {
+        let centred = Illumination::default_campaign();
+        let varied = DarkLengths::Varied.apply(centred.clone());
+        let gap = |i: &Illumination| i.dark_s.unwrap_or(180.0) * i.darks_after as f64;
+        for (k, (v, c)) in varied.iter().zip(&centred).enumerate() {
+            assert_eq!(
+                Illumination {
+                    dark_s: None,
+                    darks_after: c.darks_after,
+                    after_shutter_s: None,
+                    ..v.clone()
+                },
+                *c,
+                "{k}"
+            );
+            match k {
+                1 => assert_eq!(
+                    (v.dark_s, gap(v), v.after_shutter_s),
+                    (Some(60.0), gap(c), Some(132.0))
+                ),
+                2 => assert_eq!(
+                    (v.dark_s, v.darks_after, v.after_shutter_s),
+                    (Some(540.0), 10, Some(12.0))
+                ),
+                _ => assert_eq!(v, c),
+            }
+        }
+        assert_eq!(DarkLengths::Uniform.apply(centred.clone()), centred);
+        // the exposures carry the lengths, and time runs on by them
+        let cfg = LabConfig {
+            size: 8,
+            campaign: Some(varied),
+            ..LabConfig::default()
+        };
+        let mut seen = Vec::new();
+        run(&cfg, |e| {
+            seen.push((
+                e.kind.clone(),
+                e.exposure.meta.t_exposure_s,
+                e.exposure.meta.t_start,
+            ));
+            Ok(())
+        })
+        .unwrap();
+        let darks_of = |k: usize| {
+            let ill: Vec<usize> = (0..seen.len())
+                .filter(|&i| seen[i].0 == "illuminated")
+                .collect();
+            let end = ill.get(k + 1).copied().unwrap_or(seen.len());
+            seen[ill[k] + 1..end]
+                .iter()
+                .map(|e| e.1)
+                .collect::<Vec<f64>>()
+        };
+        assert_eq!(darks_of(0), vec![180.0; 20]);
+        assert_eq!(darks_of(1), vec![60.0; 30]);
+        assert_eq!(darks_of(2), vec![540.0; 10]);
+        // illumination 3's integration ends 12 s after its shutter
+        let ill: Vec<f64> = seen
+            .iter()
+            .filter(|e| e.0 == "illuminated")
+            .map(|e| e.1)
+            .collect();
+        assert_eq!(ill, vec![613.0, 372.0, 252.0, 252.0, 613.0]);
+        for w in seen.windows(2) {
+            let dt = w[1].2 .0 - w[0].2 .0;
+            assert!((dt - w[0].1).abs() < 1e-6, "{dt} vs {}", w[0].1);
+        }
+    }
+
+    #[test]
+    fn a_dark_shorter_than_three_frames_is_refused() {
+        let mut c = Illumination::default_campaign();
+        c[3].dark_s = Some(2.0);
+        let cfg = LabConfig {
+            size: 8,
+            campaign: Some(c),
+            ..LabConfig::default()
+        };
+        let e = validate(&cfg).unwrap_err().to_string();
+        assert!(
+            e.contains("--campaign") && e.contains("three frames"),
             "{e}"
         );
     }
