@@ -536,6 +536,12 @@ pub struct DiagnoseArgs {
     /// held-out check) or `candidate` (its parameters only).
     #[arg(long, default_value_t = Refit::default(), value_parser = parse_flag::<Refit>)]
     pub refit: Refit,
+    /// When no effect is significant alone, refit the leading candidate together with
+    /// each other library effect and gate the best pair as one candidate (two effects
+    /// that interact, so that neither alone accounts for the residual;
+    /// `persist::diag::diagnose`, "Joint check"). Adds up to seven refits.
+    #[arg(long)]
+    pub joint: bool,
 }
 
 #[derive(Subcommand, Debug)]
@@ -958,6 +964,7 @@ fn diagnose(a: &DiagnoseArgs) -> persist::Result<ExitCode> {
         cells: a.cells.cells,
         cell_statistic: a.cells.cell_statistic,
         refit: a.refit,
+        joint: a.joint,
     };
     let s = persist::diag::diagnose::run(&a.input, &a.model, a.json.as_deref(), &cfg)?;
     out!("{s}");

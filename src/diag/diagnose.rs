@@ -104,6 +104,21 @@
 //!
 //! The ranking lists significant effects first (most negative `delta_BIC` first), then
 //! the rest by score; `score_rank` keeps the order by score alone.
+//!
+//! # Joint check (`--joint`, off by default)
+//! Two hidden effects can interact so that neither alone accounts for the residual:
+//! the simulator's `soak` and `temperature` nearly cancel in its 82 K illumination
+//! (examples/truth_ratios), and then the leading candidate's refit fails its gates
+//! while the other effect scores nothing. With `--joint`, when no candidate is
+//! significant alone, the leading candidate by score (the first refitted) is refitted
+//! with each other library effect in turn, as in the single refits (same cells, same
+//! `--refit`). Each pair gets `delta_BIC` against the model (both effects' parameters
+//! counted) and against the leader alone (the partner's counted). The pair with the
+//! lowest `delta_BIC` is held out (both effects fitted on one half of the events) when
+//! both BIC changes are below [`DBIC_MAX`]; it is significant when its held-out gain is
+//! at least [`HELD_OUT_MIN_GAIN`]. The verdict then names both and the command that
+//! adds them. The pair is one candidate, tested once: no bootstrap covers it, which is
+//! why it is asked for, not run by default.
 
 use super::data::{noisy_quantile, quantile, Sequence};
 use super::eval::{self, Samples};
@@ -232,6 +247,9 @@ pub struct Config {
     pub cell_statistic: eval::CellStatistic,
     /// What the refits and the held-out check free.
     pub refit: Refit,
+    /// Run the joint check when no candidate is significant alone (module docs,
+    /// "Joint check"; `persist diagnose --joint`).
+    pub joint: bool,
 }
 
 impl Default for Config {
@@ -244,6 +262,7 @@ impl Default for Config {
             cells: eval::Cells::default(),
             cell_statistic: eval::CellStatistic::default(),
             refit: Refit::default(),
+            joint: false,
         }
     }
 }
@@ -279,30 +298,40 @@ fn refit_own(
     Ok(crate::calib::effects::fit(params, own, seq, samples)?.0)
 }
 
-/// `base` (the model, its own effects refitted as [`Refit`] says) with candidate
-/// `name` fitted on `samples` together with `own`; `start` holds the candidate at the
-/// values to start from (else its defaults).
+/// `base` (the model, its own effects refitted as [`Refit`] says) with the candidate
+/// effects `names` (one, or a pair in the joint check) fitted on `samples` together
+/// with `own`; `start` holds the candidates at the values to start from (else their
+/// defaults).
 fn fit_candidate(
     base: &ModelParams,
     own: &[String],
     start: Option<&ModelParams>,
-    name: &str,
+    names: &[&str],
     seq: &Sequence,
     samples: &Samples,
 ) -> Result<(ModelParams, crate::calib::effects::EffectFit)> {
     let mut m = base.clone();
-    if let Some(e) = start.and_then(|s| s.effects.iter().find(|e| e.name == name)) {
-        // `base`'s knots were calibrated without the candidate: rescale them for it at
-        // its start values, as the fit does for every value it tries
+    let started: Vec<_> = start
+        .map(|s| {
+            s.effects
+                .iter()
+                .filter(|e| names.contains(&e.name.as_str()))
+                .cloned()
+                .collect()
+        })
+        .unwrap_or_default();
+    if !started.is_empty() {
+        // `base`'s knots were calibrated without the candidates: rescale them for
+        // their start values, as the fit does for every value it tries
         let from = crate::calib::knots::scale_of(base, seq)?;
-        m.effects.push(e.clone());
+        m.effects.extend(started);
         if let Some((s_from, ramp)) = from {
             crate::calib::knots::rescale(&s_from, &mut m, &ramp)?;
         }
     }
-    let mut names = own.to_vec();
-    names.push(name.to_string());
-    crate::calib::effects::fit(&m, &names, seq, samples)
+    let mut all = own.to_vec();
+    all.extend(names.iter().map(|n| n.to_string()));
+    crate::calib::effects::fit(&m, &all, seq, samples)
 }
 
 /// The `persist fit` command that adds effect `name` to the model at `model_path`: its
@@ -313,15 +342,21 @@ fn fit_command(
     input: &Path,
     model_path: &Path,
     params: &ModelParams,
-    name: &str,
+    names: &[&str],
     cfg: &Config,
 ) -> String {
     let mut s = format!(
-        "persist fit --input {} --out {}+{name}.json",
+        "persist fit --input {} --out {}+{}.json",
         input.display(),
-        model_path.with_extension("").display()
+        model_path.with_extension("").display(),
+        names.join("+")
     );
-    for e in params.effects.iter().map(|e| e.name.as_str()).chain([name]) {
+    for e in params
+        .effects
+        .iter()
+        .map(|e| e.name.as_str())
+        .chain(names.iter().copied())
+    {
         s += &format!(" --with {e}");
     }
     // `fit`'s defaults are the library's (src/cli.rs takes them from there)
@@ -381,6 +416,24 @@ pub struct Candidate {
     pub command: String,
 }
 
+/// A pair of library effects refitted together (module docs, "Joint check").
+#[derive(Debug, Clone, Serialize)]
+pub struct Joint {
+    /// The leading candidate by score, then its partner.
+    pub effects: [String; 2],
+    /// Against the model (its own effects refitted alone), both effects' parameters
+    /// counted.
+    pub delta_bic: f64,
+    /// Against the leader refitted alone, the partner's parameters counted.
+    pub delta_bic_over_leader: f64,
+    pub rms_before: f64,
+    pub rms_after: f64,
+    /// Run for the pair with the lowest `delta_bic` when both BIC gates pass.
+    pub held_out: Option<HeldOut>,
+    pub significant: bool,
+    pub command: String,
+}
+
 #[derive(Debug, Clone, Serialize)]
 pub struct Diagnosis {
     pub statistic: Statistic,
@@ -408,6 +461,10 @@ pub struct Diagnosis {
     /// With per-illumination cells: the exposure index of each one's illumination.
     #[serde(skip_serializing_if = "Vec::is_empty")]
     pub largest_residual_illuminations: Vec<u64>,
+    /// The joint check, when no candidate is significant alone and one was refitted:
+    /// every pair tried, lowest `delta_bic` first (module docs, "Joint check").
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub joint: Vec<Joint>,
     pub verdict: String,
     /// What limits the diagnosis of this model (empty when nothing is known to).
     pub cautions: Vec<String>,
@@ -612,7 +669,8 @@ fn scores(c: &Cells, y: &[f64], steps: &Steps, dirs: &[Option<f64>], st: Statist
         .collect()
 }
 
-/// Held-out check of effect `name` (module docs); None with fewer than 2 events.
+/// Held-out check of the effects `names` (one candidate, or a pair in the joint check;
+/// module docs); None with fewer than 2 events.
 /// `start`: a model holding the effect at the values to start the fits from (the
 /// full refit), else its defaults. `base_current`: `params`' prediction at `samples`
 /// (early release off, [`eval::predict`]), which the test halves' "before" reuse when
@@ -622,7 +680,7 @@ pub fn held_out(
     params: &ModelParams,
     base_current: &[f64],
     start: Option<&ModelParams>,
-    name: &str,
+    names: &[&str],
     seq: &Sequence,
     samples: &Samples,
     refit: Refit,
@@ -649,8 +707,9 @@ pub fn held_out(
         let test_rows = samples.row_indices(|e| test_ev.contains(&e));
         let ts = samples.rows(&test_rows);
         let (fitted, before) = if own.is_empty() {
+            let names: Vec<String> = names.iter().map(|n| n.to_string()).collect();
             let (fitted, _) =
-                crate::calib::effects::fit(start.unwrap_or(params), &[name.to_string()], seq, &fs)?;
+                crate::calib::effects::fit(start.unwrap_or(params), &names, seq, &fs)?;
             // `params`' own prediction of the test rows: already computed, not run again
             let before = eval::cell_z(&ts, &samples.rows_of(base_current, &test_rows));
             (fitted, before)
@@ -658,7 +717,7 @@ pub fn held_out(
             // the model's own effects refitted on the fit half's samples, alone and
             // with the candidate (both fits start from values fitted on all samples)
             let base = refit_own(params, &own, seq, &fs)?;
-            let (fitted, _) = fit_candidate(&base, &own, start, name, seq, &fs)?;
+            let (fitted, _) = fit_candidate(&base, &own, start, names, seq, &fs)?;
             let before = eval::cell_z(&ts, &eval::predict(&base, seq, &ts, false)?.current);
             (fitted, before)
         };
@@ -899,7 +958,7 @@ pub fn diagnose(
                 held_out: None,
                 significant: false,
                 covariate: def.covariate.into(),
-                command: fit_command(input, model_path, params, name, cfg),
+                command: fit_command(input, model_path, params, &[name], cfg),
             }
         })
         .collect();
@@ -919,11 +978,11 @@ pub fn diagnose(
     } else {
         refit_own(params, &own, seq, &samples)?
     };
-    let results: Vec<(usize, f64, f64, f64, Option<HeldOut>)> = refit
+    let results: Vec<(usize, f64, f64, f64, Option<HeldOut>, f64)> = refit
         .par_iter()
         .map(|&i| {
             let name = &ranking[i].effect;
-            let (fitted, f) = fit_candidate(&own_refit, &own, None, name, seq, &samples)?;
+            let (fitted, f) = fit_candidate(&own_refit, &own, None, &[name], seq, &samples)?;
             let (rss0, rss1) = f.rss_before_after();
             // the candidate's parameters are the ones added
             let k = f.params.iter().filter(|p| &p.effect == name).count();
@@ -933,7 +992,7 @@ pub fn diagnose(
                     params,
                     &base.current,
                     Some(&fitted),
-                    name,
+                    &[name],
                     seq,
                     &samples,
                     cfg.refit,
@@ -947,10 +1006,12 @@ pub fn diagnose(
                 f.residual_rms_normalised_before,
                 f.residual_rms_normalised_after,
                 ho,
+                rss1,
             ))
         })
         .collect::<Result<_>>()?;
-    for (i, dbic, before, after, ho) in results {
+    let leader_rss = results.first().map(|r| r.5);
+    for (i, dbic, before, after, ho, _) in results {
         let c = &mut ranking[i];
         c.delta_bic = Some(dbic);
         c.rms_before = Some(before);
@@ -958,6 +1019,28 @@ pub fn diagnose(
         c.significant = dbic < DBIC_MAX && ho.as_ref().is_none_or(|h| h.passes);
         c.held_out = ho;
     }
+    // no candidate alone (and asked): the leader refitted with each other library effect
+    let joint = match (refit.first(), leader_rss) {
+        (Some(&lead), Some(lead_rss)) if cfg.joint && !ranking.iter().any(|c| c.significant) => {
+            joint_check(
+                &JointInput {
+                    params,
+                    base_current: &base.current,
+                    own_refit: &own_refit,
+                    own: &own,
+                    seq,
+                    samples: &samples,
+                    cfg,
+                    input,
+                    model_path,
+                },
+                &ranking[lead].effect,
+                lead_rss,
+                &names,
+            )?
+        }
+        _ => Vec::new(),
+    };
     ranking.sort_by(|a, b| match (a.significant, b.significant) {
         (true, true) => a
             .delta_bic
@@ -988,6 +1071,22 @@ pub fn diagnose(
         e.len()
     };
     let verdict = match ranking.iter().find(|c| c.significant) {
+        None if joint.first().is_some_and(|j| j.significant) => {
+            let j = &joint[0];
+            format!(
+                "no library effect is significant alone, but {} and {} are together \
+                 (dBIC {:.1} against the model, {:.1} against {} alone; held-out gain {:.2}): \
+                 neither accounts for the residual without the other, so they act \
+                 together; add both with: {}",
+                j.effects[0],
+                j.effects[1],
+                j.delta_bic,
+                j.delta_bic_over_leader,
+                j.effects[0],
+                j.held_out.as_ref().map_or(f64::NAN, |h| h.gain),
+                j.command
+            )
+        }
         Some(c) => format!(
             "missing effect: {} (the evidence is in the residual against {}{}); add it with: {}",
             c.effect,
@@ -1040,9 +1139,79 @@ pub fn diagnose(
         largest_residuals: largest.iter().map(|(_, g)| *g).collect(),
         largest_residual_cells: where_cells,
         largest_residual_illuminations: where_illuminations,
+        joint,
         verdict,
         cautions: cautions(params),
     })
+}
+
+/// What the joint check shares with the single refits.
+struct JointInput<'a> {
+    params: &'a ModelParams,
+    base_current: &'a [f64],
+    own_refit: &'a ModelParams,
+    own: &'a [String],
+    seq: &'a Sequence,
+    samples: &'a Samples,
+    cfg: &'a Config,
+    input: &'a Path,
+    model_path: &'a Path,
+}
+
+/// The joint check (module docs, "Joint check"): `leader` (the top-scored candidate,
+/// refitted alone to `leader_rss`) refitted with each other effect of `names`; the
+/// pairs sorted by their change in BIC, the best one held out.
+fn joint_check(
+    j: &JointInput<'_>,
+    leader: &str,
+    leader_rss: f64,
+    names: &[&'static str],
+) -> Result<Vec<Joint>> {
+    let partners: Vec<&str> = names.iter().copied().filter(|n| *n != leader).collect();
+    let mut fits: Vec<(Joint, ModelParams)> = partners
+        .par_iter()
+        .map(|&other| {
+            let pair = [leader, other];
+            let (fitted, f) = fit_candidate(j.own_refit, j.own, None, &pair, j.seq, j.samples)?;
+            let (rss0, rss1) = f.rss_before_after();
+            let k_pair = f
+                .params
+                .iter()
+                .filter(|p| pair.contains(&p.effect.as_str()))
+                .count();
+            let k_other = f.params.iter().filter(|p| p.effect == other).count();
+            Ok((
+                Joint {
+                    effects: [leader.to_string(), other.to_string()],
+                    delta_bic: delta_bic(rss0, rss1, k_pair, f.cells),
+                    delta_bic_over_leader: delta_bic(leader_rss, rss1, k_other, f.cells),
+                    rms_before: f.residual_rms_normalised_before,
+                    rms_after: f.residual_rms_normalised_after,
+                    held_out: None,
+                    significant: false,
+                    command: fit_command(j.input, j.model_path, j.params, &pair, j.cfg),
+                },
+                fitted,
+            ))
+        })
+        .collect::<Result<_>>()?;
+    fits.sort_by(|a, b| a.0.delta_bic.total_cmp(&b.0.delta_bic));
+    if let Some((best, fitted)) = fits.first_mut() {
+        if best.delta_bic < DBIC_MAX && best.delta_bic_over_leader < DBIC_MAX {
+            let pair = [best.effects[0].as_str(), best.effects[1].as_str()];
+            best.held_out = held_out(
+                j.params,
+                j.base_current,
+                Some(fitted),
+                &pair,
+                j.seq,
+                j.samples,
+                j.cfg.refit,
+            )?;
+            best.significant = best.held_out.as_ref().is_none_or(|h| h.passes);
+        }
+    }
+    Ok(fits.into_iter().map(|(joint, _)| joint).collect())
 }
 
 /// What is known to limit a diagnosis against `params`.
@@ -1136,6 +1305,22 @@ pub fn render(d: &Diagnosis) -> String {
             c.covariate,
             if c.significant { "  SIGNIFICANT" } else { "" }
         );
+    }
+    if !d.joint.is_empty() {
+        s += "joint check (no effect significant alone; the leader refitted with each other):\n";
+        for j in &d.joint {
+            s += &format!(
+                "{:<32} {:>9.1} {:>9.1} {:>15} {:>9}{}\n",
+                format!("{} + {}", j.effects[0], j.effects[1]),
+                j.delta_bic,
+                j.delta_bic_over_leader,
+                format!("{:.2}->{:.2}", j.rms_before, j.rms_after),
+                j.held_out
+                    .as_ref()
+                    .map_or("-".into(), |h| format!("{:+.0}%", -100.0 * h.gain)),
+                if j.significant { "  SIGNIFICANT" } else { "" }
+            );
+        }
     }
     s += &d.verdict;
     for c in &d.cautions {
@@ -1309,7 +1494,7 @@ mod tests {
             params: serde_json::Map::new(),
         });
         let cmd =
-            |cfg: &Config| fit_command(Path::new("lab"), Path::new("m.json"), &p, "soak", cfg);
+            |cfg: &Config| fit_command(Path::new("lab"), Path::new("m.json"), &p, &["soak"], cfg);
         let base = "persist fit --input lab --out m+soak.json --with refill --with soak";
         assert_eq!(
             (Config::default().cells, Config::default().cell_statistic),
@@ -1330,6 +1515,18 @@ mod tests {
             ..Config::default()
         };
         assert_eq!(cmd(&cfg), format!("{base} --cell-statistic levels"));
+        // the joint check's pair: both effects, after the model's own
+        assert_eq!(
+            fit_command(
+                Path::new("lab"),
+                Path::new("m.json"),
+                &p,
+                &["temperature", "soak"],
+                &Config::default()
+            ),
+            "persist fit --input lab --out m+temperature+soak.json --with refill \
+             --with temperature --with soak"
+        );
     }
 
     /// `--refit full` frees the model's own effects that have fitted parameters (with
