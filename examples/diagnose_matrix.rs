@@ -20,7 +20,8 @@
 //! `--spots centred|shifted|pinholes` (the campaign, `persist simulate lab --campaign --spots`),
 //! `--dark-lengths uniform|varied` (`persist simulate lab --campaign --dark-lengths`),
 //! `--first-seed S` (default 1: the seeds are S, S+1, ...),
-//! `--skip-baseline`, `--skip-single`, `--skip-pair`.
+//! `--skip-baseline`, `--skip-single`, `--skip-pair`, `--joint` (`persist diagnose --joint`;
+//! the pair table then shows round 1's joint check when nothing is declared alone).
 //!
 //! Per scenario, as the CLI would do it: the reference model (`fit`, the paper's
 //! calibration, or `fit --with a --with b` with `--reference a,b`: the reference effects'
@@ -298,6 +299,7 @@ fn main() {
     if let Some(v) = arg(&args, "--refit") {
         cfg.refit = v.parse().unwrap();
     }
+    cfg.joint = args.iter().any(|a| a == "--joint");
     let skip = |f: &str| args.iter().any(|a| a == f);
     let mut md = String::new();
     let mut jl = String::new();
@@ -498,10 +500,25 @@ fn main() {
                 (Some(a), Some(b)) => pair.contains(a) && pair.contains(b) && a != b,
                 _ => false,
             };
+            // with --joint and nothing declared alone: round 1's joint check
+            let w1_label = match d1.joint.first() {
+                Some(j) if w1.is_none() => format!(
+                    "nothing; joint: {} + {} (dBIC {:.1}, over the leader {:.1}, held-out gain {}){}",
+                    j.effects[0],
+                    j.effects[1],
+                    j.delta_bic,
+                    j.delta_bic_over_leader,
+                    j.held_out
+                        .as_ref()
+                        .map_or("-".into(), |h| format!("{:.2}", h.gain)),
+                    if j.significant { ", significant" } else { "" }
+                ),
+                _ => w1.clone().unwrap_or_else(|| "nothing".into()),
+            };
             writeln!(
                 md,
                 "| {seed} | {} | {} | {r0:.2} -> {r1:.2} -> {r2:.2} | {} | {both} |",
-                w1.clone().unwrap_or_else(|| "nothing".into()),
+                w1_label,
                 w2.clone().unwrap_or_else(|| "nothing".into()),
                 r1 < r0 && r2 < r1,
             )
