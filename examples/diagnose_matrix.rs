@@ -111,6 +111,18 @@ struct Reference {
 }
 
 impl Reference {
+    /// This reference with `effect` added to its effects (a later round's reference).
+    fn with(&self, effect: &str) -> Reference {
+        let mut effects = self.effects.clone();
+        effects.push(effect.to_string());
+        Reference {
+            effects,
+            fit_cn: self.fit_cn,
+            fit_amplification: self.fit_amplification,
+            calib: self.calib.clone(),
+        }
+    }
+
     fn free(&self) -> ceffects::Free {
         ceffects::Free {
             c_n: self.fit_cn,
@@ -196,13 +208,13 @@ fn main() {
     let dark_lengths: lab::DarkLengths =
         arg(&args, "--dark-lengths").map_or(lab::DarkLengths::default(), |v| v.parse().unwrap());
     let campaign = dark_lengths.apply(spots.campaign());
-    let mut spots = if spots == lab::Spots::default() {
-        String::new()
-    } else {
-        format!(" --spots {spots}")
-    };
+    // the campaign's `persist simulate lab` flags beyond `--campaign`
+    let mut campaign_flags = String::new();
+    if spots != lab::Spots::default() {
+        campaign_flags += &format!(" --spots {spots}");
+    }
     if dark_lengths != lab::DarkLengths::default() {
-        spots += &format!(" --dark-lengths {dark_lengths}");
+        campaign_flags += &format!(" --dark-lengths {dark_lengths}");
     }
     let out = arg(&args, "--out").unwrap_or_else(|| "docs/diagnose_matrix.md".into());
     let effects_arg = arg(&args, "--effects");
@@ -307,7 +319,7 @@ fn main() {
     writeln!(
         md,
         "Command: `cargo run --release --example diagnose_matrix -- {cmdline}`\n\n\
-         Laboratory campaign (`persist simulate lab --campaign{spots}`), {size} x {size} pixels; \
+         Laboratory campaign (`persist simulate lab --campaign{campaign_flags}`), {size} x {size} pixels; \
          **reference model: {ref_label}**; diagnose: \
          statistic {:?}, {} random pixels, {} bootstrap replicas, refit {:?}; refit and flag \
          quality on the stride-2 sample of `persist fit`/`compare`.\n",
@@ -472,15 +484,7 @@ fn main() {
                 let d2 = diagnose_with(&m1, &sim.seq, seed, &cfg);
                 w2 = declared_first(&d2);
                 if let Some(v) = &w2 {
-                    let mut names2 = reference.effects.clone();
-                    names2.push(w.clone());
-                    let ref2 = Reference {
-                        effects: names2,
-                        fit_cn: reference.fit_cn,
-                        fit_amplification: reference.fit_amplification,
-                        calib: reference.calib.clone(),
-                    };
-                    let m2 = fit_with(&m1, &ref2, v, &sim.seq, &s2);
+                    let m2 = fit_with(&m1, &reference.with(w), v, &sim.seq, &s2);
                     r2 = quality(&m2, &sim.seq, &s2, None).rms;
                 }
                 writeln!(
@@ -493,14 +497,7 @@ fn main() {
             // --joint: a significant pair in round 1 is added in one `fit --with` both
             let joint = d1.joint.first().filter(|j| w1.is_none() && j.significant);
             if let Some(j) = joint {
-                let mut names1 = reference.effects.clone();
-                names1.push(j.effects[0].clone());
-                let ref1 = Reference {
-                    effects: names1,
-                    fit_cn: reference.fit_cn,
-                    fit_amplification: reference.fit_amplification,
-                    calib: reference.calib.clone(),
-                };
+                let ref1 = reference.with(&j.effects[0]);
                 let m1 = fit_with(&m0, &ref1, &j.effects[1], &sim.seq, &s2);
                 r1 = quality(&m1, &sim.seq, &s2, None).rms;
             }

@@ -978,7 +978,7 @@ pub fn diagnose(
     } else {
         refit_own(params, &own, seq, &samples)?
     };
-    let results: Vec<(usize, f64, f64, f64, Option<HeldOut>, f64)> = refit
+    let results: Vec<Refitted> = refit
         .par_iter()
         .map(|&i| {
             let name = &ranking[i].effect;
@@ -1000,28 +1000,29 @@ pub fn diagnose(
             } else {
                 None
             };
-            Ok((
-                i,
-                dbic,
-                f.residual_rms_normalised_before,
-                f.residual_rms_normalised_after,
-                ho,
-                rss1,
-            ))
+            Ok(Refitted {
+                rank: i,
+                delta_bic: dbic,
+                rms_before: f.residual_rms_normalised_before,
+                rms_after: f.residual_rms_normalised_after,
+                held_out: ho,
+                rss_after: rss1,
+            })
         })
         .collect::<Result<_>>()?;
-    let leader_rss = results.first().map(|r| r.5);
-    for (i, dbic, before, after, ho, _) in results {
-        let c = &mut ranking[i];
-        c.delta_bic = Some(dbic);
-        c.rms_before = Some(before);
-        c.rms_after = Some(after);
-        c.significant = dbic < DBIC_MAX && ho.as_ref().is_none_or(|h| h.passes);
-        c.held_out = ho;
+    // the leader: the first refitted (`refit` is in score order, `results` in its order)
+    let leader = results.first().map(|r| (r.rank, r.rss_after));
+    for r in results {
+        let c = &mut ranking[r.rank];
+        c.delta_bic = Some(r.delta_bic);
+        c.rms_before = Some(r.rms_before);
+        c.rms_after = Some(r.rms_after);
+        c.significant = r.delta_bic < DBIC_MAX && r.held_out.as_ref().is_none_or(|h| h.passes);
+        c.held_out = r.held_out;
     }
     // no candidate alone (and asked): the leader refitted with each other library effect
-    let joint = match (refit.first(), leader_rss) {
-        (Some(&lead), Some(lead_rss)) if cfg.joint && !ranking.iter().any(|c| c.significant) => {
+    let joint = match leader {
+        Some((lead, lead_rss)) if cfg.joint && !ranking.iter().any(|c| c.significant) => {
             joint_check(
                 &JointInput {
                     params,
@@ -1143,6 +1144,18 @@ pub fn diagnose(
         verdict,
         cautions: cautions(params),
     })
+}
+
+/// One candidate's refit: its place in the ranking (by score) and what the refit gave.
+struct Refitted {
+    rank: usize,
+    delta_bic: f64,
+    rms_before: f64,
+    rms_after: f64,
+    held_out: Option<HeldOut>,
+    /// Its sum of squared normalised residuals after the fit (the joint check's
+    /// baseline for the leader).
+    rss_after: f64,
 }
 
 /// What the joint check shares with the single refits.

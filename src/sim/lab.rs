@@ -248,15 +248,36 @@ pub enum DarkLengths {
     /// Every dark integration lasts the configuration's `dark_s` (180 s).
     #[default]
     Uniform,
-    /// Illumination 2's darks last 60 s and its repeat's (3) 540 s
-    /// ([`DarkLengths::apply`]).
+    /// Illumination 2's darks last 60 s; its repeat's (3) 540 s, after a reset 12 s
+    /// after the shutter ([`VARIED_DARKS`]).
     Varied,
 }
 
-/// `--dark-lengths varied`: (illumination index, dark length in s, darks after), chosen so
-/// that illumination 2's gap keeps its 30 minutes.
-const VARIED_DARKS: [(usize, f64, usize, f64); 2] =
-    [(1, 60.0, 30, AFTER_SHUTTER_S), (2, 540.0, 10, 12.0)];
+/// The darks `--dark-lengths varied` gives one illumination.
+struct VariedDarks {
+    /// Index of the illumination in the campaign (0 is the calibration's).
+    illumination: usize,
+    dark_s: f64,
+    darks_after: usize,
+    after_shutter_s: f64,
+}
+
+/// `--dark-lengths varied` (module docs, "Dark lengths"); illumination 2 keeps its 30
+/// minute gap.
+const VARIED_DARKS: [VariedDarks; 2] = [
+    VariedDarks {
+        illumination: 1,
+        dark_s: 60.0,
+        darks_after: 30,
+        after_shutter_s: AFTER_SHUTTER_S,
+    },
+    VariedDarks {
+        illumination: 2,
+        dark_s: 540.0,
+        darks_after: 10,
+        after_shutter_s: 12.0,
+    },
+];
 
 /// The paper's time from the shutter closing to the reset, 613 - 481 s.
 const AFTER_SHUTTER_S: f64 = 132.0;
@@ -270,15 +291,17 @@ impl DarkLengths {
             DarkLengths::Varied => campaign
                 .into_iter()
                 .enumerate()
-                .map(|(k, i)| match VARIED_DARKS.iter().find(|v| v.0 == k) {
-                    Some(&(_, dark_s, darks_after, after_shutter_s)) => Illumination {
-                        dark_s: Some(dark_s),
-                        darks_after,
-                        after_shutter_s: Some(after_shutter_s),
-                        ..i
+                .map(
+                    |(k, i)| match VARIED_DARKS.iter().find(|v| v.illumination == k) {
+                        Some(v) => Illumination {
+                            dark_s: Some(v.dark_s),
+                            darks_after: v.darks_after,
+                            after_shutter_s: Some(v.after_shutter_s),
+                            ..i
+                        },
+                        None => i,
                     },
-                    None => i,
-                })
+                )
                 .collect(),
         }
     }
