@@ -14,9 +14,10 @@
 //! `--reference-fit-cn` (the reference also fits the `C_n`, `persist fit --fit-cn`; then
 //! every `fit --with` of the matrix refits them jointly too, from the reference's),
 //! `--reference-fit-amplification`, `--amplification A`, `--rates-per-s r1,r2,...`,
-//! `--t-min-s T`, `--cells pooled|illumination|neighbours`, `--cell-statistic levels|paired` (the
+//! `--t-min-s T`, `--decay-offset-s T0`, `--cells pooled|illumination|neighbours`, `--cell-statistic levels|paired` (the
 //! reference's `persist fit` options, also used by every fit and diagnosis of the
-//! matrix), `--refit candidate|full` (`persist diagnose --refit`),
+//! matrix; a reference effect `NAME:param=value,...` pins those parameters, as `persist
+//! fit --with` does), `--refit candidate|full` (`persist diagnose --refit`),
 //! `--spots centred|shifted|pinholes` (the campaign, `persist simulate lab --campaign --spots`),
 //! `--dark-lengths uniform|varied` (`persist simulate lab --campaign --dark-lengths`),
 //! `--first-seed S` (default 1: the seeds are S, S+1, ...),
@@ -30,7 +31,9 @@
 //! `persist fit`) -> residual RMS and flag quality at 0.1 e-/s before and after. Missed-flag fraction: `compare`'s
 //! (missed samples / all samples) and relative to the samples the effect touches: those
 //! where the true persistence current of the run with the effect differs from the run
-//! without it (same seed) by more than 10 % or 0.01 e-/s, whichever is larger.
+//! without it (same seed) by more than 10 % or 0.01 e-/s, whichever is larger (for an
+//! effect of the readout alone, `linefit_bias`, whose true current is the same, the
+//! measured current).
 
 use persist::calib::{self, effects as ceffects, CalibConfig};
 use persist::diag::data::Sequence;
@@ -94,7 +97,17 @@ fn quality(p: &ModelParams, seq: &Sequence, s: &Samples, touched: Option<&[bool]
     }
 }
 
+/// The samples the hidden effect touches ([`eval::touched_samples`]): by the true
+/// persistence current; for an effect that changes only the readout (the two runs'
+/// truths are equal: `linefit_bias`), by the measured current (the same seed draws the
+/// same noise).
 fn touched(s: &Samples, with: &Sim, without: &Sim) -> Vec<bool> {
+    if with.truth == without.truth {
+        let measured = |x: &Sim| -> Vec<ndarray::Array2<f32>> {
+            x.seq.exposures.iter().map(|e| e.image.clone()).collect()
+        };
+        return eval::touched_samples(s, &measured(with), &measured(without));
+    }
     eval::touched_samples(s, &with.truth, &without.truth)
 }
 
@@ -143,6 +156,23 @@ fn reference_model(seq: &Sequence, reference: &Reference) -> ModelParams {
     ceffects::fit_with(&m0, &reference.effects, reference.free(), seq, &s2)
         .expect("fit reference")
         .0
+}
+
+/// `--reference a,b:p=v,q=w,c`: the effects, each as `persist fit --with` takes it (a
+/// `NAME:param=value,...` pins those parameters); a piece with `=` and no `:` continues
+/// the previous effect's list.
+fn reference_effects(v: &str) -> Vec<String> {
+    let mut out: Vec<String> = Vec::new();
+    for piece in v.split(',').filter(|s| !s.is_empty()) {
+        match out.last_mut() {
+            Some(last) if piece.contains('=') && !piece.contains(':') => {
+                last.push(',');
+                last.push_str(piece);
+            }
+            _ => out.push(piece.to_string()),
+        }
+    }
+    out
 }
 
 /// `fit --with` the reference effects and `extra` (jointly, starting from the reference
@@ -229,12 +259,7 @@ fn main() {
         .map(String::from)
         .collect();
     let reference = Reference {
-        effects: arg(&args, "--reference").map_or(Vec::new(), |v| {
-            v.split(',')
-                .filter(|s| !s.is_empty())
-                .map(String::from)
-                .collect()
-        }),
+        effects: arg(&args, "--reference").map_or(Vec::new(), |v| reference_effects(&v)),
         fit_cn: args.iter().any(|a| a == "--reference-fit-cn"),
         fit_amplification: args.iter().any(|a| a == "--reference-fit-amplification"),
         calib: {
@@ -247,6 +272,9 @@ fn main() {
             }
             if let Some(v) = arg(&args, "--t-min-s") {
                 c.t_min_s = v.parse().unwrap();
+            }
+            if let Some(v) = arg(&args, "--decay-offset-s") {
+                c.decay_offset_s = v.parse().unwrap();
             }
             if let Some(v) = arg(&args, "--cells") {
                 c.cells = v.parse().unwrap();
@@ -272,6 +300,10 @@ fn main() {
             reference.calib.rates_per_s.len(),
             reference.calib.t_min_s
         )
+    } else {
+        String::new()
+    } + &if reference.calib.decay_offset_s != default_calib.decay_offset_s {
+        format!(", C_n to 1/(t + {} s)", reference.calib.decay_offset_s)
     } else {
         String::new()
     } + if reference.fit_amplification {

@@ -22,10 +22,8 @@ fn main() {
         let v: f64 = v.parse().unwrap();
         let mut q = m.clone();
         if !q.effects.iter().any(|e| e.name == eff) {
-            q.effects.push(persist::model::params::EffectSpec {
-                name: eff.clone(),
-                params: serde_json::Map::new(),
-            });
+            q.effects
+                .push(persist::model::params::EffectSpec::named(eff.clone()));
         }
         for e in q.effects.iter_mut().filter(|e| e.name == eff) {
             e.params.insert(par.clone(), serde_json::json!(v));

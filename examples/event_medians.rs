@@ -26,10 +26,8 @@ fn main() {
     let m = persist::model_file::load(Path::new(&a[3])).unwrap();
     let (flo, fhi): (f64, f64) = (a[4].parse().unwrap(), a[5].parse().unwrap());
     let mut m1 = m.clone();
-    m1.effects.push(persist::model::params::EffectSpec {
-        name: "temperature".into(),
-        params: serde_json::Map::new(),
-    });
+    m1.effects
+        .push(persist::model::params::EffectSpec::named("temperature"));
     let s = Samples::new(&sa, 2);
     let sbm = Samples::new(&sb, 2);
     let p0 = eval::predict(&m, &sa, &s, false).unwrap().current;

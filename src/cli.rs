@@ -451,6 +451,11 @@ pub struct FitArgs {
     /// Start of the span over which the C_n follow 1/(t+1): the shortest slew, s.
     #[arg(long, default_value_t = 10.0)]
     pub t_min_s: f64,
+    /// The C_n follow 1/(t + T0) with this T0, s (paper: 1). Eq. (logfit)'s fitted tau
+    /// per bin (the report's bins[].logfit.tau_s) is the data's own offset
+    /// (`persist::calib`, "Decay offset").
+    #[arg(long, default_value_t = 1.0)]
+    pub decay_offset_s: f64,
     /// Decay rates 1/tau_n of the terms, 1/s, comma-separated (default: the paper's six,
     /// 0.1,0.0158,0.00251,0.000398,6.31e-5,1e-5).
     #[arg(long, value_delimiter = ',')]
@@ -914,6 +919,7 @@ fn fit(a: &FitArgs) -> persist::Result<ExitCode> {
     let cfg = persist::calib::CalibConfig {
         amplification: a.amplification,
         t_min_s: a.t_min_s,
+        decay_offset_s: a.decay_offset_s,
         cells: a.cells.cells,
         cell_statistic: a.cells.cell_statistic,
         ..Default::default()

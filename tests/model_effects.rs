@@ -7,8 +7,8 @@ use persist::model::{Input, Model, ModelParams, Output, StepContext};
 
 fn spec(name: &str, params: serde_json::Value) -> EffectSpec {
     EffectSpec {
-        name: name.into(),
         params: params.as_object().cloned().unwrap_or_default(),
+        ..EffectSpec::named(name)
     }
 }
 

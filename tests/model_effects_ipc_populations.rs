@@ -21,8 +21,8 @@ const ALPHA: f64 = 0.01;
 
 fn spec(name: &str, params: serde_json::Value) -> EffectSpec {
     EffectSpec {
-        name: name.into(),
         params: params.as_object().cloned().unwrap_or_default(),
+        ..EffectSpec::named(name)
     }
 }
 

@@ -373,6 +373,73 @@ fn scan_start(problem: &mut Problem<'_>) {
 
 /// Add the effects `names` (each `NAME`, defaults as start) to `base` and fit their
 /// fitted parameters. Returns the model and the fit. (`fit_with` freeing nothing else.)
+/// One `--with` argument: `NAME` (the effect's fitted parameters are fitted) or
+/// `NAME:param=value,...` (those parameters set to the values and held there, recorded
+/// in the model file's `fixed`; the others fitted as usual). Errors name the argument
+/// and what is wrong with it: an unknown effect or parameter, or a value that is not a
+/// finite number.
+pub fn parse_with(arg: &str) -> Result<(String, Vec<(String, f64)>)> {
+    let (name, rest) = match arg.split_once(':') {
+        Some((n, r)) => (n.trim(), Some(r)),
+        None => (arg.trim(), None),
+    };
+    let def = effects::lookup(name).ok_or_else(|| {
+        Error::invalid(
+            "--with",
+            format!(
+                "`{arg}`: unknown effect `{name}` (known: {})",
+                effects::names().join(", ")
+            ),
+        )
+    })?;
+    let mut pins = Vec::new();
+    for kv in rest.into_iter().flat_map(|r| r.split(',')) {
+        let (k, v) = kv.split_once('=').ok_or_else(|| {
+            Error::invalid("--with", format!("`{arg}`: `{kv}` is not param=value"))
+        })?;
+        let k = k.trim();
+        if !def.params.iter().any(|p| p.name == k) {
+            return Err(Error::invalid(
+                "--with",
+                format!(
+                    "`{arg}`: `{k}` is not a parameter of `{name}` (its parameters: {})",
+                    def.params
+                        .iter()
+                        .map(|p| p.name)
+                        .collect::<Vec<_>>()
+                        .join(", ")
+                ),
+            ));
+        }
+        let v: f64 = v
+            .trim()
+            .parse()
+            .ok()
+            .filter(|v: &f64| v.is_finite())
+            .ok_or_else(|| {
+                Error::invalid("--with", format!("`{arg}`: `{v}` is not a finite number"))
+            })?;
+        pins.push((k.to_string(), v));
+    }
+    Ok((name.to_string(), pins))
+}
+
+/// The `--with` argument that adds `e` as a model file has it: `NAME`, or
+/// `NAME:param=value,...` with its pinned parameters ([`EffectSpec::fixed`]) at their
+/// values, so that a refit pins them again ([`parse_with`] reads it back).
+pub fn with_arg(e: &EffectSpec) -> String {
+    let pins: Vec<String> = e
+        .fixed
+        .iter()
+        .filter_map(|k| Some(format!("{k}={}", e.params.get(k)?.as_f64()?)))
+        .collect();
+    if pins.is_empty() {
+        e.name.clone()
+    } else {
+        format!("{}:{}", e.name, pins.join(","))
+    }
+}
+
 pub fn fit(
     base: &ModelParams,
     names: &[String],
@@ -395,24 +462,27 @@ pub fn fit_with(
     let fit_cn = free.check()?.c_n;
     let mut m = base.clone();
     let n_base = base.effects.len();
-    for n in names {
-        if m.effects.iter().any(|e| &e.name == n) {
-            continue;
+    let specs = names
+        .iter()
+        .map(|n| parse_with(n))
+        .collect::<Result<Vec<_>>>()?;
+    for (n, pins) in &specs {
+        let i = match m.effects.iter().position(|e| &e.name == n) {
+            Some(i) => i,
+            None => {
+                m.effects.push(EffectSpec::named(n.clone()));
+                m.effects.len() - 1
+            }
+        };
+        let e = &mut m.effects[i];
+        for (k, v) in pins {
+            e.params.insert(k.clone(), serde_json::json!(v));
+            if !e.fixed.contains(k) {
+                e.fixed.push(k.clone());
+            }
         }
-        if effects::lookup(n).is_none() {
-            return Err(Error::invalid(
-                "--with",
-                format!(
-                    "unknown effect `{n}` (known: {})",
-                    effects::names().join(", ")
-                ),
-            ));
-        }
-        m.effects.push(EffectSpec {
-            name: n.clone(),
-            params: serde_json::Map::new(),
-        });
     }
+    let names: Vec<&str> = specs.iter().map(|(n, _)| n.as_str()).collect();
     // fill defaults so every parameter is explicit in the model file
     let mut slots = Vec::new();
     let mut start = Vec::new();
@@ -422,8 +492,8 @@ pub fn fit_with(
         for (k, v) in &vals {
             e.params.insert(k.clone(), serde_json::json!(v));
         }
-        if names.contains(&e.name) {
-            for p in def.params.iter().filter(|p| p.fitted) {
+        if names.contains(&e.name.as_str()) {
+            for p in def.params.iter().filter(|p| e.fits(p)) {
                 slots.push(Slot {
                     target: Target::Effect(i, p.name),
                     lo: p.lo,

@@ -218,8 +218,8 @@ mod tests {
         let mut p = serde_json::Map::new();
         p.insert("factor".into(), serde_json::json!(factor));
         EffectSpec {
-            name: "short_tau_boost".into(),
             params: p,
+            ..EffectSpec::named("short_tau_boost")
         }
     }
 

@@ -278,7 +278,7 @@ fn own_effects(params: &ModelParams, refit: Refit) -> Vec<String> {
         .iter()
         .filter(|e| {
             crate::model::effects::lookup(&e.name)
-                .is_some_and(|d| d.params.iter().any(|p| p.fitted))
+                .is_some_and(|d| d.params.iter().any(|p| e.fits(p)))
         })
         .map(|e| e.name.clone())
         .collect()
@@ -354,8 +354,8 @@ fn fit_command(
     for e in params
         .effects
         .iter()
-        .map(|e| e.name.as_str())
-        .chain(names.iter().copied())
+        .map(crate::calib::effects::with_arg)
+        .chain(names.iter().map(|n| n.to_string()))
     {
         s += &format!(" --with {e}");
     }
@@ -883,8 +883,8 @@ pub fn diagnose(
             let mut map = serde_json::Map::new();
             map.insert(p.name.into(), serde_json::json!(null + h));
             q.effects.push(EffectSpec {
-                name: def.name.into(),
                 params: map,
+                ..EffectSpec::named(def.name)
             });
             if let Some((s_from, r)) = &calib_ramp {
                 crate::calib::knots::rescale(s_from, &mut q, r)?;
@@ -1502,10 +1502,7 @@ mod tests {
     #[test]
     fn the_suggested_fit_keeps_the_model_s_effects_and_cells() {
         let mut p = ModelParams::default();
-        p.effects.push(EffectSpec {
-            name: "refill".into(),
-            params: serde_json::Map::new(),
-        });
+        p.effects.push(EffectSpec::named("refill"));
         let cmd =
             |cfg: &Config| fit_command(Path::new("lab"), Path::new("m.json"), &p, &["soak"], cfg);
         let base = "persist fit --input lab --out m+soak.json --with refill --with soak";
@@ -1548,10 +1545,7 @@ mod tests {
     fn a_full_refit_frees_the_model_s_own_fitted_effects() {
         let mut p = ModelParams::default();
         for name in ["refill", "chord"] {
-            p.effects.push(EffectSpec {
-                name: name.into(),
-                params: serde_json::Map::new(),
-            });
+            p.effects.push(EffectSpec::named(name));
         }
         assert_eq!(own_effects(&p, Refit::Full), ["refill", "chord"]);
         assert!(own_effects(&p, Refit::Candidate).is_empty());

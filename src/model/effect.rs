@@ -253,6 +253,31 @@ pub fn mix_observation(
     }
 }
 
+/// The readout effects' `first_read_s`: the first read of a ramp, s after its reset.
+/// The slope measures the charge between the first and the last read, so the current
+/// released before the first read is not seen. Not fitted (a property of the readout).
+pub const FIRST_READ: ParamSpec = ParamSpec {
+    name: "first_read_s",
+    default: 0.0,
+    lo: 0.0,
+    hi: 1000.0,
+    null: None,
+    fitted: false,
+    doc: "first read of the ramp after its reset, s (the frame time)",
+};
+
+/// The span the readout sees: from the first read, `t_slew + first_read_s` after the
+/// previous reset, to the end of the integration; `(start, length)`, s. A first read
+/// at or beyond the integration's end leaves the whole integration.
+pub fn read_span(ctx: &IntervalCtx, first_read_s: f64) -> (f64, f64) {
+    let t0 = first_read_s.max(0.0);
+    if t0 < ctx.t_exposure_s {
+        (ctx.t_slew_s + t0, ctx.t_exposure_s - t0)
+    } else {
+        (ctx.t_slew_s, ctx.t_exposure_s)
+    }
+}
+
 /// Least-squares slope weight of one exponential term for an integration of
 /// `t_exposure_s` starting `t_slew_s` after the reset, per unit `C_n`:
 /// `(6 / T^3) integral_0^T exp(-r (t_slew + u)) u (T - u) du` (dense, uniform samples;

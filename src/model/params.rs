@@ -169,6 +169,29 @@ pub struct EffectSpec {
     pub name: String,
     #[serde(default)]
     pub params: serde_json::Map<String, serde_json::Value>,
+    /// Parameters held at their value by `persist fit` and by `diagnose`'s refits,
+    /// whatever their [`crate::model::effect::ParamSpec::fitted`] (a value known from
+    /// elsewhere: `persist fit --with NAME:param=value`). Not written when empty, so the
+    /// identity of a model without pinned parameters is as before.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub fixed: Vec<String>,
+}
+
+impl EffectSpec {
+    /// The effect `name` at its defaults, nothing pinned.
+    pub fn named(name: impl Into<String>) -> EffectSpec {
+        EffectSpec {
+            name: name.into(),
+            params: serde_json::Map::new(),
+            fixed: Vec::new(),
+        }
+    }
+
+    /// Whether `param` is fitted: the effect fits it ([`crate::model::effect::ParamSpec::fitted`])
+    /// and this model does not pin it.
+    pub fn fits(&self, param: &crate::model::effect::ParamSpec) -> bool {
+        param.fitted && !self.fixed.iter().any(|f| f == param.name)
+    }
 }
 
 /// Everything the model needs; the content of a model file.

@@ -12,30 +12,46 @@
 //! `(1 - s) C_n exp(-t_meas/tau_n) + s C_n M_n`, with
 //! `M_n = exp(-t_slew/tau_n) (1 - exp(-T/tau_n)) / (T/tau_n)` (the mean of
 //! `exp(-t/tau_n)` from `t_slew` to `t_slew + T`; 1 for `T/tau_n -> 0`).
-//! Parameter: `strength` `s` (default 1, bounds [0, 1], null 0).
+//! Parameters: `strength` `s` (default 1, bounds [0, 1], null 0); `first_read_s` (default
+//! 0, not fitted): the ramp's first read after its reset. The slope measures the charge
+//! between the first and the last read, so the mean runs from `t_slew + first_read_s`
+//! to `t_slew + T` ([`crate::model::effect::read_span`]); the simulator's and SPHEREx's
+//! first read is one frame, 1.5 s, after the reset. With 0 (the default, as before
+//! this parameter existed) the mean runs from the reset, and the current of the fastest
+//! terms before the first read, which no read sees, counts: with terms from 1 s that
+//! over-predicts the first dark after a bright illumination, which a fitted `strength`
+//! of ~0.86 used to make up for (docs/diagnose_matrix.md, "Fourteenth session").
+//! `persist fit --with chord:strength=1,first_read_s=1.5` pins both: the readout is
+//! known, not fitted.
 //! Covariate: time since illumination (the first integrations after a bright one).
 //!
 //! With `linefit_bias` as well, list `chord` first: `linefit_bias` then mixes the chord
 //! with the least-squares slope (its null keeps the chord).
 
 use super::get;
-use crate::model::effect::{mix_observation, Effect, EffectDef, IntervalCtx, ParamSpec};
+use crate::model::effect::{
+    mix_observation, read_span, Effect, EffectDef, IntervalCtx, ParamSpec, FIRST_READ,
+};
 
 pub const DEF: EffectDef = EffectDef {
     name: "chord",
     summary: "the measured current is the mean current over the integration",
-    params: &[ParamSpec {
-        name: "strength",
-        default: 1.0,
-        lo: 0.0,
-        hi: 1.0,
-        null: Some(0.0),
-        fitted: true,
-        doc: "mix between the mid-exposure current (0) and the mean current (1)",
-    }],
+    params: &[
+        ParamSpec {
+            name: "strength",
+            default: 1.0,
+            lo: 0.0,
+            hi: 1.0,
+            null: Some(0.0),
+            fitted: true,
+            doc: "mix between the mid-exposure current (0) and the mean current (1)",
+        },
+        FIRST_READ,
+    ],
     build: |p| {
         Box::new(Chord {
             strength: get(p, "strength"),
+            first_read_s: get(p, "first_read_s"),
         })
     },
     covariate: "time_since_illumination",
@@ -55,6 +71,7 @@ pub fn mean_factor(rate_per_s: f64, t_slew_s: f64, t_exposure_s: f64) -> f64 {
 #[derive(Debug, Clone)]
 pub struct Chord {
     pub strength: f64,
+    pub first_read_s: f64,
 }
 
 impl Effect for Chord {
@@ -63,7 +80,8 @@ impl Effect for Chord {
     }
     fn observe(&self, ctx: &IntervalCtx, c: &[f64], r: &[f64], w: &mut [f64]) {
         mix_observation(w, c, r, self.strength, |rn| {
-            mean_factor(rn, ctx.t_slew_s, ctx.t_exposure_s)
+            let (t0, t) = read_span(ctx, self.first_read_s);
+            mean_factor(rn, t0, t)
         });
     }
 }
@@ -84,13 +102,49 @@ mod tests {
             focal_plane_temp_k: None,
         };
         let mut w = [(-2.0f64).exp(), 1.0];
-        Chord { strength: 1.0 }.observe(&ctx, &[1.0, 2.0], &[0.1, 1e-12], &mut w);
+        Chord {
+            strength: 1.0,
+            first_read_s: 0.0,
+        }
+        .observe(&ctx, &[1.0, 2.0], &[0.1, 1e-12], &mut w);
         assert!((w[0] - 0.159046).abs() < 1e-6, "{}", w[0]);
         assert!((w[1] - 2.0).abs() < 1e-9);
         // above the mid-exposure value e^{-2} = 0.135335 (convex decay)
         assert!(w[0] > (-2.0f64).exp());
         let mut w0 = [0.5];
-        Chord { strength: 0.0 }.observe(&ctx, &[1.0], &[0.1], &mut w0);
+        Chord {
+            strength: 0.0,
+            first_read_s: 0.0,
+        }
+        .observe(&ctx, &[1.0], &[0.1], &mut w0);
         assert_eq!(w0, [0.5]);
+    }
+
+    /// `first_read_s`: the mean from the first read, not from the reset. r = 0.1/s,
+    /// slew 10 s, T = 20 s, first read 5 s: the mean of e^{-0.1 t} over [15, 30]
+    /// = (e^{-1.5} - e^{-3}) / (0.1 * 15) = (0.223130 - 0.049787) / 1.5 = 0.115562,
+    /// below the 0.159046 from the reset; a first read at or past the end keeps the
+    /// whole integration.
+    #[test]
+    fn mean_current_from_the_first_read() {
+        let ctx = IntervalCtx {
+            t_slew_s: 10.0,
+            t_exposure_s: 20.0,
+            t_meas_s: 20.0,
+            t_elapsed_s: 30.0,
+            focal_plane_temp_k: None,
+        };
+        let chord = |first_read_s| {
+            let mut w = [(-2.0f64).exp()];
+            Chord {
+                strength: 1.0,
+                first_read_s,
+            }
+            .observe(&ctx, &[1.0], &[0.1], &mut w);
+            w[0]
+        };
+        assert!((chord(5.0) - 0.115562).abs() < 1e-6, "{}", chord(5.0));
+        assert!((chord(0.0) - 0.159046).abs() < 1e-6);
+        assert_eq!(chord(20.0), chord(0.0));
     }
 }

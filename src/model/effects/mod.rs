@@ -52,6 +52,21 @@ pub fn resolve(spec: &EffectSpec) -> Result<(&'static EffectDef, BTreeMap<String
             names().join(", ")
         )
     })?;
+    if let Some(f) = spec
+        .fixed
+        .iter()
+        .find(|f| !def.params.iter().any(|p| p.name == f.as_str()))
+    {
+        return Err(format!(
+            "fixed: `{f}` is not a parameter of `{}` (its parameters: {})",
+            spec.name,
+            def.params
+                .iter()
+                .map(|p| p.name)
+                .collect::<Vec<_>>()
+                .join(", ")
+        ));
+    }
     Ok((def, def.resolve(&spec.params)?))
 }
 

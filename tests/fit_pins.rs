@@ -1,0 +1,177 @@
+//! `persist fit --with NAME:param=value,...`: parameters known from elsewhere (here the
+//! readout: `chord` at strength 1, its first read 1.5 s after the reset) are set and
+//! held, recorded in the model file's `fixed`, kept by a refit from that file, and
+//! written back into the `fit` command `diagnose` suggests. Bad pins are refused with
+//! the argument, the parameter and the reason; a model file that pins a parameter its
+//! effect does not have is refused. Also `--decay-offset-s` in the model's description
+//! and the report. 32 x 32 laboratory campaign, seed 1.
+
+mod common;
+
+use common::{persist_ok, persist_status};
+
+fn read_json(path: &str) -> serde_json::Value {
+    serde_json::from_str(&std::fs::read_to_string(path).unwrap()).unwrap()
+}
+
+#[test]
+fn pinned_parameters_are_held_recorded_and_suggested_again() {
+    let tmp = tempfile::tempdir().unwrap();
+    let path = |name: &str| tmp.path().join(name).to_str().unwrap().to_string();
+    let lab = path("lab");
+    common::lab_campaign(&lab, 32, 1, &[]);
+    let out = path("m.json");
+    persist_ok(&[
+        "fit",
+        "--input",
+        &lab,
+        "--out",
+        &out,
+        "--with",
+        "refill",
+        "--with",
+        "chord:strength=0.5,first_read_s=1.5",
+        "--decay-offset-s",
+        "0.2",
+        "--log-level",
+        "warn",
+    ]);
+    let m = read_json(&out);
+    let chord = m["effects"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|e| e["name"] == "chord")
+        .unwrap()
+        .clone();
+    assert_eq!(chord["params"]["strength"], 0.5, "{chord}");
+    assert_eq!(chord["params"]["first_read_s"], 1.5, "{chord}");
+    assert_eq!(
+        chord["fixed"],
+        serde_json::json!(["strength", "first_read_s"])
+    );
+    let refill = &m["effects"][0];
+    assert_eq!(refill["name"], "refill");
+    assert!(refill.get("fixed").is_none(), "{refill}");
+    assert!(
+        m["description"].as_str().unwrap().contains("1/(t + 0.2 s)"),
+        "{}",
+        m["description"]
+    );
+    // the report fits refill's beta and nothing of chord's
+    let rep = read_json(&out.replace(".json", ".fit.json"));
+    let names: Vec<&str> = rep["effects"]["params"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|p| p["effect"].as_str().unwrap_or(""))
+        .collect();
+    assert!(names.iter().all(|n| *n != "chord"), "{names:?}");
+    assert_eq!(rep["calibration"]["c_n"]["offset_s"], 0.2);
+
+    // without the pin, the strength is fitted (on these data it moves off its default 1)
+    let out2 = path("m2.json");
+    persist_ok(&[
+        "fit",
+        "--input",
+        &lab,
+        "--out",
+        &out2,
+        "--with",
+        "refill",
+        "--with",
+        "chord",
+        "--log-level",
+        "warn",
+    ]);
+    let m2 = read_json(&out2);
+    let s2 = m2["effects"][1]["params"]["strength"].as_f64().unwrap();
+    assert!(s2 < 0.99, "{s2}");
+    assert!(m2["effects"][1].get("fixed").is_none());
+
+    // a refit of the pinned model (as diagnose's `--refit full` does, naming the model's
+    // own effects) keeps the pins and fits the rest
+    let seq = persist::diag::data::Sequence::load(std::path::Path::new(&lab)).unwrap();
+    let pinned = persist::model_file::load(std::path::Path::new(&out)).unwrap();
+    let names = vec!["refill".to_string(), "chord".to_string()];
+    let s = persist::diag::eval::Samples::new(&seq, 2);
+    let (refit, rep) = persist::calib::effects::fit(&pinned, &names, &seq, &s).unwrap();
+    let c = refit.effects.iter().find(|e| e.name == "chord").unwrap();
+    assert_eq!(c.params["strength"], 0.5);
+    assert_eq!(c.fixed, ["strength", "first_read_s"]);
+    assert!(rep.params.iter().all(|p| p.effect != "chord"), "{rep:?}");
+    assert!(rep.params.iter().any(|p| p.effect == "refill"), "{rep:?}");
+
+    // diagnose's suggested command carries the pins
+    let json = path("d.json");
+    persist_ok(&[
+        "diagnose",
+        "--input",
+        &lab,
+        "--model",
+        &out,
+        "--bootstrap",
+        "19",
+        "--json",
+        &json,
+        "--log-level",
+        "warn",
+    ]);
+    let d = read_json(&json);
+    let cmds: Vec<&str> = d["ranking"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter_map(|c| c["command"].as_str())
+        .collect();
+    assert!(!cmds.is_empty(), "{d}");
+    for c in cmds {
+        assert!(
+            c.contains("--with refill --with chord:strength=0.5,first_read_s=1.5 --with "),
+            "{c}"
+        );
+    }
+}
+
+#[test]
+fn bad_pins_are_refused_with_the_argument_and_the_reason() {
+    let tmp = tempfile::tempdir().unwrap();
+    let path = |name: &str| tmp.path().join(name).to_str().unwrap().to_string();
+    let lab = path("lab");
+    common::lab_campaign(&lab, 32, 1, &[]);
+    let out = path("m.json");
+    for (with, expect) in [
+        ("nope:x=1", "unknown effect `nope`"),
+        ("chord:speed=1", "`speed` is not a parameter of `chord`"),
+        ("chord:strength", "`strength` is not param=value"),
+        ("chord:strength=fast", "`fast` is not a finite number"),
+        ("chord:strength=2", "strength"),
+    ] {
+        let (code, text) = persist_status(&[
+            "fit",
+            "--input",
+            &lab,
+            "--out",
+            &out,
+            "--with",
+            with,
+            "--log-level",
+            "warn",
+        ]);
+        assert_eq!(code, Some(2), "{with}: {text}");
+        assert!(text.contains(expect), "{with}: {text}");
+        assert!(!std::path::Path::new(&out).exists(), "{with}");
+    }
+    // a model file pinning a parameter its effect lacks
+    let mut m: serde_json::Value =
+        serde_json::from_str(&persist_ok(&["model", "default"])).unwrap();
+    m["effects"] = serde_json::json!([{"name": "chord", "params": {}, "fixed": ["speed"]}]);
+    let bad = path("bad.json");
+    std::fs::write(&bad, m.to_string()).unwrap();
+    let (code, text) = persist_status(&["model", "id", &bad]);
+    assert_ne!(code, Some(0), "{text}");
+    assert!(
+        text.contains("`/effects/0/fixed`: `speed` is not a parameter of `chord`"),
+        "{text}"
+    );
+}
