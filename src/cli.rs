@@ -431,6 +431,9 @@ pub struct FitArgs {
     #[arg(long)]
     pub out: PathBuf,
     /// Also fit this effect's parameters (repeatable). Names: see `persist diagnose`.
+    /// `NAME:param=value,...` sets those parameters and holds them (a value known from
+    /// elsewhere, e.g. the readout: `chord:strength=1,first_read_s=1.5`); the model file
+    /// records them as `fixed`, and `diagnose`'s refits keep them.
     #[arg(long = "with")]
     pub with: Vec<String>,
     /// Also fit the six C_n (the decay shape; the tau_n stay) to the data, jointly with

@@ -470,7 +470,7 @@ pub fn fit_with(
         let i = match m.effects.iter().position(|e| &e.name == n) {
             Some(i) => i,
             None => {
-                m.effects.push(EffectSpec::named(n.clone()));
+                m.push_effect(EffectSpec::named(n.clone()));
                 m.effects.len() - 1
             }
         };

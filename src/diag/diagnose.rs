@@ -882,7 +882,7 @@ pub fn diagnose(
             let mut q = params.clone();
             let mut map = serde_json::Map::new();
             map.insert(p.name.into(), serde_json::json!(null + h));
-            q.effects.push(EffectSpec {
+            q.push_effect(EffectSpec {
                 params: map,
                 ..EffectSpec::named(def.name)
             });
@@ -1549,6 +1549,9 @@ mod tests {
         }
         assert_eq!(own_effects(&p, Refit::Full), ["refill", "chord"]);
         assert!(own_effects(&p, Refit::Candidate).is_empty());
+        // a chord whose only fitted parameter is pinned is not freed
+        p.effects[1].fixed = vec!["strength".into()];
+        assert_eq!(own_effects(&p, Refit::Full), ["refill"]);
         let e = "both".parse::<Refit>().unwrap_err().to_string();
         assert!(e.contains("--refit") && e.contains("both"), "{e}");
     }

@@ -277,6 +277,26 @@ impl ModelParams {
         serde_json::to_string_pretty(self).expect("model params serialise")
     }
 
+    /// Append the effect `e`, its unfitted parameters (configuration, not fitted:
+    /// [`crate::model::effect::ParamSpec::fitted`] false, e.g. the readout's
+    /// `first_read_s`, `temperature`'s `t_ref_k`) that it does not give taken from an
+    /// effect already in the model that gives a parameter of the same name. The readout
+    /// is one: a `linefit_bias` added to a model whose `chord` reads from 1.5 s after the
+    /// reset reads from there too.
+    pub fn push_effect(&mut self, mut e: EffectSpec) {
+        if let Some(def) = super::effects::lookup(&e.name) {
+            for p in def.params.iter().filter(|p| !p.fitted) {
+                if e.params.contains_key(p.name) {
+                    continue;
+                }
+                if let Some(v) = self.effects.iter().find_map(|o| o.params.get(p.name)) {
+                    e.params.insert(p.name.to_string(), v.clone());
+                }
+            }
+        }
+        self.effects.push(e);
+    }
+
     /// Canonical form: defaults filled, keys sorted, no whitespace.
     pub fn canonical_json(&self) -> String {
         // serde_json's Map is a BTreeMap without the `preserve_order` feature: sorted keys.
@@ -372,6 +392,29 @@ mod tests {
         let back = ModelParams::from_json(&p.to_json_pretty()).unwrap();
         assert_eq!(back, p);
         assert_eq!(back.identity(), p.identity());
+    }
+
+    /// `push_effect`: an added effect takes the unfitted parameters (configuration) that
+    /// another effect of the model gives, not the fitted ones, and not over its own.
+    #[test]
+    fn an_added_effect_shares_the_model_s_configuration() {
+        let mut p = ModelParams::default();
+        let mut chord = EffectSpec::named("chord");
+        chord.params.insert("strength".into(), serde_json::json!(1.0));
+        chord.params.insert("first_read_s".into(), serde_json::json!(1.5));
+        chord.fixed = vec!["strength".into(), "first_read_s".into()];
+        p.push_effect(chord);
+        p.push_effect(EffectSpec::named("linefit_bias"));
+        let lb = &p.effects[1];
+        assert_eq!(lb.params.get("first_read_s"), Some(&serde_json::json!(1.5)));
+        assert!(lb.params.get("strength").is_none(), "fitted: not shared");
+        assert!(lb.fixed.is_empty());
+        let mut own = EffectSpec::named("linefit_bias");
+        own.params.insert("first_read_s".into(), serde_json::json!(3.0));
+        let mut q = p.clone();
+        q.effects.truncate(1);
+        q.push_effect(own);
+        assert_eq!(q.effects[1].params["first_read_s"], serde_json::json!(3.0));
     }
 
     #[test]
