@@ -400,8 +400,12 @@ mod tests {
     fn an_added_effect_shares_the_model_s_configuration() {
         let mut p = ModelParams::default();
         let mut chord = EffectSpec::named("chord");
-        chord.params.insert("strength".into(), serde_json::json!(1.0));
-        chord.params.insert("first_read_s".into(), serde_json::json!(1.5));
+        chord
+            .params
+            .insert("strength".into(), serde_json::json!(1.0));
+        chord
+            .params
+            .insert("first_read_s".into(), serde_json::json!(1.5));
         chord.fixed = vec!["strength".into(), "first_read_s".into()];
         p.push_effect(chord);
         p.push_effect(EffectSpec::named("linefit_bias"));
@@ -410,7 +414,8 @@ mod tests {
         assert!(lb.params.get("strength").is_none(), "fitted: not shared");
         assert!(lb.fixed.is_empty());
         let mut own = EffectSpec::named("linefit_bias");
-        own.params.insert("first_read_s".into(), serde_json::json!(3.0));
+        own.params
+            .insert("first_read_s".into(), serde_json::json!(3.0));
         let mut q = p.clone();
         q.effects.truncate(1);
         q.push_effect(own);
