@@ -127,6 +127,19 @@ pub fn open_as(tmp: &Path, name: &Path) -> Result<hdf5::File> {
         .map_err(|e| open_error(e).path(name))
 }
 
+/// Open an existing file for editing in place, unlocked and close-on-exec, as
+/// [`create`] does: for the tests' and tools' edits of a file no other program writes.
+/// With libhdf5's lock, a child process started between its `open` and
+/// [`close_on_exec`] (another test's `persist` run) inherits the descriptor and keeps
+/// the file locked for its life, and the next open fails "unable to lock file"
+/// (seen once in a fresh-clone CI run, `tests/products.rs` `ramp_times_not_increasing`).
+pub fn open_rw_unlocked(path: &Path) -> hdf5::Result<hdf5::File> {
+    hdf5::File::with_options()
+        .with_fapl(|p| p.file_locking(false))
+        .open_rw(path)
+        .map(close_on_exec)
+}
+
 /// Create a group with object times off.
 pub fn create_group(parent: &hdf5::Group, name: &str) -> hdf5::Result<hdf5::Group> {
     parent

@@ -95,9 +95,7 @@ fn only_file(dir: &Path) -> Vec<String> {
 fn modified(dir: &Path, name: &str, e: &Exposure, f: impl FnOnce(&hdf5::File)) -> PathBuf {
     let path = dir.join(name);
     write_exposure(&path, e).unwrap();
-    let file = hdf5::File::open_rw(&path)
-        .map(persist::h5io::close_on_exec)
-        .unwrap();
+    let file = persist::h5io::open_rw_unlocked(&path).unwrap();
     f(&file);
     file.close().unwrap();
     path
@@ -540,9 +538,7 @@ fn unknown_checkpoint_format_version() {
     state.t_reset_unix_s = Some(1.7e9);
     state.last_index = Some(3);
     let path = checkpoint::save(dir.path(), &meta, &state).unwrap();
-    let file = hdf5::File::open_rw(&path)
-        .map(persist::h5io::close_on_exec)
-        .unwrap();
+    let file = persist::h5io::open_rw_unlocked(&path).unwrap();
     file.delete_attr("format_version").unwrap();
     file.new_attr::<i64>()
         .create("format_version")
@@ -560,9 +556,7 @@ fn unknown_checkpoint_format_version() {
     assert!(text.contains("not supported"), "{text}");
     // A negative amplitude is refused by State::check.
     let path = checkpoint::save(dir.path(), &meta, &state).unwrap();
-    let file = hdf5::File::open_rw(&path)
-        .map(persist::h5io::close_on_exec)
-        .unwrap();
+    let file = persist::h5io::open_rw_unlocked(&path).unwrap();
     let mut a = state.amplitudes_e.clone();
     a[[1, 1, 1]] = -1.0;
     file.dataset("amplitudes_e").unwrap().write(&a).unwrap();
