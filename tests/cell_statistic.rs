@@ -10,11 +10,7 @@
 
 mod common;
 
-use common::persist_ok;
-
-fn json(path: &str) -> serde_json::Value {
-    serde_json::from_str(&std::fs::read_to_string(path).unwrap()).unwrap()
-}
+use common::{persist_ok, read_json};
 
 #[test]
 fn paired_cells_bring_the_baseline_reference_to_the_noise() {
@@ -46,7 +42,7 @@ fn paired_cells_bring_the_baseline_reference_to_the_noise() {
             "--cell-statistic",
             statistic,
         ]);
-        let report = json(&out.replace(".json", ".fit.json"));
+        let report = read_json(out.replace(".json", ".fit.json"));
         assert_eq!(report["cell_statistic"], statistic);
         report["residual_rms_normalised"].as_f64().unwrap()
     };
@@ -71,7 +67,7 @@ fn paired_cells_bring_the_baseline_reference_to_the_noise() {
         "--cell-statistic",
         "paired",
     ]);
-    let s = json(&format!("{report}/summary.json"));
+    let s = read_json(format!("{report}/summary.json"));
     assert_eq!(s["cell_statistic"], "paired");
     assert!(s["definitions"]["z"]
         .as_str()

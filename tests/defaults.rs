@@ -7,11 +7,7 @@
 
 mod common;
 
-use common::persist_ok;
-
-fn json(path: &str) -> serde_json::Value {
-    serde_json::from_str(&std::fs::read_to_string(path).unwrap()).unwrap()
-}
+use common::{persist_ok, read_json};
 
 #[test]
 fn fit_compare_and_diagnose_default_to_illumination_paired_full() {
@@ -25,7 +21,7 @@ fn fit_compare_and_diagnose_default_to_illumination_paired_full() {
         text.contains("illumination x fluence x time cells, paired"),
         "{text}"
     );
-    assert_eq!(json(&path("m.fit.json"))["cell_statistic"], "paired");
+    assert_eq!(read_json(path("m.fit.json"))["cell_statistic"], "paired");
 
     let cmp = path("cmp");
     let text = persist_ok(&["compare", "--input", &lab, "--model", &m, "--report", &cmp]);
@@ -33,7 +29,7 @@ fn fit_compare_and_diagnose_default_to_illumination_paired_full() {
         text.contains("illumination x fluence x time cells, paired"),
         "{text}"
     );
-    let s = json(&format!("{cmp}/summary.json"));
+    let s = read_json(format!("{cmp}/summary.json"));
     assert_eq!(s["cells"], "illumination");
     assert_eq!(s["cell_statistic"], "paired");
     // per-illumination cells: several illuminations, each with its share
@@ -56,7 +52,7 @@ fn fit_compare_and_diagnose_default_to_illumination_paired_full() {
         "256",
     ]);
     assert!(text.contains("(--refit full)"), "{text}");
-    let dj = json(&d);
+    let dj = read_json(&d);
     assert_eq!(dj["residual_cells"], "illumination");
     assert_eq!(dj["cell_statistic"], "paired");
     assert_eq!(dj["refit"], "full");
@@ -69,7 +65,7 @@ fn fit_compare_and_diagnose_default_to_illumination_paired_full() {
     a.extend(common::OLD_CELLS);
     let text = persist_ok(&a);
     assert!(text.contains("(fluence x time cells, levels"), "{text}");
-    let s = json(&format!("{cmp_old}/summary.json"));
+    let s = read_json(format!("{cmp_old}/summary.json"));
     assert_eq!(s["cells"], "pooled");
     assert_eq!(s["cell_statistic"], "levels");
 }

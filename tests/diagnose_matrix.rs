@@ -228,13 +228,19 @@ fn baseline_declares_nothing_against_the_paper_c_n_reference() {
 /// --with refill --with chord [--with EXTRA] --amplification 1.0 --rates-per-s ...
 /// --t-min-s 1 --cells illumination --cell-statistic paired`).
 fn paired_reference(seq: &Sequence, extra: &[&str]) -> persist::model::ModelParams {
-    let cfg = paired_config();
-    let (m0, _) = calib::calibrate(seq, &cfg).unwrap();
-    let names: Vec<String> = ["refill", "chord"]
-        .iter()
-        .chain(extra)
-        .map(|s| s.to_string())
-        .collect();
+    fit_reference(seq, &paired_config(), &["refill", "chord"], extra)
+}
+
+/// The calibration `cfg` of `seq`, then `effects` and `extra` (`--with` arguments)
+/// fitted jointly on its stride-2 samples.
+fn fit_reference(
+    seq: &Sequence,
+    cfg: &CalibConfig,
+    effects: &[&str],
+    extra: &[&str],
+) -> persist::model::ModelParams {
+    let (m0, _) = calib::calibrate(seq, cfg).unwrap();
+    let names: Vec<String> = effects.iter().chain(extra).map(|s| s.to_string()).collect();
     persist::calib::effects::fit(&m0, &names, seq, &cfg.samples(seq))
         .unwrap()
         .0
@@ -403,16 +409,8 @@ fn interacting_soak_and_temperature_are_paired_by_the_joint_check() {
 /// fitted: `chord` at strength 1 from the first read 1.5 s after the reset (`persist
 /// fit --with refill --with chord:strength=1,first_read_s=1.5 --decay-offset-s 0.2 ...`).
 fn readout_reference(seq: &Sequence, extra: &[&str]) -> persist::model::ModelParams {
-    let cfg = readout_config();
-    let (m0, _) = calib::calibrate(seq, &cfg).unwrap();
-    let names: Vec<String> = ["refill", "chord:strength=1,first_read_s=1.5"]
-        .iter()
-        .chain(extra)
-        .map(|s| s.to_string())
-        .collect();
-    persist::calib::effects::fit(&m0, &names, seq, &cfg.samples(seq))
-        .unwrap()
-        .0
+    let effects = ["refill", "chord:strength=1,first_read_s=1.5"];
+    fit_reference(seq, &readout_config(), &effects, extra)
 }
 
 fn readout_config() -> CalibConfig {

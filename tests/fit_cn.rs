@@ -16,12 +16,7 @@
 
 mod common;
 
-use common::persist_ok;
-use std::path::Path;
-
-fn json(path: &Path) -> serde_json::Value {
-    serde_json::from_str(&std::fs::read_to_string(path).unwrap()).unwrap()
-}
+use common::{persist_ok, read_json};
 
 #[test]
 fn fit_cn_lowers_the_residual_with_positive_finite_cn() {
@@ -41,7 +36,10 @@ fn fit_cn_lowers_the_residual_with_positive_finite_cn() {
     let text = persist_ok(&a);
     println!("{text}");
 
-    let (r0, r1) = (json(&d.join("ref.fit.json")), json(&d.join("cn.fit.json")));
+    let (r0, r1) = (
+        read_json(d.join("ref.fit.json")),
+        read_json(d.join("cn.fit.json")),
+    );
     let rms0 = r0["residual_rms_normalised"].as_f64().unwrap();
     let rms1 = r1["residual_rms_normalised"].as_f64().unwrap();
     println!("residual RMS: paper C_n {rms0:.3}, fitted C_n {rms1:.3}");
@@ -49,7 +47,7 @@ fn fit_cn_lowers_the_residual_with_positive_finite_cn() {
     assert!(r0["effects"].get("c_n").is_none());
 
     // the report: the six terms, fitted from the paper's C_n, with an uncertainty
-    let (m0, m1) = (json(&d.join("ref.json")), json(&d.join("cn.json")));
+    let (m0, m1) = (read_json(d.join("ref.json")), read_json(d.join("cn.json")));
     let paper = r0["calibration"]["c_n"]["terms"].as_array().unwrap();
     let t0 = m0["terms"].as_array().unwrap();
     assert_eq!(
@@ -100,7 +98,10 @@ fn fit_cn_lowers_the_residual_with_positive_finite_cn() {
     a.extend(common::OLD_CELLS);
     let text = persist_ok(&a);
     println!("{text}");
-    let (ma, ra) = (json(&d.join("amp.json")), json(&d.join("amp.fit.json")));
+    let (ma, ra) = (
+        read_json(d.join("amp.json")),
+        read_json(d.join("amp.fit.json")),
+    );
     let scale: Vec<&serde_json::Value> = ra["effects"]["params"]
         .as_array()
         .unwrap()

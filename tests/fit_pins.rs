@@ -8,18 +8,20 @@
 
 mod common;
 
-use common::{persist_ok, persist_status};
+use common::{persist_ok, persist_status, read_json};
 
-fn read_json(path: &str) -> serde_json::Value {
-    serde_json::from_str(&std::fs::read_to_string(path).unwrap()).unwrap()
+/// A temporary directory holding the 32 x 32 campaign (seed 1), and its path.
+fn lab_32() -> (tempfile::TempDir, String) {
+    let tmp = tempfile::tempdir().unwrap();
+    let lab = tmp.path().join("lab").to_str().unwrap().to_string();
+    common::lab_campaign(&lab, 32, 1, &[]);
+    (tmp, lab)
 }
 
 #[test]
 fn pinned_parameters_are_held_recorded_and_suggested_again() {
-    let tmp = tempfile::tempdir().unwrap();
+    let (tmp, lab) = lab_32();
     let path = |name: &str| tmp.path().join(name).to_str().unwrap().to_string();
-    let lab = path("lab");
-    common::lab_campaign(&lab, 32, 1, &[]);
     let out = path("m.json");
     persist_ok(&[
         "fit",
@@ -59,7 +61,7 @@ fn pinned_parameters_are_held_recorded_and_suggested_again() {
         m["description"]
     );
     // the report fits refill's beta and nothing of chord's
-    let rep = read_json(&out.replace(".json", ".fit.json"));
+    let rep = read_json(out.replace(".json", ".fit.json"));
     let names: Vec<&str> = rep["effects"]["params"]
         .as_array()
         .unwrap()
@@ -135,10 +137,8 @@ fn pinned_parameters_are_held_recorded_and_suggested_again() {
 
 #[test]
 fn bad_pins_are_refused_with_the_argument_and_the_reason() {
-    let tmp = tempfile::tempdir().unwrap();
+    let (tmp, lab) = lab_32();
     let path = |name: &str| tmp.path().join(name).to_str().unwrap().to_string();
-    let lab = path("lab");
-    common::lab_campaign(&lab, 32, 1, &[]);
     let out = path("m.json");
     for (with, expect) in [
         ("nope:x=1", "unknown effect `nope`"),

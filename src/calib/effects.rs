@@ -371,8 +371,6 @@ fn scan_start(problem: &mut Problem<'_>) {
     }
 }
 
-/// Add the effects `names` (each `NAME`, defaults as start) to `base` and fit their
-/// fitted parameters. Returns the model and the fit. (`fit_with` freeing nothing else.)
 /// One `--with` argument: `NAME` (the effect's fitted parameters are fitted) or
 /// `NAME:param=value,...` (those parameters set to the values and held there, recorded
 /// in the model file's `fixed`; the others fitted as usual). Errors name the argument
@@ -403,11 +401,7 @@ pub fn parse_with(arg: &str) -> Result<(String, Vec<(String, f64)>)> {
                 "--with",
                 format!(
                     "`{arg}`: `{k}` is not a parameter of `{name}` (its parameters: {})",
-                    def.params
-                        .iter()
-                        .map(|p| p.name)
-                        .collect::<Vec<_>>()
-                        .join(", ")
+                    def.param_names()
                 ),
             ));
         }
@@ -440,6 +434,9 @@ pub fn with_arg(e: &EffectSpec) -> String {
     }
 }
 
+/// Add the effects `names` (each a `--with` argument, [`parse_with`]; defaults as start)
+/// to `base` and fit their fitted, unpinned parameters. Returns the model and the fit.
+/// (`fit_with` freeing nothing else.)
 pub fn fit(
     base: &ModelParams,
     names: &[String],

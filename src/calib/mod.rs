@@ -294,7 +294,6 @@ pub fn fit_cn(rates: &[f64], t_min_s: f64, t_max_s: f64, offset_s: f64) -> Resul
             format!("{offset_s}: must be finite and > 0"),
         ));
     }
-    let off = offset_s;
     let m = 400;
     let ts: Vec<f64> = (0..m)
         .map(|i| t_min_s * (t_max_s / t_min_s).powf(i as f64 / (m - 1) as f64))
@@ -304,7 +303,7 @@ pub fn fit_cn(rates: &[f64], t_min_s: f64, t_max_s: f64, offset_s: f64) -> Resul
     for _ in 0..rates.len() {
         let idx: Vec<usize> = (0..rates.len()).filter(|&i| active[i]).collect();
         let a = DMatrix::from_fn(m, idx.len(), |j, k| {
-            (-rates[idx[k]] * ts[j]).exp() * (ts[j] + off)
+            (-rates[idx[k]] * ts[j]).exp() * (ts[j] + offset_s)
         });
         let b = DVector::from_element(m, 1.0);
         let sol = a.svd(true, true).solve(&b, 1e-14).map_err(|e| {
@@ -327,7 +326,7 @@ pub fn fit_cn(rates: &[f64], t_min_s: f64, t_max_s: f64, offset_s: f64) -> Resul
         .iter()
         .map(|t| {
             let s: f64 = c.iter().zip(rates).map(|(ci, r)| ci * (-r * t).exp()).sum();
-            s * (t + off) - 1.0
+            s * (t + offset_s) - 1.0
         })
         .collect();
     Ok(CnFit {

@@ -98,6 +98,15 @@ impl Debug for EffectDef {
 }
 
 impl EffectDef {
+    /// Its parameters' names, comma-separated (for errors that name a wrong one).
+    pub fn param_names(&self) -> String {
+        self.params
+            .iter()
+            .map(|p| p.name)
+            .collect::<Vec<_>>()
+            .join(", ")
+    }
+
     /// Fill defaults and check names, finiteness and bounds. Errors name the field as
     /// `effects[i].params.NAME` (the caller adds the index prefix).
     pub fn resolve(
@@ -276,6 +285,22 @@ pub fn read_span(ctx: &IntervalCtx, first_read_s: f64) -> (f64, f64) {
     } else {
         (ctx.t_slew_s, ctx.t_exposure_s)
     }
+}
+
+/// The observe hook of a readout effect (`chord`, `linefit_bias`): [`mix_observation`]
+/// with strength `s` of `factor(rate, start, length)` over the [`read_span`] of
+/// `first_read_s` (computed once per interval, not per term).
+pub fn mix_readout(
+    ctx: &IntervalCtx,
+    c_per_s: &[f64],
+    rate_per_s: &[f64],
+    w: &mut [f64],
+    s: f64,
+    first_read_s: f64,
+    factor: fn(f64, f64, f64) -> f64,
+) {
+    let (t0, t) = read_span(ctx, first_read_s);
+    mix_observation(w, c_per_s, rate_per_s, s, |rn| factor(rn, t0, t));
 }
 
 /// Least-squares slope weight of one exponential term for an integration of

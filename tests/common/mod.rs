@@ -228,6 +228,11 @@ pub fn log_events(path: &Path, msg: &str) -> Vec<serde_json::Value> {
         .collect()
 }
 
+/// A JSON file (a model, a fit report, a summary), parsed; it must exist and parse.
+pub fn read_json(path: impl AsRef<Path>) -> serde_json::Value {
+    serde_json::from_str(&std::fs::read_to_string(path).unwrap()).unwrap()
+}
+
 /// Run the real binary with `args`; it must succeed. Its standard output.
 pub fn persist_ok(args: &[&str]) -> String {
     let o = persist_cmd().args(args).output().unwrap();

@@ -29,9 +29,7 @@
 //! with the least-squares slope (its null keeps the chord).
 
 use super::get;
-use crate::model::effect::{
-    mix_observation, read_span, Effect, EffectDef, IntervalCtx, ParamSpec, FIRST_READ,
-};
+use crate::model::effect::{mix_readout, Effect, EffectDef, IntervalCtx, ParamSpec, FIRST_READ};
 
 pub const DEF: EffectDef = EffectDef {
     name: "chord",
@@ -79,10 +77,7 @@ impl Effect for Chord {
         DEF.name
     }
     fn observe(&self, ctx: &IntervalCtx, c: &[f64], r: &[f64], w: &mut [f64]) {
-        mix_observation(w, c, r, self.strength, |rn| {
-            let (t0, t) = read_span(ctx, self.first_read_s);
-            mean_factor(rn, t0, t)
-        });
+        mix_readout(ctx, c, r, w, self.strength, self.first_read_s, mean_factor);
     }
 }
 
@@ -90,17 +85,22 @@ impl Effect for Chord {
 mod tests {
     use super::*;
 
-    #[test]
-    fn mean_current_by_hand() {
-        // r = 0.1/s, slew 10 s, T = 20 s: mean of e^{-0.1 t} over [10, 30]
-        // = (e^{-1} - e^{-3}) / (0.1 * 20) = (0.367879 - 0.049787) / 2 = 0.159046
-        let ctx = IntervalCtx {
+    /// Slew 10 s, integration 20 s (measured mid-exposure at 20 s).
+    fn slew_10_exposure_20() -> IntervalCtx {
+        IntervalCtx {
             t_slew_s: 10.0,
             t_exposure_s: 20.0,
             t_meas_s: 20.0,
             t_elapsed_s: 30.0,
             focal_plane_temp_k: None,
-        };
+        }
+    }
+
+    #[test]
+    fn mean_current_by_hand() {
+        // r = 0.1/s, slew 10 s, T = 20 s: mean of e^{-0.1 t} over [10, 30]
+        // = (e^{-1} - e^{-3}) / (0.1 * 20) = (0.367879 - 0.049787) / 2 = 0.159046
+        let ctx = slew_10_exposure_20();
         let mut w = [(-2.0f64).exp(), 1.0];
         Chord {
             strength: 1.0,
@@ -127,13 +127,7 @@ mod tests {
     /// whole integration.
     #[test]
     fn mean_current_from_the_first_read() {
-        let ctx = IntervalCtx {
-            t_slew_s: 10.0,
-            t_exposure_s: 20.0,
-            t_meas_s: 20.0,
-            t_elapsed_s: 30.0,
-            focal_plane_temp_k: None,
-        };
+        let ctx = slew_10_exposure_20();
         let chord = |first_read_s| {
             let mut w = [(-2.0f64).exp()];
             Chord {

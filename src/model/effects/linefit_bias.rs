@@ -16,8 +16,7 @@
 
 use super::get;
 use crate::model::effect::{
-    ls_slope_factor, mix_observation, read_span, Effect, EffectDef, IntervalCtx, ParamSpec,
-    FIRST_READ,
+    ls_slope_factor, mix_readout, Effect, EffectDef, IntervalCtx, ParamSpec, FIRST_READ,
 };
 
 pub const DEF: EffectDef = EffectDef {
@@ -55,10 +54,15 @@ impl Effect for LinefitBias {
         DEF.name
     }
     fn observe(&self, ctx: &IntervalCtx, c: &[f64], r: &[f64], w: &mut [f64]) {
-        mix_observation(w, c, r, self.strength, |rn| {
-            let (t0, t) = read_span(ctx, self.first_read_s);
-            ls_slope_factor(rn, t0, t)
-        });
+        mix_readout(
+            ctx,
+            c,
+            r,
+            w,
+            self.strength,
+            self.first_read_s,
+            ls_slope_factor,
+        );
     }
 }
 

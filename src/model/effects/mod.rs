@@ -60,11 +60,7 @@ pub fn resolve(spec: &EffectSpec) -> Result<(&'static EffectDef, BTreeMap<String
         return Err(format!(
             "fixed: `{f}` is not a parameter of `{}` (its parameters: {})",
             spec.name,
-            def.params
-                .iter()
-                .map(|p| p.name)
-                .collect::<Vec<_>>()
-                .join(", ")
+            def.param_names()
         ));
     }
     Ok((def, def.resolve(&spec.params)?))
