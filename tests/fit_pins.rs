@@ -4,7 +4,8 @@
 //! written back into the `fit` command `diagnose` suggests. Bad pins are refused with
 //! the argument, the parameter and the reason; a model file that pins a parameter its
 //! effect does not have is refused. Also `--decay-offset-s` in the model's description
-//! and the report. 32 x 32 laboratory campaign, seed 1.
+//! and the report, and the calibration options recorded in the model file and repeated
+//! by the suggested command. 32 x 32 laboratory campaign, seed 1.
 
 mod common;
 
@@ -35,10 +36,22 @@ fn pinned_parameters_are_held_recorded_and_suggested_again() {
         "chord:strength=0.5,first_read_s=1.5",
         "--decay-offset-s",
         "0.2",
+        "--amplification",
+        "1",
+        "--t-min-s",
+        "1",
         "--log-level",
         "warn",
     ]);
     let m = read_json(&out);
+    assert_eq!(
+        m["calibration"],
+        serde_json::json!({
+            "amplification": 1.0, "t_min_s": 1.0, "decay_offset_s": 0.2,
+            "rates_per_s": [0.1, 0.0158, 0.00251, 0.000398, 6.31e-5, 1e-5],
+            "fit_cn": false, "fit_amplification": false,
+        })
+    );
     let chord = m["effects"]
         .as_array()
         .unwrap()
@@ -127,11 +140,28 @@ fn pinned_parameters_are_held_recorded_and_suggested_again() {
         .filter_map(|c| c["command"].as_str())
         .collect();
     assert!(!cmds.is_empty(), "{d}");
-    for c in cmds {
+    for c in &cmds {
         assert!(
             c.contains("--with refill --with chord:strength=0.5,first_read_s=1.5 --with "),
             "{c}"
         );
+        // and the calibration options (it named none, so following it calibrated with
+        // the paper's 1.2 and 1/(t+1) instead)
+        assert!(
+            c.contains(" --amplification 1 --t-min-s 1 --decay-offset-s 0.2"),
+            "{c}"
+        );
+    }
+    // following the first command gives the same calibration: knots, C_n, the record
+    let args: Vec<&str> = cmds[0].split_whitespace().collect();
+    assert_eq!(args[0], "persist");
+    let mut args = args[1..].to_vec();
+    args.extend(["--log-level", "warn"]);
+    persist_ok(&args);
+    let next = args[args.iter().position(|a| *a == "--out").unwrap() + 1];
+    let n = read_json(next);
+    for key in ["calibration", "amplitude_knots", "terms"] {
+        assert_eq!(n[key], m[key], "{key}");
     }
 }
 

@@ -37,7 +37,7 @@ pub mod logfit;
 
 use crate::diag::data::{fluence, quantile, signal_p95, Sequence, BACKGROUND_FLUENCE_E};
 use crate::error::{Error, Result};
-use crate::model::params::{Knot, ModelParams, Term, PAPER_TERMS};
+use crate::model::params::{Calibration, Knot, ModelParams, Term, PAPER_TERMS};
 use crate::sim::analysis::{clipped_median, median};
 use logfit::LogFit;
 use nalgebra::{DMatrix, DVector};
@@ -256,6 +256,14 @@ pub fn calibrate(seq: &Sequence, cfg: &CalibConfig) -> Result<(ModelParams, Cali
         ),
         terms: c_n.terms.clone(),
         amplitude_knots: knots.clone(),
+        calibration: Some(Calibration {
+            amplification: cfg.amplification,
+            t_min_s: cfg.t_min_s,
+            decay_offset_s: cfg.decay_offset_s,
+            rates_per_s: cfg.rates_per_s.clone(),
+            fit_cn: false,
+            fit_amplification: false,
+        }),
         ..base
     };
     params.validate().map_err(|m| Error::invalid("model", m))?;
@@ -474,6 +482,10 @@ pub fn run(
     if !with.is_empty() || free != effects::Free::default() {
         let (p, f) = effects::fit_with(&params, with, free, &seq, &samples)?;
         params = p;
+        if let Some(c) = params.calibration.as_mut() {
+            c.fit_cn = free.c_n;
+            c.fit_amplification = free.knot_scale;
+        }
         if free.c_n {
             params.description += FIT_CN_NOTE;
         }

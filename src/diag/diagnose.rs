@@ -335,9 +335,12 @@ fn fit_candidate(
 }
 
 /// The `persist fit` command that adds effect `name` to the model at `model_path`: its
-/// own effects and the candidate, with the residual cells of this diagnosis when they
-/// are not the defaults. The calibration options (`--amplification`, `--rates-per-s`,
-/// `--t-min-s`) are those the model was fitted with; its description records them.
+/// own effects and the candidate, the calibration options the model records
+/// ([`crate::model::params::Calibration`]: `--amplification`, `--t-min-s`,
+/// `--decay-offset-s`, `--rates-per-s`, `--fit-cn`, `--fit-amplification`) where they
+/// are not `fit`'s defaults, and the residual cells of this diagnosis when they are not
+/// the defaults. A model without that record (written by hand, or by `fit` before
+/// 2026-11-24) gets `fit`'s defaults.
 fn fit_command(
     input: &Path,
     model_path: &Path,
@@ -359,12 +362,43 @@ fn fit_command(
     {
         s += &format!(" --with {e}");
     }
+    s += &calibration_args(params.calibration.as_ref());
     // `fit`'s defaults are the library's (src/cli.rs takes them from there)
     if cfg.cells != eval::Cells::default() {
         s += &format!(" --cells {}", cfg.cells);
     }
     if cfg.cell_statistic != eval::CellStatistic::default() {
         s += &format!(" --cell-statistic {}", cfg.cell_statistic);
+    }
+    s
+}
+
+/// `persist fit`'s options that repeat calibration `c`, those at `fit`'s defaults
+/// left out; each begins with a space.
+fn calibration_args(c: Option<&crate::model::params::Calibration>) -> String {
+    let Some(c) = c else {
+        return String::new();
+    };
+    let d = crate::calib::CalibConfig::default();
+    let mut s = String::new();
+    if c.amplification != d.amplification {
+        s += &format!(" --amplification {}", c.amplification);
+    }
+    if c.t_min_s != d.t_min_s {
+        s += &format!(" --t-min-s {}", c.t_min_s);
+    }
+    if c.decay_offset_s != d.decay_offset_s {
+        s += &format!(" --decay-offset-s {}", c.decay_offset_s);
+    }
+    if c.rates_per_s != d.rates_per_s {
+        let r: Vec<String> = c.rates_per_s.iter().map(f64::to_string).collect();
+        s += &format!(" --rates-per-s {}", r.join(","));
+    }
+    if c.fit_cn {
+        s += " --fit-cn";
+    }
+    if c.fit_amplification {
+        s += " --fit-amplification";
     }
     s
 }
@@ -1536,6 +1570,32 @@ mod tests {
             ),
             "persist fit --input lab --out m+temperature+soak.json --with refill \
              --with temperature --with soak"
+        );
+    }
+
+    /// The suggested command repeats the calibration the model records, where it is not
+    /// `fit`'s default, and nothing for a model without the record.
+    #[test]
+    fn the_suggested_fit_repeats_the_model_s_calibration() {
+        use crate::model::params::Calibration;
+        let d = crate::calib::CalibConfig::default();
+        let mut c = Calibration {
+            amplification: d.amplification,
+            t_min_s: d.t_min_s,
+            decay_offset_s: d.decay_offset_s,
+            rates_per_s: d.rates_per_s.clone(),
+            fit_cn: false,
+            fit_amplification: false,
+        };
+        assert_eq!(calibration_args(None), "");
+        assert_eq!(calibration_args(Some(&c)), "");
+        c.amplification = 1.0;
+        c.decay_offset_s = 0.2;
+        c.rates_per_s = vec![1.0, 1.58489e-5];
+        c.fit_cn = true;
+        assert_eq!(
+            calibration_args(Some(&c)),
+            " --amplification 1 --decay-offset-s 0.2 --rates-per-s 1,0.0000158489 --fit-cn"
         );
     }
 

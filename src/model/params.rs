@@ -210,6 +210,34 @@ pub struct ModelParams {
     pub early_release: EarlyRelease,
     #[serde(default)]
     pub effects: Vec<EffectSpec>,
+    /// How `persist fit` made this model ([`Calibration`]); absent from a model written
+    /// by hand or before 2026-11-24 (not written when absent, so such a model's identity
+    /// is as before).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub calibration: Option<Calibration>,
+}
+
+/// The `persist fit` options a model was calibrated with, so that a refit of the same
+/// campaign (the command `persist diagnose` suggests) repeats them. The model step does
+/// not read them.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Calibration {
+    /// `A_bin = amplification * A_0` (`--amplification`; the paper: 1.2).
+    pub amplification: f64,
+    /// Start of the span of the `C_n` fit, s (`--t-min-s`).
+    pub t_min_s: f64,
+    /// The `C_n` follow `1/(t + decay_offset_s)` (`--decay-offset-s`; the paper: 1 s).
+    pub decay_offset_s: f64,
+    /// The terms' decay rates as given (`--rates-per-s`; equal to the terms'
+    /// `rate_per_s`).
+    pub rates_per_s: Vec<f64>,
+    /// The `C_n` were then fitted to the campaign (`--fit-cn`).
+    #[serde(default)]
+    pub fit_cn: bool,
+    /// The knots' level was then fitted to the campaign (`--fit-amplification`).
+    #[serde(default)]
+    pub fit_amplification: bool,
 }
 
 /// Eq. (bbdetexpsum): `(C_n, 1/tau_n)` for detector BBDet.
@@ -260,6 +288,7 @@ impl Default for ModelParams {
             thresholds: Thresholds::default(),
             early_release: EarlyRelease::default(),
             effects: Vec::new(),
+            calibration: None,
         }
     }
 }
