@@ -11,7 +11,7 @@
 //! neighbours, which only a spatially correlated truth has.
 //!
 //! ```sh
-//! target/release/examples/populations_map LAB_DIR MODEL.json [L_PX]
+//! target/release/examples/populations_map LAB_DIR MODEL.json [L_PX [TILE_PX]]
 //! ```
 use persist::diag::data::Sequence;
 use persist::diag::eval::{self, Samples};
@@ -25,6 +25,8 @@ fn main() {
     let seq = Sequence::load(Path::new(&a[1])).expect("sequence");
     let model = persist::model_file::load(Path::new(&a[2])).expect("model");
     let length_px: f64 = a.get(3).map_or(8.0, |s| s.parse().expect("L_PX"));
+    // cells also split by square position tiles of this side (0: the usual cells)
+    let tile_px: usize = a.get(4).map_or(0, |s| s.parse().expect("TILE_PX"));
     let s = Samples::new(&seq, 1);
     let pr = eval::predict(&model, &seq, &s, false).expect("predict");
     let np = s.npix();
@@ -36,8 +38,10 @@ fn main() {
             firsts.push(row);
         }
     }
+    // the log ratio less the median of its fluence bin (20 per decade) in the same
+    // event: what is a function of fluence is the knots' to take
     let ratio = |row: usize| -> Vec<f64> {
-        (0..np)
+        let mut r: Vec<f64> = (0..np)
             .map(|p| {
                 let (m, q) = (s.measured[row * np + p], pr.current[row * np + p]);
                 if q > MIN_PRED_E_PER_S && m > 0.0 && m.is_finite() {
@@ -46,7 +50,21 @@ fn main() {
                     f64::NAN
                 }
             })
-            .collect()
+            .collect();
+        let bin = |p: usize| (20.0 * s.fluence_e[row * np + p].max(1.0).log10()).floor() as i64;
+        let mut groups: std::collections::BTreeMap<i64, Vec<usize>> = Default::default();
+        for p in (0..np).filter(|&p| r[p].is_finite()) {
+            groups.entry(bin(p)).or_default().push(p);
+        }
+        for members in groups.values() {
+            let mut v: Vec<f64> = members.iter().map(|&p| r[p]).collect();
+            v.sort_by(f64::total_cmp);
+            let med = v[v.len() / 2];
+            for &p in members {
+                r[p] -= med;
+            }
+        }
+        r
     };
     let maps: Vec<(Vec<f64>, Vec<f64>)> = firsts
         .iter()
@@ -88,6 +106,110 @@ fn main() {
         raw / n,
         smoothed / n
     );
+    // the map of all events (mean of the first darks' log ratios, smoothed), applied to
+    // every prediction as a scale `exp(strength * map)`: the cell RMS of the stride-2
+    // paired cells (`persist fit`'s report) as the strength grows
+    let mut sum = vec![0.0; np];
+    let mut cnt = vec![0.0; np];
+    for (r, _) in &maps {
+        for p in 0..np {
+            if r[p].is_finite() {
+                sum[p] += r[p];
+                cnt[p] += 1.0;
+            }
+        }
+    }
+    let mean: Vec<f64> = (0..np)
+        .map(|p| {
+            if cnt[p] > 0.0 {
+                sum[p] / cnt[p]
+            } else {
+                f64::NAN
+            }
+        })
+        .collect();
+    let map: Vec<f64> = smooth(&mean, ny, nx, length_px)
+        .into_iter()
+        .map(|v| if v.is_finite() { v } else { 0.0 })
+        .collect();
+    let s2 = Samples::new(&seq, 2)
+        .with_cells(eval::Cells::Illumination)
+        .with_statistic(eval::CellStatistic::Paired);
+    let np2 = s2.npix();
+    let pr2 = eval::predict(&model, &seq, &s2, false).expect("predict");
+    // demeaned: the level is the knots'; the map only moves pixels against each other
+    let lit: Vec<f64> = mean.iter().copied().filter(|v| v.is_finite()).collect();
+    let mu = map.iter().sum::<f64>() / map.len() as f64;
+    let sd_map = (map.iter().map(|v| (v - mu).powi(2)).sum::<f64>() / map.len() as f64).sqrt();
+    println!(
+        "map: mean {mu:.3}, sd {sd_map:.3} ({} pixels with a ratio)",
+        lit.len()
+    );
+    for strength in [0.0, 1.0, 2.0, 3.0, 4.0, 6.0] {
+        let mut best = (f64::INFINITY, 0.0);
+        for j in 0..=30 {
+            let level = 0.5 * (1.0 + j as f64 / 30.0);
+            let scaled: Vec<f64> = pr2
+                .current
+                .iter()
+                .enumerate()
+                .map(|(i, q)| {
+                    let (y, x) = s2.pixels[i % np2];
+                    level * q * (strength * (map[y * nx + x] - mu)).exp()
+                })
+                .collect();
+            let r = if tile_px > 0 {
+                tile_rms(&s2, &scaled, tile_px)
+            } else {
+                eval::rms(&eval::cell_z(&s2, &scaled))
+            };
+            if r < best.0 {
+                best = (r, level);
+            }
+        }
+        println!(
+            "strength {strength}: best cell RMS {:.3} at level {:.3}",
+            best.0, best.1
+        );
+    }
+}
+
+/// The cell RMS with the per-illumination fluence x time cells also split by position
+/// tiles `tile_px` on a side.
+fn tile_rms(s: &Samples, pred: &[f64], tile_px: usize) -> f64 {
+    use std::collections::BTreeMap;
+    let mut g: BTreeMap<Vec<i64>, (Vec<f64>, Vec<f64>, Vec<f64>)> = BTreeMap::new();
+    for i in 0..s.len() {
+        let (m, p) = (s.measured[i], pred[i]);
+        if !m.is_finite() || !p.is_finite() {
+            continue;
+        }
+        let (y, x) = s.pixels[i % s.npix()];
+        let mut key = vec![(y / tile_px) as i64, (x / tile_px) as i64];
+        for k in ["event", "fluence", "time"] {
+            match eval::bin_of(s, k, i) {
+                Some(b) => key.push(b),
+                None => break,
+            }
+        }
+        if key.len() != 5 {
+            continue;
+        }
+        let e = g.entry(key).or_default();
+        e.0.push(m);
+        e.1.push(p);
+        e.2.push(s.noise[i / s.npix()]);
+    }
+    let z: Vec<(Vec<i64>, eval::GroupStat)> = g
+        .into_iter()
+        .filter_map(|(k, (m, p, n))| {
+            let mut sorted = n.clone();
+            sorted.sort_by(f64::total_cmp);
+            let med = sorted[sorted.len() / 2];
+            eval::cell_stat(s.statistic, &m, &p, &n, med).map(|st| (k, st))
+        })
+        .collect();
+    eval::rms(&z)
 }
 
 /// `R^2` of the least-squares line of `y` on `x` over the pixels where both are finite.

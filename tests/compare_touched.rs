@@ -13,7 +13,7 @@ fn summary(dir: &std::path::Path) -> serde_json::Value {
 }
 
 #[test]
-fn touched_pixels_come_from_the_truth_and_the_fractions_are_consistent() {
+fn touched_pixels_come_from_the_truth_or_the_measurement_and_the_fractions_are_consistent() {
     let tmp = tempfile::tempdir().unwrap();
     let d = |n: &str| tmp.path().join(n).display().to_string();
     let sim = |out: &str, seed: &str, effect: Option<&str>| {
@@ -68,12 +68,36 @@ fn touched_pixels_come_from_the_truth_and_the_fractions_are_consistent() {
     // the existing fields are still there
     assert!(m["flag_quality"]["0.1"]["missed_flag_fraction"].is_number());
 
+    assert_eq!(t["by"], "truth");
+
+    // a readout-only effect leaves the truths equal: the measured currents are compared
+    // (it touched nothing before, so its flag quality over touched pixels was empty)
+    sim("lfb", "4", Some("linefit_bias"));
+    let o = persist(&[
+        "compare",
+        "--input",
+        &d("lfb"),
+        "--model",
+        &d("paper.json"),
+        "--touched-baseline",
+        &d("base"),
+        "--report",
+        &d("cmp_lfb"),
+    ]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let t = &summary(&tmp.path().join("cmp_lfb"))["touched"];
+    assert_eq!(t["by"], "measured", "{t}");
+    assert!(t["touched_pixels"].as_u64().unwrap() > 0, "{t}");
+    assert!(t["max_difference_e_per_s"].as_f64().unwrap() > 0.01, "{t}");
+    assert_eq!(t["input_effects"], serde_json::json!(["linefit_bias"]));
+
     // the input as its own baseline touches nothing
     let o = compare("lab", "self");
     assert!(o.status.success());
     let s = summary(&tmp.path().join("self"));
     assert_eq!(s["touched"]["touched_pixels"], 0);
     assert_eq!(s["touched"]["max_difference_e_per_s"], 0.0);
+    assert_eq!(s["touched"]["by"], "measured");
     assert_eq!(
         s["models"][0]["flag_quality_touched"]["0.1"]["touched_samples"],
         0

@@ -15,9 +15,12 @@
 //! [`TOUCHED_MIN_E_PER_S`] = 0.01 e-/s, a tenth of the 0.1 e-/s flag threshold).
 //! The flag quality of every model and threshold is then also given over the samples of
 //! the touched pixels (`flag_quality_touched`: `missed_flag_fraction_touched` = missed
-//! samples of touched pixels / usable samples of touched pixels). Effects that change
-//! neither the truth nor the readout of it (`linefit_bias` changes how the on-board line
-//! fit reads it) touch nothing by this definition.
+//! samples of touched pixels / usable samples of touched pixels). An effect that changes
+//! neither the truth nor the readout hooks (`linefit_bias` changes how the on-board line
+//! fit reads it) leaves the two truths equal; the measured currents of the two runs are
+//! then compared instead, with the same threshold (the same scenario and seed draw the
+//! same noise, so they differ only by the effect). `touched.by` says which
+//! (`truth` or `measured`).
 
 use super::data::Sequence;
 use super::eval::{self, FlagQuality, GroupStat, Samples};
@@ -96,6 +99,8 @@ pub struct TouchedQuality {
 #[derive(Debug, Clone, Serialize)]
 pub struct Touched {
     pub baseline: String,
+    /// What was compared: `truth`, or `measured` when the two truths are equal.
+    pub by: &'static str,
     pub definition: String,
     pub min_difference_e_per_s: f64,
     /// The input's truth effects, whose readout hooks were applied to its truth.
@@ -328,6 +333,27 @@ pub fn read_truth(path: &Path, shape: (usize, usize)) -> Result<ndarray::Array2<
     Ok(a)
 }
 
+/// Mark the sampled pixels where planes `a` and `b` differ by more than `min`, and
+/// raise `max_diff` to the largest finite difference.
+fn mark_differences(
+    touched: &mut [bool],
+    max_diff: &mut f64,
+    samples: &Samples,
+    a: &ndarray::Array2<f32>,
+    b: &ndarray::Array2<f32>,
+    min: f64,
+) {
+    for (t, &p) in touched.iter_mut().zip(&samples.pixels) {
+        let d = (f64::from(a[p]) - f64::from(b[p])).abs();
+        if d.is_finite() {
+            *max_diff = max_diff.max(d);
+            if d > min {
+                *t = true;
+            }
+        }
+    }
+}
+
 /// The touched pixels of the sample (module docs): one entry per sampled pixel.
 pub fn touched_pixels(
     seq: &Sequence,
@@ -402,21 +428,53 @@ pub fn touched_pixels(
             &crate::sim::output::truth_path(baseline, det, m.exposure_index),
             shape,
         )?;
-        for (t, &p) in touched.iter_mut().zip(&samples.pixels) {
-            let d = (f64::from(t_in[p]) - f64::from(t_base[p])).abs();
-            if d.is_finite() {
-                max_diff = max_diff.max(d);
-                if d > min_difference_e_per_s {
-                    *t = true;
-                }
-            }
+        mark_differences(
+            &mut touched,
+            &mut max_diff,
+            samples,
+            &t_in,
+            &t_base,
+            min_difference_e_per_s,
+        );
+    }
+    // the truths equal: a readout-only effect, seen in the measured currents
+    let by_measured = max_diff == 0.0;
+    if by_measured {
+        let base = Sequence::load(baseline)?;
+        for &k in &samples.exposures {
+            let (a, b) = (&seq.exposures[k], base.exposures.get(k));
+            let Some(b) = b.filter(|b| b.meta.exposure_index == a.meta.exposure_index) else {
+                return Err(Error::invalid(
+                    "exposure_index",
+                    format!(
+                        "the baseline has no exposure {} at position {k}: the baseline must be the same scenario and seed without the effect",
+                        a.meta.exposure_index
+                    ),
+                )
+                .path(baseline));
+            };
+            mark_differences(
+                &mut touched,
+                &mut max_diff,
+                samples,
+                &a.image,
+                &b.image,
+                min_difference_e_per_s,
+            );
         }
     }
     let info = Touched {
         baseline: baseline.display().to_string(),
-        definition: format!(
-            "a sampled pixel whose true persistence current (input truth through its effects' readout) differs from the baseline's by more than {min_difference_e_per_s} e-/s at any sampled exposure"
-        ),
+        by: if by_measured { "measured" } else { "truth" },
+        definition: if by_measured {
+            format!(
+                "the truths are equal: a sampled pixel whose measured current differs from the baseline's by more than {min_difference_e_per_s} e-/s at any sampled exposure"
+            )
+        } else {
+            format!(
+                "a sampled pixel whose true persistence current (input truth through its effects' readout) differs from the baseline's by more than {min_difference_e_per_s} e-/s at any sampled exposure"
+            )
+        },
         min_difference_e_per_s,
         input_effects: effects.list.iter().map(|e| e.name().to_string()).collect(),
         touched_pixels: touched.iter().filter(|t| **t).count(),
