@@ -178,9 +178,10 @@ fn main() {
 /// tiles `tile_px` on a side.
 fn tile_rms(s: &Samples, pred: &[f64], tile_px: usize) -> f64 {
     use std::collections::BTreeMap;
-    let mut g: BTreeMap<Vec<i64>, (Vec<f64>, Vec<f64>, Vec<f64>)> = BTreeMap::new();
-    for i in 0..s.len() {
-        let (m, p) = (s.measured[i], pred[i]);
+    type Cell = (Vec<f64>, Vec<f64>, Vec<f64>);
+    let mut g: BTreeMap<Vec<i64>, Cell> = BTreeMap::new();
+    for (i, &p) in pred.iter().enumerate().take(s.len()) {
+        let m = s.measured[i];
         if !m.is_finite() || !p.is_finite() {
             continue;
         }
