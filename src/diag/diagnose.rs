@@ -499,6 +499,9 @@ pub struct Diagnosis {
     /// every pair tried, lowest `delta_bic` first (module docs, "Joint check").
     #[serde(skip_serializing_if = "Vec::is_empty")]
     pub joint: Vec<Joint>,
+    /// Whether the residuals carry a field shared by neighbouring pixels
+    /// ([`super::spatial`]; absent with one illumination event).
+    pub spatial: Option<super::spatial::Coherence>,
     pub verdict: String,
     /// What limits the diagnosis of this model (empty when nothing is known to).
     pub cautions: Vec<String>,
@@ -1105,6 +1108,30 @@ pub fn diagnose(
         e.dedup();
         e.len()
     };
+    let spatial = super::spatial::coherence(seq, params)?;
+    let field = spatial
+        .as_ref()
+        .filter(|c| c.coherent)
+        .map_or(String::new(), |c| {
+            format!(
+                "; and the residuals carry a field shared by neighbouring pixels: a {:.0}-pixel \
+             map of one illumination's residual predicts {:.0} % of another's (R^2; \
+             threshold {:.2}), so the trap density varies across the array in patches, \
+             which no library effect carries (the model's populations is a quadratic \
+             surface over the whole array){}",
+                c.best_length_px,
+                100.0 * c.best_r2,
+                c.threshold,
+                match (c.highest, c.lowest) {
+                    (Some(((y, x), hi)), Some(((y0, x0), lo))) => format!(
+                        "; measured against predicted, x{hi:.2} around (y {y}, x {x}) and \
+                     x{lo:.2} around (y {y0}, x {x0}) (the map averaged over the \
+                     illuminations, relative to its fluence bin)"
+                    ),
+                    _ => String::new(),
+                }
+            )
+        });
     let verdict = match ranking.iter().find(|c| c.significant) {
         None if joint.first().is_some_and(|j| j.significant) => {
             let j = &joint[0];
@@ -1151,7 +1178,7 @@ pub fn diagnose(
                 })
                 .collect();
             format!(
-                "no library effect is significant; the residual RMS is {rms:.2}, largest at: {}",
+                "no library effect is significant; the residual RMS is {rms:.2}, largest at: {}{field}",
                 w.join("; ")
             )
         }
@@ -1175,6 +1202,7 @@ pub fn diagnose(
         largest_residual_cells: where_cells,
         largest_residual_illuminations: where_illuminations,
         joint,
+        spatial,
         verdict,
         cautions: cautions(params),
     })
@@ -1368,6 +1396,31 @@ pub fn render(d: &Diagnosis) -> String {
                 if j.significant { "  SIGNIFICANT" } else { "" }
             );
         }
+    }
+    if let Some(c) = &d.spatial {
+        s += &format!(
+            "spatial coherence: a map of one illumination's residual smoothed over {} px \
+             predicts R^2 {} of another's (unsmoothed {:.2}; {} pairs, {} pixels per \
+             illumination): {}\n",
+            c.r2_smoothed
+                .iter()
+                .map(|(l, _)| format!("{l:.0}"))
+                .collect::<Vec<_>>()
+                .join("/"),
+            c.r2_smoothed
+                .iter()
+                .map(|(_, r)| format!("{r:.2}"))
+                .collect::<Vec<_>>()
+                .join("/"),
+            c.r2_raw,
+            c.pairs,
+            c.pixels_per_event,
+            if c.coherent {
+                format!("a field shared by neighbours (>= {:.2})", c.threshold)
+            } else {
+                format!("none shared by neighbours (< {:.2})", c.threshold)
+            }
+        );
     }
     s += &d.verdict;
     for c in &d.cautions {

@@ -348,6 +348,17 @@ impl Samples {
 
     /// Samples at the given pixels (every row).
     pub fn with_pixels(seq: &Sequence, pixels: Vec<(usize, usize)>, stride: usize) -> Samples {
+        Samples::with_pixels_where(seq, pixels, stride, |_| true)
+    }
+
+    /// Samples at the given pixels, in the rows of the exposures `k` (indices into the
+    /// sequence) for which `keep(k)` is true.
+    pub fn with_pixels_where(
+        seq: &Sequence,
+        pixels: Vec<(usize, usize)>,
+        stride: usize,
+        keep: impl Fn(usize) -> bool,
+    ) -> Samples {
         let mut s = Samples {
             cells: Cells::default(),
             statistic: CellStatistic::default(),
@@ -377,7 +388,7 @@ impl Samples {
             let Some(a) = seq.last_illumination[k] else {
                 continue;
             };
-            if seq.illuminations.contains(&k) {
+            if seq.illuminations.contains(&k) || !keep(k) {
                 continue;
             }
             if cache.as_ref().map(|c| c.0) != Some(a) {

@@ -7,3 +7,4 @@ pub mod data;
 pub mod diagnose;
 pub mod eval;
 pub mod report;
+pub mod spatial;

@@ -94,6 +94,28 @@ pub fn loglog_slope(x: &[f64], y: &[f64]) -> f64 {
     sxy / sxx
 }
 
+/// One box pass of half-width `h` along x then y (each mean over the pixels within
+/// `h`, fewer at the edges): three passes make the simulator's smooth fields
+/// ([`crate::sim::effects::populations::field`]) and `diag::spatial`'s maps.
+pub fn box_blur(a: &ndarray::Array2<f64>, h: usize) -> ndarray::Array2<f64> {
+    let (ny, nx) = a.dim();
+    let mut b = ndarray::Array2::<f64>::zeros((ny, nx));
+    for y in 0..ny {
+        for x in 0..nx {
+            let (x0, x1) = (x.saturating_sub(h), (x + h).min(nx - 1));
+            b[[y, x]] = (x0..=x1).map(|i| a[[y, i]]).sum::<f64>() / (x1 - x0 + 1) as f64;
+        }
+    }
+    let mut c = ndarray::Array2::<f64>::zeros((ny, nx));
+    for y in 0..ny {
+        let (y0, y1) = (y.saturating_sub(h), (y + h).min(ny - 1));
+        for x in 0..nx {
+            c[[y, x]] = (y0..=y1).map(|i| b[[i, x]]).sum::<f64>() / (y1 - y0 + 1) as f64;
+        }
+    }
+    c
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

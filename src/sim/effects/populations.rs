@@ -54,31 +54,12 @@ pub fn field(ny: usize, nx: usize, length: f64, seed: u64, tags: &[u64]) -> Arra
     }
     let h = (length / 2.0).round().max(1.0) as usize;
     for _ in 0..3 {
-        f = box_blur(&f, h);
+        f = crate::sim::analysis::box_blur(&f, h);
     }
     let n = (ny * nx) as f64;
     let mean = f.sum() / n;
     let sd = (f.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / n).sqrt();
     f.mapv(|v| (v - mean) / sd.max(1e-300))
-}
-
-fn box_blur(a: &Array2<f64>, h: usize) -> Array2<f64> {
-    let (ny, nx) = a.dim();
-    let mut b = Array2::<f64>::zeros((ny, nx));
-    for y in 0..ny {
-        for x in 0..nx {
-            let (x0, x1) = (x.saturating_sub(h), (x + h).min(nx - 1));
-            b[[y, x]] = (x0..=x1).map(|i| a[[y, i]]).sum::<f64>() / (x1 - x0 + 1) as f64;
-        }
-    }
-    let mut c = Array2::<f64>::zeros((ny, nx));
-    for y in 0..ny {
-        let (y0, y1) = (y.saturating_sub(h), (y + h).min(ny - 1));
-        for x in 0..nx {
-            c[[y, x]] = (y0..=y1).map(|i| b[[i, x]]).sum::<f64>() / (y1 - y0 + 1) as f64;
-        }
-    }
-    c
 }
 
 /// Standard normal CDF (Abramowitz-Stegun 7.1.26 erf, |error| < 1.5e-7).
