@@ -119,6 +119,15 @@
 //! at least [`HELD_OUT_MIN_GAIN`]. The verdict then names both and the command that
 //! adds them. The pair is one candidate, tested once: no bootstrap covers it, which is
 //! why it is asked for, not run by default.
+//!
+//! # Spatial coherence
+//! The cells pool pixels from the whole array, so a misfit that varies across the array
+//! in patches (trap populations) leaves them nearly as they are, and no library effect
+//! carries a map. [`super::spatial`] asks the pixels instead: does a smoothed map of one
+//! illumination's residual predict another's? The result is in the output (`spatial`)
+//! and, when the field is there and no candidate is significant, the verdict names it
+//! and where it is highest and lowest. It is an effect size with a measured threshold,
+//! not part of the ranking.
 
 use super::data::{noisy_quantile, quantile, Sequence};
 use super::eval::{self, Samples};

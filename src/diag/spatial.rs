@@ -210,6 +210,10 @@ fn mean_transfer(ratios: &[EventRatio], maps: &[Array2<f64>]) -> f64 {
 /// The spatial coherence of `params`' residuals on `seq` (module docs); `None` with
 /// fewer than two events.
 pub fn coherence(seq: &Sequence, params: &ModelParams) -> Result<Option<Coherence>> {
+    if first_after(seq).len() < 2 {
+        // before running the model
+        return Ok(None);
+    }
     let ratios = log_ratios(seq, params)?;
     Ok(coherence_of(&ratios))
 }
