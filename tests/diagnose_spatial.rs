@@ -2,7 +2,8 @@
 //! vary across the array in patches (the simulator's `populations`, hidden) are a field
 //! that a map of one illumination's residual carries to another; without them there is
 //! none. Neither the cells nor a library effect see such a field, so this is how
-//! `diagnose` says that the residual matches no library effect, and where it is.
+//! `diagnose` says that the residual matches no library effect, and where it is;
+//! `compare` reports the same per model.
 //! 32 x 32 laboratory campaigns, seed 1, `persist fit`'s default calibration. Measured
 //! at this size (fifteenth session): best R^2 0.06 without, 0.46 with the effect.
 
@@ -41,7 +42,25 @@ fn spatial(extra: &[&str]) -> (serde_json::Value, String) {
         "--log-level",
         "warn",
     ]);
-    (read_json(&json), text)
+    let d = read_json(&json);
+    // compare reports the same for the model (its summary and its report's table)
+    let report = path("cmp");
+    persist_ok(&[
+        "compare",
+        "--input",
+        &lab,
+        "--model",
+        &model,
+        "--report",
+        &report,
+        "--log-level",
+        "warn",
+    ]);
+    let sum = read_json(tmp.path().join("cmp").join("summary.json"));
+    assert_eq!(sum["models"][0]["spatial"], d["spatial"]);
+    let html = std::fs::read_to_string(tmp.path().join("cmp").join("report.html")).unwrap();
+    assert!(html.contains("spatial coherence"));
+    (d, text)
 }
 
 #[test]

@@ -77,6 +77,10 @@ pub struct ModelSummary {
     /// The same over the touched pixels (module docs), when a baseline is given.
     #[serde(skip_serializing_if = "BTreeMap::is_empty")]
     pub flag_quality_touched: BTreeMap<String, TouchedQuality>,
+    /// The residuals' spatial coherence ([`super::spatial`]), with two illuminations or
+    /// more.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub spatial: Option<super::spatial::Coherence>,
 }
 
 /// Flag quality over the samples of the touched pixels (module docs).
@@ -258,6 +262,7 @@ pub fn summarise_touched(
             breakdown,
             flag_quality: fq,
             flag_quality_touched: fqt,
+            spatial: super::spatial::coherence(seq, params)?,
         });
     }
     Ok(out)
@@ -306,6 +311,7 @@ pub fn definitions(cells: eval::Cells, statistic: eval::CellStatistic) -> BTreeM
         ("missed".into(), "measured > threshold + 2 noise and not flagged".into()),
         ("over_flagged".into(), "flagged and measured < threshold - 2 noise".into()),
         ("flags".into(), "at the model's high threshold from the model as the stage runs it (early release on); other thresholds: prediction > threshold with early release off".into()),
+        ("spatial".into(), format!("with two illuminations or more: per illumination, the first exposure after it, ln(measured / predicted) at pixels predicted above {} e-/s less the median of its fluence bin (20 per decade), smoothed over 4, 8, 16 and 32 px (three masked box passes); R^2 of one illumination's map against another's ratio, mean over the ordered pairs; at or above {} a field shared by neighbouring pixels (src/diag/spatial.rs)", super::spatial::MIN_PREDICTED_E_PER_S, super::spatial::COHERENT_R2)),
     ])
 }
 

@@ -168,7 +168,7 @@ pub fn html(sum: &Summary) -> Result<String> {
     if touched.is_some() {
         h += "<th>missed @0.1 of touched</th><th>over @0.1 of touched</th><th>missed @0.01 of touched</th>";
     }
-    h += "</tr>";
+    h += "<th>spatial coherence (R^2, best smoothing)</th></tr>";
     for m in &sum.models {
         let q = |t: &str, f: fn(&crate::diag::eval::FlagQuality) -> f64| {
             m.flag_quality
@@ -199,7 +199,19 @@ pub fn html(sum: &Summary) -> Result<String> {
                 t("0.01", |q| q.missed_flag_fraction_touched),
             );
         }
-        h += "</tr>";
+        h += &format!(
+            "<td>{}</td></tr>",
+            m.spatial.as_ref().map_or("-".to_string(), |c| format!(
+                "{:.2} at {:.0} px{}",
+                c.best_r2,
+                c.best_length_px,
+                if c.coherent {
+                    ": a field shared by neighbours"
+                } else {
+                    ""
+                }
+            ))
+        );
     }
     h += "</table>";
     let mut figure =
