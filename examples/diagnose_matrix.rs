@@ -111,6 +111,18 @@ fn touched(s: &Samples, with: &Sim, without: &Sim) -> Vec<bool> {
     eval::touched_samples(s, &with.truth, &without.truth)
 }
 
+/// The spatial coherence of a diagnosis (`persist::diag::spatial`): best R^2, and
+/// "field" when it is at the threshold or above.
+fn spatial_cell(d: &diagnose::Diagnosis) -> String {
+    d.spatial.as_ref().map_or("-".into(), |c| {
+        format!(
+            "{:.2}{}",
+            c.best_r2,
+            if c.coherent { " (field)" } else { "" }
+        )
+    })
+}
+
 /// The reference model: `--reference a,b` (its effects) and `--reference-fit-cn` (the
 /// reference and every `fit --with` also fit the `C_n`).
 struct Reference {
@@ -362,7 +374,7 @@ fn main() {
     let t_all = Instant::now();
     // --- baseline
     if !skip("--skip-baseline") {
-        writeln!(md, "## No hidden effect (reference: {ref_label})\n\n| seed | residual RMS | threshold | top score (effect) | significant | seconds |\n|---|---|---|---|---|---|").unwrap();
+        writeln!(md, "## No hidden effect (reference: {ref_label})\n\n| seed | residual RMS | threshold | top score (effect) | significant | spatial R^2 | seconds |\n|---|---|---|---|---|---|---|").unwrap();
         let mut clean = 0;
         for seed in first..first + nbase {
             let sim = simulate(size, seed, &[], &campaign);
@@ -383,7 +395,7 @@ fn main() {
                 .unwrap();
             writeln!(
                 md,
-                "| {seed} | {:.2} | {:.2} | {:.2} ({}) | {} | {secs:.1} |",
+                "| {seed} | {:.2} | {:.2} | {:.2} ({}) | {} | {} | {secs:.1} |",
                 d.residual_rms_normalised,
                 d.threshold,
                 top.score,
@@ -392,7 +404,8 @@ fn main() {
                     "none".into()
                 } else {
                     sig.join(", ")
-                }
+                },
+                spatial_cell(&d)
             )
             .unwrap();
             writeln!(jl, "{}", serde_json::json!({"case": "baseline", "seed": seed, "diagnosis": d, "seconds": secs})).unwrap();
@@ -408,8 +421,8 @@ fn main() {
     // --- single effects
     if !skip("--skip-single") {
         writeln!(md, "## One hidden effect (reference: {ref_label}; `fit --with` = reference effects + the hidden one)\n\n\
-            | effect | seed | rank by score | declared first | significant | RMS before -> after `fit --with` | halved | missed@0.1 before -> after (all samples) | missed@0.1 of touched before -> after | held-out gain | dBIC |\n\
-            |---|---|---|---|---|---|---|---|---|---|---|").unwrap();
+            | effect | seed | rank by score | declared first | significant | RMS before -> after `fit --with` | halved | missed@0.1 before -> after (all samples) | missed@0.1 of touched before -> after | held-out gain | dBIC | spatial R^2 |\n\
+            |---|---|---|---|---|---|---|---|---|---|---|---|").unwrap();
         let mut passed = Vec::new();
         for e in &effects {
             let mut ok_all = true;
@@ -444,7 +457,7 @@ fn main() {
                 let f3 = |v: f64| format!("{:.4}", v);
                 writeln!(
                     md,
-                    "| {e} | {seed} | {} | {} | {} | {} | {} | {} | {} | {} | {} |",
+                    "| {e} | {seed} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} |",
                     rank.map_or(
                         if reference.effects.contains(&name) {
                             "in the reference".into()
@@ -479,6 +492,7 @@ fn main() {
                         )),
                     rank.and_then(|c| c.delta_bic)
                         .map_or("-".into(), |v| format!("{v:.1}")),
+                    spatial_cell(&d),
                 )
                 .unwrap();
                 writeln!(jl, "{}", serde_json::json!({"case": "single", "effect": e, "seed": seed, "diagnosis": d,
