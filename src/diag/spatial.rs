@@ -37,7 +37,7 @@
 //!
 //! Needs two illumination events or more (`None` otherwise, before the model is run).
 //! Cost: one more run of the model over the sequence, with every pixel sampled at one
-//! exposure per event (about 40 bytes per pixel and event: 0.2 GB for five events of a
+//! exposure per event (about 40 bytes per pixel and event: 0.8 GB for five events of a
 //! 2040 x 2040 array), and four smoothings per event.
 
 use super::data::Sequence;
