@@ -3,7 +3,9 @@
 //! that a map of one illumination's residual carries to another; without them there is
 //! none. Neither the cells nor a library effect see such a field, so this is how
 //! `diagnose` says that the residual matches no library effect, and where it is;
-//! `compare` reports the same per model.
+//! `compare` reports the same per model. A position effect (the model's `populations`)
+//! is declared only where the field is (regression: it was declared on the 32 x 32
+//! campaign without the hidden effect).
 //! 32 x 32 laboratory campaigns, seed 1, `persist fit`'s default calibration. Measured
 //! at this size (fifteenth session): best R^2 0.06 without, 0.46 with the effect.
 
@@ -64,7 +66,7 @@ fn spatial(extra: &[&str]) -> (serde_json::Value, String) {
 }
 
 #[test]
-fn hidden_populations_are_a_field_shared_by_neighbours() {
+fn hidden_populations_are_a_field_shared_by_neighbours_and_only_then_declared() {
     let (with, text) = spatial(&["--effect", "populations"]);
     let c = &with["spatial"];
     assert_eq!(c["events"], 5, "{c}");
@@ -73,6 +75,17 @@ fn hidden_populations_are_a_field_shared_by_neighbours() {
     let best = c["best_r2"].as_f64().unwrap();
     assert!(best > 0.3, "{c}");
     assert!(text.contains("a field shared by neighbours"), "{text}");
+    // and the model's populations (a position effect) is declared on it
+    let pop = |d: &serde_json::Value| {
+        d["ranking"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .find(|c| c["effect"] == "populations")
+            .unwrap()
+            .clone()
+    };
+    assert_eq!(pop(&with)["significant"], true, "{}", pop(&with));
 
     let (without, text) = spatial(&[]);
     let c0 = &without["spatial"];
@@ -81,4 +94,13 @@ fn hidden_populations_are_a_field_shared_by_neighbours() {
     // the pixels' own traps repeat from one illumination to the next either way
     assert!(c0["r2_raw"].as_f64().unwrap() > 0.5, "{c0}");
     assert!(text.contains("none shared by neighbours"), "{text}");
+    // without the field, populations passes the other gates here (against `fit`'s
+    // paper calibration) but is not declared: it was, before the spatial gate
+    let p0 = pop(&without);
+    assert_eq!(p0["significant"], false, "{p0}");
+    assert_eq!(p0["refused_no_field"], true, "{p0}");
+    assert!(
+        text.contains("carry no field shared by neighbours"),
+        "{text}"
+    );
 }

@@ -127,7 +127,12 @@
 //! illumination's residual predict another's? The result is in the output (`spatial`)
 //! and, when the field is there and no candidate is significant, the verdict names it
 //! and where it is highest and lowest. It is an effect size with a measured threshold,
-//! not part of the ranking.
+//! not part of the ranking, but it is a gate for the effects whose evidence is position
+//! (`populations`): with two illumination events or more, such an effect is declared
+//! only where the residuals carry a field (`refused_no_field` in the output otherwise;
+//! [`position_supported`]). A position effect that explains residuals with no field
+//! shared by neighbours is standing in for something else (radius and fluence go
+//! together when the spot is centred).
 
 use super::data::{noisy_quantile, quantile, Sequence};
 use super::eval::{self, Samples};
@@ -412,6 +417,18 @@ fn calibration_args(c: Option<&crate::model::params::Calibration>) -> String {
     s
 }
 
+/// Whether an effect whose evidence is in `covariate` may be declared given the
+/// residuals' spatial coherence (module docs, "Spatial coherence"): an effect of
+/// position only where the residuals carry a field shared by neighbouring pixels, or
+/// where that cannot be measured (one illumination). Measured (docs/diagnose_matrix.md,
+/// fifteenth session): with the spot centred, radius and fluence go together and the
+/// model's `populations` (a quadratic surface, `u^2 + v^2` the radius) was declared for
+/// a hidden linefit_bias + temperature at 128 x 128 (seeds 2 and 3) on residuals with
+/// no field (R^2 0.04); the field it then put into the residuals had R^2 0.55-0.66.
+fn position_supported(covariate: &str, spatial: Option<&super::spatial::Coherence>) -> bool {
+    covariate != "position" || spatial.is_none_or(|c| c.coherent)
+}
+
 /// One half of the held-out check.
 #[derive(Debug, Clone, Serialize)]
 pub struct Fold {
@@ -455,6 +472,10 @@ pub struct Candidate {
     pub rms_after: Option<f64>,
     pub held_out: Option<HeldOut>,
     pub significant: bool,
+    /// A position effect that passed the other gates but is not declared: the residuals
+    /// carry no field shared by neighbouring pixels (module docs, "Spatial coherence").
+    #[serde(skip_serializing_if = "std::ops::Not::not")]
+    pub refused_no_field: bool,
     pub covariate: String,
     pub command: String,
 }
@@ -1003,6 +1024,7 @@ pub fn diagnose(
                 rms_after: None,
                 held_out: None,
                 significant: false,
+                refused_no_field: false,
                 covariate: def.covariate.into(),
                 command: fit_command(input, model_path, params, &[name], cfg),
             }
@@ -1058,12 +1080,15 @@ pub fn diagnose(
         .collect::<Result<_>>()?;
     // the leader: the first refitted (`refit` is in score order, `results` in its order)
     let leader = results.first().map(|r| (r.rank, r.rss_after));
+    let spatial = super::spatial::coherence(seq, params)?;
     for r in results {
         let c = &mut ranking[r.rank];
         c.delta_bic = Some(r.delta_bic);
         c.rms_before = Some(r.rms_before);
         c.rms_after = Some(r.rms_after);
-        c.significant = r.delta_bic < DBIC_MAX && r.held_out.as_ref().is_none_or(|h| h.passes);
+        let gates = r.delta_bic < DBIC_MAX && r.held_out.as_ref().is_none_or(|h| h.passes);
+        c.refused_no_field = gates && !position_supported(&c.covariate, spatial.as_ref());
+        c.significant = gates && !c.refused_no_field;
         c.held_out = r.held_out;
     }
     // no candidate alone (and asked): the leader refitted with each other library effect
@@ -1080,6 +1105,7 @@ pub fn diagnose(
                     cfg,
                     input,
                     model_path,
+                    spatial: spatial.as_ref(),
                 },
                 &ranking[lead].effect,
                 lead_rss,
@@ -1117,7 +1143,6 @@ pub fn diagnose(
         e.dedup();
         e.len()
     };
-    let spatial = super::spatial::coherence(seq, params)?;
     let field = spatial
         .as_ref()
         .filter(|c| c.coherent)
@@ -1240,6 +1265,7 @@ struct JointInput<'a> {
     cfg: &'a Config,
     input: &'a Path,
     model_path: &'a Path,
+    spatial: Option<&'a super::spatial::Coherence>,
 }
 
 /// The joint check (module docs, "Joint check"): `leader` (the top-scored candidate,
@@ -1292,7 +1318,11 @@ fn joint_check(
                 j.samples,
                 j.cfg.refit,
             )?;
-            best.significant = best.held_out.as_ref().is_none_or(|h| h.passes);
+            best.significant = best.held_out.as_ref().is_none_or(|h| h.passes)
+                && pair.iter().all(|e| {
+                    crate::model::effects::lookup(e)
+                        .is_none_or(|d| position_supported(d.covariate, j.spatial))
+                });
         }
     }
     Ok(fits.into_iter().map(|(joint, _)| joint).collect())
@@ -1387,7 +1417,13 @@ pub fn render(d: &Diagnosis) -> String {
                 h.moved_cells
             )),
             c.covariate,
-            if c.significant { "  SIGNIFICANT" } else { "" }
+            if c.significant {
+                "  SIGNIFICANT"
+            } else if c.refused_no_field {
+                "  (passes the gates, but the residuals carry no field shared by neighbours)"
+            } else {
+                ""
+            }
         );
     }
     if !d.joint.is_empty() {
