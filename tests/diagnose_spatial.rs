@@ -30,21 +30,7 @@ fn spatial(extra: &[&str]) -> (serde_json::Value, String) {
         "--log-level",
         "warn",
     ]);
-    let json = path("d.json");
-    let text = persist_ok(&[
-        "diagnose",
-        "--input",
-        &lab,
-        "--model",
-        &model,
-        "--bootstrap",
-        "19",
-        "--json",
-        &json,
-        "--log-level",
-        "warn",
-    ]);
-    let d = read_json(&json);
+    let (d, text) = common::diagnose_quick(&lab, &model, &path("d.json"));
     // compare reports the same for the model (its summary and its report's table)
     let report = path("cmp");
     persist_ok(&[

@@ -118,21 +118,7 @@ fn pinned_parameters_are_held_recorded_and_suggested_again() {
     assert!(rep.params.iter().any(|p| p.effect == "refill"), "{rep:?}");
 
     // diagnose's suggested command carries the pins
-    let json = path("d.json");
-    persist_ok(&[
-        "diagnose",
-        "--input",
-        &lab,
-        "--model",
-        &out,
-        "--bootstrap",
-        "19",
-        "--json",
-        &json,
-        "--log-level",
-        "warn",
-    ]);
-    let d = read_json(&json);
+    let (d, _) = common::diagnose_quick(&lab, &out, &path("d.json"));
     let cmds: Vec<&str> = d["ranking"]
         .as_array()
         .unwrap()

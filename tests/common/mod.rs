@@ -254,6 +254,26 @@ pub fn persist_status(args: &[&str]) -> (Option<i32>, String) {
     )
 }
 
+/// `persist diagnose --input LAB --model MODEL --bootstrap 19 --json JSON` (warnings
+/// only): the JSON written and the printed text. 19 replicas: a quick threshold for the
+/// tests that read the ranking's other fields.
+pub fn diagnose_quick(lab: &str, model: &str, json: &str) -> (serde_json::Value, String) {
+    let text = persist_ok(&[
+        "diagnose",
+        "--input",
+        lab,
+        "--model",
+        model,
+        "--bootstrap",
+        "19",
+        "--json",
+        json,
+        "--log-level",
+        "warn",
+    ]);
+    (read_json(json), text)
+}
+
 /// `persist simulate lab --size SIZE --seed SEED --campaign [EXTRA...] --out OUT`: the
 /// laboratory campaign of the fit / diagnose tests.
 pub fn lab_campaign(out: &str, size: u32, seed: u64, extra: &[&str]) {
