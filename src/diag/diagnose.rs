@@ -1697,6 +1697,33 @@ mod tests {
         );
     }
 
+    /// A position effect needs the field; other effects and one illumination (no
+    /// spatial check) are not gated.
+    #[test]
+    fn position_effects_need_a_field_shared_by_neighbours() {
+        let c = |coherent: bool| super::super::spatial::Coherence {
+            events: 5,
+            pairs: 20,
+            pixels_per_event: 100,
+            r2_raw: 0.7,
+            r2_smoothed: vec![(4.0, if coherent { 0.5 } else { 0.05 })],
+            best_length_px: 4.0,
+            best_r2: if coherent { 0.5 } else { 0.05 },
+            threshold: 0.2,
+            coherent,
+            highest: None,
+            lowest: None,
+        };
+        let pop = crate::model::effects::lookup("populations")
+            .unwrap()
+            .covariate;
+        assert_eq!(pop, "position");
+        assert!(position_supported(pop, Some(&c(true))));
+        assert!(!position_supported(pop, Some(&c(false))));
+        assert!(position_supported(pop, None));
+        assert!(position_supported("temperature", Some(&c(false))));
+    }
+
     /// `--refit full` frees the model's own effects that have fitted parameters (with
     /// the candidate's); `--refit candidate` none of them. Unknown modes name the flag.
     #[test]
