@@ -48,6 +48,14 @@ fn spatial(extra: &[&str]) -> (serde_json::Value, String) {
     assert_eq!(sum["models"][0]["spatial"], d["spatial"]);
     let html = std::fs::read_to_string(tmp.path().join("cmp").join("report.html")).unwrap();
     assert!(html.contains("spatial coherence"));
+    // and draws where the field is: 32 x 32 blocks of 1 px
+    assert!(html.contains("Where the residual is on the array"));
+    let f = &d["spatial"]["field"];
+    assert_eq!(
+        (f["block_px"].as_u64(), f["rows"].as_u64()),
+        (Some(1), Some(32))
+    );
+    assert_eq!(f["log_ratio"].as_array().unwrap().len(), 32 * 32);
     (d, text)
 }
 

@@ -1713,6 +1713,7 @@ mod tests {
             coherent,
             highest: None,
             lowest: None,
+            field: super::super::spatial::FieldMap::of(&ndarray::Array2::zeros((2, 2))),
         };
         let pop = crate::model::effects::lookup("populations")
             .unwrap()

@@ -62,13 +62,70 @@ fn map_svg(m: &super::compare::ModelSummary) -> Result<String> {
         ch.draw_series(shown.values().map(|c| {
             let x = c.fluence_e.log10();
             let y = c.time_s.log10();
-            let z = c.stat.z.clamp(-10.0, 10.0) / 10.0;
-            let col = if z >= 0.0 {
-                RGBColor(255, (255.0 * (1.0 - z)) as u8, (255.0 * (1.0 - z)) as u8)
-            } else {
-                RGBColor((255.0 * (1.0 + z)) as u8, (255.0 * (1.0 + z)) as u8, 255)
-            };
+            let col = diverging(c.stat.z / 10.0);
             Rectangle::new([(x, y), (x + 0.2, y + 0.25)], col.filled())
+        }))
+        .map_err(perr)?;
+        root.present().map_err(perr)?;
+    }
+    Ok(s)
+}
+
+/// White at 0, red towards +1, blue towards -1 (`t` clamped to [-1, 1]).
+fn diverging(t: f64) -> RGBColor {
+    let t = t.clamp(-1.0, 1.0);
+    if t >= 0.0 {
+        RGBColor(255, (255.0 * (1.0 - t)) as u8, (255.0 * (1.0 - t)) as u8)
+    } else {
+        RGBColor((255.0 * (1.0 + t)) as u8, (255.0 * (1.0 + t)) as u8, 255)
+    }
+}
+
+/// Where the residual field is on the array: the spatial check's map
+/// ([`crate::diag::spatial::FieldMap`]), `ln(measured / predicted)` relative to its
+/// fluence bin, red where the model under-predicts; colour full at +-0.5. Empty
+/// without the check (one illumination).
+fn field_svg(m: &super::compare::ModelSummary) -> Result<String> {
+    let Some(c) = &m.spatial else {
+        return Ok(String::new());
+    };
+    crate::plot::ensure_font();
+    let f = &c.field;
+    let (w, h) = ((f.cols * f.block_px) as f64, (f.rows * f.block_px) as f64);
+    let mut s = String::new();
+    {
+        let root = SVGBackend::with_string(&mut s, (420, 400)).into_drawing_area();
+        root.fill(&WHITE).map_err(perr)?;
+        let mut ch = ChartBuilder::on(&root)
+            .margin(10)
+            .x_label_area_size(35)
+            .y_label_area_size(45)
+            .caption(
+                format!(
+                    "ln(measured/predicted), {:.0} px; R^2 {:.2}{}",
+                    c.best_length_px,
+                    c.best_r2,
+                    if c.coherent { ": a field" } else { "" }
+                ),
+                ("sans-serif", 16),
+            )
+            .build_cartesian_2d(0.0..w, h..0.0)
+            .map_err(perr)?;
+        ch.configure_mesh()
+            .x_desc("x (px)")
+            .y_desc("y (px)")
+            .disable_mesh()
+            .draw()
+            .map_err(perr)?;
+        let b = f.block_px as f64;
+        ch.draw_series(f.log_ratio.iter().enumerate().filter_map(|(i, v)| {
+            let (r, col) = ((i / f.cols) as f64, (i % f.cols) as f64);
+            v.map(|v| {
+                Rectangle::new(
+                    [(col * b, r * b), ((col + 1.0) * b, (r + 1.0) * b)],
+                    diverging(v / 0.5).filled(),
+                )
+            })
         }))
         .map_err(perr)?;
         root.present().map_err(perr)?;
@@ -233,6 +290,12 @@ pub fn html(sum: &Summary) -> Result<String> {
     )?;
     for c in BREAKDOWNS {
         figure(&format!("Normalised residual by {c}"), &|m| line_svg(m, c))?;
+    }
+    if sum.models.iter().any(|m| m.spatial.is_some()) {
+        figure(
+            "Where the residual is on the array (spatial check; red: measured above predicted)",
+            &field_svg,
+        )?;
     }
     h += "<h2>Definitions</h2><dl>";
     for (k, v) in &sum.definitions {

@@ -92,6 +92,49 @@ pub struct Coherence {
     pub highest: Option<((usize, usize), f64)>,
     /// Where it is lowest.
     pub lowest: Option<((usize, usize), f64)>,
+    /// That map, in blocks (`persist compare`'s figure of where the field is).
+    pub field: FieldMap,
+}
+
+/// A map of the array in square blocks of `block_px` (the last row and column of blocks
+/// may be cut by the edge), at most [`FIELD_BLOCKS`] on a side.
+#[derive(Debug, Clone, Serialize, PartialEq)]
+pub struct FieldMap {
+    pub block_px: usize,
+    /// Blocks down and across.
+    pub rows: usize,
+    pub cols: usize,
+    /// Row-major, the mean of the block's finite values; `null` where it has none.
+    pub log_ratio: Vec<Option<f64>>,
+}
+
+/// Blocks on a side of [`FieldMap`] at most.
+pub const FIELD_BLOCKS: usize = 64;
+
+impl FieldMap {
+    /// `map` in blocks (type docs).
+    pub fn of(map: &Array2<f64>) -> FieldMap {
+        let (ny, nx) = map.dim();
+        let block_px = ny.max(nx).div_ceil(FIELD_BLOCKS).max(1);
+        let (rows, cols) = (ny.div_ceil(block_px), nx.div_ceil(block_px));
+        let mut log_ratio = Vec::with_capacity(rows * cols);
+        for r in 0..rows {
+            for c in 0..cols {
+                let block = map.slice(ndarray::s![
+                    r * block_px..((r + 1) * block_px).min(ny),
+                    c * block_px..((c + 1) * block_px).min(nx)
+                ]);
+                let v: Vec<f64> = block.iter().copied().filter(|v| v.is_finite()).collect();
+                log_ratio.push((!v.is_empty()).then(|| v.iter().sum::<f64>() / v.len() as f64));
+            }
+        }
+        FieldMap {
+            block_px,
+            rows,
+            cols,
+            log_ratio,
+        }
+    }
 }
 
 /// The first exposure after each illumination (indices into the sequence), with the
@@ -283,6 +326,7 @@ pub fn coherence_of(ratios: &[EventRatio]) -> Option<Coherence> {
         coherent: best_r2 >= COHERENT_R2,
         highest,
         lowest,
+        field: FieldMap::of(&map),
     })
 }
 
@@ -330,6 +374,20 @@ mod tests {
         let bottom = fs.iter().copied().fold(f64::INFINITY, f64::min);
         assert!(fs[[y, x]] > 0.5 * top, "{} vs {top}", fs[[y, x]]);
         assert!(fs[[y0, x0]] < 0.5 * bottom, "{} vs {bottom}", fs[[y0, x0]]);
+    }
+
+    #[test]
+    fn field_map_blocks_average_and_cover_the_array() {
+        let m = Array2::from_shape_fn((130, 70), |(y, x)| if x < 35 { y as f64 } else { f64::NAN });
+        let f = FieldMap::of(&m);
+        // 130 / 64 -> blocks of 3 px: 44 x 24
+        assert_eq!((f.block_px, f.rows, f.cols), (3, 44, 24));
+        assert_eq!(f.log_ratio.len(), 44 * 24);
+        assert_eq!(f.log_ratio[0], Some(1.0)); // rows 0-2
+        assert_eq!(f.log_ratio[43 * 24], Some(129.0)); // the last block: row 129 only
+        assert_eq!(f.log_ratio[23], None); // x 69: no value
+        let small = FieldMap::of(&Array2::<f64>::zeros((8, 8)));
+        assert_eq!((small.block_px, small.rows, small.cols), (1, 8, 8));
     }
 
     #[test]
