@@ -22,7 +22,6 @@ fn main() {
     let length_px: f64 = a.get(3).map_or(8.0, |s| s.parse().expect("L_PX"));
     // cells also split by square position tiles of this side (0: the usual cells)
     let tile_px: usize = a.get(4).map_or(0, |s| s.parse().expect("TILE_PX"));
-    let (ny, nx) = (seq.ny, seq.nx);
     let ratios = spatial::log_ratios(&seq, &model).expect("ratios");
     println!("event  pixels  rms_log_ratio");
     for e in &ratios {
@@ -55,20 +54,7 @@ fn main() {
     // the map of all events (mean of the first darks' log ratios, smoothed), applied to
     // every prediction as a scale `exp(strength * map)`: the cell RMS of the stride-2
     // paired cells (`persist fit`'s report) as the strength grows
-    let mut sum = ndarray::Array2::<f64>::zeros((ny, nx));
-    let mut cnt = ndarray::Array2::<f64>::zeros((ny, nx));
-    for e in &ratios {
-        for (v, (c, n)) in e.ratio.iter().zip(sum.iter_mut().zip(cnt.iter_mut())) {
-            if v.is_finite() {
-                *c += v;
-                *n += 1.0;
-            }
-        }
-    }
-    let mean =
-        ndarray::Zip::from(&sum)
-            .and(&cnt)
-            .map_collect(|s, n| if *n > 0.0 { s / n } else { f64::NAN });
+    let mean = spatial::mean_ratio(&ratios);
     let map = spatial::smooth(&mean, length_px).mapv(|v| if v.is_finite() { v } else { 0.0 });
     let lit = mean.iter().filter(|v| v.is_finite()).count();
     let s2 = Samples::new(&seq, 2)

@@ -61,6 +61,18 @@ pub struct CalibConfig {
 }
 
 impl CalibConfig {
+    /// The model file's record of this configuration (nothing freed after it yet).
+    pub fn record(&self) -> Calibration {
+        Calibration {
+            amplification: self.amplification,
+            t_min_s: self.t_min_s,
+            decay_offset_s: self.decay_offset_s,
+            rates_per_s: self.rates_per_s.clone(),
+            fit_cn: false,
+            fit_amplification: false,
+        }
+    }
+
     /// The samples of the effect fit and of the report: every second pixel, grouped and
     /// compared as this configuration says.
     pub fn samples(&self, seq: &Sequence) -> crate::diag::eval::Samples {
@@ -256,14 +268,7 @@ pub fn calibrate(seq: &Sequence, cfg: &CalibConfig) -> Result<(ModelParams, Cali
         ),
         terms: c_n.terms.clone(),
         amplitude_knots: knots.clone(),
-        calibration: Some(Calibration {
-            amplification: cfg.amplification,
-            t_min_s: cfg.t_min_s,
-            decay_offset_s: cfg.decay_offset_s,
-            rates_per_s: cfg.rates_per_s.clone(),
-            fit_cn: false,
-            fit_amplification: false,
-        }),
+        calibration: Some(cfg.record()),
         ..base
     };
     params.validate().map_err(|m| Error::invalid("model", m))?;
@@ -444,12 +449,15 @@ pub struct FitReport {
 /// to its campaign; [`cn_fitted_to_campaign`] reads it back.
 pub const FIT_CN_NOTE: &str = "; C_n then fitted to this campaign (--fit-cn)";
 
-/// Whether `params`' `C_n` were fitted to a campaign (`--fit-cn`, recorded in its
-/// description): such a model has already taken the decay-shape part of any effect in
+/// Whether `params`' `C_n` were fitted to a campaign (`--fit-cn`: its calibration
+/// record, or its description for a model without one): such a model has already taken the decay-shape part of any effect in
 /// that campaign, which `diagnose` then cannot see (docs/diagnose_matrix.md, sixth
 /// session).
 pub fn cn_fitted_to_campaign(params: &ModelParams) -> bool {
-    params.description.ends_with(FIT_CN_NOTE)
+    params
+        .calibration
+        .as_ref()
+        .map_or_else(|| params.description.ends_with(FIT_CN_NOTE), |c| c.fit_cn)
 }
 
 /// In the description of a model whose knots' level `persist fit --fit-amplification`
@@ -457,12 +465,16 @@ pub fn cn_fitted_to_campaign(params: &ModelParams) -> bool {
 /// it back.
 pub const FIT_AMPLIFICATION_NOTE: &str = "; knots then scaled by ";
 
-/// Whether `params`' knot level was fitted to a campaign (`--fit-amplification`): such a
+/// Whether `params`' knot level was fitted to a campaign (`--fit-amplification`: its
+/// calibration record, or its description for a model without one): such a
 /// model has taken in the level part of any effect in that campaign (a hidden
 /// `short_tau_boost` was declared at 1 of 3 seeds against such a reference, 3 of 3
 /// against the level fixed at 0.85; docs/diagnose_matrix.md, eighth session).
 pub fn level_fitted_to_campaign(params: &ModelParams) -> bool {
-    params.description.contains(FIT_AMPLIFICATION_NOTE)
+    params.calibration.as_ref().map_or_else(
+        || params.description.contains(FIT_AMPLIFICATION_NOTE),
+        |c| c.fit_amplification,
+    )
 }
 
 /// `persist fit`: calibrate, fit the `--with` effects (and what `free` frees: the `C_n`

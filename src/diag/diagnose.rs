@@ -1675,16 +1675,7 @@ mod tests {
     /// `fit`'s default, and nothing for a model without the record.
     #[test]
     fn the_suggested_fit_repeats_the_model_s_calibration() {
-        use crate::model::params::Calibration;
-        let d = crate::calib::CalibConfig::default();
-        let mut c = Calibration {
-            amplification: d.amplification,
-            t_min_s: d.t_min_s,
-            decay_offset_s: d.decay_offset_s,
-            rates_per_s: d.rates_per_s.clone(),
-            fit_cn: false,
-            fit_amplification: false,
-        };
+        let mut c = crate::calib::CalibConfig::default().record();
         assert_eq!(calibration_args(None), "");
         assert_eq!(calibration_args(Some(&c)), "");
         c.amplification = 1.0;

@@ -19,7 +19,9 @@ fn esc(s: &str) -> String {
 /// Heat map of z over fluence x time. Per-illumination cells (`--cells illumination`)
 /// share a fluence x time square: the one with the largest |z| is drawn.
 fn map_svg(m: &super::compare::ModelSummary) -> Result<String> {
-    crate::plot::ensure_font();
+    if m.map.is_empty() {
+        return Ok(String::new());
+    }
     let mut shown: std::collections::BTreeMap<(u64, u64), &super::compare::Cell> =
         Default::default();
     for c in &m.map {
@@ -30,42 +32,56 @@ fn map_svg(m: &super::compare::ModelSummary) -> Result<String> {
             *e = c;
         }
     }
+    let (fx0, fx1) = m.map.iter().fold((f64::MAX, f64::MIN), |a, c| {
+        (
+            a.0.min(c.fluence_e.log10()),
+            a.1.max(c.fluence_e.log10() + 0.2),
+        )
+    });
+    let (ty0, ty1) = m.map.iter().fold((f64::MAX, f64::MIN), |a, c| {
+        (a.0.min(c.time_s.log10()), a.1.max(c.time_s.log10() + 0.25))
+    });
+    heat_svg(
+        (420, 320),
+        "z: fluence x time",
+        (fx0..fx1, ty0..ty1),
+        ("log10 fluence (e-)", "log10 t (s)"),
+        shown.values().map(|c| {
+            let (x, y) = (c.fluence_e.log10(), c.time_s.log10());
+            ([(x, y), (x + 0.2, y + 0.25)], diverging(c.stat.z / 10.0))
+        }),
+    )
+}
+
+/// A heat map: `rects` (corners, colour) on axes `ranges` (x, y; a reversed range runs
+/// down or left), described by `desc` (x, y).
+fn heat_svg(
+    size: (u32, u32),
+    caption: &str,
+    ranges: (std::ops::Range<f64>, std::ops::Range<f64>),
+    desc: (&str, &str),
+    rects: impl Iterator<Item = ([(f64, f64); 2], RGBColor)>,
+) -> Result<String> {
+    crate::plot::ensure_font();
     let mut s = String::new();
     {
-        let root = SVGBackend::with_string(&mut s, (420, 320)).into_drawing_area();
+        let root = SVGBackend::with_string(&mut s, size).into_drawing_area();
         root.fill(&WHITE).map_err(perr)?;
-        let (fx0, fx1) = m.map.iter().fold((f64::MAX, f64::MIN), |a, c| {
-            (
-                a.0.min(c.fluence_e.log10()),
-                a.1.max(c.fluence_e.log10() + 0.2),
-            )
-        });
-        let (ty0, ty1) = m.map.iter().fold((f64::MAX, f64::MIN), |a, c| {
-            (a.0.min(c.time_s.log10()), a.1.max(c.time_s.log10() + 0.25))
-        });
-        if m.map.is_empty() {
-            return Ok(String::new());
-        }
         let mut ch = ChartBuilder::on(&root)
             .margin(10)
             .x_label_area_size(35)
             .y_label_area_size(45)
-            .caption("z: fluence x time", ("sans-serif", 16))
-            .build_cartesian_2d(fx0..fx1, ty0..ty1)
+            .caption(caption, ("sans-serif", 16))
+            .build_cartesian_2d(ranges.0, ranges.1)
             .map_err(perr)?;
         ch.configure_mesh()
-            .x_desc("log10 fluence (e-)")
-            .y_desc("log10 t (s)")
+            .x_desc(desc.0)
+            .y_desc(desc.1)
             .disable_mesh()
             .draw()
             .map_err(perr)?;
-        ch.draw_series(shown.values().map(|c| {
-            let x = c.fluence_e.log10();
-            let y = c.time_s.log10();
-            let col = diverging(c.stat.z / 10.0);
-            Rectangle::new([(x, y), (x + 0.2, y + 0.25)], col.filled())
-        }))
-        .map_err(perr)?;
+        ch.draw_series(rects.map(|(corners, col)| Rectangle::new(corners, col.filled())))
+            .map_err(perr)?;
         root.present().map_err(perr)?;
     }
     Ok(s)
@@ -89,48 +105,29 @@ fn field_svg(m: &super::compare::ModelSummary) -> Result<String> {
     let Some(c) = &m.spatial else {
         return Ok(String::new());
     };
-    crate::plot::ensure_font();
     let f = &c.field;
-    let (w, h) = ((f.cols * f.block_px) as f64, (f.rows * f.block_px) as f64);
-    let mut s = String::new();
-    {
-        let root = SVGBackend::with_string(&mut s, (420, 400)).into_drawing_area();
-        root.fill(&WHITE).map_err(perr)?;
-        let mut ch = ChartBuilder::on(&root)
-            .margin(10)
-            .x_label_area_size(35)
-            .y_label_area_size(45)
-            .caption(
-                format!(
-                    "ln(measured/predicted), {:.0} px; R^2 {:.2}{}",
-                    c.best_length_px,
-                    c.best_r2,
-                    if c.coherent { ": a field" } else { "" }
-                ),
-                ("sans-serif", 16),
-            )
-            .build_cartesian_2d(0.0..w, h..0.0)
-            .map_err(perr)?;
-        ch.configure_mesh()
-            .x_desc("x (px)")
-            .y_desc("y (px)")
-            .disable_mesh()
-            .draw()
-            .map_err(perr)?;
-        let b = f.block_px as f64;
-        ch.draw_series(f.log_ratio.iter().enumerate().filter_map(|(i, v)| {
+    let b = f.block_px as f64;
+    let (w, h) = (f.cols as f64 * b, f.rows as f64 * b);
+    heat_svg(
+        (420, 400),
+        &format!(
+            "ln(measured/predicted), {:.0} px; R^2 {:.2}{}",
+            c.best_length_px,
+            c.best_r2,
+            if c.coherent { ": a field" } else { "" }
+        ),
+        (0.0..w, h..0.0),
+        ("x (px)", "y (px)"),
+        f.log_ratio.iter().enumerate().filter_map(|(i, v)| {
             let (r, col) = ((i / f.cols) as f64, (i % f.cols) as f64);
             v.map(|v| {
-                Rectangle::new(
+                (
                     [(col * b, r * b), ((col + 1.0) * b, (r + 1.0) * b)],
-                    diverging(v / 0.5).filled(),
+                    diverging(v / 0.5),
                 )
             })
-        }))
-        .map_err(perr)?;
-        root.present().map_err(perr)?;
-    }
-    Ok(s)
+        }),
+    )
 }
 
 /// z against one covariate.

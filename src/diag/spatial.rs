@@ -154,7 +154,15 @@ fn first_after(seq: &Sequence) -> Vec<(usize, usize)> {
 /// Each event's demeaned log ratio (module docs, "Statistic"), in the order of the
 /// sequence's illuminations (those with an exposure after them).
 pub fn log_ratios(seq: &Sequence, params: &ModelParams) -> Result<Vec<EventRatio>> {
-    let firsts = first_after(seq);
+    ratios_after(seq, params, &first_after(seq))
+}
+
+/// [`log_ratios`] at the given (illumination, first exposure after it) pairs.
+fn ratios_after(
+    seq: &Sequence,
+    params: &ModelParams,
+    firsts: &[(usize, usize)],
+) -> Result<Vec<EventRatio>> {
     let (ny, nx) = (seq.ny, seq.nx);
     let pixels: Vec<(usize, usize)> = (0..ny).flat_map(|y| (0..nx).map(move |x| (y, x))).collect();
     let s = Samples::with_pixels_where(seq, pixels, 1, |k| firsts.iter().any(|f| f.1 == k));
@@ -240,7 +248,7 @@ pub fn r2(x: &Array2<f64>, y: &Array2<f64>) -> f64 {
 }
 
 /// Mean over the ordered pairs of events of `r2(map(A), r_B)`.
-fn mean_transfer(ratios: &[EventRatio], maps: &[Array2<f64>]) -> f64 {
+fn mean_transfer(ratios: &[EventRatio], maps: &[&Array2<f64>]) -> f64 {
     let mut v = Vec::new();
     for (i, m) in maps.iter().enumerate() {
         for (j, e) in ratios.iter().enumerate() {
@@ -256,39 +264,19 @@ fn mean_transfer(ratios: &[EventRatio], maps: &[Array2<f64>]) -> f64 {
 /// The spatial coherence of `params`' residuals on `seq` (module docs); `None` with
 /// fewer than two events.
 pub fn coherence(seq: &Sequence, params: &ModelParams) -> Result<Option<Coherence>> {
-    if first_after(seq).len() < 2 {
+    let firsts = first_after(seq);
+    if firsts.len() < 2 {
         // before running the model
         return Ok(None);
     }
-    let ratios = log_ratios(seq, params)?;
-    Ok(coherence_of(&ratios))
+    Ok(coherence_of(&ratios_after(seq, params, &firsts)?))
 }
 
-/// [`coherence`] of given ratios.
-pub fn coherence_of(ratios: &[EventRatio]) -> Option<Coherence> {
-    let n = ratios.len();
-    if n < 2 {
-        return None;
-    }
-    let raw: Vec<Array2<f64>> = ratios.iter().map(|e| e.ratio.clone()).collect();
-    let r2_smoothed: Vec<(f64, f64)> = LENGTHS_PX
-        .iter()
-        .map(|&l| {
-            let maps: Vec<Array2<f64>> = ratios.iter().map(|e| smooth(&e.ratio, l)).collect();
-            (l, mean_transfer(ratios, &maps))
-        })
-        .collect();
-    let (best_length_px, best_r2) =
-        r2_smoothed
-            .iter()
-            .copied()
-            .fold(
-                (f64::NAN, f64::NEG_INFINITY),
-                |b, c| if c.1 > b.1 { c } else { b },
-            );
-    // the mean over the events where defined, then smoothed: where the field is
-    let mut sum = Array2::<f64>::zeros(ratios[0].ratio.dim());
-    let mut cnt = Array2::<f64>::zeros(ratios[0].ratio.dim());
+/// The mean of the events' ratios where each is defined (NaN where none is).
+pub fn mean_ratio(ratios: &[EventRatio]) -> Array2<f64> {
+    let dim = ratios.first().map_or((0, 0), |e| e.ratio.dim());
+    let mut sum = Array2::<f64>::zeros(dim);
+    let mut cnt = Array2::<f64>::zeros(dim);
     for e in ratios {
         ndarray::Zip::from(&mut sum)
             .and(&mut cnt)
@@ -300,11 +288,35 @@ pub fn coherence_of(ratios: &[EventRatio]) -> Option<Coherence> {
                 }
             });
     }
-    let mean =
-        ndarray::Zip::from(&sum)
-            .and(&cnt)
-            .map_collect(|s, c| if *c > 0.0 { s / c } else { f64::NAN });
-    let map = smooth(&mean, best_length_px);
+    ndarray::Zip::from(&sum)
+        .and(&cnt)
+        .map_collect(|s, c| if *c > 0.0 { s / c } else { f64::NAN })
+}
+
+/// [`coherence`] of given ratios.
+pub fn coherence_of(ratios: &[EventRatio]) -> Option<Coherence> {
+    let n = ratios.len();
+    if n < 2 {
+        return None;
+    }
+    let raw: Vec<&Array2<f64>> = ratios.iter().map(|e| &e.ratio).collect();
+    let r2_smoothed: Vec<(f64, f64)> = LENGTHS_PX
+        .iter()
+        .map(|&l| {
+            let maps: Vec<Array2<f64>> = ratios.iter().map(|e| smooth(&e.ratio, l)).collect();
+            (l, mean_transfer(ratios, &maps.iter().collect::<Vec<_>>()))
+        })
+        .collect();
+    let (best_length_px, best_r2) =
+        r2_smoothed
+            .iter()
+            .copied()
+            .fold(
+                (f64::NAN, f64::NEG_INFINITY),
+                |b, c| if c.1 > b.1 { c } else { b },
+            );
+    // the mean over the events where defined, then smoothed: where the field is
+    let map = smooth(&mean_ratio(ratios), best_length_px);
     let finite = || map.indexed_iter().filter(|(_, v)| v.is_finite());
     let at = |(p, v): ((usize, usize), &f64)| (p, v.exp());
     let highest = finite().max_by(|a, b| a.1.total_cmp(b.1)).map(at);
