@@ -10,7 +10,9 @@
 //! `NAME:param=value`, a truth effect with a non-default parameter), `--pair a,b` (two hidden
 //! effects, default `short_tau_boost,soak`: found one per round at 3 of 3 seeds at 64 x 64,
 //! docs/diagnose_matrix.md, "Twelfth session"; `soak,temperature` is not), `--pixels N`, `--bootstrap B`,
-//! `--statistic within|pooled`, `--reference a,b` (default none: the paper's model),
+//! `--statistic within|pooled`, `--preset paper|readout` (`persist fit --preset`: the
+//! reference's starting point; `readout` is R14), `--reference a,b` (default none: the
+//! paper's model; with `--preset`, added to its effects as `persist fit --with` is),
 //! `--reference-fit-cn` (the reference also fits the `C_n`, `persist fit --fit-cn`; then
 //! every `fit --with` of the matrix refits them jointly too, from the reference's),
 //! `--reference-fit-amplification`, `--amplification A`, `--rates-per-s r1,r2,...`,
@@ -270,12 +272,16 @@ fn main() {
         .split(',')
         .map(String::from)
         .collect();
+    let preset: calib::Preset = arg(&args, "--preset").map_or(Default::default(), |v| {
+        v.parse().unwrap_or_else(|e| panic!("{e}"))
+    });
     let reference = Reference {
-        effects: arg(&args, "--reference").map_or(Vec::new(), |v| reference_effects(&v)),
+        effects: preset
+            .with(&arg(&args, "--reference").map_or(Vec::new(), |v| reference_effects(&v))),
         fit_cn: args.iter().any(|a| a == "--reference-fit-cn"),
         fit_amplification: args.iter().any(|a| a == "--reference-fit-amplification"),
         calib: {
-            let mut c = CalibConfig::default();
+            let mut c = preset.config();
             if let Some(v) = arg(&args, "--amplification") {
                 c.amplification = v.parse().unwrap();
             }

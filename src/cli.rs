@@ -10,6 +10,7 @@
 //! on a terminal draws a progress bar on stderr (the logs are printed above it).
 
 use clap::{Args, Parser, Subcommand};
+use persist::calib::Preset;
 use persist::checkpoint::Retention;
 use persist::diag::diagnose::Refit;
 use persist::diag::eval::{CellStatistic, Cells};
@@ -448,19 +449,28 @@ pub struct FitArgs {
     /// Fit report (JSON); default: OUT with extension `.fit.json`.
     #[arg(long)]
     pub report: Option<PathBuf>,
-    /// Amplification of A_0 into A_bin (paper: 1.2).
-    #[arg(long, default_value_t = 1.2)]
-    pub amplification: f64,
-    /// Start of the span over which the C_n follow 1/(t+1): the shortest slew, s.
-    #[arg(long, default_value_t = 10.0)]
-    pub t_min_s: f64,
-    /// The C_n follow 1/(t + T0) with this T0, s (paper: 1). Eq. (logfit)'s fitted tau
-    /// per bin (the report's bins[].logfit.tau_s) is the data's own offset
-    /// (`persist::calib`, "Decay offset").
-    #[arg(long, default_value_t = 1.0)]
-    pub decay_offset_s: f64,
-    /// Decay rates 1/tau_n of the terms, 1/s, comma-separated (default: the paper's six,
-    /// 0.1,0.0158,0.00251,0.000398,6.31e-5,1e-5).
+    /// Starting point: `paper` (the paper's calibration, for flagging: the options'
+    /// defaults below) or `readout` (for comparing with measurements, the reference of
+    /// the hidden-effect matrix: `--amplification 1 --t-min-s 1 --decay-offset-s 0.2`,
+    /// thirteen rates 10^(-0.4 k) 1/s, `--with refill --with
+    /// chord:strength=1,first_read_s=1.5`; `persist::calib::Preset`). Options given
+    /// alongside override the preset's, a `--with` of an effect it has replaces that one.
+    #[arg(long, default_value_t = Preset::Paper, value_parser = parse_flag::<Preset>)]
+    pub preset: Preset,
+    /// Amplification of A_0 into A_bin [default: the preset's; paper: 1.2].
+    #[arg(long)]
+    pub amplification: Option<f64>,
+    /// Start of the span over which the C_n follow 1/(t+1): the shortest slew, s
+    /// [default: the preset's; paper: 10].
+    #[arg(long)]
+    pub t_min_s: Option<f64>,
+    /// The C_n follow 1/(t + T0) with this T0, s [default: the preset's; paper: 1].
+    /// Eq. (logfit)'s fitted tau per bin (the report's bins[].logfit.tau_s) is the
+    /// data's own offset (`persist::calib`, "Decay offset").
+    #[arg(long)]
+    pub decay_offset_s: Option<f64>,
+    /// Decay rates 1/tau_n of the terms, 1/s, comma-separated [default: the preset's;
+    /// paper: its six, 0.1,0.0158,0.00251,0.000398,6.31e-5,1e-5].
     #[arg(long, value_delimiter = ',')]
     pub rates_per_s: Vec<f64>,
     #[command(flatten)]
@@ -919,22 +929,21 @@ fn demo(args: &DemoArgs) -> persist::Result<ExitCode> {
 
 /// `persist fit`.
 fn fit(a: &FitArgs) -> persist::Result<ExitCode> {
+    let p = a.preset.config();
     let cfg = persist::calib::CalibConfig {
-        amplification: a.amplification,
-        t_min_s: a.t_min_s,
-        decay_offset_s: a.decay_offset_s,
+        amplification: a.amplification.unwrap_or(p.amplification),
+        t_min_s: a.t_min_s.unwrap_or(p.t_min_s),
+        decay_offset_s: a.decay_offset_s.unwrap_or(p.decay_offset_s),
+        rates_per_s: if a.rates_per_s.is_empty() {
+            p.rates_per_s
+        } else {
+            a.rates_per_s.clone()
+        },
         cells: a.cells.cells,
         cell_statistic: a.cells.cell_statistic,
-        ..Default::default()
+        ..p
     };
-    let cfg = if a.rates_per_s.is_empty() {
-        cfg
-    } else {
-        persist::calib::CalibConfig {
-            rates_per_s: a.rates_per_s.clone(),
-            ..cfg
-        }
-    };
+    let with = a.preset.with(&a.with);
     let report_path = a
         .report
         .clone()
@@ -945,7 +954,7 @@ fn fit(a: &FitArgs) -> persist::Result<ExitCode> {
         knot_scale: a.fit_amplification,
     }
     .check()?;
-    let r = persist::calib::run(&a.input, &cfg, &a.with, free, &a.out, &report_path)?;
+    let r = persist::calib::run(&a.input, &cfg, &with, free, &a.out, &report_path)?;
     out!("{r}");
     Ok(ExitCode::SUCCESS)
 }

@@ -408,16 +408,14 @@ fn interacting_soak_and_temperature_are_paired_by_the_joint_check() {
 /// offset on these data, `persist::calib` "Decay offset") and the readout pinned, not
 /// fitted: `chord` at strength 1 from the first read 1.5 s after the reset (`persist
 /// fit --with refill --with chord:strength=1,first_read_s=1.5 --decay-offset-s 0.2 ...`).
+/// `persist fit --preset readout` ([`persist::calib::Preset::Readout`]).
 fn readout_reference(seq: &Sequence, extra: &[&str]) -> persist::model::ModelParams {
-    let effects = ["refill", "chord:strength=1,first_read_s=1.5"];
-    fit_reference(seq, &readout_config(), &effects, extra)
+    let preset = persist::calib::Preset::Readout;
+    fit_reference(seq, &readout_config(), preset.effects(), extra)
 }
 
 fn readout_config() -> CalibConfig {
-    CalibConfig {
-        decay_offset_s: 0.2,
-        ..paired_config()
-    }
+    persist::calib::Preset::Readout.config()
 }
 
 /// A hidden `linefit_bias` (the on-board least-squares slope instead of the chord) at

@@ -191,3 +191,95 @@ fn bad_pins_are_refused_with_the_argument_and_the_reason() {
         "{text}"
     );
 }
+
+/// `persist fit --preset readout` is the long form of the matrix's reference (R14,
+/// docs/diagnose_matrix.md, "Fourteenth session"): the same model file, byte for byte.
+/// `diagnose` names the preset in the command it suggests, and following that command
+/// calibrates the same; options given with the preset override its values; an unknown
+/// preset is refused, naming the flag.
+#[test]
+fn the_readout_preset_is_the_long_form_and_is_suggested_back() {
+    let (tmp, lab) = lab_32();
+    let path = |name: &str| tmp.path().join(name).to_str().unwrap().to_string();
+    let fit = |out: &str, extra: &[&str]| {
+        let mut a = vec!["fit", "--input", &lab, "--out", out, "--log-level", "warn"];
+        a.extend(extra);
+        persist_ok(&a);
+        read_json(out)
+    };
+    let preset = fit(&path("p.json"), &["--preset", "readout"]);
+    let rates = common::rates_13_terms();
+    let long = fit(
+        &path("l.json"),
+        &[
+            "--with",
+            "refill",
+            "--with",
+            "chord:strength=1,first_read_s=1.5",
+            "--amplification",
+            "1",
+            "--t-min-s",
+            "1",
+            "--decay-offset-s",
+            "0.2",
+            "--rates-per-s",
+            &rates,
+        ],
+    );
+    assert_eq!(preset, long);
+    assert_eq!(
+        std::fs::read(path("p.json")).unwrap(),
+        std::fs::read(path("l.json")).unwrap()
+    );
+    assert_eq!(preset["terms"].as_array().unwrap().len(), 13);
+
+    let (d, _) = common::diagnose_quick(&lab, &path("p.json"), &path("d.json"));
+    let cmds: Vec<&str> = d["ranking"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter_map(|c| c["command"].as_str())
+        .collect();
+    assert!(!cmds.is_empty(), "{d}");
+    for c in &cmds {
+        assert!(c.contains(" --preset readout --with "), "{c}");
+        assert!(
+            !c.contains("refill") && !c.contains("--amplification"),
+            "{c}"
+        );
+    }
+    let mut args: Vec<&str> = cmds[0].split_whitespace().skip(1).collect();
+    args.extend(["--log-level", "warn"]);
+    persist_ok(&args);
+    let next = read_json(args[args.iter().position(|a| *a == "--out").unwrap() + 1]);
+    for key in ["calibration", "amplitude_knots", "terms"] {
+        assert_eq!(next[key], preset[key], "{key}");
+    }
+
+    // an option given with the preset overrides its value; its effects stay
+    let over = fit(
+        &path("o.json"),
+        &["--preset", "readout", "--amplification", "1.2"],
+    );
+    assert_eq!(over["calibration"]["amplification"], 1.2);
+    assert_eq!(over["calibration"]["decay_offset_s"], 0.2);
+    let names: Vec<&str> = over["effects"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|e| e["name"].as_str().unwrap())
+        .collect();
+    assert_eq!(names, ["refill", "chord"]);
+
+    let (code, text) = persist_status(&[
+        "fit",
+        "--input",
+        &lab,
+        "--out",
+        &path("x.json"),
+        "--preset",
+        "r14",
+    ]);
+    assert_eq!(code, Some(2), "{text}");
+    assert!(text.contains("--preset") && text.contains("r14"), "{text}");
+}

@@ -97,6 +97,106 @@ impl Default for CalibConfig {
     }
 }
 
+/// A named starting point of `persist fit` (`--preset`): a calibration configuration
+/// and the effects fitted with it.
+///
+/// - [`Preset::Paper`] (the default): the paper's calibration as the issue states it
+///   (amplification 1.2, the six rates of Eq. (bbdetexpsum), `C_n` to `1/(t + 1)` from
+///   10 s), for flagging: the 1.2 is a margin.
+/// - [`Preset::Readout`]: the reference against which the hidden-effect matrix is
+///   measured (docs/diagnose_matrix.md, "Fourteenth session", R14), for comparing a model
+///   with measurements: the knots at the measured level (amplification 1.0; the paper's
+///   margin would otherwise be a residual that an effect takes in), thirteen rates 0.4
+///   decade apart from 1/s (`10^(-0.4 k)`, k = 0..12), the `C_n` fitted to
+///   `1/(t + 0.2 s)` from 1 s (Eq. (logfit)'s own offset on the simulator's campaign,
+///   module docs "Decay offset"), and the effects `refill` (fitted) and `chord` held at
+///   strength 1 from the first read 1.5 s after the reset (the SPHEREx readout: the
+///   on-board slope is the chord between the first and last sample used).
+///
+/// `persist diagnose` recognises a model calibrated with a preset's options and names
+/// the preset in the `fit` command it suggests.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum Preset {
+    #[default]
+    Paper,
+    Readout,
+}
+
+impl Preset {
+    pub const ALL: [Preset; 2] = [Preset::Paper, Preset::Readout];
+
+    pub fn name(self) -> &'static str {
+        match self {
+            Preset::Paper => "paper",
+            Preset::Readout => "readout",
+        }
+    }
+
+    /// The calibration options (the residual cells stay the library's defaults).
+    pub fn config(self) -> CalibConfig {
+        match self {
+            Preset::Paper => CalibConfig::default(),
+            Preset::Readout => CalibConfig {
+                amplification: 1.0,
+                t_min_s: 1.0,
+                decay_offset_s: 0.2,
+                rates_per_s: (0..13).map(|k| 10f64.powf(-0.4 * f64::from(k))).collect(),
+                ..CalibConfig::default()
+            },
+        }
+    }
+
+    /// The effects fitted with it, each as `persist fit --with` takes it.
+    pub fn effects(self) -> &'static [&'static str] {
+        match self {
+            Preset::Paper => &[],
+            Preset::Readout => &["refill", "chord:strength=1,first_read_s=1.5"],
+        }
+    }
+
+    /// The preset's effects, then `with`; an entry of `with` naming an effect the
+    /// preset has replaces the preset's (`--with chord:strength=0.9` holds another
+    /// strength).
+    pub fn with(self, with: &[String]) -> Vec<String> {
+        let name = |s: &str| s.split(':').next().unwrap_or(s).trim().to_string();
+        let given: Vec<String> = with.iter().map(|w| name(w)).collect();
+        self.effects()
+            .iter()
+            .filter(|e| !given.contains(&name(e)))
+            .map(|e| e.to_string())
+            .chain(with.iter().cloned())
+            .collect()
+    }
+
+    /// True if calibration record `c` has this preset's options (before anything was
+    /// freed after it).
+    pub fn matches(self, c: &Calibration) -> bool {
+        let r = self.config().record();
+        c.amplification == r.amplification
+            && c.t_min_s == r.t_min_s
+            && c.decay_offset_s == r.decay_offset_s
+            && c.rates_per_s == r.rates_per_s
+    }
+}
+
+impl std::fmt::Display for Preset {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+impl std::str::FromStr for Preset {
+    type Err = Error;
+    fn from_str(s: &str) -> Result<Self> {
+        Preset::ALL
+            .into_iter()
+            .find(|p| p.name() == s)
+            .ok_or_else(|| {
+                Error::invalid("--preset", format!("`{s}`: expected `paper` or `readout`"))
+            })
+    }
+}
+
 #[derive(Debug, Clone, Serialize)]
 pub struct BinResult {
     pub fluence_lo_e: f64,
@@ -367,6 +467,32 @@ pub fn p95(v: &[f64]) -> f64 {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The presets: `paper` is `fit`'s defaults; `readout` is R14 (docs/diagnose_matrix.md,
+    /// "Fourteenth session"); a `--with` replaces the preset's entry of the same effect.
+    #[test]
+    fn presets_give_their_options_and_effects() {
+        assert_eq!(
+            Preset::Paper.config().record(),
+            CalibConfig::default().record()
+        );
+        assert!(Preset::Paper.with(&[]).is_empty());
+        let r = Preset::Readout.config();
+        assert_eq!(
+            (r.amplification, r.t_min_s, r.decay_offset_s),
+            (1.0, 1.0, 0.2)
+        );
+        assert_eq!(r.rates_per_s.len(), 13);
+        assert!((r.rates_per_s[1] - 0.398107).abs() < 1e-6);
+        assert!((r.rates_per_s[12] - 1.58489e-5).abs() < 1e-10);
+        assert!(Preset::Readout.matches(&r.record()));
+        assert!(!Preset::Readout.matches(&CalibConfig::default().record()));
+        let w = Preset::Readout.with(&["soak".into(), "chord:strength=0.9".into()]);
+        assert_eq!(w, ["refill", "soak", "chord:strength=0.9"]);
+        assert_eq!("readout".parse::<Preset>().unwrap(), Preset::Readout);
+        let e = "r14".parse::<Preset>().unwrap_err().to_string();
+        assert!(e.contains("--preset") && e.contains("r14"), "{e}");
+    }
 
     #[test]
     fn cn_fit_follows_inverse_time() {

@@ -368,10 +368,16 @@ fn fit_command(
         model_path.with_extension("").display(),
         names.join("+")
     );
+    let preset = params.calibration.as_ref().and_then(preset_of);
+    if let Some(p) = preset {
+        s += &format!(" --preset {p}");
+    }
+    let from_preset = preset.map_or(&[][..], |p| p.effects());
     for e in params
         .effects
         .iter()
         .map(crate::calib::effects::with_arg)
+        .filter(|e| !from_preset.contains(&e.as_str()))
         .chain(names.iter().map(|n| n.to_string()))
     {
         s += &format!(" --with {e}");
@@ -387,13 +393,23 @@ fn fit_command(
     s
 }
 
-/// `persist fit`'s options that repeat calibration `c`, those at `fit`'s defaults
-/// left out; each begins with a space.
+/// The `persist fit --preset` other than the default whose options calibration `c`
+/// has ([`crate::calib::Preset::matches`]).
+fn preset_of(c: &crate::model::params::Calibration) -> Option<crate::calib::Preset> {
+    use crate::calib::Preset;
+    Preset::ALL
+        .into_iter()
+        .find(|p| *p != Preset::default() && p.matches(c))
+}
+
+/// `persist fit`'s options that repeat calibration `c`, those at the defaults of `fit`
+/// (of its `--preset`, when [`preset_of`] finds one) left out; each begins with a
+/// space.
 fn calibration_args(c: Option<&crate::model::params::Calibration>) -> String {
     let Some(c) = c else {
         return String::new();
     };
-    let d = crate::calib::CalibConfig::default();
+    let d = preset_of(c).unwrap_or_default().config();
     let mut s = String::new();
     if c.amplification != d.amplification {
         s += &format!(" --amplification {}", c.amplification);
@@ -1686,6 +1702,55 @@ mod tests {
             calibration_args(Some(&c)),
             " --amplification 1 --decay-offset-s 0.2 --rates-per-s 1,0.0000158489 --fit-cn"
         );
+    }
+
+    /// A model calibrated with `fit --preset readout` gets `--preset readout` back, its
+    /// preset's effects not repeated, and only what differs from the preset spelt out.
+    #[test]
+    fn the_suggested_fit_names_the_readout_preset() {
+        use crate::calib::Preset;
+        let mut p = ModelParams::default();
+        let mut c = Preset::Readout.config().record();
+        p.calibration = Some(c.clone());
+        let with: Vec<String> = Preset::Readout.with(&[]);
+        p.effects = with
+            .iter()
+            .map(|w| {
+                let (name, pins) = crate::calib::effects::parse_with(w).unwrap();
+                let mut e = crate::model::params::EffectSpec::named(name);
+                for (k, v) in pins {
+                    e.params.insert(k.clone(), v.into());
+                    e.fixed.push(k);
+                }
+                e
+            })
+            .collect();
+        let cmd = |p: &ModelParams| {
+            fit_command(
+                Path::new("lab"),
+                Path::new("m.json"),
+                p,
+                &["soak"],
+                &Config::default(),
+            )
+        };
+        assert_eq!(
+            cmd(&p),
+            "persist fit --input lab --out m+soak.json --preset readout --with soak"
+        );
+        // freed after the preset: said; another chord strength: its own --with
+        c.fit_cn = true;
+        p.calibration = Some(c.clone());
+        p.effects[1].params.insert("strength".into(), 0.9.into());
+        assert_eq!(
+            cmd(&p),
+            "persist fit --input lab --out m+soak.json --preset readout \
+             --with chord:strength=0.9,first_read_s=1.5 --with soak --fit-cn"
+        );
+        // one option off the preset: no preset named, every option spelt out
+        c.t_min_s = 2.0;
+        assert_eq!(preset_of(&c), None);
+        assert!(calibration_args(Some(&c)).contains(" --amplification 1 --t-min-s 2"));
     }
 
     /// A position effect needs the field; other effects and one illumination (no
