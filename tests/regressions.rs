@@ -148,3 +148,36 @@ fn a_sequence_without_background_pixels_is_reported() {
     assert!(o.status.success(), "{err}");
     assert!(!err.contains("no background pixel"), "{err}");
 }
+
+/// `persist compare` on sky data (every exposure an illumination, so none after one)
+/// wrote a report of nothing, "0 exposures" and a residual RMS of NaN (null in
+/// `summary.json`), and exited 0. It is now refused, naming the input, the field and
+/// why; no report is written.
+#[test]
+fn compare_on_sky_data_is_refused_not_an_empty_report() {
+    let t = tempfile::tempdir().unwrap();
+    let p = |n: &str| t.path().join(n).to_string_lossy().to_string();
+    let (sky, model, report) = (p("sky"), p("m.json"), p("cmp"));
+    common::persist_ok(&[
+        "simulate",
+        "sky",
+        "--size",
+        "16",
+        "--exposures",
+        "6",
+        "--out",
+        &sky,
+    ]);
+    std::fs::write(&model, common::persist_ok(&["model", "default"])).unwrap();
+    let (code, text) = common::persist_status(&[
+        "compare", "--input", &sky, "--model", &model, "--report", &report,
+    ]);
+    assert_eq!(code, Some(2), "{text}");
+    assert!(
+        text.contains(&sky)
+            && text.contains("`t_illuminated_s`")
+            && text.contains("no exposure follows an illumination"),
+        "{text}"
+    );
+    assert!(!std::path::Path::new(&report).exists());
+}

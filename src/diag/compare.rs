@@ -496,6 +496,12 @@ pub fn run(input: &Path, models: &[std::path::PathBuf], out: &Path) -> Result<St
 }
 
 /// `persist compare` with [`Options`].
+/// Why a sequence gives `compare` nothing to compare.
+const NOTHING_AFTER_AN_ILLUMINATION: &str =
+    "no exposure follows an illumination: compare needs a laboratory sequence \
+     (illuminated exposures, which carry `t_illuminated_s`, each followed by darks); \
+     on sky data every exposure is an illumination";
+
 pub fn run_with(
     input: &Path,
     models: &[std::path::PathBuf],
@@ -506,6 +512,9 @@ pub fn run_with(
     let samples = Samples::new(&seq, STRIDE)
         .with_cells(opts.cells)
         .with_statistic(opts.cell_statistic);
+    if samples.exposures.is_empty() {
+        return Err(Error::invalid("t_illuminated_s", NOTHING_AFTER_AN_ILLUMINATION).path(input));
+    }
     let mut loaded = Vec::new();
     for m in models {
         loaded.push((m.display().to_string(), crate::model_file::load(m)?));
