@@ -83,7 +83,7 @@ fn active_pixels_predict_bit_identically_to_the_whole_array() {
     let keep: Vec<bool> = (0..16).map(|i| i % 3 != 0).collect();
     let all = vec![true; 16];
     for (name, p) in [
-        ("capacity", serde_json::json!({"inv_a_max_per_e": 1e-3})),
+        ("capacity", serde_json::json!({"inv_q_max_per_e": 1e-4})),
         ("soak", serde_json::json!({"capture_ratio": 0.5})),
         ("temperature", serde_json::json!({})),
         ("linefit_bias", serde_json::json!({})),
@@ -141,7 +141,7 @@ fn accumulators_run_by_role_not_by_model_file_order() {
     let temps = vec![80.0; 8];
     let lit = [0, 3];
     let refill = || spec("refill", serde_json::json!({"beta": 1.0}));
-    let cap = || spec("capacity", serde_json::json!({"inv_a_max_per_e": 1e-4}));
+    let cap = || spec("capacity", serde_json::json!({"inv_q_max_per_e": 1e-5}));
     let a = run_masked(&with(vec![cap(), refill()]), &temps, None, &lit).unwrap();
     let b = run_masked(&with(vec![refill(), cap()]), &temps, None, &lit).unwrap();
     for (x, y) in a.iter().zip(&b) {
@@ -175,7 +175,7 @@ fn null_effects_are_bit_identical_to_the_paper_model() {
     let temps = vec![80.0; 8];
     let base = run(&Model::new(ModelParams::default()).unwrap(), &temps);
     for (name, p) in [
-        ("capacity", serde_json::json!({"inv_a_max_per_e": 0.0})),
+        ("capacity", serde_json::json!({"inv_q_max_per_e": 0.0})),
         ("refill", serde_json::json!({"beta": 0.0})),
         ("chord", serde_json::json!({"strength": 0.0})),
         ("soak", serde_json::json!({"capture_ratio": 0.0})),
@@ -198,7 +198,7 @@ fn active_effects_change_the_prediction_as_documented() {
     // fill, the more the more it holds (the brightest pixel most)
     let cap_model = with(vec![spec(
         "capacity",
-        serde_json::json!({"inv_a_max_per_e": 1e-3}),
+        serde_json::json!({"inv_q_max_per_e": 1e-4}),
     )]);
     let cap = run(&cap_model, &temps);
     assert_eq!(cap[1], base[1]);

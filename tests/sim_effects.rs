@@ -31,15 +31,20 @@ fn lab_run(effects: &str) -> Arc<Vec<SimExposure>> {
         effects: specs,
         ..LabConfig::default()
     };
+    let v = Arc::new(run_lab(&cfg));
+    cache.lock().unwrap().insert(effects.to_string(), v.clone());
+    v
+}
+
+/// Every exposure of the laboratory run `cfg`, in order.
+fn run_lab(cfg: &LabConfig) -> Vec<SimExposure> {
     let mut all = Vec::new();
-    lab::run(&cfg, |e| {
+    lab::run(cfg, |e| {
         all.push(e);
         Ok(())
     })
     .unwrap();
-    let v = Arc::new(all);
-    cache.lock().unwrap().insert(effects.to_string(), v.clone());
-    v
+    all
 }
 
 /// True extrapolated fluence of each pixel (from the baseline's true flux).
@@ -255,4 +260,49 @@ fn temperature_warmer_array_decays_faster() {
     // and a colder array (tabulated at 84 K) keeps its tail
     let cold = ratio("temperature:t_ref_k=84", 50, 1e6, 4.5e6);
     assert!(cold > late, "{cold} {late}");
+}
+
+/// `capacity` limits accumulation over repeated illuminations (its module docs): the
+/// charge a pixel still holds counts against its total, so an illumination repeated 30
+/// minutes later adds less than the first did. Two equal illuminations (the campaign's
+/// 2 and 3: 240 s, 10 darks of 180 s after each), 64 x 64, seed 11: the median first-dark
+/// current of saturated pixels after the second, over that after the first, with and
+/// without the effect. Measured when written: 1.003 without, 0.934 with (-7 %).
+#[test]
+fn capacity_limits_a_repeated_illumination() {
+    let run = |effects: &str| {
+        run_lab(&LabConfig {
+            size: 64,
+            seed: 11,
+            campaign: Some(lab::Illumination::default_campaign()[1..3].to_vec()),
+            effects: effects
+                .split_whitespace()
+                .map(|s| s.parse().unwrap())
+                .collect(),
+            ..LabConfig::default()
+        })
+    };
+    let second_over_first = |run: &[SimExposure]| {
+        let lit: Vec<bool> = run[0]
+            .true_flux
+            .iter()
+            .map(|v| f64::from(*v) * 240.0 > 1e6)
+            .collect();
+        let m = |k: usize| {
+            let v: Vec<f64> = run[k]
+                .exposure
+                .image
+                .iter()
+                .zip(&lit)
+                .filter(|(_, l)| **l)
+                .map(|(v, _)| f64::from(*v) - 0.01)
+                .collect();
+            median(&v)
+        };
+        m(12) / m(1)
+    };
+    let base = second_over_first(&run(""));
+    let cap = second_over_first(&run("capacity"));
+    println!("second / first illumination's first dark: {base:.3} without, {cap:.3} with");
+    assert!(cap < 0.95 * base && cap > 0.7 * base, "{cap} {base}");
 }

@@ -238,9 +238,11 @@ pub trait Effect: Send + Sync + Debug {
     }
     /// `Saturate` effects (instead of [`Effect::accumulate`]): `a` holds the decayed
     /// amplitudes combined with this exposure's response, `decayed` the decayed
-    /// amplitudes alone; limit what was added. Must leave `a` unchanged where it equals
-    /// `decayed` (nothing added), and keep it finite and >= 0.
-    fn saturate(&self, _a: &mut [f64], _decayed: &[f64]) {}
+    /// amplitudes alone, `charge_per_amplitude` each term's charge per unit amplitude,
+    /// `C_n tau_n` (the integral of its current: `sum_n decayed_n C_n tau_n` is the
+    /// charge the pixel holds, electrons); limit what was added. Must leave `a`
+    /// unchanged where it equals `decayed` (nothing added), and keep it finite and >= 0.
+    fn saturate(&self, _a: &mut [f64], _decayed: &[f64], _charge_per_amplitude: &[f64]) {}
 }
 
 /// The observe hook of a measurement model: each term's weight becomes

@@ -168,6 +168,14 @@ pub(crate) fn step(
 
     let zero = vec![0.0; n];
     let zero = zero.as_slice();
+    // each term's charge per unit amplitude, C_n tau_n (the model's terms, for
+    // `saturate`)
+    let charge_per_amplitude: Vec<f64> = sum
+        .c_per_s
+        .iter()
+        .zip(&sum.rate_per_s)
+        .map(|(c, r)| c / r)
+        .collect();
     let amps = state.amplitudes_e.as_slice_mut().expect("owned state");
     let count = state.release_count.as_slice_mut().expect("owned state");
     let pending = state.pending.as_slice_mut().expect("owned state");
@@ -258,7 +266,7 @@ pub(crate) fn step(
                     }
                 }
                 for e in &saturators {
-                    e.saturate(a, &decayed);
+                    e.saturate(a, &decayed, &charge_per_amplitude);
                 }
                 for aj in a.iter_mut() {
                     if !(aj.is_finite() && *aj >= 0.0) {

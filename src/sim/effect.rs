@@ -32,6 +32,9 @@ use std::collections::BTreeMap;
 pub struct CapacityCtx<'a> {
     /// True photon fluence of this exposure, `flux * t_illuminated`, electrons.
     pub fluence_e: f64,
+    /// Charge the pixel's traps hold as the exposure begins (sum over the bins),
+    /// electrons: what earlier exposures left.
+    pub held_e: f64,
     pub e_lin: f64,
     pub e_sat: f64,
     pub d_lin: f64,

@@ -542,6 +542,12 @@ fn pixel(
         }
     }
     let fluence = px.phi * t_on;
+    // charge the traps hold as the exposure begins (what the capacity hook sees)
+    let held = if has_cap {
+        n.iter().map(|&v| f64::from(v)).sum()
+    } else {
+        0.0
+    };
     // exposed equilibrium occupancy for a segment
     let fill_neq = |s: &Seg, neq: &mut [f32], fac: &mut [f64]| {
         let c = p.share * (px.d_lin * s.e_lin + px.d_sat * s.e_sat);
@@ -549,6 +555,7 @@ fn pixel(
             fac.iter_mut().for_each(|v| *v = 1.0);
             let ctx = CapacityCtx {
                 fluence_e: fluence,
+                held_e: held,
                 e_lin: s.e_lin,
                 e_sat: s.e_sat,
                 d_lin: px.d_lin,
