@@ -395,7 +395,13 @@ pub fn fit_cn(rates: &[f64], t_min_s: f64, t_max_s: f64, offset_s: f64) -> Resul
             "need at least one finite rate > 0",
         ));
     }
-    if !(t_min_s > 0.0 && t_max_s > t_min_s) {
+    if !(t_min_s.is_finite() && t_min_s > 0.0) {
+        return Err(Error::invalid(
+            "--t-min-s",
+            format!("{t_min_s}: must be finite and > 0 s"),
+        ));
+    }
+    if t_max_s.is_nan() || t_max_s <= t_min_s {
         return Err(Error::invalid(
             "--t-min-s",
             format!("span [{t_min_s}, {t_max_s}] s is empty"),
@@ -435,6 +441,17 @@ pub fn fit_cn(rates: &[f64], t_min_s: f64, t_max_s: f64, offset_s: f64) -> Resul
         }
     }
     c.iter_mut().for_each(|v| *v = v.max(0.0));
+    if c.iter().all(|v| *v == 0.0) {
+        // every term decayed before the span begins: a model that predicts nothing
+        return Err(Error::invalid(
+            "--t-min-s",
+            format!(
+                "no term follows 1/(t + {offset_s}) over [{t_min_s}, {t_max_s}] s: every \
+                 C_n came out 0 (the slowest rate, {} 1/s, has decayed by then)",
+                rates.iter().copied().fold(f64::INFINITY, f64::min)
+            ),
+        ));
+    }
     let err: Vec<f64> = ts
         .iter()
         .map(|t| {
@@ -554,6 +571,24 @@ mod tests {
             let e = fit_cn(&rates, 1.0, 1e5, bad).unwrap_err().to_string();
             assert!(e.contains("--decay-offset-s"), "{e}");
         }
+    }
+
+    /// Regression: `persist fit --t-min-s 1e9` wrote a model whose `C_n` were all 0 (the
+    /// span, pushed to [1e9, 1e10] s, begins after every term has decayed), and
+    /// `--t-min-s 0` was refused as an "empty span". Both now say what is wrong.
+    #[test]
+    fn a_span_no_term_reaches_or_a_zero_start_is_refused() {
+        let rates: Vec<f64> = PAPER_TERMS.iter().map(|t| t.1).collect();
+        let e = fit_cn(&rates, 1e9, 1e10, 1.0).unwrap_err().to_string();
+        assert!(
+            e.contains("--t-min-s") && e.contains("every C_n came out 0"),
+            "{e}"
+        );
+        let e = fit_cn(&rates, 0.0, 1e5, 1.0).unwrap_err().to_string();
+        assert!(
+            e.contains("--t-min-s") && e.contains("must be finite and > 0"),
+            "{e}"
+        );
     }
 }
 
