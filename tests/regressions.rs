@@ -181,3 +181,28 @@ fn compare_on_sky_data_is_refused_not_an_empty_report() {
     );
     assert!(!std::path::Path::new(&report).exists());
 }
+
+/// `persist diagnose --bootstrap 0` ran one replica and called its largest score the
+/// 95 % threshold ("over 1 bootstrap replicas"); `--pixels 0` failed as "0 residual
+/// cells". Both are refused now, naming the option and why.
+#[test]
+fn too_few_bootstrap_replicas_or_no_pixels_are_refused() {
+    let t = tempfile::tempdir().unwrap();
+    let p = |n: &str| t.path().join(n).to_string_lossy().to_string();
+    let (lab, model) = (p("lab"), p("m.json"));
+    common::lab_campaign(&lab, 16, 1, &[]);
+    std::fs::write(&model, common::persist_ok(&["model", "default"])).unwrap();
+    for (opt, val, expect) in [
+        ("--bootstrap", "0", "at least 19 replicas"),
+        ("--bootstrap", "18", "at least 19 replicas"),
+        ("--pixels", "0", "at least one pixel"),
+    ] {
+        let (code, text) =
+            common::persist_status(&["diagnose", "--input", &lab, "--model", &model, opt, val]);
+        assert_eq!(code, Some(2), "{opt} {val}: {text}");
+        assert!(
+            text.contains(&format!("`{opt}`")) && text.contains(expect),
+            "{opt} {val}: {text}"
+        );
+    }
+}

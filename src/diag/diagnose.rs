@@ -917,6 +917,13 @@ impl HeldOutSums {
     }
 }
 
+/// The fewest bootstrap replicas whose 95 % point is not simply their largest value.
+pub const MIN_BOOTSTRAP: usize = 19;
+
+/// The diagnosis of `params` against `seq` (module docs): score tests, the bootstrap
+/// threshold, refits and held-out checks, the spatial check, the verdict. `input` and
+/// `model_path` only name the files in the suggested commands. Refuses fewer than
+/// [`MIN_BOOTSTRAP`] replicas and zero pixels, naming the option.
 pub fn diagnose(
     params: &ModelParams,
     seq: &Sequence,
@@ -924,6 +931,19 @@ pub fn diagnose(
     input: &Path,
     model_path: &Path,
 ) -> Result<Diagnosis> {
+    if cfg.bootstrap < MIN_BOOTSTRAP {
+        return Err(Error::invalid(
+            "--bootstrap",
+            format!(
+                "{}: at least {MIN_BOOTSTRAP} replicas (the threshold is the 95 % point of \
+                 their largest scores; default 199)",
+                cfg.bootstrap
+            ),
+        ));
+    }
+    if cfg.pixels == 0 {
+        return Err(Error::invalid("--pixels", "0: at least one pixel"));
+    }
     let samples = Samples::random(seq, cfg.pixels, cfg.seed)
         .with_cells(cfg.cells)
         .with_statistic(cfg.cell_statistic);
@@ -1003,7 +1023,7 @@ pub fn diagnose(
     let lm = scores(&cells, &samples.measured, &steps, &dirs, cfg.statistic);
     // parametric bootstrap from the fitted model
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(cfg.seed ^ 0x9e37_79b9_7f4a_7c15);
-    let b = cfg.bootstrap.max(1);
+    let b = cfg.bootstrap;
     let mut y = vec![f64::NAN; samples.len()];
     let mut maxes: Vec<f64> = (0..b)
         .map(|_| {
