@@ -458,20 +458,20 @@ pub struct FitArgs {
     #[arg(long, default_value_t = Preset::Paper, value_parser = parse_flag::<Preset>)]
     pub preset: Preset,
     /// Amplification of A_0 into A_bin [default: the preset's; paper: 1.2].
-    #[arg(long)]
+    #[arg(long, allow_negative_numbers = true)]
     pub amplification: Option<f64>,
     /// Start of the span over which the C_n follow 1/(t+1): the shortest slew, s
     /// [default: the preset's; paper: 10].
-    #[arg(long)]
+    #[arg(long, allow_negative_numbers = true)]
     pub t_min_s: Option<f64>,
     /// The C_n follow 1/(t + T0) with this T0, s [default: the preset's; paper: 1].
     /// Eq. (logfit)'s fitted tau per bin (the report's bins[].logfit.tau_s) is the
     /// data's own offset (`persist::calib`, "Decay offset").
-    #[arg(long)]
+    #[arg(long, allow_negative_numbers = true)]
     pub decay_offset_s: Option<f64>,
     /// Decay rates 1/tau_n of the terms, 1/s, comma-separated [default: the preset's;
     /// paper: its six, 0.1,0.0158,0.00251,0.000398,6.31e-5,1e-5].
-    #[arg(long, value_delimiter = ',')]
+    #[arg(long, value_delimiter = ',', allow_hyphen_values = true)]
     pub rates_per_s: Vec<f64>,
     #[command(flatten)]
     pub cells: CellArgs,

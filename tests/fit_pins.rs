@@ -282,4 +282,22 @@ fn the_readout_preset_is_the_long_form_and_is_suggested_back() {
     ]);
     assert_eq!(code, Some(2), "{text}");
     assert!(text.contains("--preset") && text.contains("r14"), "{text}");
+
+    // negative values reach the validator, which names the option (clap read `-1` as
+    // a flag and answered "unexpected argument")
+    for (opt, val) in [
+        ("--amplification", "-1"),
+        ("--t-min-s", "-1"),
+        ("--decay-offset-s", "-0.2"),
+        ("--rates-per-s", "-0.1,1"),
+    ] {
+        let (code, text) =
+            persist_status(&["fit", "--input", &lab, "--out", &path("x.json"), opt, val]);
+        assert_eq!(code, Some(2), "{opt} {val}: {text}");
+        assert!(
+            text.contains(&format!("`{opt}`")) && text.contains("> 0"),
+            "{opt} {val}: {text}"
+        );
+    }
+    assert!(!std::path::Path::new(&path("x.json")).exists());
 }

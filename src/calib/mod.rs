@@ -392,7 +392,7 @@ pub fn fit_cn(rates: &[f64], t_min_s: f64, t_max_s: f64, offset_s: f64) -> Resul
     if rates.is_empty() || rates.iter().any(|r| !(r.is_finite() && *r > 0.0)) {
         return Err(Error::invalid(
             "--rates-per-s",
-            "need at least one finite rate > 0",
+            "need at least one rate, each finite and > 0",
         ));
     }
     if !(t_min_s.is_finite() && t_min_s > 0.0) {
