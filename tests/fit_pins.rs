@@ -19,6 +19,34 @@ fn lab_32() -> (tempfile::TempDir, String) {
     (tmp, lab)
 }
 
+/// The `fit` commands `diagnose` (quick, [`common::diagnose_quick`]) suggests for the
+/// model at `model`, at least one.
+fn suggested_fits(lab: &str, model: &str, json: &str) -> Vec<String> {
+    let (d, _) = common::diagnose_quick(lab, model, json);
+    let cmds: Vec<String> = d["ranking"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter_map(|c| c["command"].as_str().map(String::from))
+        .collect();
+    assert!(!cmds.is_empty(), "{d}");
+    cmds
+}
+
+/// Runs suggested command `cmd` (`persist fit ...`) and asserts that it calibrates as
+/// `model` is calibrated: the same record, knots and `C_n`.
+fn follow_calibrates_as(cmd: &str, model: &serde_json::Value) {
+    let args: Vec<&str> = cmd.split_whitespace().collect();
+    assert_eq!(args[0], "persist");
+    let mut args = args[1..].to_vec();
+    args.extend(["--log-level", "warn"]);
+    persist_ok(&args);
+    let next = read_json(args[args.iter().position(|a| *a == "--out").unwrap() + 1]);
+    for key in ["calibration", "amplitude_knots", "terms"] {
+        assert_eq!(next[key], model[key], "{key}");
+    }
+}
+
 #[test]
 fn pinned_parameters_are_held_recorded_and_suggested_again() {
     let (tmp, lab) = lab_32();
@@ -118,14 +146,7 @@ fn pinned_parameters_are_held_recorded_and_suggested_again() {
     assert!(rep.params.iter().any(|p| p.effect == "refill"), "{rep:?}");
 
     // diagnose's suggested command carries the pins
-    let (d, _) = common::diagnose_quick(&lab, &out, &path("d.json"));
-    let cmds: Vec<&str> = d["ranking"]
-        .as_array()
-        .unwrap()
-        .iter()
-        .filter_map(|c| c["command"].as_str())
-        .collect();
-    assert!(!cmds.is_empty(), "{d}");
+    let cmds = suggested_fits(&lab, &out, &path("d.json"));
     for c in &cmds {
         assert!(
             c.contains("--with refill --with chord:strength=0.5,first_read_s=1.5 --with "),
@@ -139,16 +160,7 @@ fn pinned_parameters_are_held_recorded_and_suggested_again() {
         );
     }
     // following the first command gives the same calibration: knots, C_n, the record
-    let args: Vec<&str> = cmds[0].split_whitespace().collect();
-    assert_eq!(args[0], "persist");
-    let mut args = args[1..].to_vec();
-    args.extend(["--log-level", "warn"]);
-    persist_ok(&args);
-    let next = args[args.iter().position(|a| *a == "--out").unwrap() + 1];
-    let n = read_json(next);
-    for key in ["calibration", "amplitude_knots", "terms"] {
-        assert_eq!(n[key], m[key], "{key}");
-    }
+    follow_calibrates_as(&cmds[0], &m);
 }
 
 #[test]
@@ -233,14 +245,7 @@ fn the_readout_preset_is_the_long_form_and_is_suggested_back() {
     );
     assert_eq!(preset["terms"].as_array().unwrap().len(), 13);
 
-    let (d, _) = common::diagnose_quick(&lab, &path("p.json"), &path("d.json"));
-    let cmds: Vec<&str> = d["ranking"]
-        .as_array()
-        .unwrap()
-        .iter()
-        .filter_map(|c| c["command"].as_str())
-        .collect();
-    assert!(!cmds.is_empty(), "{d}");
+    let cmds = suggested_fits(&lab, &path("p.json"), &path("d.json"));
     for c in &cmds {
         assert!(c.contains(" --preset readout --with "), "{c}");
         assert!(
@@ -248,13 +253,7 @@ fn the_readout_preset_is_the_long_form_and_is_suggested_back() {
             "{c}"
         );
     }
-    let mut args: Vec<&str> = cmds[0].split_whitespace().skip(1).collect();
-    args.extend(["--log-level", "warn"]);
-    persist_ok(&args);
-    let next = read_json(args[args.iter().position(|a| *a == "--out").unwrap() + 1]);
-    for key in ["calibration", "amplitude_knots", "terms"] {
-        assert_eq!(next[key], preset[key], "{key}");
-    }
+    follow_calibrates_as(&cmds[0], &preset);
 
     // an option given with the preset overrides its value; its effects stay
     let over = fit(

@@ -171,11 +171,12 @@ impl Preset {
     /// True if calibration record `c` has this preset's options (before anything was
     /// freed after it).
     pub fn matches(self, c: &Calibration) -> bool {
-        let r = self.config().record();
-        c.amplification == r.amplification
-            && c.t_min_s == r.t_min_s
-            && c.decay_offset_s == r.decay_offset_s
-            && c.rates_per_s == r.rates_per_s
+        let before_freeing = Calibration {
+            fit_cn: false,
+            fit_amplification: false,
+            ..c.clone()
+        };
+        before_freeing == self.config().record()
     }
 }
 

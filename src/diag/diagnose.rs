@@ -936,7 +936,7 @@ pub fn diagnose(
             "--bootstrap",
             format!(
                 "{}: at least {MIN_BOOTSTRAP} replicas (the threshold is the 95 % point of \
-                 their largest scores; default 199)",
+                 their largest scores; default {DEFAULT_BOOTSTRAP})",
                 cfg.bootstrap
             ),
         ));
