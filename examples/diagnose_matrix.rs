@@ -241,8 +241,73 @@ fn arg(args: &[String], name: &str) -> Option<String> {
         .and_then(|i| args.get(i + 1).cloned())
 }
 
+/// Options that take a value, and flags (module docs).
+const VALUE_OPTIONS: &[&str] = &[
+    "--size",
+    "--baseline-seeds",
+    "--seeds",
+    "--first-seed",
+    "--spots",
+    "--dark-lengths",
+    "--out",
+    "--effects",
+    "--pair",
+    "--preset",
+    "--reference",
+    "--amplification",
+    "--rates-per-s",
+    "--t-min-s",
+    "--decay-offset-s",
+    "--cells",
+    "--cell-statistic",
+    "--pixels",
+    "--bootstrap",
+    "--statistic",
+    "--refit",
+];
+const FLAGS: &[&str] = &[
+    "--reference-fit-cn",
+    "--reference-fit-amplification",
+    "--joint",
+    "--skip-baseline",
+    "--skip-single",
+    "--skip-pair",
+];
+
+/// `--help` prints the options; an unknown option is refused before anything runs (the
+/// matrix takes up to hours and writes `--out`, by default docs/diagnose_matrix.md: a
+/// mistyped option, or `--help`, once ran the whole default matrix and overwrote it).
+fn check_args(args: &[String]) {
+    let mut i = 1;
+    while i < args.len() {
+        let a = args[i].as_str();
+        if a == "--help" || a == "-h" {
+            println!(
+                "diagnose_matrix: the proof matrix of issue 4 (examples/diagnose_matrix.rs, \
+                 module docs)\noptions with a value: {}\nflags: {}",
+                VALUE_OPTIONS.join(" "),
+                FLAGS.join(" ")
+            );
+            std::process::exit(0);
+        }
+        if VALUE_OPTIONS.contains(&a) {
+            if i + 1 >= args.len() {
+                eprintln!("diagnose_matrix: {a} needs a value");
+                std::process::exit(2);
+            }
+            i += 2;
+        } else if FLAGS.contains(&a) {
+            i += 1;
+        } else {
+            eprintln!("diagnose_matrix: unknown argument `{a}` (--help lists the options)");
+            std::process::exit(2);
+        }
+    }
+}
+
 fn main() {
     let args: Vec<String> = std::env::args().collect();
+    check_args(&args);
     let size: usize = arg(&args, "--size").map_or(128, |v| v.parse().unwrap());
     let nbase: u64 = arg(&args, "--baseline-seeds").map_or(10, |v| v.parse().unwrap());
     let nseed: u64 = arg(&args, "--seeds").map_or(3, |v| v.parse().unwrap());
