@@ -10,7 +10,7 @@ use persist::calib::{self, CalibConfig};
 use persist::diag::data::Sequence;
 use persist::diag::diagnose::{self, Config};
 use persist::sim::effect::EffectSpec;
-use persist::sim::lab::{self, Illumination, LabConfig};
+use persist::sim::lab::{self, LabConfig, Spots};
 use std::path::Path;
 
 const SIZE: usize = 64;
@@ -33,10 +33,15 @@ fn campaign(seed: u64, effects: &[&str]) -> Sequence {
 
 /// The campaign and its true persistence current, one plane per exposure.
 fn campaign_with_truth(seed: u64, effects: &[&str]) -> (Sequence, Vec<ndarray::Array2<f32>>) {
+    campaign_of(seed, effects, Spots::Centred)
+}
+
+/// [`campaign_with_truth`] with the spots of `persist simulate lab --campaign --spots`.
+fn campaign_of(seed: u64, effects: &[&str], spots: Spots) -> (Sequence, Vec<ndarray::Array2<f32>>) {
     let cfg = LabConfig {
         size: SIZE,
         seed,
-        campaign: Some(Illumination::default_campaign()),
+        campaign: Some(spots.campaign()),
         effects: effects
             .iter()
             .map(|e| e.parse::<EffectSpec>().unwrap())
@@ -332,23 +337,51 @@ fn readout_config() -> CalibConfig {
 /// true current is that of the same seed without it, the measured current, same noise
 /// draws).
 fn meets_the_three_criteria_against_the_readout_reference(effect: &str, max_dbic: f64) {
+    use persist::diag::eval::Cells;
+    meets_the_three_criteria(effect, max_dbic, Spots::Centred, Cells::Illumination);
+}
+
+/// [`meets_the_three_criteria_against_the_readout_reference`] on the campaign with
+/// `spots`, with `cells` for the reference, the refit and `diagnose`. Returns the
+/// campaign and the same seed's campaign without the effect.
+fn meets_the_three_criteria(
+    effect: &str,
+    max_dbic: f64,
+    spots: Spots,
+    cells: persist::diag::eval::Cells,
+) -> (Sequence, Sequence) {
     use persist::diag::eval;
-    let (seq, truth) = campaign_with_truth(1, &[effect]);
-    let m = readout_reference(&seq, &[]);
-    let d = diagnose_paired_seed_1(&m, &seq);
+    let (seq, truth) = campaign_of(1, &[effect], spots);
+    let cfg = CalibConfig {
+        cells,
+        ..readout_config()
+    };
+    let preset = persist::calib::Preset::Readout;
+    let m = fit_reference(&seq, &cfg, preset.effects(), &[]);
+    let d = diagnose::diagnose(
+        &m,
+        &seq,
+        &Config {
+            cells,
+            ..paired_diagnose()
+        },
+        Path::new("lab"),
+        Path::new("m.json"),
+    )
+    .unwrap();
     let text = diagnose::render(&d);
     println!("{text}");
     let first = &d.ranking[0];
     assert_eq!(first.effect, effect, "{text}");
     assert!(first.significant, "{text}");
     assert!(first.delta_bic.is_some_and(|b| b < max_dbic), "{text}");
-    let with = readout_reference(&seq, &[effect]);
-    let s2 = readout_config().samples(&seq);
+    let with = fit_reference(&seq, &cfg, preset.effects(), &[effect]);
+    let s2 = cfg.samples(&seq);
     let rms = |p: &persist::model::ModelParams| cell_rms(p, &seq, &s2);
     let (before, after) = (rms(&m), rms(&with));
     println!("RMS {before} -> {after}");
     assert!(after <= 0.5 * before, "RMS {before} -> {after}");
-    let (without, truth_without) = campaign_with_truth(1, &[]);
+    let (without, truth_without) = campaign_of(1, &[], spots);
     let touched = if truth == truth_without {
         let measured = |q: &Sequence| -> Vec<ndarray::Array2<f32>> {
             q.exposures.iter().map(|e| e.image.clone()).collect()
@@ -364,6 +397,7 @@ fn meets_the_three_criteria_against_the_readout_reference(effect: &str, max_dbic
     let q = eval::flag_quality_of_samples(&s2, &fl.current, Some(&fl.flagged), 0.1, &touched);
     println!("{q:?}");
     assert!(q.missed_flag_fraction < 0.01, "{q:?}");
+    (seq, without)
 }
 
 /// A hidden `linefit_bias` (the on-board least-squares slope instead of the chord) at
@@ -400,4 +434,59 @@ fn baseline_declares_nothing_against_the_readout_reference() {
 #[test]
 fn hidden_short_tau_boost_is_declared_against_the_readout_reference() {
     meets_the_three_criteria_against_the_readout_reference("short_tau_boost", -100.0);
+}
+
+/// A hidden `blooming` (its uncollected spill: charge a saturated pinhole injects into
+/// its neighbours' trap region, in no ramp; `src/sim/effects/blooming.rs`) at seed 1, on
+/// the campaign with one-pixel pinholes and neighbour-contrast cells, against
+/// [`readout_reference`]: the three single-effect criteria. Measured when
+/// written (release, the CLI, 49 replicas): score 345.3 against a threshold of 9.5,
+/// dBIC -2,539, held-out gain 0.77; `fit`'s RMS 4.54 -> 1.06, fitted `fraction` 0.215
+/// (the truth's `trapped_fraction` 0.2). Also the regression it needed
+/// (`neighbour_dominated_pixels_do_not_raise_the_knots`): the calibration leaves the
+/// pinholes' neighbours out of its bins, so the knots below saturation are the
+/// baseline's.
+#[test]
+fn hidden_blooming_is_declared_on_pinholes_against_the_readout_reference() {
+    use persist::diag::eval::Cells;
+    let (seq, without) =
+        meets_the_three_criteria("blooming", -500.0, Spots::Pinholes, Cells::Neighbours);
+    neighbour_dominated_pixels_do_not_raise_the_knots(&seq, &without);
+}
+
+/// The knots below saturation of the campaign with hidden blooming are within 10 % of
+/// the same seed's without it. Before the calibration left neighbour-dominated pixels
+/// out, the pinholes' neighbours (a quarter of the pixels of the pinhole grid) raised
+/// the 95th percentile of the dim bins, the reference over-predicted every other pixel
+/// (docs/diagnose_matrix.md, seventeenth session: at 128 x 128 the fitted `blooming`
+/// then lowered the RMS 10.2 -> 10.1 only).
+fn neighbour_dominated_pixels_do_not_raise_the_knots(seq: &Sequence, without: &Sequence) {
+    let cfg = readout_config();
+    let (hidden, rh) = calib::calibrate(seq, &cfg).unwrap();
+    let (base, rb) = calib::calibrate(without, &cfg).unwrap();
+    assert!(
+        rh.neighbour_dominated_left_out > 100,
+        "{}",
+        rh.neighbour_dominated_left_out
+    );
+    // fewer with the effect: its collected spill raises some neighbours' own fluence
+    assert!(rb.neighbour_dominated_left_out >= rh.neighbour_dominated_left_out);
+    let below = |m: &persist::model::ModelParams| -> Vec<(f64, f64)> {
+        m.amplitude_knots
+            .iter()
+            .filter(|k| k.fluence_e > 2e4 && k.fluence_e < 1.5e5)
+            .map(|k| (k.fluence_e, k.amplitude_e))
+            .collect()
+    };
+    let (h, b) = (below(&hidden), below(&base));
+    assert!(h.len() > 5 && h.len() == b.len(), "{h:?} {b:?}");
+    for (x, y) in h.iter().zip(&b) {
+        assert!(
+            (x.1 / y.1 - 1.0).abs() < 0.1,
+            "knot at {} e-: {} vs {}",
+            x.0,
+            x.1,
+            y.1
+        );
+    }
 }

@@ -87,7 +87,7 @@ fn active_pixels_predict_bit_identically_to_the_whole_array() {
         ("soak", serde_json::json!({"capture_ratio": 0.5})),
         ("temperature", serde_json::json!({})),
         ("linefit_bias", serde_json::json!({})),
-        ("blooming", serde_json::json!({"gain_per_e": 1e-4})),
+        ("blooming", serde_json::json!({"fraction": 0.1})),
         ("short_tau_boost", serde_json::json!({"factor": 2.0})),
         ("ipc", serde_json::json!({"alpha": 0.02})),
         ("populations", serde_json::json!({"gx": 0.3, "gyy": -0.2})),
@@ -181,7 +181,7 @@ fn null_effects_are_bit_identical_to_the_paper_model() {
         ("soak", serde_json::json!({"capture_ratio": 0.0})),
         ("temperature", serde_json::json!({})), // 80 K = t_ref
         ("linefit_bias", serde_json::json!({"strength": 0.0})),
-        ("blooming", serde_json::json!({"gain_per_e": 0.0})),
+        ("blooming", serde_json::json!({"fraction": 0.0})),
         ("short_tau_boost", serde_json::json!({"factor": 1.0})),
     ] {
         let got = run(&with(vec![spec(name, p)]), &temps);

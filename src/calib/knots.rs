@@ -116,8 +116,10 @@ pub fn scale(model: &ModelParams, ramp: &CalibRamp) -> Result<Vec<f64>> {
     let fluence = Array2::from_shape_fn((1, k), |(_, j)| model.amplitude_knots[j].fluence_e);
     let mut g = Array3::<f64>::ones((1, k, n));
     let response = Response::new(&model.amplitude_knots);
+    let no_slope = Array2::from_elem(fluence.dim(), false);
     let ctx = ResponseCtx {
         fluence_e: &fluence,
+        no_slope: &no_slope,
         t_illuminated_s: ramp.t_illuminated_s,
         t_exposure_s: ramp.t_exposure_s,
         rate_per_s: &rates,

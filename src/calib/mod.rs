@@ -3,7 +3,15 @@
 //!
 //! 1. Extrapolated fluence of the (first) illuminated exposure, `image * t_illuminated`,
 //!    in log-spaced bins (`bins_per_decade`, default 20; bins with fewer than
-//!    `min_pixels` usable pixels are skipped).
+//!    `min_pixels` usable pixels are skipped). Pixels dominated by a far brighter
+//!    neighbour ([`crate::diag::data::neighbour_dominated`]: below saturation, next to
+//!    neighbours whose mean fluence above saturation exceeds their own) are left out
+//!    (the report's `neighbour_dominated_left_out`): the paper's `A_k` is a pixel's
+//!    response to its own fluence, and what couples neighbours (blooming, inter-pixel
+//!    capacitance) would otherwise raise the 95th percentile of the dim bins, which the
+//!    model's spatial effects then cannot take back (docs/diagnose_matrix.md, seventeenth
+//!    session). A smooth illumination has no such pixel; one-pixel pinholes have four
+//!    each.
 //! 2. Per bin, the measured current of the first dark integration (image minus the
 //!    background, [`crate::diag::data`]): its 3-sigma-clipped median and its 95th
 //!    percentile ([`crate::diag::data::signal_p95`], read noise removed in quadrature).
@@ -35,7 +43,9 @@ pub mod effects;
 pub mod knots;
 pub mod logfit;
 
-use crate::diag::data::{fluence, quantile, signal_p95, Sequence, BACKGROUND_FLUENCE_E};
+use crate::diag::data::{
+    fluence, neighbour_dominated, quantile, signal_p95, Sequence, BACKGROUND_FLUENCE_E,
+};
 use crate::error::{Error, Result};
 use crate::model::params::{Calibration, Knot, ModelParams, Term, PAPER_TERMS};
 use crate::sim::analysis::{clipped_median, median};
@@ -233,6 +243,8 @@ pub struct CalibReport {
     pub first_dark_exposure_index: u64,
     pub background_e_per_s: f64,
     pub noise_e_per_s: f64,
+    /// Pixels left out of the fluence bins as neighbour-dominated (module docs, step 1).
+    pub neighbour_dominated_left_out: usize,
     pub bins: Vec<BinResult>,
     pub knots: Vec<Knot>,
     pub c_n: CnFit,
@@ -278,8 +290,14 @@ pub fn calibrate(seq: &Sequence, cfg: &CalibConfig) -> Result<(ModelParams, Cali
     let lo_exp = 3.0;
     let n_bins = (((fmax.max(1e4)).log10() - lo_exp) * cfg.bins_per_decade).ceil() as usize + 1;
     let mut members: Vec<Vec<(usize, usize)>> = vec![Vec::new(); n_bins];
+    let dominated = neighbour_dominated(&f);
+    let mut left_out = 0;
     for ((y, x), v) in f.indexed_iter() {
         if !(v.is_finite() && *v > 0.0 && meas[(y, x)].is_finite()) {
+            continue;
+        }
+        if dominated[(y, x)] {
+            left_out += 1;
             continue;
         }
         let b = ((v.log10() - lo_exp) * cfg.bins_per_decade).floor();
@@ -381,6 +399,7 @@ pub fn calibrate(seq: &Sequence, cfg: &CalibConfig) -> Result<(ModelParams, Cali
             first_dark_exposure_index: seq.exposures[d].meta.exposure_index,
             background_e_per_s: seq.background_e_per_s[d],
             noise_e_per_s: noise,
+            neighbour_dominated_left_out: left_out,
             bins,
             knots,
             c_n,

@@ -176,6 +176,24 @@ impl Sequence {
     }
 }
 
+/// Saturation fluence of the neighbour covariates (`neighbour_excess_fluence`, the
+/// neighbour contrast of [`crate::diag::eval`]) and of the calibration's
+/// neighbour-dominated cut ([`neighbour_dominated`]): the paper's 200,000 e-.
+pub const SATURATION_FLUENCE_E: f64 = 2e5;
+
+/// Pixels below saturation whose four nearest neighbours' mean fluence above
+/// [`SATURATION_FLUENCE_E`] exceeds their own fluence (`fluence_e` as [`fluence`] gives
+/// it; a neighbour of unknown fluence counts 0): next to a source far brighter than
+/// themselves (a star, a one-pixel pinhole), whatever couples neighbours (charge
+/// spilled by blooming, inter-pixel capacitance) dominates what their own fluence
+/// gives. The calibration leaves them out of its fluence bins ([`crate::calib`], step 1).
+pub fn neighbour_dominated(fluence_e: &Array2<f64>) -> Array2<bool> {
+    let nb = crate::model::effects::blooming::neighbour_excess(fluence_e, SATURATION_FLUENCE_E);
+    ndarray::Zip::from(fluence_e)
+        .and(&nb)
+        .map_collect(|&f, &e| f.is_finite() && f < SATURATION_FLUENCE_E && e > f.max(0.0))
+}
+
 /// Extrapolated fluence of an exposure, e- (ICD "Timing"); NaN where unusable.
 pub fn fluence(e: &Exposure) -> Array2<f64> {
     let t = e.meta.t_illuminated_s();
@@ -342,6 +360,29 @@ pub fn signal_p95(v: &[f64], med: f64, sigma: f64) -> f64 {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A one-pixel pinhole (7.2e6 e-) among 1e4 e- pixels: its four edge neighbours are
+    /// dominated (mean excess (7.2e6 - 2e5) / 4 = 1.75e6 > 1e4), the diagonal ones and the
+    /// pinhole are not; on a smooth saturated spot (a pixel next to ones 1.15 times as
+    /// bright, the 128 x 128 laboratory spot) no pixel below saturation is, and a
+    /// saturated one never is.
+    #[test]
+    fn neighbour_dominated_marks_a_pinholes_edge_neighbours_only() {
+        let mut f = Array2::from_elem((3, 3), 1e4);
+        f[[1, 1]] = 7.2e6;
+        let d = neighbour_dominated(&f);
+        let marked: Vec<(usize, usize)> = d
+            .indexed_iter()
+            .filter(|(_, v)| **v)
+            .map(|(p, _)| p)
+            .collect();
+        assert_eq!(marked, vec![(0, 1), (1, 0), (1, 2), (2, 1)]);
+        let smooth = Array2::from_shape_fn((1, 8), |(_, x)| 1.9e5 * 1.15f64.powi(x as i32));
+        assert!(neighbour_dominated(&smooth).iter().all(|v| !v));
+        let mut f = Array2::from_elem((3, 3), 3e5);
+        f[[1, 1]] = 1e8;
+        assert!(neighbour_dominated(&f).iter().all(|v| !v));
+    }
 
     /// Reference values: the standard normal quantiles z(0.95) = 1.6448536270,
     /// z(0.90) = 1.2815515655 and density phi(1.6448536) = 0.1031356 (tables).

@@ -130,7 +130,7 @@
 //! not part of the ranking, but it is a gate for the effects whose evidence is position
 //! (`populations`): with two illumination events or more, such an effect is declared
 //! only where the residuals carry a field (`refused_no_field` in the output otherwise;
-//! [`position_supported`]). A position effect that explains residuals with no field
+//! `position_supported`). A position effect that explains residuals with no field
 //! shared by neighbours is standing in for something else (radius and fluence go
 //! together when the spot is centred).
 

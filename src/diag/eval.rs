@@ -84,7 +84,9 @@
 //! runs it (early release included); residuals from the same model with early release
 //! off (a release zeroes a prediction the physics still has).
 
-use super::data::{fluence, noisy_quantile, quantile, Sequence, BACKGROUND_FLUENCE_E};
+use super::data::{
+    fluence, noisy_quantile, quantile, Sequence, BACKGROUND_FLUENCE_E, SATURATION_FLUENCE_E,
+};
 use crate::error::Result;
 use crate::model::effects::blooming::neighbour_excess;
 use crate::model::{Input, Model, ModelParams, Output, StepContext};
@@ -393,7 +395,7 @@ impl Samples {
             }
             if cache.as_ref().map(|c| c.0) != Some(a) {
                 let f = fluence(&seq.exposures[a]);
-                let nb = neighbour_excess(&f, 2e5);
+                let nb = neighbour_excess(&f, SATURATION_FLUENCE_E);
                 cache = Some((a, f, nb));
             }
             let (_, f, nb) = cache.as_ref().expect("set above");

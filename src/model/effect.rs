@@ -172,6 +172,10 @@ pub struct ResponseCtx<'a> {
     /// Extrapolated fluence `max(current, 0) * t_illuminated`, e-; NaN where unknown
     /// (transient, SUR error, non-finite) and 0 for non-functional pixels.
     pub fluence_e: &'a Array2<f64>,
+    /// True where the fluence is unknown because the ramp saturated before the on-board
+    /// fit had enough reads (`SUR_ERROR`, not a transient): brighter than any pixel with
+    /// a slope.
+    pub no_slope: &'a Array2<bool>,
     pub t_illuminated_s: f64,
     pub t_exposure_s: f64,
     /// Decay rates `1/tau_n` of the model (before any rate hook), 1/s.

@@ -143,8 +143,15 @@ pub(crate) fn step(
                 a.fill(*b);
             }
         });
+    // unknown because the ramp saturated before the on-board fit had its reads (not a
+    // transient): brighter than any measured pixel
+    let no_slope = Array2::from_shape_fn((ny, nx), |(y, x)| {
+        let f = flags_in[y * nx + x];
+        kind[[y, x]] == UNKNOWN && f & k.bits.sur_error != 0 && f & k.bits.transient == 0
+    });
     let rctx = ResponseCtx {
         fluence_e: &fluence,
+        no_slope: &no_slope,
         t_illuminated_s: k.t_illuminated_s,
         t_exposure_s: input.t_exposure_s,
         rate_per_s: &sum.rate_per_s,

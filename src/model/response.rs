@@ -74,6 +74,16 @@ impl Response {
         (0..m).map(move |i| (self.x[i], self.x[i + 1].min(fluence_e), self.slope[i]))
     }
 
+    /// The largest knot fluence at or below `fluence_e` (0 if there is none).
+    pub fn last_knot_at_or_below(&self, fluence_e: f64) -> f64 {
+        let m = self.x.partition_point(|&x| x <= fluence_e);
+        if m == 0 {
+            0.0
+        } else {
+            self.x[m - 1]
+        }
+    }
+
     /// The largest amplitude of the table: used when the fluence is unknown.
     pub fn max_e(&self) -> f64 {
         self.max_e

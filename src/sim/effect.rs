@@ -12,7 +12,8 @@
 //! 2. [`Effect::time_constants`]: per interval (exposure or slew), the bins' emission and
 //!    capture time constants at the focal-plane temperature (temperature, soak);
 //! 3. [`Effect::illumination`]: the photon flux map of an exposure before it is
-//!    integrated (blooming);
+//!    integrated, and the charge that reaches a pixel's traps without being collected
+//!    by its diode (blooming);
 //! 4. [`Effect::capacity`]: per pixel and segment, multiplicative factors on each bin's
 //!    exposed capacity `C_j` (capacity, short_tau_boost);
 //! 5. [`Effect::least_squares_persistence`]: whether the curved persistence ramp enters
@@ -50,7 +51,20 @@ pub trait Effect: Send + Sync + std::fmt::Debug {
     fn params(&self) -> BTreeMap<String, f64>;
     fn trap_pixels(&self, _pixels: &mut PixelTraps, _p: &TrapParams, _seed: u64, _det: u8) {}
     fn time_constants(&self, _bins: &mut Bins, _temp_k: f64) {}
-    fn illumination(&self, _flux: &mut Array2<f32>, _t_on_s: f64, _full_well: &Array2<f32>) {}
+    /// Changes the photon flux map of an illuminated exposure (`flux`, e-/s) before it is
+    /// integrated, and may add to `uncollected_e`: charge (e-) that raises a pixel's
+    /// trap fill level without being collected by its diode,
+    /// so it is in no measured ramp (the engine spreads its arrival evenly over `t_on_s`
+    /// and holds it until the integration ends: the reset clears it). Both start as the
+    /// exposure's flux and zeros.
+    fn illumination(
+        &self,
+        _flux: &mut Array2<f32>,
+        _uncollected_e: &mut Array2<f32>,
+        _t_on_s: f64,
+        _full_well: &Array2<f32>,
+    ) {
+    }
     /// True if [`Effect::capacity`] is implemented (the engine skips the call otherwise).
     fn has_capacity(&self) -> bool {
         false

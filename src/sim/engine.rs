@@ -340,9 +340,15 @@ impl SimDetector {
         }
         let bins = self.bins_at(spec.temp_k);
         let mut flux = spec.flux.clone();
+        let mut uncollected = Array2::<f32>::zeros((ny, nx));
         if spec.t_on_s > 0.0 {
             for e in &self.effects.list {
-                e.illumination(&mut flux, spec.t_on_s, &self.pixels.full_well);
+                e.illumination(
+                    &mut flux,
+                    &mut uncollected,
+                    spec.t_on_s,
+                    &self.pixels.full_well,
+                );
             }
         }
         let ls = self.effects.least_squares_persistence();
@@ -354,6 +360,7 @@ impl SimDetector {
         let det = &self.det;
         let pixels = &self.pixels;
         let flux_ref = &flux;
+        let uncollected_ref = &uncollected;
         let (seed, detector, index, write_ramp) =
             (self.seed, self.detector, spec.index, spec.write_ramp);
         let plan_ref = &plan;
@@ -384,6 +391,7 @@ impl SimDetector {
                     let n = &mut occ_row[x * nb..(x + 1) * nb];
                     let px = PixelIn {
                         phi: f64::from(flux_ref[[y, x]].max(0.0)),
+                        uncollected_e: f64::from(uncollected_ref[[y, x]].max(0.0)),
                         fw: f64::from(pixels.full_well[[y, x]]),
                         d_lin: f64::from(pixels.d_lin[[y, x]]),
                         d_sat: f64::from(pixels.d_sat[[y, x]]),
@@ -440,6 +448,10 @@ impl SimDetector {
 
 struct PixelIn {
     phi: f64,
+    /// Charge that raises the trap fill level from the start of the illumination to the
+    /// end of the integration but is never collected ([`crate::sim::effect::Effect::illumination`]), e-; 0
+    /// without such an effect.
+    uncollected_e: f64,
     fw: f64,
     d_lin: f64,
     d_sat: f64,
@@ -484,7 +496,14 @@ fn pixel(
     let saturated = rate * t_on >= fw;
     let t_s = if saturated { fw / rate } else { t_on };
     let q_rise = rate * t_s;
-    let single = !saturated && t_on >= p.t_exp && q_rise < 0.01 * fw;
+    // fill rate the traps see while rising: collected plus uncollected charge (the
+    // latter arrives while the shutter is open; exactly `rate` without it)
+    let r_fill = if t_on > 0.0 {
+        rate + px.uncollected_e / t_on
+    } else {
+        rate
+    };
+    let single = px.uncollected_e == 0.0 && !saturated && t_on >= p.t_exp && q_rise < 0.01 * fw;
     if single {
         segs[0] = Seg {
             dur: p.t_exp,
@@ -493,13 +512,13 @@ fn pixel(
         };
         ns = 1;
     } else {
-        let k = if q_rise > 0.01 * fw { 4 } else { 1 };
+        let k = if r_fill * t_s > 0.01 * fw { 4 } else { 1 };
         for i in 0..k {
             let d = t_s / k as f64;
             if d > 0.0 {
                 segs[ns] = Seg {
                     dur: d,
-                    e_lin: (rate * d * (i as f64 + 0.5) / fw).min(1.0),
+                    e_lin: (r_fill * d * (i as f64 + 0.5) / fw).min(1.0),
                     e_sat: 0.0,
                 };
                 ns += 1;
@@ -524,7 +543,7 @@ fn pixel(
         }
         let d = p.t_exp - t_on;
         if d > 0.0 {
-            let q = (q_rise + dark * 0.5 * d).min(fw);
+            let q = (q_rise + px.uncollected_e + dark * 0.5 * d).min(fw);
             segs[ns] = Seg {
                 dur: d,
                 e_lin: if saturated { 1.0 } else { q / fw },

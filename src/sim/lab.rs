@@ -249,7 +249,7 @@ pub enum DarkLengths {
     #[default]
     Uniform,
     /// Illumination 2's darks last 60 s; its repeat's (3) 540 s, after a reset 12 s
-    /// after the shutter ([`VARIED_DARKS`]).
+    /// after the shutter (`VARIED_DARKS`).
     Varied,
 }
 

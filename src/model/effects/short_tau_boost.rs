@@ -116,6 +116,7 @@ mod tests {
         b.response(
             &ResponseCtx {
                 fluence_e: &f,
+                no_slope: &ndarray::Array2::from_elem(f.dim(), false),
                 t_illuminated_s: 1.0,
                 t_exposure_s: 1.0,
                 rate_per_s: &rates,

@@ -289,6 +289,7 @@ mod tests {
         Soak { capture_ratio: 1.0 }.response(
             &ResponseCtx {
                 fluence_e: &f,
+                no_slope: &ndarray::Array2::from_elem(f.dim(), false),
                 t_illuminated_s: 100.0,
                 t_exposure_s: 100.0,
                 rate_per_s: &rates,
