@@ -408,3 +408,71 @@ fn soak_with_refill_relaxes_toward_capacity() {
     }
     assert!(partly > 0, "no term fills partly: {cap:?} {s:?}");
 }
+
+/// `blooming` counts a neighbour too bright for a slope (`SUR_ERROR`, no fluence) at
+/// `no_slope_flux_e_per_s * t_illuminated` (22,222 e-/s * 481 s = 1.07e7 e-), and a
+/// transient (also no fluence) at 0: the centre of a 5x5 array of 10 e-/s pixels has no
+/// fluence in the lit exposure; its edge neighbours' first-dark current rises with the
+/// first flag only. (Before the seventeenth session neither counted, and the neighbours
+/// of the brightest pinholes of a x4 illumination were predicted without blooming:
+/// docs/diagnose_matrix.md.)
+#[test]
+fn blooming_counts_a_neighbour_with_no_slope_not_a_transient() {
+    use persist::flags::bits;
+    let dark_after = |effects: Vec<EffectSpec>, centre_flag: u32| -> f32 {
+        let m = with(effects);
+        let mut st = m.new_state(5, 5);
+        let mut cur = Array2::<f32>::zeros((5, 5));
+        for k in 0..2u64 {
+            let lit = k == 0;
+            let img = Array2::from_shape_fn((5, 5), |p| {
+                if lit && p == (2, 2) {
+                    f32::NAN
+                } else if lit {
+                    10.0
+                } else {
+                    0.01
+                }
+            });
+            let mut flags = Array2::<u32>::zeros((5, 5));
+            if lit {
+                flags[[2, 2]] = centre_flag;
+            }
+            let t_exp = if lit { 613.0 } else { 180.0 };
+            let input = Input {
+                image_e_per_s: img.view(),
+                exposure_index: k,
+                t_start_unix_s: 1e9 + 613.0 * k as f64,
+                t_exposure_s: t_exp,
+                t_illuminated_s: if lit { 481.0 } else { t_exp },
+                history_incomplete: false,
+                background_e_per_s: None,
+            };
+            let mut pf = Array2::<u8>::zeros((5, 5));
+            m.step_with(
+                &mut st,
+                &input,
+                &StepContext::default(),
+                &mut Output {
+                    flags: &mut flags,
+                    current_e_per_s: &mut cur,
+                    pflags: &mut pf,
+                },
+            )
+            .unwrap();
+        }
+        cur[[2, 3]]
+    };
+    let blooming = || vec![spec("blooming", serde_json::json!({"fraction": 0.01}))];
+    for flag in [bits::SUR_ERROR, bits::TRANSIENT] {
+        let base = dark_after(Vec::new(), flag);
+        let with_blooming = dark_after(blooming(), flag);
+        println!("flag {flag}: neighbour {base} -> {with_blooming} e-/s");
+        if flag == bits::SUR_ERROR {
+            // own 4,810 e- plus 0.01 * (1.07e7 - 2e5) / 4 = 26,200 e-: about 6x
+            assert!(with_blooming > 4.0 * base, "{base} -> {with_blooming}");
+        } else {
+            assert_eq!(with_blooming.to_bits(), base.to_bits());
+        }
+    }
+}
