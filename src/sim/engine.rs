@@ -449,8 +449,8 @@ impl SimDetector {
 struct PixelIn {
     phi: f64,
     /// Charge that raises the trap fill level from the start of the illumination to the
-    /// end of the integration but is never collected ([`crate::sim::effect::Effect::illumination`]), e-; 0
-    /// without such an effect.
+    /// end of the integration but is never collected, e-; 0 without such an effect
+    /// ([`crate::sim::effect::Effect::illumination`]).
     uncollected_e: f64,
     fw: f64,
     d_lin: f64,
