@@ -173,14 +173,16 @@ fn paired_config() -> CalibConfig {
 /// `diagnose --cells illumination --cell-statistic paired --refit full` (bootstrap 49
 /// replicas) of `seq` against `m`, at seed 1.
 fn diagnose_paired_seed_1(m: &persist::model::ModelParams, seq: &Sequence) -> diagnose::Diagnosis {
-    diagnose::diagnose(
-        m,
-        seq,
-        &paired_diagnose(),
-        Path::new("lab"),
-        Path::new("m.json"),
-    )
-    .unwrap()
+    diagnose_with(m, seq, &paired_diagnose())
+}
+
+/// `diagnose` of `seq` against `m` with `cfg`.
+fn diagnose_with(
+    m: &persist::model::ModelParams,
+    seq: &Sequence,
+    cfg: &Config,
+) -> diagnose::Diagnosis {
+    diagnose::diagnose(m, seq, cfg, Path::new("lab"), Path::new("m.json")).unwrap()
 }
 
 fn paired_diagnose() -> Config {
@@ -358,17 +360,14 @@ fn meets_the_three_criteria(
     };
     let preset = persist::calib::Preset::Readout;
     let m = fit_reference(&seq, &cfg, preset.effects(), &[]);
-    let d = diagnose::diagnose(
+    let d = diagnose_with(
         &m,
         &seq,
         &Config {
             cells,
             ..paired_diagnose()
         },
-        Path::new("lab"),
-        Path::new("m.json"),
-    )
-    .unwrap();
+    );
     let text = diagnose::render(&d);
     println!("{text}");
     let first = &d.ranking[0];

@@ -3,13 +3,58 @@
 
 use ndarray::Array2;
 use persist::model::params::{BackgroundEstimate, EffectSpec};
-use persist::model::{Input, Model, ModelParams, Output, StepContext};
+use persist::model::{Input, Model, ModelParams, Output, State, StepContext};
 
 fn spec(name: &str, params: serde_json::Value) -> EffectSpec {
     EffectSpec {
         params: params.as_object().cloned().unwrap_or_default(),
         ..EffectSpec::named(name)
     }
+}
+
+/// The input of exposure `k`: `img` (e-/s), starting at `1e9 + t_start_s`, lit for
+/// `t_illuminated_s` of its `t_exposure_s`.
+fn input(
+    img: &Array2<f32>,
+    k: u64,
+    t_start_s: f64,
+    t_exposure_s: f64,
+    t_illuminated_s: f64,
+) -> Input<'_> {
+    Input {
+        image_e_per_s: img.view(),
+        exposure_index: k,
+        t_start_unix_s: 1e9 + t_start_s,
+        t_exposure_s,
+        t_illuminated_s,
+        history_incomplete: false,
+        background_e_per_s: None,
+    }
+}
+
+/// One `Model::step_with` with the input flags `flags` (the step adds its own): the
+/// predicted current and the persistence flags.
+fn step(
+    m: &Model,
+    st: &mut State,
+    input: &Input,
+    ctx: &StepContext,
+    flags: &mut Array2<u32>,
+) -> Result<(Array2<f32>, Array2<u8>), persist::Error> {
+    let dim = flags.dim();
+    let mut cur = Array2::<f32>::zeros(dim);
+    let mut pf = Array2::<u8>::zeros(dim);
+    m.step_with(
+        st,
+        input,
+        ctx,
+        &mut Output {
+            flags,
+            current_e_per_s: &mut cur,
+            pflags: &mut pf,
+        },
+    )?;
+    Ok((cur, pf))
 }
 
 /// Run a 4x4 lab-like sequence (one bright exposure, then darks); predictions per step.
@@ -42,30 +87,18 @@ fn run_masked(
             Array2::from_elem((4, 4), 0.01f32)
         };
         let t_exp = if lit.contains(&k) { 613.0 } else { 180.0 };
-        let input = Input {
-            image_e_per_s: img.view(),
-            exposure_index: k as u64,
-            t_start_unix_s: 1e9 + t,
-            t_exposure_s: t_exp,
-            t_illuminated_s: if lit.contains(&k) { 481.0 } else { t_exp },
-            history_incomplete: false,
-            background_e_per_s: None,
+        let t_ill = if lit.contains(&k) { 481.0 } else { t_exp };
+        let ctx = StepContext {
+            focal_plane_temp_k: Some(*temp),
+            active_pixels: active,
         };
         let mut flags = Array2::<u32>::zeros((4, 4));
-        let mut cur = Array2::<f32>::zeros((4, 4));
-        let mut pf = Array2::<u8>::zeros((4, 4));
-        model.step_with(
+        let (cur, _) = step(
+            model,
             &mut st,
-            &input,
-            &StepContext {
-                focal_plane_temp_k: Some(*temp),
-                active_pixels: active,
-            },
-            &mut Output {
-                flags: &mut flags,
-                current_e_per_s: &mut cur,
-                pflags: &mut pf,
-            },
+            &input(&img, k as u64, t, t_exp, t_ill),
+            &ctx,
+            &mut flags,
         )?;
         out.push(cur);
         t += t_exp;
@@ -289,33 +322,22 @@ fn unread_pixels_do_not_enter_the_early_release_background() {
                 _ => 0.01,
             });
             let t_exp = if bright { 613.0 } else { 180.0 };
-            let input = Input {
-                image_e_per_s: img.view(),
-                exposure_index: k,
-                t_start_unix_s: 1e9 + t,
-                t_exposure_s: t_exp,
-                t_illuminated_s: if bright { 481.0 } else { t_exp },
-                history_incomplete: false,
-                background_e_per_s: None,
+            let t_ill = if bright { 481.0 } else { t_exp };
+            let ctx = StepContext {
+                focal_plane_temp_k: None,
+                active_pixels: active,
             };
             let mut flags = Array2::<u32>::zeros((ny, nx));
-            let mut cur = Array2::<f32>::zeros((ny, nx));
-            let mut pf = Array2::<u8>::zeros((ny, nx));
-            m.step_with(
-                &mut st,
-                &input,
-                &StepContext {
-                    focal_plane_temp_k: None,
-                    active_pixels: active,
-                },
-                &mut Output {
-                    flags: &mut flags,
-                    current_e_per_s: &mut cur,
-                    pflags: &mut pf,
-                },
-            )
-            .unwrap();
-            out.push((cur, pf));
+            out.push(
+                step(
+                    &m,
+                    &mut st,
+                    &input(&img, k, t, t_exp, t_ill),
+                    &ctx,
+                    &mut flags,
+                )
+                .unwrap(),
+            );
             t += t_exp + 10.0;
         }
         out
@@ -354,29 +376,12 @@ fn soak_with_refill_relaxes_toward_capacity() {
         let mut after = Vec::new();
         for k in 0..2u64 {
             let img = Array2::from_elem((1, 1), 400.0f32);
-            let input = Input {
-                image_e_per_s: img.view(),
-                exposure_index: k,
-                t_start_unix_s: 1e9 + 700.0 * k as f64,
-                t_exposure_s: 613.0,
-                t_illuminated_s: 481.0,
-                history_incomplete: false,
-                background_e_per_s: None,
-            };
-            let (mut flags, mut cur, mut pf) = (
-                Array2::<u32>::zeros((1, 1)),
-                Array2::<f32>::zeros((1, 1)),
-                Array2::<u8>::zeros((1, 1)),
-            );
-            m.step_with(
+            step(
+                &m,
                 &mut st,
-                &input,
+                &input(&img, k, 700.0 * k as f64, 613.0, 481.0),
                 &StepContext::default(),
-                &mut Output {
-                    flags: &mut flags,
-                    current_e_per_s: &mut cur,
-                    pflags: &mut pf,
-                },
+                &mut Array2::<u32>::zeros((1, 1)),
             )
             .unwrap();
             after.push(st.amplitudes_e.iter().copied().collect::<Vec<f64>>());
@@ -439,25 +444,13 @@ fn blooming_counts_a_neighbour_with_no_slope_not_a_transient() {
                 flags[[2, 2]] = centre_flag;
             }
             let t_exp = if lit { 613.0 } else { 180.0 };
-            let input = Input {
-                image_e_per_s: img.view(),
-                exposure_index: k,
-                t_start_unix_s: 1e9 + 613.0 * k as f64,
-                t_exposure_s: t_exp,
-                t_illuminated_s: if lit { 481.0 } else { t_exp },
-                history_incomplete: false,
-                background_e_per_s: None,
-            };
-            let mut pf = Array2::<u8>::zeros((5, 5));
-            m.step_with(
+            let t_ill = if lit { 481.0 } else { t_exp };
+            (cur, _) = step(
+                &m,
                 &mut st,
-                &input,
+                &input(&img, k, 613.0 * k as f64, t_exp, t_ill),
                 &StepContext::default(),
-                &mut Output {
-                    flags: &mut flags,
-                    current_e_per_s: &mut cur,
-                    pflags: &mut pf,
-                },
+                &mut flags,
             )
             .unwrap();
         }

@@ -340,15 +340,12 @@ impl SimDetector {
         }
         let bins = self.bins_at(spec.temp_k);
         let mut flux = spec.flux.clone();
-        let mut uncollected = Array2::<f32>::zeros((ny, nx));
-        if spec.t_on_s > 0.0 {
+        // charge that fills traps uncollected: only an illumination with effects has any
+        let mut uncollected = None;
+        if spec.t_on_s > 0.0 && !self.effects.list.is_empty() {
+            let u = uncollected.insert(Array2::<f32>::zeros((ny, nx)));
             for e in &self.effects.list {
-                e.illumination(
-                    &mut flux,
-                    &mut uncollected,
-                    spec.t_on_s,
-                    &self.pixels.full_well,
-                );
+                e.illumination(&mut flux, u, spec.t_on_s, &self.pixels.full_well);
             }
         }
         let ls = self.effects.least_squares_persistence();
@@ -360,7 +357,7 @@ impl SimDetector {
         let det = &self.det;
         let pixels = &self.pixels;
         let flux_ref = &flux;
-        let uncollected_ref = &uncollected;
+        let uncollected_ref = uncollected.as_ref();
         let (seed, detector, index, write_ramp) =
             (self.seed, self.detector, spec.index, spec.write_ramp);
         let plan_ref = &plan;
@@ -391,7 +388,8 @@ impl SimDetector {
                     let n = &mut occ_row[x * nb..(x + 1) * nb];
                     let px = PixelIn {
                         phi: f64::from(flux_ref[[y, x]].max(0.0)),
-                        uncollected_e: f64::from(uncollected_ref[[y, x]].max(0.0)),
+                        uncollected_e: uncollected_ref
+                            .map_or(0.0, |u| f64::from(u[[y, x]].max(0.0))),
                         fw: f64::from(pixels.full_well[[y, x]]),
                         d_lin: f64::from(pixels.d_lin[[y, x]]),
                         d_sat: f64::from(pixels.d_sat[[y, x]]),
