@@ -22,6 +22,7 @@
 //! fit --with` does), `--refit candidate|full` (`persist diagnose --refit`),
 //! `--spots centred|shifted|pinholes` (the campaign, `persist simulate lab --campaign --spots`),
 //! `--dark-lengths uniform|varied` (`persist simulate lab --campaign --dark-lengths`),
+//! `--temperatures mixed|apart` (`persist simulate lab --campaign --temperatures`),
 //! `--first-seed S` (default 1: the seeds are S, S+1, ...),
 //! `--skip-baseline`, `--skip-single`, `--skip-pair`, `--joint` (`persist diagnose --joint`;
 //! the pair table then shows round 1's joint check when nothing is declared alone).
@@ -249,6 +250,7 @@ const VALUE_OPTIONS: &[&str] = &[
     "--first-seed",
     "--spots",
     "--dark-lengths",
+    "--temperatures",
     "--out",
     "--effects",
     "--pair",
@@ -316,7 +318,9 @@ fn main() {
         arg(&args, "--spots").map_or(lab::Spots::default(), |v| v.parse().unwrap());
     let dark_lengths: lab::DarkLengths =
         arg(&args, "--dark-lengths").map_or(lab::DarkLengths::default(), |v| v.parse().unwrap());
-    let campaign = dark_lengths.apply(spots.campaign());
+    let temperatures: lab::Temperatures =
+        arg(&args, "--temperatures").map_or(lab::Temperatures::default(), |v| v.parse().unwrap());
+    let campaign = temperatures.apply(dark_lengths.apply(spots.campaign()));
     // the campaign's `persist simulate lab` flags beyond `--campaign`
     let mut campaign_flags = String::new();
     if spots != lab::Spots::default() {
@@ -324,6 +328,9 @@ fn main() {
     }
     if dark_lengths != lab::DarkLengths::default() {
         campaign_flags += &format!(" --dark-lengths {dark_lengths}");
+    }
+    if temperatures != lab::Temperatures::default() {
+        campaign_flags += &format!(" --temperatures {temperatures}");
     }
     let out = arg(&args, "--out").unwrap_or_else(|| "docs/diagnose_matrix.md".into());
     let effects_arg = arg(&args, "--effects");

@@ -7,19 +7,24 @@
 //! (docs/diagnose_matrix.md, "Twelfth session", the pair soak + temperature).
 //!
 //! ```sh
-//! target/release/examples/truth_ratios [--size 64] [--seed 1] [--spots centred] EFFECT[+EFFECT] ...
+//! target/release/examples/truth_ratios [--size 64] [--seed 1] [--spots centred] [--temperatures mixed] EFFECT[+EFFECT] ...
 //! ```
 //! Each argument is one hidden set, effects joined by `+` (e.g. `soak temperature
 //! soak+temperature`).
 use persist::sim::effect::EffectSpec;
-use persist::sim::lab::{self, LabConfig, Spots};
+use persist::sim::lab::{self, Illumination, LabConfig, Spots, Temperatures};
 
 /// Per exposure: (kind, array-mean true persistence e-/s, focal-plane temperature K).
-fn run(size: usize, seed: u64, spots: Spots, effects: &[&str]) -> Vec<(String, f64, f64)> {
+fn run(
+    size: usize,
+    seed: u64,
+    campaign: &[Illumination],
+    effects: &[&str],
+) -> Vec<(String, f64, f64)> {
     let cfg = LabConfig {
         size,
         seed,
-        campaign: Some(spots.campaign()),
+        campaign: Some(campaign.to_vec()),
         effects: effects
             .iter()
             .map(|e| e.parse::<EffectSpec>().expect("effect"))
@@ -48,6 +53,10 @@ fn main() {
     let size = opt("--size").map_or(64, |v| v.parse().expect("--size"));
     let seed = opt("--seed").map_or(1, |v| v.parse().expect("--seed"));
     let spots: Spots = opt("--spots").map_or(Spots::default(), |v| v.parse().expect("--spots"));
+    let temperatures: Temperatures = opt("--temperatures").map_or(Temperatures::default(), |v| {
+        v.parse().expect("--temperatures")
+    });
+    let campaign = temperatures.apply(spots.campaign());
     let mut sets = Vec::new();
     let mut skip = false;
     for a in &args {
@@ -59,10 +68,10 @@ fn main() {
             sets.push(a.clone());
         }
     }
-    let base = run(size, seed, spots, &[]);
+    let base = run(size, seed, &campaign, &[]);
     let runs: Vec<_> = sets
         .iter()
-        .map(|s| run(size, seed, spots, &s.split('+').collect::<Vec<_>>()))
+        .map(|s| run(size, seed, &campaign, &s.split('+').collect::<Vec<_>>()))
         .collect();
     println!(
         "| illumination | dark | T (K) | truth without (e-/s) | {} |",

@@ -161,6 +161,14 @@ pub struct LabArgs {
     #[arg(long, default_value_t = persist::sim::lab::DarkLengths::default(),
           value_parser = parse_flag::<persist::sim::lab::DarkLengths>, requires = "campaign")]
     pub dark_lengths: persist::sim::lab::DarkLengths,
+    /// Where the campaign's temperatures are: `mixed` (illuminations 4 and 5 at 78 and
+    /// 82 K, each also of another length or flux) or `apart` (illumination 4 at 80 K
+    /// followed by 3 h of darks, and a sixth illumination, 5's twin at 78 K, so that an
+    /// effect of the illumination's length and one of the temperature each show on their
+    /// own; `persist::sim::lab`, "Temperatures apart").
+    #[arg(long, default_value_t = persist::sim::lab::Temperatures::default(),
+          value_parser = parse_flag::<persist::sim::lab::Temperatures>, requires = "campaign")]
+    pub temperatures: persist::sim::lab::Temperatures,
     /// Switch on a truth effect: NAME[:param=value,...] (repeatable). Names: blooming,
     /// capacity, ipc, linefit_bias, populations, short_tau_boost, soak, temperature.
     #[arg(long = "effect")]
@@ -630,7 +638,10 @@ fn simulate(scenario: SimScenario) -> persist::Result<ExitCode> {
                 size: a.size,
                 seed: a.seed,
                 darks: a.darks,
-                campaign: a.campaign.then(|| a.dark_lengths.apply(a.spots.campaign())),
+                campaign: a.campaign.then(|| {
+                    a.temperatures
+                        .apply(a.dark_lengths.apply(a.spots.campaign()))
+                }),
                 effects: specs(&a.effects)?,
                 ..lab::LabConfig::default()
             };

@@ -123,6 +123,7 @@ pub fn scale(model: &ModelParams, ramp: &CalibRamp) -> Result<Vec<f64>> {
         t_illuminated_s: ramp.t_illuminated_s,
         t_exposure_s: ramp.t_exposure_s,
         rate_per_s: &rates,
+        rate_held_per_s: &rates,
         response: &response,
     };
     for e in &built {

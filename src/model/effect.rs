@@ -180,6 +180,10 @@ pub struct ResponseCtx<'a> {
     pub t_exposure_s: f64,
     /// Decay rates `1/tau_n` of the model (before any rate hook), 1/s.
     pub rate_per_s: &'a [f64],
+    /// The same terms' emission rates during this exposure: after the rate hooks
+    /// ([`Effect::rates`], e.g. at the exposure's focal-plane temperature), 1/s. Equal to
+    /// `rate_per_s` in a model without a rate hook.
+    pub rate_held_per_s: &'a [f64],
     /// The model's `A_k` table (its knots), which `A_k,n` starts from.
     pub response: &'a Response,
 }

@@ -8,7 +8,11 @@
 //! [`Effect::observe`]); the response planes `A_k,n` `[ny, nx, n_terms]`
 //! ([`Effect::response`]; built only here); then one pass over the pixels with
 //! [`Effect::accumulate`] when an effect has it. Pixels of unknown fluence keep the
-//! maximum amplitude and non-functional pixels add nothing, whatever the hooks say.
+//! maximum amplitude and non-functional pixels add nothing, whatever the hooks say;
+//! except pixels with no slope (`SUR_ERROR`, not a transient): brighter than any
+//! measured pixel, they take the hooks' amplitudes capped at the maximum, so that a
+//! hook that fills less than the whole capacity (`soak`'s level-blind fill) applies to
+//! them too (docs/diagnose_matrix.md, eighteenth session).
 //! The per-pixel prediction, flags, early release and outputs are the fused kernel's
 //! own code (`Kernel::predict_flag_release`, `Kernel::write_pixel`); only the decay and
 //! the per-term response differ. With [`StepContext::active_pixels`] the pixel pass
@@ -47,6 +51,9 @@ const KNOWN: u8 = 0;
 const UNKNOWN: u8 = 1;
 /// Non-functional: adds nothing.
 const NONFUNC: u8 = 2;
+/// Unknown fluence because the ramp saturated before the on-board fit had its reads:
+/// the hooks' amplitudes, capped at the maximum.
+const NO_SLOPE: u8 = 3;
 
 pub(crate) fn step(
     model: &Model,
@@ -149,12 +156,34 @@ pub(crate) fn step(
         let f = flags_in[y * nx + x];
         kind[[y, x]] == UNKNOWN && f & k.bits.sur_error != 0 && f & k.bits.transient == 0
     });
+    for (kd, ns) in kind.iter_mut().zip(no_slope.iter()) {
+        if *ns {
+            *kd = NO_SLOPE;
+        }
+    }
+    // the terms' emission rates while this exposure holds its charge (its temperature)
+    let held_rates = {
+        let ictx = IntervalCtx {
+            t_slew_s: 0.0,
+            t_exposure_s: input.t_exposure_s,
+            t_meas_s: 0.5 * input.t_exposure_s,
+            t_elapsed_s: input.t_exposure_s,
+            focal_plane_temp_k: ctx.focal_plane_temp_k,
+        };
+        let mut c = sum.c_per_s.clone();
+        let mut r = sum.rate_per_s.clone();
+        for e in effects {
+            e.rates(&ictx, &mut c, &mut r);
+        }
+        r
+    };
     let rctx = ResponseCtx {
         fluence_e: &fluence,
         no_slope: &no_slope,
         t_illuminated_s: k.t_illuminated_s,
         t_exposure_s: input.t_exposure_s,
         rate_per_s: &sum.rate_per_s,
+        rate_held_per_s: &held_rates,
         response: k.response,
     };
     // combining effects before saturating ones, whatever the model file's order
@@ -226,16 +255,21 @@ pub(crate) fn step(
                 }
                 s.pixels += 1;
                 let v = k.predict_flag_release(a, &w, &mut c[x], p[x], img[x]);
-                // Whatever the hooks did: unknown pixels keep the maximum amplitude,
-                // non-functional ones add nothing, and no NaN, Inf or negative
-                // amplitude enters the state.
+                // Whatever the hooks did: unknown pixels keep the maximum amplitude
+                // (those with no slope at most it), non-functional ones add nothing,
+                // and no NaN, Inf or negative amplitude enters the state.
+                let hooked = kd[x] == KNOWN || kd[x] == NO_SLOPE;
                 let mut add = &ak_row[x * n..(x + 1) * n];
                 if kd[x] != KNOWN || !add.iter().all(|v| v.is_finite() && *v >= 0.0) {
                     for (v, raw) in fixed.iter_mut().zip(add) {
-                        *v = if kd[x] != KNOWN {
+                        *v = if !hooked {
                             b_row[x]
                         } else if raw.is_finite() && *raw >= 0.0 {
-                            *raw
+                            if kd[x] == NO_SLOPE {
+                                raw.min(b_row[x])
+                            } else {
+                                *raw
+                            }
                         } else {
                             0.0
                         };
@@ -254,7 +288,7 @@ pub(crate) fn step(
                     }
                 } else {
                     let fill = match capacity {
-                        Some(c) if kd[x] == KNOWN => {
+                        Some(c) if hooked => {
                             let c = &c[(y * nx + x) * n..(y * nx + x + 1) * n];
                             for ((f, cj), aj) in fill.iter_mut().zip(c).zip(add) {
                                 *f = if *cj > 0.0 && cj.is_finite() {
@@ -282,7 +316,7 @@ pub(crate) fn step(
                 }
                 k.write_pixel(
                     &v,
-                    kd[x] == UNKNOWN,
+                    kd[x] == UNKNOWN || kd[x] == NO_SLOPE,
                     &mut p[x],
                     &mut cur[x],
                     &mut pf[x],

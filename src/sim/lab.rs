@@ -86,6 +86,27 @@
 //! steep part of the decay, where the bias is largest (about 32 % for a `1/t` decay;
 //! docs/diagnose_matrix.md, thirteenth session). The others, illumination 1 (the
 //! calibration's) included, keep 180 s darks and the 132 s wait.
+//!
+//! # Temperatures apart (`--temperatures apart`, [`Temperatures::apply`])
+//! In the default campaign the two illuminations away from 80 K also differ from the
+//! calibration's in length or flux (120 s at x4, 481 s at x1/4), and only the 82 K one
+//! is followed by darks of more than an hour. An effect of the illumination's length
+//! or of the hours-long tail (the simulator's `soak`) and one of the temperature (its
+//! `temperature`) then show in the same illumination, and where they interact (soak's
+//! capture time follows the emission time, which the temperature changes) they nearly
+//! cancel (docs/diagnose_matrix.md, thirteenth session). The apart campaign moves
+//! illumination 4 to 80 K and follows it with 3 h of darks, and adds a sixth
+//! illumination, the fifth's twin at 78 K:
+//!
+//! | # | illuminated | flux scale | T (K) | darks after |
+//! |---|---|---|---|---|
+//! | 4 | 120 s | 4 | **80** | **60 (3 h)** |
+//! | 5 | 481 s | 0.25 | 82 | 60 (3 h) |
+//! | 6 | 481 s | 0.25 | **78** | **30 (1.5 h)** |
+//!
+//! The illuminations away from 80 K are then alike but for the temperature, and the
+//! length and the tail show at 80 K on their own. With `--spots shifted` or `pinholes`
+//! the sixth illumination takes the fifth's spot.
 
 use super::detector::DetectorParams;
 use super::effect::{EffectSet, EffectSpec};
@@ -327,6 +348,70 @@ impl std::fmt::Display for DarkLengths {
         f.write_str(match self {
             DarkLengths::Uniform => "uniform",
             DarkLengths::Varied => "varied",
+        })
+    }
+}
+
+/// Where the campaign's temperatures are (`persist simulate lab --temperatures`; module
+/// docs, "Temperatures apart").
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub enum Temperatures {
+    /// The default campaign's: illumination 4 at 78 K, 5 at 82 K, each also of another
+    /// length or flux than the calibration's.
+    #[default]
+    Mixed,
+    /// Illumination 4 at 80 K with 3 h of darks; a sixth illumination, 5's twin at
+    /// 78 K ([`Temperatures::apply`]).
+    Apart,
+}
+
+/// `--temperatures apart`: the dark integrations after illumination 4 (3 h) and after
+/// the added sixth illumination (1.5 h).
+const APART_DARKS_AFTER_4: usize = 60;
+const APART_DARKS_AFTER_6: usize = 30;
+
+impl Temperatures {
+    /// `campaign` with this choice of temperatures. Illumination 1, from which `fit`
+    /// calibrates, is never changed; a campaign of fewer than five illuminations is
+    /// returned as it is.
+    pub fn apply(self, mut campaign: Vec<Illumination>) -> Vec<Illumination> {
+        if self == Temperatures::Mixed || campaign.len() < 5 {
+            return campaign;
+        }
+        let reference_k = campaign[0].temp_k;
+        campaign[3].temp_k = reference_k;
+        campaign[3].darks_after = APART_DARKS_AFTER_4;
+        let cold_k = 2.0 * reference_k - campaign[4].temp_k;
+        let twin = Illumination {
+            temp_k: cold_k,
+            darks_after: APART_DARKS_AFTER_6,
+            ..campaign[4].clone()
+        };
+        campaign.push(twin);
+        campaign
+    }
+}
+
+impl std::str::FromStr for Temperatures {
+    type Err = crate::Error;
+    fn from_str(s: &str) -> crate::Result<Temperatures> {
+        match s {
+            "mixed" => Ok(Temperatures::Mixed),
+            "apart" => Ok(Temperatures::Apart),
+            _ => Err(crate::Error::invalid(
+                "--temperatures",
+                format!("`{s}`: expected `mixed` or `apart`"),
+            )),
+        }
+    }
+}
+
+impl std::fmt::Display for Temperatures {
+    /// The name `--temperatures` takes.
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            Temperatures::Mixed => "mixed",
+            Temperatures::Apart => "apart",
         })
     }
 }
@@ -751,6 +836,48 @@ mod tests {
             e.contains("--campaign") && e.contains("spot offsets"),
             "{e}"
         );
+    }
+
+    #[test]
+    fn temperatures_apart_keep_the_reference_temperature_off_the_length_and_flux_changes() {
+        let mixed = Illumination::default_campaign();
+        let apart = Temperatures::Apart.apply(mixed.clone());
+        assert_eq!(apart.len(), 6);
+        assert_eq!(apart[..3], mixed[..3]);
+        // illumination 4 (120 s, x4): now at the calibration's 80 K, with 3 h of darks
+        assert_eq!(
+            apart[3],
+            Illumination {
+                temp_k: 80.0,
+                darks_after: 60,
+                ..mixed[3].clone()
+            }
+        );
+        assert_eq!(apart[4], mixed[4]);
+        // the sixth: the fifth's length and flux at 78 K, 1.5 h of darks
+        assert_eq!(
+            apart[5],
+            Illumination {
+                temp_k: 78.0,
+                darks_after: 30,
+                ..mixed[4].clone()
+            }
+        );
+        // every illumination away from 80 K has the same length and flux
+        let off: Vec<(f64, f64)> = apart
+            .iter()
+            .filter(|i| i.temp_k != 80.0)
+            .map(|i| (i.t_illuminated_s, i.flux_scale))
+            .collect();
+        assert_eq!(off, vec![(481.0, 0.25); 2]);
+        assert_eq!(Temperatures::Mixed.apply(mixed.clone()), mixed);
+        // a single illumination is left alone
+        assert_eq!(Temperatures::Apart.apply(mixed[..1].to_vec()), mixed[..1]);
+        assert_eq!(
+            "apart".parse::<Temperatures>().unwrap(),
+            Temperatures::Apart
+        );
+        assert!("warm".parse::<Temperatures>().is_err());
     }
 
     #[test]

@@ -187,6 +187,7 @@ mod tests {
                 t_illuminated_s: 481.0,
                 t_exposure_s: 613.0,
                 rate_per_s: &rates,
+                rate_held_per_s: &rates,
                 response: &table(),
             },
             &mut ak,

@@ -120,6 +120,7 @@ mod tests {
                 t_illuminated_s: 1.0,
                 t_exposure_s: 1.0,
                 rate_per_s: &rates,
+                rate_held_per_s: &rates,
                 response: &crate::model::Response::new(
                     &crate::model::ModelParams::default().amplitude_knots,
                 ),

@@ -16,11 +16,33 @@
 //! linear segment of the table ([`Soak::fill_at`]). A pixel whose charge is mostly
 //! reached early (far above saturation) fills almost as if held the whole time; a
 //! pixel just above the saturation jump holds its forward-bias traps only briefly.
-//! Where `F` is unknown (transient, SUR error) the step keeps the maximum amplitude
-//! whatever the hooks do; [`Soak::fill_at`] gives the level-blind `1 - exp(-k)` there.
+//! Where `F` is unknown because the ramp had no slope (`SUR_ERROR`,
+//! [`ResponseCtx::no_slope`]) the pixel is brighter than any measured one: its charge
+//! is reached early and its traps are held nearly the whole integration, so the fill is
+//! the level-blind `1 - exp(-k)`, `k = t_exp rate_n / capture_ratio` ([`Soak::fill`]).
+//! Until the eighteenth session the step kept these pixels at the full amplitude, so
+//! after the campaign's x4 illumination its brightest pixels carried unsoaked slow
+//! terms into the next illumination (docs/diagnose_matrix.md). A transient's fluence is
+//! unknown for another reason; it keeps the maximum amplitude whatever the hooks do.
 //! Below the first knot the table is linear through 0 and the fill does not depend on
 //! `F`: one value per term and exposure (every dark pixel).
-//! Equation (response hook): `A_k,n *= fill_n(F)` (1 when `capture_ratio` = 0).
+//!
+//! # Emission while held
+//! A trap held charged also emits, so it fills to the equilibrium
+//! `r_c / (r_c + r_e)` of capture (`r_c = rate_n / capture_ratio`) against emission
+//! (`r_e`), as the truth simulator's traps do (`sim::traps`, "Occupancy"). The knots are
+//! measured at the reference temperature, where that equilibrium is already in them; at
+//! another temperature the rate hooks (`temperature`) change `r_e` to `rate_held_n`
+//! ([`ResponseCtx::rate_held_per_s`]) and the fill is scaled by the equilibrium's
+//! change, `eq_n = (r_c + rate_n) / (r_c + rate_held_n)` (1 without a rate hook, so a
+//! model without `temperature` is unchanged). A warmer exposure fills every term less
+//! (x0.973 at 82 K for `capture_ratio` 0.02 and 0.25 eV), a colder one more. The
+//! filling speed keeps capture alone (`k` above): `capture_ratio` << 1.
+//! The eighteenth session added it (docs/diagnose_matrix.md): with hidden `soak` and
+//! `temperature` the truth's first darks after the 82 K illumination were 2.5 % below
+//! the product of the two effects apart, and the model's were not.
+//!
+//! Equation (response hook): `A_k,n *= fill_n(F) eq_n` (1 when `capture_ratio` = 0).
 //! Parameter: `capture_ratio` (default 0.1, bounds [0, 100], null 0).
 //! Covariate: illumination (soak) time, and time since illumination (the slow tail).
 //!
@@ -67,6 +89,21 @@ impl Soak {
             1.0
         } else {
             -(-t_held_s * rate_per_s / self.capture_ratio).exp_m1()
+        }
+    }
+
+    /// The change of term `rate_per_s`'s equilibrium fill when it emits at
+    /// `rate_held_per_s` instead (module docs, "Emission while held").
+    pub fn held_factor(&self, rate_per_s: f64, rate_held_per_s: f64) -> f64 {
+        if self.capture_ratio <= 0.0 || !(rate_held_per_s.is_finite() && rate_held_per_s > 0.0) {
+            return 1.0;
+        }
+        let r_c = rate_per_s / self.capture_ratio;
+        let f = (r_c + rate_per_s) / (r_c + rate_held_per_s);
+        if f.is_finite() {
+            f
+        } else {
+            1.0
         }
     }
 
@@ -152,18 +189,39 @@ impl Effect for Soak {
         // on the fluence (the ramp is self-similar): one value per term and exposure for
         // most pixels (every dark pixel), the integral only above it.
         let x1 = ctx.response.first_segment().0;
+        let eq: Vec<f64> = ctx
+            .rate_per_s
+            .iter()
+            .zip(ctx.rate_held_per_s)
+            .map(|(r, h)| self.held_factor(*r, *h))
+            .collect();
         let first: Vec<f64> = ctx
             .rate_per_s
             .iter()
-            .map(|r| self.fill_at(ctx.response, x1, *r, t, t_exp))
+            .zip(&eq)
+            .map(|(r, e)| self.fill_at(ctx.response, x1, *r, t, t_exp) * e)
+            .collect();
+        let blind: Vec<f64> = ctx
+            .rate_per_s
+            .iter()
+            .zip(&eq)
+            .map(|(r, e)| self.fill(*r, t_exp.max(t)) * e)
             .collect();
         ak.axis_iter_mut(Axis(0))
             .into_par_iter()
             .zip(ctx.fluence_e.axis_iter(Axis(0)).into_par_iter())
-            .for_each(|(mut a_row, f_row)| {
-                for (mut lane, f) in a_row.outer_iter_mut().zip(f_row) {
+            .zip(ctx.no_slope.axis_iter(Axis(0)).into_par_iter())
+            .for_each(|((mut a_row, f_row), ns_row)| {
+                for ((mut lane, f), ns) in a_row.outer_iter_mut().zip(f_row).zip(ns_row) {
+                    if *ns {
+                        // no slope: held nearly the whole integration (module docs)
+                        for (a, fi) in lane.iter_mut().zip(&blind) {
+                            *a *= fi;
+                        }
+                        continue;
+                    }
                     if f.is_nan() || *f <= 0.0 {
-                        // no charge (A_k = 0), or unknown: the step keeps the maximum
+                        // no charge (A_k = 0), or a transient: the step keeps the maximum
                         continue;
                     }
                     if *f <= x1 {
@@ -171,8 +229,8 @@ impl Effect for Soak {
                             *a *= fi;
                         }
                     } else {
-                        for (a, r) in lane.iter_mut().zip(ctx.rate_per_s) {
-                            *a *= self.fill_at(ctx.response, *f, *r, t, t_exp);
+                        for ((a, r), e) in lane.iter_mut().zip(ctx.rate_per_s).zip(&eq) {
+                            *a *= self.fill_at(ctx.response, *f, *r, t, t_exp) * e;
                         }
                     }
                 }
@@ -293,6 +351,7 @@ mod tests {
                 t_illuminated_s: 100.0,
                 t_exposure_s: 100.0,
                 rate_per_s: &rates,
+                rate_held_per_s: &rates,
                 response: &response,
             },
             &mut ak,
