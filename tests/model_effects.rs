@@ -469,3 +469,87 @@ fn blooming_counts_a_neighbour_with_no_slope_not_a_transient() {
         }
     }
 }
+
+/// `soak` follows capture against emission at the exposure's temperature
+/// (src/model/effects/soak.rs, "Emission while held"): at the reference temperature a
+/// model with `temperature` as well is `soak` alone, bit for bit; at 82 K every term
+/// fills by `(50 + 1) / (50 + 1/0.41) = 0.9726` of what it fills at 80 K (capture
+/// ratio 0.02, 0.25 eV: emission 2.44x faster), at 78 K by 1.012.
+#[test]
+fn soak_fills_less_when_the_exposure_is_warmer() {
+    let soak = || spec("soak", serde_json::json!({"capture_ratio": 0.02}));
+    let temp = || spec("temperature", serde_json::json!({"activation_ev": 0.25}));
+    let first_dark = |effects: Vec<EffectSpec>, t: f64| run(&with(effects), &[t; 3])[1].clone();
+    let soak80 = first_dark(vec![soak()], 80.0);
+    let both80 = first_dark(vec![soak(), temp()], 80.0);
+    assert!(soak80
+        .iter()
+        .zip(&both80)
+        .all(|(a, b)| a.to_bits() == b.to_bits()));
+    for (t, lo, hi) in [(82.0, 0.965, 0.98), (78.0, 1.005, 1.02)] {
+        let both = first_dark(vec![soak(), temp()], t);
+        let alone = first_dark(vec![temp()], t);
+        let with_soak = first_dark(vec![soak()], 80.0);
+        let without = first_dark(vec![], 80.0);
+        // soak's effect at `t` over its effect at 80 K, brightest pixel
+        let p = (3, 3);
+        let r = (both[p] / alone[p]) / (with_soak[p] / without[p]);
+        println!("{t} K: soak's ratio at {t} K / at 80 K = {r:.4}");
+        assert!(r > lo && r < hi, "{t} K: {r}");
+    }
+}
+
+/// A pixel with no slope (`SUR_ERROR`) is brighter than any measured one: `soak` fills
+/// its slow terms level-blind (src/model/effects/soak.rs), where the step used to keep
+/// the full amplitude; a transient still keeps the maximum whatever the hooks do.
+/// Regression: after the campaign's x4 illumination its brightest pixels carried
+/// unsoaked slow terms into the next illumination (docs/diagnose_matrix.md, eighteenth
+/// session).
+#[test]
+fn soak_fills_a_pixel_with_no_slope_but_not_a_transient() {
+    use persist::flags::bits;
+    // the current 3 h after a lit exposure whose pixel (1, 1) had `flag`
+    let late = |effects: Vec<EffectSpec>, flag: u32| -> f32 {
+        let m = with(effects);
+        let mut st = m.new_state(3, 3);
+        let mut cur = Array2::<f32>::zeros((3, 3));
+        for k in 0..2u64 {
+            let lit = k == 0;
+            let img = Array2::from_shape_fn((3, 3), |p| match (lit, p == (1, 1)) {
+                (true, true) => f32::NAN,
+                (true, false) => 2000.0,
+                (false, _) => 0.01,
+            });
+            let mut flags = Array2::<u32>::zeros((3, 3));
+            if lit {
+                flags[[1, 1]] = flag;
+            }
+            let (t_start, t_exp, t_ill) = if lit {
+                (0.0, 613.0, 481.0)
+            } else {
+                (613.0 + 10_800.0, 180.0, 180.0)
+            };
+            (cur, _) = step(
+                &m,
+                &mut st,
+                &input(&img, k, t_start, t_exp, t_ill),
+                &StepContext::default(),
+                &mut flags,
+            )
+            .unwrap();
+        }
+        cur[[1, 1]]
+    };
+    let soak = || vec![spec("soak", serde_json::json!({"capture_ratio": 0.02}))];
+    let (sur, sur_soak) = (
+        late(Vec::new(), bits::SUR_ERROR),
+        late(soak(), bits::SUR_ERROR),
+    );
+    let (tr, tr_soak) = (
+        late(Vec::new(), bits::TRANSIENT),
+        late(soak(), bits::TRANSIENT),
+    );
+    println!("no slope {sur} -> {sur_soak}; transient {tr} -> {tr_soak} e-/s");
+    assert!(sur > 0.0 && sur_soak < 0.9 * sur, "{sur} -> {sur_soak}");
+    assert_eq!(tr_soak.to_bits(), tr.to_bits());
+}
