@@ -23,6 +23,7 @@
 //! `--spots centred|shifted|pinholes` (the campaign, `persist simulate lab --campaign --spots`),
 //! `--dark-lengths uniform|varied` (`persist simulate lab --campaign --dark-lengths`),
 //! `--temperatures mixed|apart` (`persist simulate lab --campaign --temperatures`),
+//! `--repeats N` (`persist simulate lab --campaign --repeats`),
 //! `--first-seed S` (default 1: the seeds are S, S+1, ...),
 //! `--skip-baseline`, `--skip-single`, `--skip-pair`, `--joint` (`persist diagnose --joint`;
 //! the pair table then shows round 1's joint check when nothing is declared alone).
@@ -251,6 +252,7 @@ const VALUE_OPTIONS: &[&str] = &[
     "--spots",
     "--dark-lengths",
     "--temperatures",
+    "--repeats",
     "--out",
     "--effects",
     "--pair",
@@ -320,7 +322,11 @@ fn main() {
         arg(&args, "--dark-lengths").map_or(lab::DarkLengths::default(), |v| v.parse().unwrap());
     let temperatures: lab::Temperatures =
         arg(&args, "--temperatures").map_or(lab::Temperatures::default(), |v| v.parse().unwrap());
-    let campaign = temperatures.apply(dark_lengths.apply(spots.campaign()));
+    let repeats: usize = arg(&args, "--repeats").map_or(0, |v| v.parse().unwrap());
+    let campaign = lab::repeat(
+        temperatures.apply(dark_lengths.apply(spots.campaign())),
+        repeats,
+    );
     // the campaign's `persist simulate lab` flags beyond `--campaign`
     let mut campaign_flags = String::new();
     if spots != lab::Spots::default() {
@@ -331,6 +337,9 @@ fn main() {
     }
     if temperatures != lab::Temperatures::default() {
         campaign_flags += &format!(" --temperatures {temperatures}");
+    }
+    if repeats > 0 {
+        campaign_flags += &format!(" --repeats {repeats}");
     }
     let out = arg(&args, "--out").unwrap_or_else(|| "docs/diagnose_matrix.md".into());
     let effects_arg = arg(&args, "--effects");

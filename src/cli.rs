@@ -169,6 +169,15 @@ pub struct LabArgs {
     #[arg(long, default_value_t = persist::sim::lab::Temperatures::default(),
           value_parser = parse_flag::<persist::sim::lab::Temperatures>, requires = "campaign")]
     pub temperatures: persist::sim::lab::Temperatures,
+    /// Add N more 240 s illuminations at 80 K after illumination 3, each followed by
+    /// five darks (15 min), so that the traps still hold the last one's charge when the
+    /// next begins (an effect that limits what a full pixel can take in, the
+    /// simulator's `capacity`, then acts at every repeat; `persist::sim::lab`,
+    /// "Repeated illuminations"). At most 20.
+    #[arg(long, default_value_t = 0, requires = "campaign",
+          value_parser = clap::builder::RangedU64ValueParser::<usize>::new()
+              .range(0..=persist::sim::lab::MAX_REPEATS as u64))]
+    pub repeats: usize,
     /// Switch on a truth effect: NAME[:param=value,...] (repeatable). Names: blooming,
     /// capacity, ipc, linefit_bias, populations, short_tau_boost, soak, temperature.
     #[arg(long = "effect")]
@@ -639,8 +648,11 @@ fn simulate(scenario: SimScenario) -> persist::Result<ExitCode> {
                 seed: a.seed,
                 darks: a.darks,
                 campaign: a.campaign.then(|| {
-                    a.temperatures
-                        .apply(a.dark_lengths.apply(a.spots.campaign()))
+                    lab::repeat(
+                        a.temperatures
+                            .apply(a.dark_lengths.apply(a.spots.campaign())),
+                        a.repeats,
+                    )
                 }),
                 effects: specs(&a.effects)?,
                 ..lab::LabConfig::default()

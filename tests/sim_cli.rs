@@ -80,6 +80,8 @@ fn bad_arguments_are_named_and_nothing_is_written() {
         (vec!["lab", "--campaign", "--spots", "moved"], "moved"),
         (vec!["lab", "--dark-lengths", "varied"], "--campaign"),
         (vec!["lab", "--campaign", "--dark-lengths", "long"], "long"),
+        (vec!["lab", "--repeats", "2"], "--campaign"),
+        (vec!["lab", "--campaign", "--repeats", "21"], "21"),
         (vec!["sky", "--detectors", "7"], "--detectors"),
         (vec!["sky", "--exposures", "0"], "--exposures"),
     ] {

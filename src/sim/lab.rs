@@ -107,6 +107,17 @@
 //! The illuminations away from 80 K are then alike but for the temperature, and the
 //! length and the tail show at 80 K on their own. With `--spots shifted` or `pinholes`
 //! the sixth illumination takes the fifth's spot.
+//!
+//! # Repeated illuminations (`--repeats N`, [`repeat`])
+//! In the default campaign the repeated 240 s illuminations (2 and 3) come 1 h and 30
+//! min after the one before, when the fast traps are empty. An effect of the charge the
+//! traps still hold (the simulator's `capacity`: every bin's capacity divided by
+//! `1 + (C_tot + H) / n_max`, `H` the held charge) then lowers the second of two saturating
+//! illuminations 30 min apart by about 7 % (`tests/sim_effects.rs`). `--repeats
+//! N` adds N more 240 s illuminations at the reference temperature after illumination
+//! 3, each followed by five darks (15 min), so that each begins while the pixel holds the
+//! last one's charge; illumination 1, from which `fit` calibrates, is never changed.
+//! With `--temperatures apart` the repeats still come before illumination 4.
 
 use super::detector::DetectorParams;
 use super::effect::{EffectSet, EffectSpec};
@@ -414,6 +425,34 @@ impl std::fmt::Display for Temperatures {
             Temperatures::Apart => "apart",
         })
     }
+}
+
+/// `--repeats N` (module docs, "Repeated illuminations"): what each added illumination
+/// is, and its dark gap.
+const REPEAT_T_ILLUMINATED_S: f64 = 240.0;
+const REPEAT_DARKS_AFTER: usize = 5;
+/// The campaign's illumination after which the repeats come (the 240 s repeat, 3).
+const REPEATS_AFTER: usize = 2;
+/// The most `--repeats` takes.
+pub const MAX_REPEATS: usize = 20;
+
+/// `campaign` with `n` more 240 s illuminations at the reference temperature after
+/// illumination 3, each followed by five darks (module docs, "Repeated illuminations").
+/// Illumination 1, from which `fit` calibrates, is never changed; a campaign of fewer
+/// than three illuminations is returned as it is.
+pub fn repeat(mut campaign: Vec<Illumination>, n: usize) -> Vec<Illumination> {
+    if n == 0 || campaign.len() <= REPEATS_AFTER {
+        return campaign;
+    }
+    let template = Illumination {
+        t_illuminated_s: REPEAT_T_ILLUMINATED_S,
+        temp_k: campaign[0].temp_k,
+        darks_after: REPEAT_DARKS_AFTER,
+        ..campaign[REPEATS_AFTER].clone()
+    };
+    let at = REPEATS_AFTER + 1;
+    campaign.splice(at..at, std::iter::repeat_n(template, n));
+    campaign
 }
 
 /// Laboratory scenario configuration.
@@ -836,6 +875,34 @@ mod tests {
             e.contains("--campaign") && e.contains("spot offsets"),
             "{e}"
         );
+    }
+
+    /// `--repeats 3`: three copies of illumination 3 at the reference temperature, each
+    /// with five darks, between illuminations 3 and 4; the rest as it was.
+    #[test]
+    fn repeats_follow_illumination_3_with_short_gaps_and_change_nothing_else() {
+        let base = Illumination::default_campaign();
+        let r = repeat(base.clone(), 3);
+        assert_eq!(r.len(), 8);
+        assert_eq!(r[..3], base[..3]);
+        assert_eq!(r[6..], base[3..]);
+        for i in &r[3..6] {
+            assert_eq!(
+                *i,
+                Illumination {
+                    darks_after: 5,
+                    ..base[2].clone()
+                }
+            );
+        }
+        // with the temperatures apart the repeats still come before illumination 4
+        let apart = repeat(Temperatures::Apart.apply(base.clone()), 2);
+        assert_eq!(apart.len(), 8);
+        assert_eq!(apart[3].temp_k, 80.0);
+        assert_eq!(apart[3].t_illuminated_s, 240.0);
+        assert_eq!(apart[5].t_illuminated_s, 120.0);
+        assert_eq!(repeat(base.clone(), 0), base);
+        assert_eq!(repeat(base[..2].to_vec(), 4), base[..2]);
     }
 
     #[test]
