@@ -14,7 +14,7 @@
 //! ```sh
 //! target/release/examples/cell_parts LAB_DIR MODEL.json ILLUMINATION_EXPOSURE
 //! ```
-use persist::diag::data::{quantile, Sequence};
+use persist::diag::data::Sequence;
 use persist::diag::eval::{self, Samples};
 use persist::sim::analysis::median;
 use std::collections::BTreeMap;
@@ -68,7 +68,7 @@ fn main() {
             sigma,
             med,
             sd,
-            quantile(d, 0.95),
+            p,
             np95,
             ref_s,
             z,

@@ -316,31 +316,17 @@ fn main() {
     let nbase: u64 = arg(&args, "--baseline-seeds").map_or(10, |v| v.parse().unwrap());
     let nseed: u64 = arg(&args, "--seeds").map_or(3, |v| v.parse().unwrap());
     let first: u64 = arg(&args, "--first-seed").map_or(1, |v| v.parse().unwrap());
-    let spots: lab::Spots =
-        arg(&args, "--spots").map_or(lab::Spots::default(), |v| v.parse().unwrap());
-    let dark_lengths: lab::DarkLengths =
-        arg(&args, "--dark-lengths").map_or(lab::DarkLengths::default(), |v| v.parse().unwrap());
-    let temperatures: lab::Temperatures =
-        arg(&args, "--temperatures").map_or(lab::Temperatures::default(), |v| v.parse().unwrap());
-    let repeats: usize = arg(&args, "--repeats").map_or(0, |v| v.parse().unwrap());
-    let campaign = lab::repeat(
-        temperatures.apply(dark_lengths.apply(spots.campaign())),
-        repeats,
-    );
+    let options = lab::CampaignOptions {
+        spots: arg(&args, "--spots").map_or(lab::Spots::default(), |v| v.parse().unwrap()),
+        dark_lengths: arg(&args, "--dark-lengths")
+            .map_or(lab::DarkLengths::default(), |v| v.parse().unwrap()),
+        temperatures: arg(&args, "--temperatures")
+            .map_or(lab::Temperatures::default(), |v| v.parse().unwrap()),
+        repeats: arg(&args, "--repeats").map_or(0, |v| v.parse().unwrap()),
+    };
+    let campaign = options.illuminations();
     // the campaign's `persist simulate lab` flags beyond `--campaign`
-    let mut campaign_flags = String::new();
-    if spots != lab::Spots::default() {
-        campaign_flags += &format!(" --spots {spots}");
-    }
-    if dark_lengths != lab::DarkLengths::default() {
-        campaign_flags += &format!(" --dark-lengths {dark_lengths}");
-    }
-    if temperatures != lab::Temperatures::default() {
-        campaign_flags += &format!(" --temperatures {temperatures}");
-    }
-    if repeats > 0 {
-        campaign_flags += &format!(" --repeats {repeats}");
-    }
+    let campaign_flags = options.flags();
     let out = arg(&args, "--out").unwrap_or_else(|| "docs/diagnose_matrix.md".into());
     let effects_arg = arg(&args, "--effects");
     let all: Vec<&str> = persist::sim::effects::NAMES.to_vec();

@@ -648,11 +648,13 @@ fn simulate(scenario: SimScenario) -> persist::Result<ExitCode> {
                 seed: a.seed,
                 darks: a.darks,
                 campaign: a.campaign.then(|| {
-                    lab::repeat(
-                        a.temperatures
-                            .apply(a.dark_lengths.apply(a.spots.campaign())),
-                        a.repeats,
-                    )
+                    lab::CampaignOptions {
+                        spots: a.spots,
+                        dark_lengths: a.dark_lengths,
+                        temperatures: a.temperatures,
+                        repeats: a.repeats,
+                    }
+                    .illuminations()
                 }),
                 effects: specs(&a.effects)?,
                 ..lab::LabConfig::default()

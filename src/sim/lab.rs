@@ -455,6 +455,49 @@ pub fn repeat(mut campaign: Vec<Illumination>, n: usize) -> Vec<Illumination> {
     campaign
 }
 
+/// The campaign options of `persist simulate lab --campaign` together: where the
+/// spot is, how long the darks are, where the temperatures are and how many repeats.
+/// One place that builds the campaign they describe and names them back as flags.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct CampaignOptions {
+    pub spots: Spots,
+    pub dark_lengths: DarkLengths,
+    pub temperatures: Temperatures,
+    pub repeats: usize,
+}
+
+impl CampaignOptions {
+    /// The campaign's illuminations: the spots' campaign, then the dark lengths, the
+    /// temperatures and the repeats applied in that order.
+    pub fn illuminations(&self) -> Vec<Illumination> {
+        repeat(
+            self.temperatures
+                .apply(self.dark_lengths.apply(self.spots.campaign())),
+            self.repeats,
+        )
+    }
+
+    /// The `persist simulate lab` flags beyond `--campaign` that give these options,
+    /// each after a space; empty at the defaults.
+    pub fn flags(&self) -> String {
+        let d = CampaignOptions::default();
+        let mut f = String::new();
+        if self.spots != d.spots {
+            f += &format!(" --spots {}", self.spots);
+        }
+        if self.dark_lengths != d.dark_lengths {
+            f += &format!(" --dark-lengths {}", self.dark_lengths);
+        }
+        if self.temperatures != d.temperatures {
+            f += &format!(" --temperatures {}", self.temperatures);
+        }
+        if self.repeats != d.repeats {
+            f += &format!(" --repeats {}", self.repeats);
+        }
+        f
+    }
+}
+
 /// Laboratory scenario configuration.
 #[derive(Debug, Clone, Serialize)]
 pub struct LabConfig {
@@ -903,6 +946,27 @@ mod tests {
         assert_eq!(apart[5].t_illuminated_s, 120.0);
         assert_eq!(repeat(base.clone(), 0), base);
         assert_eq!(repeat(base[..2].to_vec(), 4), base[..2]);
+    }
+
+    #[test]
+    fn campaign_options_build_in_order_and_name_what_is_not_the_default() {
+        let d = CampaignOptions::default();
+        assert_eq!(d.illuminations(), Illumination::default_campaign());
+        assert_eq!(d.flags(), "");
+        let o = CampaignOptions {
+            spots: Spots::Shifted,
+            temperatures: Temperatures::Apart,
+            repeats: 2,
+            ..d
+        };
+        assert_eq!(
+            o.illuminations(),
+            repeat(Temperatures::Apart.apply(Spots::Shifted.campaign()), 2)
+        );
+        assert_eq!(
+            o.flags(),
+            " --spots shifted --temperatures apart --repeats 2"
+        );
     }
 
     #[test]
