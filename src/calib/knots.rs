@@ -118,6 +118,7 @@ pub fn scale(model: &ModelParams, ramp: &CalibRamp) -> Result<Vec<f64>> {
     let response = Response::new(&model.amplitude_knots);
     let no_slope = Array2::from_elem(fluence.dim(), false);
     let ctx = ResponseCtx {
+        needed: None,
         fluence_e: &fluence,
         no_slope: &no_slope,
         t_illuminated_s: ramp.t_illuminated_s,

@@ -211,7 +211,13 @@ pub fn fluence(e: &Exposure) -> Array2<f64> {
 
 /// The `q`-quantile (0..1) of finite values, linear interpolation; NaN when none.
 pub fn quantile(v: &[f64], q: f64) -> f64 {
-    let mut a: Vec<f64> = v.iter().copied().filter(|x| x.is_finite()).collect();
+    quantile_in_place(&mut v.to_vec(), q)
+}
+
+/// [`quantile`] of `a`, reordering it (and dropping its values that are not finite)
+/// instead of copying it: the same value.
+pub fn quantile_in_place(a: &mut Vec<f64>, q: f64) -> f64 {
+    a.retain(|x| x.is_finite());
     if a.is_empty() {
         return f64::NAN;
     }

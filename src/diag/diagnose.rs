@@ -134,7 +134,7 @@
 //! shared by neighbours is standing in for something else (radius and fluence go
 //! together when the spot is centred).
 
-use super::data::{noisy_quantile, quantile, Sequence};
+use super::data::{noisy_quantile, quantile, quantile_in_place, Sequence};
 use super::eval::{self, Samples};
 use crate::error::{Error, ErrorKind, Result};
 use crate::model::effects::REGISTRY;
@@ -173,6 +173,10 @@ pub const DEFAULT_BOOTSTRAP: usize = 199;
 pub const ALPHA: f64 = 0.05;
 /// Candidates (above the score threshold, by score) that are refitted.
 pub const REFIT: usize = 3;
+
+/// Bootstrap replicas drawn before they are scored in parallel (memory: this many
+/// copies of the samples).
+const BOOT_BATCH: usize = 8;
 /// The refit must lower the BIC by more than this ("very strong" evidence).
 pub const DBIC_MAX: f64 = -10.0;
 /// The effect fitted on some illuminations must remove this fraction of the
@@ -634,10 +638,32 @@ enum Steps<'a> {
         pred0: &'a [f64],
         noise_p95: Vec<f64>,
         at_step: Vec<(f64, Vec<f64>)>,
+        /// Per effect and cell, whether the step changes any of the cell's predictions
+        /// (where it does not, the cell's derivative is 0 whatever the measurements).
+        moved: Vec<Vec<bool>>,
     },
 }
 
-impl Steps<'_> {
+impl<'a> Steps<'a> {
+    /// [`Steps::Paired`] for cells `c`: the noise's 95th percentile and what each step
+    /// moves, per cell.
+    fn paired(c: &Cells, pred0: &'a [f64], at_step: Vec<(f64, Vec<f64>)>) -> Self {
+        Steps::Paired {
+            pred0,
+            noise_p95: c.sigma.iter().map(|sg| eval::noise_p95(sg)).collect(),
+            moved: at_step
+                .iter()
+                .map(|(_, pred)| {
+                    c.members
+                        .iter()
+                        .map(|idx| idx.iter().any(|&i| pred[i].to_bits() != pred0[i].to_bits()))
+                        .collect()
+                })
+                .collect(),
+            at_step,
+        }
+    }
+
     /// For measurements `y`: per cell `z` and `sigma`, and per effect and cell the
     /// derivative of the cell's compared 95th percentile with the sign of a predicted
     /// one (`dz_c / d theta = -dp_c / sigma_c`).
@@ -664,6 +690,7 @@ impl Steps<'_> {
                 pred0,
                 noise_p95,
                 at_step,
+                moved,
             } => {
                 let mut p0 = Vec::with_capacity(m);
                 for (k, idx) in c.members.iter().enumerate() {
@@ -676,18 +703,24 @@ impl Steps<'_> {
                 }
                 let dp = at_step
                     .iter()
-                    .map(|(h, pred)| {
+                    .zip(moved)
+                    .map(|((h, pred), moved)| {
                         c.members
                             .iter()
                             .zip(&p0)
-                            .map(|(idx, p)| {
+                            .zip(moved)
+                            .map(|((idx, p), moved)| {
+                                if !moved {
+                                    // the same residuals: the same percentile as `p`
+                                    return -0.0 / h;
+                                }
                                 if idx.iter().any(|&i| !pred[i].is_finite()) {
                                     // not comparable with the base's cell: no direction
                                     return 0.0;
                                 }
                                 buf.clear();
                                 buf.extend(idx.iter().map(|&i| y[i] - pred[i]));
-                                -(quantile(&buf, 0.95) - p) / h
+                                -(quantile_in_place(&mut buf, 0.95) - p) / h
                             })
                             .collect()
                     })
@@ -726,6 +759,42 @@ fn dof(c: &Cells, st: Statistic) -> f64 {
 /// its step when the null is one of its bounds, None (either) when it is inside.
 fn one_sided(p: &crate::model::effect::ParamSpec, null: f64, h: f64) -> Option<f64> {
     (null <= p.lo || null >= p.hi).then_some(h.signum())
+}
+
+/// The largest LM of each of `b` parametric bootstrap replicas: measurements drawn
+/// as `pred` plus each member's Gaussian noise (`c.sigma`), in order from `rng`, and
+/// scored in parallel `batch` replicas at a time (the same maxima whatever `batch`).
+#[allow(clippy::too_many_arguments)]
+fn bootstrap_maxima(
+    c: &Cells,
+    pred: &[f64],
+    steps: &Steps,
+    dirs: &[Option<f64>],
+    st: Statistic,
+    b: usize,
+    rng: &mut impl Rng,
+    batch: usize,
+) -> Vec<f64> {
+    let mut maxes: Vec<f64> = Vec::with_capacity(b);
+    let mut ys: Vec<Vec<f64>> = Vec::new();
+    while maxes.len() < b {
+        ys.resize_with(batch.max(1).min(b - maxes.len()), || {
+            vec![f64::NAN; pred.len()]
+        });
+        for y in &mut ys {
+            for (idx, sg) in c.members.iter().zip(&c.sigma) {
+                for (&i, sd) in idx.iter().zip(sg) {
+                    y[i] = pred[i] + sd * rng.sample::<f64, _>(StandardNormal);
+                }
+            }
+        }
+        maxes.par_extend(ys.par_iter().map(|y| {
+            scores(c, y, steps, dirs, st)
+                .into_iter()
+                .fold(0.0, f64::max)
+        }));
+    }
+    maxes
 }
 
 /// LM of every effect for measurements `y` (module docs); `dirs[i]` the allowed sign of
@@ -1009,11 +1078,7 @@ pub fn diagnose(
                 pp0,
             }
         }
-        eval::CellStatistic::Paired => Steps::Paired {
-            pred0: &base.current,
-            noise_p95: cells.sigma.iter().map(|sg| eval::noise_p95(sg)).collect(),
-            at_step,
-        },
+        eval::CellStatistic::Paired => Steps::paired(&cells, &base.current, at_step),
     };
     let names: Vec<&'static str> = tests.iter().map(|(def, ..)| def.name).collect();
     let dirs: Vec<Option<f64>> = tests
@@ -1024,20 +1089,16 @@ pub fn diagnose(
     // parametric bootstrap from the fitted model
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(cfg.seed ^ 0x9e37_79b9_7f4a_7c15);
     let b = cfg.bootstrap;
-    let mut y = vec![f64::NAN; samples.len()];
-    let mut maxes: Vec<f64> = (0..b)
-        .map(|_| {
-            for idx in &cells.members {
-                for &i in idx {
-                    let sd = samples.noise[i / samples.npix()];
-                    y[i] = base.current[i] + sd * rng.sample::<f64, _>(StandardNormal);
-                }
-            }
-            scores(&cells, &y, &steps, &dirs, cfg.statistic)
-                .into_iter()
-                .fold(0.0, f64::max)
-        })
-        .collect();
+    let mut maxes = bootstrap_maxima(
+        &cells,
+        &base.current,
+        &steps,
+        &dirs,
+        cfg.statistic,
+        b,
+        &mut rng,
+        BOOT_BATCH,
+    );
     maxes.sort_by(|a, b| a.total_cmp(b));
     let threshold = quantile(&maxes, 1.0 - ALPHA);
     let boot_median = quantile(&maxes, 0.5);
@@ -1649,17 +1710,53 @@ mod tests {
             .collect();
         let (h, shift) = (0.5, [0.2, 0.0, -0.1]);
         let at: Vec<f64> = (0..30).map(|i| pred0[i] + shift[i / 10]).collect();
-        let steps = Steps::Paired {
-            pred0: &pred0,
-            noise_p95: vec![0.0; 3],
-            at_step: vec![(h, at)],
+        let steps = Steps::paired(&cells, &pred0, vec![(h, at)]);
+        let Steps::Paired { noise_p95, .. } = &steps else {
+            unreachable!()
         };
         let (z, sg, dp) = steps.linearise(&cells, &y);
         for k in 0..3 {
+            // the unmoved cell (1) included: its derivative is 0
             assert!((dp[0][k] - shift[k] / h).abs() < 1e-12, "{k}: {:?}", dp[0]);
             let d: Vec<f64> = (10 * k..10 * k + 10).map(|i| y[i] - pred0[i]).collect();
             let (p, sigma, _) = eval::p95_sigma_median(&d, 0.1);
-            assert_eq!((z[k], sg[k]), (p / sigma, sigma));
+            assert_eq!((z[k], sg[k]), ((p - noise_p95[k]) / sigma, sigma));
+        }
+    }
+
+    /// The bootstrap's replicas are drawn in order from one stream and scored a batch
+    /// at a time in parallel: the maxima must not depend on the batch.
+    #[test]
+    fn bootstrap_maxima_do_not_depend_on_the_batch() {
+        let cells = Cells {
+            members: (0..4).map(|k| (12 * k..12 * k + 12).collect()).collect(),
+            sigma: (0..4).map(|k| vec![0.1 + 0.05 * k as f64; 12]).collect(),
+            noise: (0..4).map(|k| 0.1 + 0.05 * k as f64).collect(),
+            group: vec![0, 0, 1, 1],
+            n_groups: 2,
+        };
+        let pred: Vec<f64> = (0..48).map(|i| 1.0 + 0.02 * i as f64).collect();
+        let at = |f: f64| -> Vec<f64> { pred.iter().map(|p| p * f).collect() };
+        let steps = Steps::paired(&cells, &pred, vec![(0.1, at(1.1)), (-0.2, at(0.9))]);
+        let dirs = [None, Some(-1.0)];
+        let run = |batch| {
+            let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(7);
+            bootstrap_maxima(
+                &cells,
+                &pred,
+                &steps,
+                &dirs,
+                Statistic::Pooled,
+                13,
+                &mut rng,
+                batch,
+            )
+        };
+        let one = run(1);
+        assert_eq!(one.len(), 13);
+        assert!(one.iter().any(|m| *m > 0.0), "{one:?}");
+        for batch in [2, 8, 13, 40] {
+            assert_eq!(run(batch), one, "batch {batch}");
         }
     }
 

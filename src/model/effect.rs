@@ -186,6 +186,20 @@ pub struct ResponseCtx<'a> {
     pub rate_held_per_s: &'a [f64],
     /// The model's `A_k` table (its knots), which `A_k,n` starts from.
     pub response: &'a Response,
+    /// Pixels whose `A_k,n` is read after the hooks (row-major, `ny * nx`); `None` for
+    /// all. A hook may leave the planes of the others as they are: nothing reads them.
+    /// The step builds it from [`crate::model::effect_step::StepContext::active_pixels`]
+    /// widened by the sum of the hooks' [`Effect::response_reach_px`], so that a hook
+    /// reading its neighbours' planes finds them as the hooks before it left them.
+    pub needed: Option<&'a [bool]>,
+}
+
+impl ResponseCtx<'_> {
+    /// Whether pixel `(y, x)`'s planes are read ([`ResponseCtx::needed`]).
+    pub fn is_needed(&self, y: usize, x: usize) -> bool {
+        self.needed
+            .is_none_or(|m| m[y * self.fluence_e.ncols() + x])
+    }
 }
 
 /// A model effect (module docs). Parameters come from the model file through
@@ -219,6 +233,12 @@ pub trait Effect: Send + Sync + Debug {
     /// calibration then rescales the knots with it ([`crate::calib::knots`]).
     fn response_is_per_pixel(&self) -> bool {
         false
+    }
+    /// How far [`Effect::response`] reaches, in steps between 4-neighbours: a pixel's
+    /// `A_k,n` after the hook depends on the planes of the pixels this many steps away
+    /// or nearer (0: its own alone). The step widens [`ResponseCtx::needed`] by it.
+    fn response_reach_px(&self) -> usize {
+        0
     }
     /// True if [`Effect::response`] multiplies `A_k,n` by the fraction (in [0, 1]) of the
     /// exposed traps that fill during the exposure (`soak`). Such hooks run after the

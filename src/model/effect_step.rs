@@ -16,9 +16,10 @@
 //! The per-pixel prediction, flags, early release and outputs are the fused kernel's
 //! own code (`Kernel::predict_flag_release`, `Kernel::write_pixel`); only the decay and
 //! the per-term response differ. With [`StepContext::active_pixels`] the pixel pass
-//! skips the pixels the caller does not read (the response planes are still built
-//! for the whole array), except in the rows the early-release background samples
-//! ([`Model::quiet_rows`]): their states are read, so they are always advanced.
+//! skips the pixels the caller does not read, except in the rows the early-release
+//! background samples ([`Model::quiet_rows`]): their states are read, so they are
+//! always advanced. The response hooks may skip the pixels whose planes nothing reads
+//! ([`ResponseCtx::needed`]: those, widened by the hooks' reach to their neighbours).
 
 use super::effect::{AccumulateRole, Effect, IntervalCtx, ResponseCtx};
 use super::state::State;
@@ -36,10 +37,10 @@ pub struct StepContext<'a> {
     /// Pixels the caller will read (row-major, `ny * nx`), `None` for all. A model with
     /// effects advances only these pixels; the state, current and flags of the others
     /// are left as they were and must not be used afterwards. Exact for the pixels it
-    /// keeps: a pixel's state depends on its own history, on the response planes,
-    /// which are still built for the whole array (spatial hooks see every neighbour),
-    /// and on the early-release background, whose sample rows ([`Model::quiet_rows`])
-    /// are always advanced.
+    /// keeps: a pixel's state depends on its own history, on the response planes
+    /// (built wherever they are read, [`ResponseCtx::needed`]: spatial hooks see every
+    /// neighbour they reach), and on the early-release background, whose sample rows
+    /// ([`Model::quiet_rows`]) are always advanced.
     /// The paper's fused kernel ignores it (it advances every pixel). Used by the
     /// diagnostics, which read predictions at a random subsample of pixels.
     pub active_pixels: Option<&'a [bool]>,
@@ -54,6 +55,37 @@ const NONFUNC: u8 = 2;
 /// Unknown fluence because the ramp saturated before the on-board fit had its reads:
 /// the hooks' amplitudes, capped at the maximum.
 const NO_SLOPE: u8 = 3;
+
+/// The pixels whose response planes are read: `active`, every pixel of the rows the
+/// early-release background samples (`quiet_rows`), and the pixels `reach` steps
+/// between 4-neighbours from them ([`ResponseCtx::needed`]).
+fn needed_pixels(
+    active: &[bool],
+    ny: usize,
+    nx: usize,
+    quiet_rows: Option<usize>,
+    reach: usize,
+) -> Vec<bool> {
+    let mut m = active.to_vec();
+    if let Some(r) = quiet_rows {
+        for y in (0..ny).step_by(r.max(1)) {
+            m[y * nx..(y + 1) * nx].fill(true);
+        }
+    }
+    for _ in 0..reach {
+        let was = m.clone();
+        for y in 0..ny {
+            for x in 0..nx {
+                if was[y * nx + x] {
+                    crate::model::grid::for_each_neighbour(ny, nx, y, x, |y, x| {
+                        m[y * nx + x] = true
+                    });
+                }
+            }
+        }
+    }
+    m
+}
 
 pub(crate) fn step(
     model: &Model,
@@ -91,8 +123,16 @@ pub(crate) fn step(
             (w, d)
         }
     };
-    // Response planes: per pixel the paper's amplitude, its kind and its fluence (rows
-    // in parallel; the same `response_of` as the fused kernel).
+    // the pixels whose planes are read (all without `active_pixels`)
+    let needed = ctx.active_pixels.map(|a| {
+        let reach = effects.iter().map(|e| e.response_reach_px()).sum();
+        needed_pixels(a, ny, nx, quiet_rows, reach)
+    });
+    let is_needed = |i: usize| needed.as_ref().is_none_or(|m| m[i]);
+    // Response planes: per pixel its kind and its fluence (every pixel: the fluence
+    // hooks and the spatial hooks read them at any neighbour), and the paper's
+    // amplitude where it is read (rows in parallel; the same `response_of` as the
+    // fused kernel).
     let image = input.image_e_per_s.as_standard_layout();
     let image = image.as_slice().expect("standard layout");
     let flags_in = contiguous(out.flags);
@@ -107,9 +147,14 @@ pub(crate) fn step(
         flags_in.par_chunks(nx),
     )
         .into_par_iter()
-        .for_each(|(b, kd, fl, img, f)| {
+        .enumerate()
+        .for_each(|(y, (b, kd, fl, img, f))| {
             for x in 0..img.len() {
-                let (a, max_used) = k.response_of(img[x], f[x]);
+                let (a, max_used) = if is_needed(y * nx + x) {
+                    k.response_of(img[x], f[x])
+                } else {
+                    (0.0, k.max_used(img[x], f[x]))
+                };
                 b[x] = a;
                 if f[x] & k.bits.nonfunc != 0 {
                     kd[x] = NONFUNC;
@@ -127,16 +172,19 @@ pub(crate) fn step(
             e.fluence(&mut adjusted);
         }
         // only pixels whose fluence changed get a new `A_k` (a null hook changes nothing)
-        for (((b, f), g), kd) in base
+        for (i, (((b, f), g), kd)) in base
             .iter_mut()
             .zip(fluence.iter_mut())
             .zip(adjusted.iter())
             .zip(kind.iter())
+            .enumerate()
         {
             if *kd == KNOWN && g.to_bits() != f.to_bits() {
                 let g = if g.is_finite() { g.max(0.0) } else { 0.0 };
                 *f = g;
-                *b = k.response.amplitude_e(g);
+                if is_needed(i) {
+                    *b = k.response.amplitude_e(g);
+                }
             }
         }
     }
@@ -145,17 +193,24 @@ pub(crate) fn step(
         .expect("owned")
         .par_chunks_mut(nx * n)
         .zip(base.as_slice().expect("owned").par_chunks(nx))
-        .for_each(|(a_row, b_row)| {
-            for (a, b) in a_row.chunks_exact_mut(n).zip(b_row) {
-                a.fill(*b);
+        .enumerate()
+        .for_each(|(y, (a_row, b_row))| {
+            for (x, (a, b)) in a_row.chunks_exact_mut(n).zip(b_row).enumerate() {
+                if is_needed(y * nx + x) {
+                    a.fill(*b);
+                }
             }
         });
     // unknown because the ramp saturated before the on-board fit had its reads (not a
     // transient): brighter than any measured pixel
-    let no_slope = Array2::from_shape_fn((ny, nx), |(y, x)| {
-        let f = flags_in[y * nx + x];
-        kind[[y, x]] == UNKNOWN && f & k.bits.sur_error != 0 && f & k.bits.transient == 0
-    });
+    let no_slope = Array2::from_shape_vec(
+        (ny, nx),
+        kind.iter()
+            .zip(flags_in.iter())
+            .map(|(kd, f)| *kd == UNKNOWN && f & k.bits.sur_error != 0 && f & k.bits.transient == 0)
+            .collect(),
+    )
+    .expect("ny * nx");
     for (kd, ns) in kind.iter_mut().zip(no_slope.iter()) {
         if *ns {
             *kd = NO_SLOPE;
@@ -178,6 +233,7 @@ pub(crate) fn step(
         r
     };
     let rctx = ResponseCtx {
+        needed: needed.as_deref(),
         fluence_e: &fluence,
         no_slope: &no_slope,
         t_illuminated_s: k.t_illuminated_s,

@@ -507,6 +507,14 @@ pub(crate) struct Kernel<'m> {
 }
 
 impl Kernel<'_> {
+    /// Whether [`Kernel::response_of`] gives a pixel the maximum for an unknown
+    /// fluence, without its amplitude.
+    #[inline(always)]
+    pub fn max_used(&self, current: f32, flags: u32) -> bool {
+        flags & self.bits.nonfunc == 0
+            && (flags & (self.bits.transient | self.bits.sur_error) != 0 || !current.is_finite())
+    }
+
     /// `A_k` for one pixel and whether it was the maximum for an unknown fluence.
     #[inline(always)]
     pub fn response_of(&self, current: f32, flags: u32) -> (f64, bool) {

@@ -182,6 +182,7 @@ mod tests {
         let rates = [0.1, 0.01];
         b.response(
             &ResponseCtx {
+                needed: None,
                 fluence_e: f,
                 no_slope,
                 t_illuminated_s: 481.0,

@@ -115,6 +115,7 @@ mod tests {
         };
         b.response(
             &ResponseCtx {
+                needed: None,
                 fluence_e: &f,
                 no_slope: &ndarray::Array2::from_elem(f.dim(), false),
                 t_illuminated_s: 1.0,

@@ -211,8 +211,14 @@ impl Effect for Soak {
             .into_par_iter()
             .zip(ctx.fluence_e.axis_iter(Axis(0)).into_par_iter())
             .zip(ctx.no_slope.axis_iter(Axis(0)).into_par_iter())
-            .for_each(|((mut a_row, f_row), ns_row)| {
-                for ((mut lane, f), ns) in a_row.outer_iter_mut().zip(f_row).zip(ns_row) {
+            .enumerate()
+            .for_each(|(y, ((mut a_row, f_row), ns_row))| {
+                for (x, ((mut lane, f), ns)) in
+                    a_row.outer_iter_mut().zip(f_row).zip(ns_row).enumerate()
+                {
+                    if !ctx.is_needed(y, x) {
+                        continue;
+                    }
                     if *ns {
                         // no slope: held nearly the whole integration (module docs)
                         for (a, fi) in lane.iter_mut().zip(&blind) {
@@ -346,6 +352,7 @@ mod tests {
         }]);
         Soak { capture_ratio: 1.0 }.response(
             &ResponseCtx {
+                needed: None,
                 fluence_e: &f,
                 no_slope: &ndarray::Array2::from_elem(f.dim(), false),
                 t_illuminated_s: 100.0,
