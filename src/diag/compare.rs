@@ -27,6 +27,7 @@ use super::eval::{self, FlagQuality, GroupStat, Samples};
 use crate::error::{Error, ErrorKind, Result};
 use crate::h5io;
 use crate::sim::effect::{EffectSet, EffectSpec as SimEffectSpec};
+use rayon::prelude::*;
 use serde::Serialize;
 use std::collections::BTreeMap;
 use std::path::Path;
@@ -188,9 +189,22 @@ pub fn summarise_touched(
 ) -> Result<Vec<ModelSummary>> {
     let mut out = Vec::new();
     for (path, params) in models {
-        let pr = eval::predict(params, seq, samples, false)?;
-        let fl = eval::predict(params, seq, samples, true)?;
-        let cells = eval::cell_z(samples, &pr.current);
+        // residuals (early release off) and flags (the model's setting) side by side
+        let (pr, fl) = rayon::join(
+            || eval::predict(params, seq, samples, false),
+            || eval::predict(params, seq, samples, true),
+        );
+        let (pr, fl) = (pr?, fl?);
+        // the cells, and each covariate's groups, in parallel
+        let (cells, by) = rayon::join(
+            || eval::cell_z(samples, &pr.current),
+            || {
+                BREAKDOWNS
+                    .par_iter()
+                    .map(|c| eval::groups(samples, &pr.current, &[c]))
+                    .collect::<Vec<_>>()
+            },
+        );
         let map = cells
             .iter()
             .map(|(k, g)| {
@@ -206,8 +220,7 @@ pub fn summarise_touched(
             })
             .collect();
         let mut breakdown = BTreeMap::new();
-        for c in BREAKDOWNS {
-            let g = eval::groups(samples, &pr.current, &[c]);
+        for (c, g) in BREAKDOWNS.iter().zip(by) {
             breakdown.insert(
                 c.to_string(),
                 g.into_iter()

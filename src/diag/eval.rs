@@ -102,6 +102,7 @@ use crate::model::effects::blooming::neighbour_excess;
 use crate::model::{Input, Model, ModelParams, Output, StepContext};
 use crate::sim::analysis::median;
 use ndarray::Array2;
+use rayon::prelude::*;
 use serde::Serialize;
 
 /// How samples are grouped into the residual's cells (module docs). The default,
@@ -451,35 +452,93 @@ pub struct Prediction {
 
 /// Run `params` over the whole sequence; predictions at the samples. `early_release`
 /// false switches it off (residuals), true keeps the model file's setting (flags).
+///
+/// A model whose pixels do not see one another ([`Model::is_pixel_local`]) runs on the
+/// sampled pixels alone, gathered into an array of their own ([`Layout::Gathered`]);
+/// any other on the whole array, advancing the sampled pixels and what they read
+/// ([`Layout::Whole`]). Both give the same predictions bit for bit where both apply.
 pub fn predict(
     params: &ModelParams,
     seq: &Sequence,
     samples: &Samples,
     early_release: bool,
 ) -> Result<Prediction> {
+    predict_in(params, seq, samples, early_release, Layout::Gathered)
+}
+
+/// Where [`predict`] runs the model.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Layout {
+    /// The sampled pixels gathered in rows of [`GATHERED_COLS`] when the model is
+    /// pixel-local, else as [`Layout::Whole`].
+    Gathered,
+    /// The whole array, with the sampled pixels as `StepContext::active_pixels`.
+    Whole,
+}
+
+/// Columns of [`Layout::Gathered`]'s array (its rows are stepped in parallel).
+pub const GATHERED_COLS: usize = 64;
+
+/// [`predict`] in the given [`Layout`] (the tests compare the two).
+pub fn predict_in(
+    params: &ModelParams,
+    seq: &Sequence,
+    samples: &Samples,
+    early_release: bool,
+    layout: Layout,
+) -> Result<Prediction> {
     let mut p = params.clone();
     if !early_release {
         p.early_release.enabled = false;
     }
     let model = Model::new(p)?;
-    let (ny, nx) = (seq.ny, seq.nx);
+    let gathered = layout == Layout::Gathered && model.is_pixel_local();
+    let np = samples.npix();
+    let (ny, nx) = if gathered {
+        let nx = GATHERED_COLS.min(np).max(1);
+        (np.div_ceil(nx).max(1), nx)
+    } else {
+        (seq.ny, seq.nx)
+    };
+    // where each sampled pixel sits in the stepped array
+    let at: Vec<(usize, usize)> = if gathered {
+        (0..np).map(|j| (j / nx, j % nx)).collect()
+    } else {
+        samples.pixels.clone()
+    };
     let mut st = model.new_state(ny, nx);
     let mut cur = Array2::<f32>::zeros((ny, nx));
     let mut pf = Array2::<u8>::zeros((ny, nx));
+    let mut image = Array2::<f32>::zeros((ny, nx));
+    let mut flags = Array2::<u32>::zeros((ny, nx));
     let mut out = Prediction {
         current: Vec::with_capacity(samples.len()),
         flagged: Vec::with_capacity(samples.len()),
     };
     // only the sampled pixels are read: the model may skip the others
-    let mut active = vec![false; ny * nx];
-    for &(y, x) in &samples.pixels {
-        active[y * nx + x] = true;
-    }
+    let active = (!gathered).then(|| {
+        let mut a = vec![false; ny * nx];
+        for &(y, x) in &samples.pixels {
+            a[y * nx + x] = true;
+        }
+        a
+    });
     let mut row = 0;
     for (k, e) in seq.exposures.iter().enumerate() {
-        let mut flags = e.flags.clone();
+        let image = if gathered {
+            // the padding after the last sampled pixel stays dark and unflagged
+            flags.fill(0);
+            for (&px, &to) in samples.pixels.iter().zip(&at) {
+                image[to] = e.image[px];
+                flags[to] = e.flags[px];
+            }
+            image.view()
+        } else {
+            flags.assign(&e.flags);
+            e.image.view()
+        };
         let input = Input {
-            image_e_per_s: e.image.view(),
+            image_e_per_s: image,
             exposure_index: e.meta.exposure_index,
             t_start_unix_s: e.meta.t_start.0,
             t_exposure_s: e.meta.t_exposure_s,
@@ -492,7 +551,7 @@ pub fn predict(
             &input,
             &StepContext {
                 focal_plane_temp_k: e.meta.focal_plane_temp_k,
-                active_pixels: Some(&active),
+                active_pixels: active.as_deref(),
             },
             &mut Output {
                 flags: &mut flags,
@@ -501,7 +560,7 @@ pub fn predict(
             },
         )?;
         if samples.exposures.get(row) == Some(&k) {
-            for &px in &samples.pixels {
+            for &px in &at {
                 out.current.push(f64::from(cur[px]));
                 out.flagged.push(pf[px] & crate::flags::pbits::HIGH != 0);
             }
@@ -705,7 +764,9 @@ pub fn groups(s: &Samples, pred: &[f64], keys: &[&str]) -> Vec<(Vec<i64>, GroupS
         e.1.push(pred[i]);
         e.2.push(s.noise[i / s.npix()]);
     }
-    g.into_iter()
+    // the groups' statistics in parallel, collected in key order
+    let g: Vec<_> = g.into_iter().collect();
+    g.into_par_iter()
         .filter_map(|(k, (m, p, n))| {
             cell_stat(s.statistic, &m, &p, &n, median(&n)).map(|st| (k, st))
         })

@@ -234,6 +234,14 @@ pub trait Effect: Send + Sync + Debug {
     fn response_is_per_pixel(&self) -> bool {
         false
     }
+    /// True if this effect's hooks treat each pixel on its own: what they do to a pixel
+    /// depends on that pixel's values and the exposure alone, not on its position, its
+    /// neighbours or the array's size. A model whose effects all are
+    /// ([`crate::model::Model::is_pixel_local`]) predicts any selection of its pixels
+    /// laid out anew as it would on the whole array. False unless the effect says so.
+    fn is_pixel_local(&self) -> bool {
+        false
+    }
     /// How far [`Effect::response`] reaches, in steps between 4-neighbours: a pixel's
     /// `A_k,n` after the hook depends on the planes of the pixels this many steps away
     /// or nearer (0: its own alone). The step widens [`ResponseCtx::needed`] by it.

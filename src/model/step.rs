@@ -139,6 +139,16 @@ impl Model {
         &self.effects
     }
 
+    /// True if each pixel's prediction depends on that pixel's own history alone: every
+    /// effect is [`super::effect::Effect::is_pixel_local`] and early release subtracts
+    /// no background (which is estimated over the whole array). Such a model predicts
+    /// any selection of pixels, laid out in an array of its own, bit for bit as it
+    /// would on the whole array.
+    pub fn is_pixel_local(&self) -> bool {
+        let er = &self.params.early_release;
+        !(er.enabled && er.subtract_background) && self.effects.iter().all(|e| e.is_pixel_local())
+    }
+
     /// [`Model::step`] with the exposure's environment (temperature), which effects
     /// may use. A model without effects ignores it.
     pub fn step_with(

@@ -63,6 +63,9 @@ impl Effect for Capacity {
     fn name(&self) -> &'static str {
         DEF.name
     }
+    fn is_pixel_local(&self) -> bool {
+        true
+    }
     fn has_accumulate(&self) -> bool {
         true
     }

@@ -76,6 +76,9 @@ impl Effect for Chord {
     fn name(&self) -> &'static str {
         DEF.name
     }
+    fn is_pixel_local(&self) -> bool {
+        true
+    }
     fn observe(&self, ctx: &IntervalCtx, c: &[f64], r: &[f64], w: &mut [f64]) {
         mix_readout(ctx, c, r, w, self.strength, self.first_read_s, mean_factor);
     }

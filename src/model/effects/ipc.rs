@@ -120,6 +120,10 @@ impl Effect for Ipc {
     fn name(&self) -> &'static str {
         DEF.name
     }
+    /// Local only when it couples nothing.
+    fn is_pixel_local(&self) -> bool {
+        self.alpha == 0.0
+    }
     fn has_fluence(&self) -> bool {
         self.alpha != 0.0
     }

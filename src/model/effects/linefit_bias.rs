@@ -53,6 +53,9 @@ impl Effect for LinefitBias {
     fn name(&self) -> &'static str {
         DEF.name
     }
+    fn is_pixel_local(&self) -> bool {
+        true
+    }
     fn observe(&self, ctx: &IntervalCtx, c: &[f64], r: &[f64], w: &mut [f64]) {
         mix_readout(
             ctx,

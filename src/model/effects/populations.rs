@@ -103,6 +103,10 @@ impl Effect for Populations {
     fn name(&self) -> &'static str {
         DEF.name
     }
+    /// Local only when the surface is flat (it scales by position).
+    fn is_pixel_local(&self) -> bool {
+        self.g.iter().all(|g| *g == 0.0)
+    }
     fn response(&self, _ctx: &ResponseCtx<'_>, ak: &mut Array3<f64>) {
         if self.g.iter().all(|g| *g == 0.0) {
             return;

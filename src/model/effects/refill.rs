@@ -59,6 +59,9 @@ impl Effect for Refill {
     fn name(&self) -> &'static str {
         DEF.name
     }
+    fn is_pixel_local(&self) -> bool {
+        true
+    }
     fn has_accumulate(&self) -> bool {
         true
     }

@@ -174,6 +174,9 @@ impl Effect for Soak {
     fn name(&self) -> &'static str {
         DEF.name
     }
+    fn is_pixel_local(&self) -> bool {
+        true
+    }
     fn response_is_per_pixel(&self) -> bool {
         true
     }

@@ -63,6 +63,9 @@ impl Effect for Temperature {
     fn name(&self) -> &'static str {
         DEF.name
     }
+    fn is_pixel_local(&self) -> bool {
+        true
+    }
     fn rates(&self, ctx: &IntervalCtx, c: &mut [f64], r: &mut [f64]) {
         let Some(t) = ctx.focal_plane_temp_k.filter(|t| t.is_finite() && *t > 0.0) else {
             return;
