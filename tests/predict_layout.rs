@@ -49,6 +49,7 @@ fn gathered_pixels_predict_bit_identically_to_the_whole_array() {
         ("short_tau_boost", serde_json::json!({"factor": 2.0})),
         // spatial effects that couple nothing are local too
         ("ipc", serde_json::json!({"alpha": 0.0})),
+        ("blooming", serde_json::json!({"fraction": 0.0})),
     ];
     let spatial = [
         ("blooming", serde_json::json!({"fraction": 0.1})),

@@ -190,7 +190,8 @@ pub struct ResponseCtx<'a> {
     /// all. A hook may leave the planes of the others as they are: nothing reads them.
     /// The step builds it from [`crate::model::effect_step::StepContext::active_pixels`]
     /// widened by the sum of the hooks' [`Effect::response_reach_px`], so that a hook
-    /// reading its neighbours' planes finds them as the hooks before it left them.
+    /// reading its neighbours' planes finds them as the hooks before it left them
+    /// (`None` when a hook's reach is unknown).
     pub needed: Option<&'a [bool]>,
 }
 
@@ -242,11 +243,16 @@ pub trait Effect: Send + Sync + Debug {
     fn is_pixel_local(&self) -> bool {
         false
     }
-    /// How far [`Effect::response`] reaches, in steps between 4-neighbours: a pixel's
-    /// `A_k,n` after the hook depends on the planes of the pixels this many steps away
-    /// or nearer (0: its own alone). The step widens [`ResponseCtx::needed`] by it.
-    fn response_reach_px(&self) -> usize {
-        0
+    /// How far [`Effect::response`] reaches into the response planes, in steps
+    /// between 4-neighbours: a pixel's `A_k,n` after the hook depends on the planes of
+    /// the pixels this many steps away or nearer (0: its own alone; what it reads of
+    /// the fluence and `no_slope` planes, which are built everywhere, does not count).
+    /// The step widens [`ResponseCtx::needed`] by it. `None`: it may read any pixel's
+    /// planes, and the step builds them everywhere. Defaults to 0 for a pixel-local
+    /// effect ([`Effect::is_pixel_local`]) and to `None` for any other, so that an
+    /// effect that declares neither is never given planes it did not expect.
+    fn response_reach_px(&self) -> Option<usize> {
+        self.is_pixel_local().then_some(0)
     }
     /// True if [`Effect::response`] multiplies `A_k,n` by the fraction (in [0, 1]) of the
     /// exposed traps that fill during the exposure (`soak`). Such hooks run after the
@@ -391,5 +397,32 @@ mod tests {
         let mut g = serde_json::Map::new();
         g.insert(def.params[0].name.into(), serde_json::json!(-1e30));
         assert!(def.resolve(&g).unwrap_err().contains(def.params[0].name));
+    }
+
+    /// An effect that declares neither locality nor reach is run the safe way: not
+    /// local (the diagnostics step the whole array) and any reach (every pixel's planes
+    /// built); a local one reaches nothing.
+    #[test]
+    fn an_effect_that_declares_nothing_is_given_every_pixel() {
+        #[derive(Debug)]
+        struct Plain;
+        impl Effect for Plain {
+            fn name(&self) -> &'static str {
+                "plain"
+            }
+        }
+        #[derive(Debug)]
+        struct Local;
+        impl Effect for Local {
+            fn name(&self) -> &'static str {
+                "local"
+            }
+            fn is_pixel_local(&self) -> bool {
+                true
+            }
+        }
+        assert!(!Plain.is_pixel_local());
+        assert_eq!(Plain.response_reach_px(), None);
+        assert_eq!(Local.response_reach_px(), Some(0));
     }
 }

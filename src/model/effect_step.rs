@@ -124,10 +124,11 @@ pub(crate) fn step(
         }
     };
     // the pixels whose planes are read (all without `active_pixels`)
-    let needed = ctx.active_pixels.map(|a| {
-        let reach = effects.iter().map(|e| e.response_reach_px()).sum();
-        needed_pixels(a, ny, nx, quiet_rows, reach)
-    });
+    let reach: Option<usize> = effects.iter().map(|e| e.response_reach_px()).sum();
+    let needed = ctx
+        .active_pixels
+        .zip(reach)
+        .map(|(a, reach)| needed_pixels(a, ny, nx, quiet_rows, reach));
     let is_needed = |i: usize| needed.as_ref().is_none_or(|m| m[i]);
     // Response planes: per pixel its kind and its fluence (every pixel: the fluence
     // hooks and the spatial hooks read them at any neighbour), and the paper's

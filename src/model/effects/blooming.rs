@@ -112,6 +112,15 @@ impl Effect for Blooming {
     fn name(&self) -> &'static str {
         DEF.name
     }
+    /// Local only when nothing spills.
+    fn is_pixel_local(&self) -> bool {
+        self.fraction == 0.0
+    }
+    /// Its response reads the neighbours' fluence and `no_slope` (built everywhere),
+    /// and changes a pixel's planes from its own.
+    fn response_reach_px(&self) -> Option<usize> {
+        Some(0)
+    }
     fn response(&self, ctx: &ResponseCtx<'_>, ak: &mut Array3<f64>) {
         if self.fraction == 0.0 {
             return;

@@ -133,8 +133,9 @@ impl Effect for Ipc {
         }
         *fluence_e = decouple(fluence_e, self.alpha);
     }
-    fn response_reach_px(&self) -> usize {
-        usize::from(self.alpha != 0.0)
+    /// Each pixel's planes take its four neighbours'.
+    fn response_reach_px(&self) -> Option<usize> {
+        Some(usize::from(self.alpha != 0.0))
     }
     fn response(&self, ctx: &ResponseCtx<'_>, ak: &mut Array3<f64>) {
         if self.alpha == 0.0 {

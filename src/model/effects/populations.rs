@@ -107,6 +107,10 @@ impl Effect for Populations {
     fn is_pixel_local(&self) -> bool {
         self.g.iter().all(|g| *g == 0.0)
     }
+    /// It scales each pixel's planes by its position alone.
+    fn response_reach_px(&self) -> Option<usize> {
+        Some(0)
+    }
     fn response(&self, _ctx: &ResponseCtx<'_>, ak: &mut Array3<f64>) {
         if self.g.iter().all(|g| *g == 0.0) {
             return;
