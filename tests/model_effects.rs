@@ -151,6 +151,17 @@ fn active_pixels_predict_bit_identically_to_the_whole_array() {
                     }
                 }
             }
+            // one pixel in the middle: the response planes are built for it and the
+            // neighbours a spatial hook reads, and nowhere else
+            let one: Vec<bool> = (0..16).map(|i| i == 5).collect();
+            let alone = run_masked(&m, &temps, Some(&one), &[0]).unwrap();
+            for (k, (w, q)) in whole.iter().zip(&alone).enumerate() {
+                assert_eq!(
+                    w[[1, 1]].to_bits(),
+                    q[[1, 1]].to_bits(),
+                    "{name}: exposure {k}"
+                );
+            }
             assert!(whole[1].iter().all(|v| *v > 0.0), "{name}");
             if background == BackgroundEstimate::ImageMedian {
                 // the masked-out pixels were really skipped (their current stays 0)

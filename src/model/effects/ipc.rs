@@ -158,6 +158,9 @@ impl Effect for Ipc {
                 if !ctx.fluence_e[[y, x]].is_finite() {
                     continue; // the step restores its own amplitude
                 }
+                if !ctx.is_needed(y, x) {
+                    continue; // nothing reads its planes
+                }
                 let p = y * nx + x;
                 sum.fill(0.0);
                 let mut add = |q: usize| {
