@@ -528,10 +528,10 @@ impl Kernel<'_> {
     /// `A_k` for one pixel and whether it was the maximum for an unknown fluence.
     #[inline(always)]
     pub fn response_of(&self, current: f32, flags: u32) -> (f64, bool) {
-        if flags & self.bits.nonfunc != 0 {
-            (0.0, false)
-        } else if flags & (self.bits.transient | self.bits.sur_error) != 0 || !current.is_finite() {
+        if self.max_used(current, flags) {
             (self.a_max, true)
+        } else if flags & self.bits.nonfunc != 0 {
+            (0.0, false)
         } else {
             let fluence_e = f64::from(current.max(0.0)) * self.t_illuminated_s;
             // The first segment, where faint pixels fall, without a table look-up: the
