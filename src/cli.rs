@@ -508,8 +508,11 @@ pub struct CellArgs {
     #[arg(long, default_value_t = Cells::default(), value_parser = parse_flag::<Cells>)]
     pub cells: Cells,
     /// What a residual cell compares: `paired` (the 95th percentile of each sample's
-    /// measured minus predicted current; see `persist::diag::eval` "Paired statistic")
-    /// or `levels` (the cell's measured 95th percentile against its predictions').
+    /// measured minus predicted current; see `persist::diag::eval` "Paired statistic"),
+    /// `population` (the same, against a reference with each sample's own shot noise
+    /// and the pixels' spread below the predicted 95th percentile, measured in the
+    /// first dark; "Population statistic") or `levels` (the cell's measured 95th
+    /// percentile against its predictions').
     #[arg(long, default_value_t = CellStatistic::default(), value_parser = parse_flag::<CellStatistic>)]
     pub cell_statistic: CellStatistic,
 }

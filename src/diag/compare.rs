@@ -319,6 +319,7 @@ pub fn definitions(cells: eval::Cells, statistic: eval::CellStatistic) -> BTreeM
         ("z".into(), match statistic {
             eval::CellStatistic::Levels => "(P95 of measured - P95 of predicted plus each sample's noise) / (2.12 s / sqrt(n)), s = 1.4826 MAD of measured, at least the noise",
             eval::CellStatistic::Paired => "(P95 of measured - predicted, sample by sample - P95 of the samples' noise alone) / (2.12 s / sqrt(n)), s = 1.4826 MAD of measured - predicted, at least the noise; the figures' P95 are of measured and of predicted plus noise",
+            eval::CellStatistic::Population => "(P95 of measured - predicted, sample by sample - P95 of the mixture N(-1.645 s_i, s_i^2 + sigma_i^2)) / (2.12 s / sqrt(n)), s_i = r(F_i) predicted_i the pixels' spread below the predicted 95th percentile (r from the first dark after the first illumination), sigma_i^2 = sigma_k^2 + 1.2 / t_exposure_s predicted_i the exposure noise plus the sample's own shot noise, s = 1.4826 MAD of measured - predicted, at least the median sigma_i; the figures' P95 are of measured and of predicted plus that mixture",
         }.into()),
         ("residual_rms_normalised".into(), rms.into()),
         ("missed".into(), "measured > threshold + 2 noise and not flagged".into()),

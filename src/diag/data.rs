@@ -170,9 +170,124 @@ impl Sequence {
         ek.t_start.0 + 0.5 * ek.t_exposure_s - (ea.t_start.0 + ea.t_exposure_s)
     }
 
+    /// The pixels' relative spread below their 95th percentile, per fluence, measured
+    /// in the first dark integration after the first illumination ([`PopulationSpread`]);
+    /// empty (spread 0 everywhere) on sky data or when no exposure follows the first
+    /// illumination.
+    pub fn population_spread(&self) -> PopulationSpread {
+        let lab = self
+            .exposures
+            .iter()
+            .any(|e| e.meta.t_illuminated_s.is_some());
+        let Some(&a) = self.illuminations.first() else {
+            return PopulationSpread::default();
+        };
+        let k = a + 1;
+        if !lab || k >= self.exposures.len() || self.illuminations.contains(&k) {
+            return PopulationSpread::default();
+        }
+        PopulationSpread::measure(
+            &fluence(&self.exposures[a]),
+            &self.measured(k),
+            self.noise_e_per_s[k],
+        )
+    }
+
     /// Number of illuminations before exposure `k` (including the last one).
     pub fn illuminations_before(&self, k: usize) -> usize {
         self.illuminations.iter().filter(|&&i| i < k).count()
+    }
+}
+
+/// The relative spread of a population of pixels below its 95th percentile, as a
+/// function of fluence: `r(F) = (P95 - median) / (1.645 P95)` of the persistence
+/// current of the pixels lit to fluence `F` (for a Gaussian population, its standard
+/// deviation over its 95th percentile). The flagging model predicts the 95th
+/// percentile; `r` says how far below it the other pixels of the same history lie
+/// (the `population` cell statistic, [`super::eval::CellStatistic::Population`]).
+///
+/// Measured in one dark integration right after an illumination, in bins of
+/// [`PopulationSpread::BINS_PER_DECADE`] per decade of fluence above
+/// [`BACKGROUND_FLUENCE_E`]: with the current's trend in `log10 F` within the bin
+/// removed (least squares; a bin a tenth of a decade wide spans 26 % of fluence, which
+/// would otherwise count as spread), the median of the measured current and its 95th
+/// percentile with the exposure noise removed in quadrature ([`signal_p95`]). A bin is kept when it
+/// holds at least [`PopulationSpread::MIN_PIXELS`] pixels and its 95th percentile is at
+/// least [`PopulationSpread::MIN_SNR`] times the noise: removing the noise in quadrature
+/// is biased when the spread is below the noise (by +40 % in `r` at 4.5 times the noise,
+/// test `population_spread_of_a_lognormal_population`), so a bin is kept only where the
+/// spread is measured; `r` is clamped to 0..0.5. Between bins `r` is linear in `log10 F`,
+/// beyond them the nearest bin's. With no bin, `r` is 0.
+///
+/// Assumption: the spread relative to the 95th percentile stays what it is in that
+/// first dark at every time and in every later illumination (true of the simulator's
+/// truth below saturation, where a pixel's current is its trap density, lognormal
+/// with 8 % scatter, times a history; above saturation its three-population mixture
+/// is not Gaussian, docs/diagnose_matrix.md, "Twenty-first session").
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct PopulationSpread {
+    /// `(log10 F, r)` per kept bin, `log10 F` the mean over the bin's pixels, increasing.
+    pub knots: Vec<(f64, f64)>,
+}
+
+impl PopulationSpread {
+    pub const BINS_PER_DECADE: f64 = 10.0;
+    pub const MIN_PIXELS: usize = 20;
+    pub const MIN_SNR: f64 = 10.0;
+
+    /// From the illumination's fluence and the next dark integration's measured current
+    /// (e-/s, NaN where unusable) with exposure noise `noise_e_per_s`.
+    pub fn measure(fluence_e: &Array2<f64>, current: &Array2<f64>, noise_e_per_s: f64) -> Self {
+        use std::collections::BTreeMap;
+        let mut bins: BTreeMap<i64, (Vec<f64>, Vec<f64>)> = BTreeMap::new();
+        for (f, c) in fluence_e.iter().zip(current.iter()) {
+            if f.is_finite() && *f > BACKGROUND_FLUENCE_E && c.is_finite() {
+                let b = (f.log10() * Self::BINS_PER_DECADE).floor() as i64;
+                let e = bins.entry(b).or_default();
+                e.0.push(f.log10());
+                e.1.push(*c);
+            }
+        }
+        let knots = bins
+            .into_values()
+            .filter(|(_, c)| c.len() >= Self::MIN_PIXELS)
+            .filter_map(|(lf, c)| {
+                // the fluence's own trend within the bin taken out (least squares in
+                // log F): the spread of pixels of one fluence, not of the bin's width
+                let n = lf.len() as f64;
+                let lm = lf.iter().sum::<f64>() / n;
+                let (sxy, sxx) = lf.iter().zip(&c).fold((0.0, 0.0), |(a, b), (x, y)| {
+                    (a + (x - lm) * y, b + (x - lm) * (x - lm))
+                });
+                let slope = if sxx > 0.0 { sxy / sxx } else { 0.0 };
+                let c: Vec<f64> = lf
+                    .iter()
+                    .zip(&c)
+                    .map(|(x, y)| y - slope * (x - lm))
+                    .collect();
+                let med = median(&c);
+                let p95 = signal_p95(&c, med, noise_e_per_s);
+                (p95 >= Self::MIN_SNR * noise_e_per_s && p95 > 0.0)
+                    .then(|| (lm, ((p95 - med) / (1.645 * p95)).clamp(0.0, 0.5)))
+            })
+            .collect();
+        PopulationSpread { knots }
+    }
+
+    /// `r` at fluence `fluence_e` (0 when not finite and positive).
+    pub fn at(&self, fluence_e: f64) -> f64 {
+        let k = &self.knots;
+        if k.is_empty() || !(fluence_e > 0.0 && fluence_e.is_finite()) {
+            return 0.0;
+        }
+        let lf = fluence_e.log10();
+        if lf <= k[0].0 {
+            return k[0].1;
+        }
+        match k.windows(2).find(|w| lf <= w[1].0) {
+            Some(w) => w[0].1 + (lf - w[0].0) / (w[1].0 - w[0].0) * (w[1].1 - w[0].1),
+            None => k[k.len() - 1].1,
+        }
     }
 }
 
@@ -366,6 +481,48 @@ pub fn signal_p95(v: &[f64], med: f64, sigma: f64) -> f64 {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A lognormal population of 8 % scatter (the simulator's `D_lin`, `sim::traps`),
+    /// current proportional to fluence: `r = (1 - exp(-1.645 * 0.08)) / 1.645 = 0.0750`
+    /// in every bin whose 95th percentile stands above 10 sigma of the noise; none below,
+    /// where `at` takes the first kept bin's.
+    #[test]
+    fn population_spread_of_a_lognormal_population() {
+        use rand::{Rng, SeedableRng};
+        use rand_distr::StandardNormal;
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(3);
+        let (n, sigma) = (20_000, 0.02);
+        // 1e3.5 .. 1e5.5 e-, current 1e-5 e-/s per e- at the 95th percentile
+        let f = Array2::from_shape_fn((1, n), |(_, i)| 10f64.powf(3.5 + 2.0 * i as f64 / n as f64));
+        let c = Array2::from_shape_fn((1, n), |(_, i)| {
+            let g: f64 = rng.sample(StandardNormal);
+            let e: f64 = rng.sample(StandardNormal);
+            1e-5 * f[[0, i]] * (0.08 * (g - 1.645)).exp() + sigma * e
+        });
+        let p = PopulationSpread::measure(&f, &c, sigma);
+        let want = (1.0 - (-1.645f64 * 0.08).exp()) / 1.645;
+        // kept: 95th percentile 1e-5 F >= 10 sigma = 0.2 e-/s, F >= 20,000 e-
+        let first = p.knots.first().expect("bins kept").0;
+        assert!(
+            first > 2e4f64.log10() - 0.1 && first < 2e4f64.log10() + 0.15,
+            "{first}"
+        );
+        for &(lf, r) in &p.knots {
+            // (+33 % at 1e4.45 e- without the trend's removal)
+            assert!(
+                (r - want).abs() < 0.15 * want,
+                "log10 F {lf}: r {r}, want {want}"
+            );
+        }
+        assert_eq!(p.at(1e3), p.knots[0].1);
+        assert_eq!(p.at(f64::NAN), 0.0);
+        assert_eq!(PopulationSpread::default().at(1e5), 0.0);
+        // a current buried in the noise keeps no bin
+        let quiet = c.mapv(|v| v * 1e-3);
+        assert!(PopulationSpread::measure(&f, &quiet, sigma)
+            .knots
+            .is_empty());
+    }
 
     /// A one-pixel pinhole (7.2e6 e-) among 1e4 e- pixels: its four edge neighbours are
     /// dominated (mean excess (7.2e6 - 2e5) / 4 = 1.75e6 > 1e4), the diagonal ones and the

@@ -560,9 +560,13 @@ pub struct Diagnosis {
 /// Cells of the score test: sample indices per cell, the cell's noise, its group.
 struct Cells {
     members: Vec<Vec<usize>>,
-    /// Per member, its exposure's noise (e-/s).
+    /// Per member, the standard deviation of its measured minus predicted current under
+    /// the fitted model ([`Samples::null_of`]: its exposure's noise but with the
+    /// population statistic), e-/s.
     sigma: Vec<Vec<f64>>,
-    /// Per cell, the median of `sigma`.
+    /// Per member, the mean of the same (0 but with the population statistic), e-/s.
+    offset: Vec<Vec<f64>>,
+    /// Per cell, the median of the members' measurement noise.
     noise: Vec<f64>,
     group: Vec<usize>,
     n_groups: usize,
@@ -591,6 +595,7 @@ fn make_cells(s: &Samples, pred: &[f64], st: Statistic) -> Cells {
     let mut c = Cells {
         members: Vec::new(),
         sigma: Vec::new(),
+        offset: Vec::new(),
         noise: Vec::new(),
         group: Vec::new(),
         n_groups: 0,
@@ -601,9 +606,16 @@ fn make_cells(s: &Samples, pred: &[f64], st: Statistic) -> Cells {
         }
         let n = groups.len();
         let gi = *groups.entry(k[..2].to_vec()).or_insert(n);
-        let noise: Vec<f64> = idx.iter().map(|&i| s.noise[i / s.npix()]).collect();
+        let (mut offset, mut sd, mut noise) = (Vec::new(), Vec::new(), Vec::new());
+        for &i in &idx {
+            let (o, d, n) = s.null_of(i, pred[i]);
+            offset.push(o);
+            sd.push(d);
+            noise.push(n);
+        }
         c.noise.push(median(&noise));
-        c.sigma.push(noise);
+        c.sigma.push(sd);
+        c.offset.push(offset);
         c.members.push(idx);
         c.group.push(gi);
     }
@@ -630,7 +642,8 @@ enum Steps<'a> {
     /// Per cell the predicted 95th percentile; per effect and cell its derivative
     /// `d P95_c / d theta`.
     Levels { pp0: Vec<f64>, dp: Vec<Vec<f64>> },
-    /// The predictions per sample; per cell the 95th percentile of the noise alone; per
+    /// The predictions per sample; per cell the reference, the 95th percentile of the
+    /// noise alone (of the population's null with the population statistic); per
     /// effect its step `h` and the predictions per sample at the step. The step's
     /// change of `P95(measured - predicted)` depends on the measurements, so it is
     /// taken anew for each set of them.
@@ -641,25 +654,66 @@ enum Steps<'a> {
         /// Per effect and cell, whether the step changes any of the cell's predictions
         /// (where it does not, the cell's derivative is 0 whatever the measurements).
         moved: Vec<Vec<bool>>,
+        /// Per effect and cell, the change of the reference at the step (0 but with the
+        /// population statistic, whose reference follows the predictions).
+        ref_shift: Vec<Vec<f64>>,
     },
 }
 
 impl<'a> Steps<'a> {
-    /// [`Steps::Paired`] for cells `c`: the noise's 95th percentile and what each step
-    /// moves, per cell.
-    fn paired(c: &Cells, pred0: &'a [f64], at_step: Vec<(f64, Vec<f64>)>) -> Self {
+    /// [`Steps::Paired`] for cells `c`: the reference and what each step moves, per
+    /// cell. `population`: the samples when their statistic is
+    /// [`eval::CellStatistic::Population`] (whose reference follows the predictions).
+    fn paired(
+        c: &Cells,
+        pred0: &'a [f64],
+        at_step: Vec<(f64, Vec<f64>)>,
+        population: Option<&Samples>,
+    ) -> Self {
+        let noise_p95: Vec<f64> = c
+            .offset
+            .iter()
+            .zip(&c.sigma)
+            .map(|(o, sg)| noisy_quantile(o, sg, 0.95).0)
+            .collect();
+        let moved: Vec<Vec<bool>> = at_step
+            .iter()
+            .map(|(_, pred)| {
+                c.members
+                    .iter()
+                    .map(|idx| idx.iter().any(|&i| pred[i].to_bits() != pred0[i].to_bits()))
+                    .collect()
+            })
+            .collect();
+        let ref_shift = at_step
+            .iter()
+            .zip(&moved)
+            .map(|((_, pred), moved)| {
+                c.members
+                    .iter()
+                    .zip(moved)
+                    .zip(&noise_p95)
+                    .map(|((idx, &moved), r0)| {
+                        let Some(s) = population.filter(|_| moved) else {
+                            return 0.0;
+                        };
+                        let (o, sg): (Vec<f64>, Vec<f64>) = idx
+                            .iter()
+                            .map(|&i| {
+                                let (o, sd, _) = s.null_of(i, pred[i]);
+                                (o, sd)
+                            })
+                            .unzip();
+                        noisy_quantile(&o, &sg, 0.95).0 - r0
+                    })
+                    .collect()
+            })
+            .collect();
         Steps::Paired {
             pred0,
-            noise_p95: c.sigma.iter().map(|sg| eval::noise_p95(sg)).collect(),
-            moved: at_step
-                .iter()
-                .map(|(_, pred)| {
-                    c.members
-                        .iter()
-                        .map(|idx| idx.iter().any(|&i| pred[i].to_bits() != pred0[i].to_bits()))
-                        .collect()
-                })
-                .collect(),
+            noise_p95,
+            moved,
+            ref_shift,
             at_step,
         }
     }
@@ -691,6 +745,7 @@ impl<'a> Steps<'a> {
                 noise_p95,
                 at_step,
                 moved,
+                ref_shift,
             } => {
                 let mut p0 = Vec::with_capacity(m);
                 for (k, idx) in c.members.iter().enumerate() {
@@ -704,12 +759,14 @@ impl<'a> Steps<'a> {
                 let dp = at_step
                     .iter()
                     .zip(moved)
-                    .map(|((h, pred), moved)| {
+                    .zip(ref_shift)
+                    .map(|(((h, pred), moved), shift)| {
                         c.members
                             .iter()
                             .zip(&p0)
                             .zip(moved)
-                            .map(|((idx, p), moved)| {
+                            .zip(shift)
+                            .map(|(((idx, p), moved), shift)| {
                                 if !moved {
                                     // the same residuals: the same percentile as `p`
                                     return -0.0 / h;
@@ -720,7 +777,9 @@ impl<'a> Steps<'a> {
                                 }
                                 buf.clear();
                                 buf.extend(idx.iter().map(|&i| y[i] - pred[i]));
-                                -(quantile_in_place(&mut buf, 0.95) - p) / h
+                                // the change of `z`'s numerator, with the sign of a
+                                // predicted percentile
+                                -((quantile_in_place(&mut buf, 0.95) - p) - shift) / h
                             })
                             .collect()
                     })
@@ -782,9 +841,9 @@ fn bootstrap_maxima(
             vec![f64::NAN; pred.len()]
         });
         for y in &mut ys {
-            for (idx, sg) in c.members.iter().zip(&c.sigma) {
-                for (&i, sd) in idx.iter().zip(sg) {
-                    y[i] = pred[i] + sd * rng.sample::<f64, _>(StandardNormal);
+            for ((idx, sg), of) in c.members.iter().zip(&c.sigma).zip(&c.offset) {
+                for ((&i, sd), o) in idx.iter().zip(sg).zip(of) {
+                    y[i] = pred[i] + o + sd * rng.sample::<f64, _>(StandardNormal);
                 }
             }
         }
@@ -1078,7 +1137,11 @@ pub fn diagnose(
                 pp0,
             }
         }
-        eval::CellStatistic::Paired => Steps::paired(&cells, &base.current, at_step),
+        eval::CellStatistic::Paired | eval::CellStatistic::Population => {
+            let population =
+                (samples.statistic == eval::CellStatistic::Population).then_some(&samples);
+            Steps::paired(&cells, &base.current, at_step, population)
+        }
     };
     let names: Vec<&'static str> = tests.iter().map(|(def, ..)| def.name).collect();
     let dirs: Vec<Option<f64>> = tests
@@ -1656,6 +1719,7 @@ mod tests {
         let cells = Cells {
             members: (0..4).map(|k| (10 * k..10 * k + 10).collect()).collect(),
             sigma: vec![vec![0.1; 10]; 4],
+            offset: vec![vec![0.0; 10]; 4],
             noise: vec![0.1; 4],
             group: vec![0; 4],
             n_groups: 1,
@@ -1695,11 +1759,91 @@ mod tests {
     /// prediction of a cell by `c` lowers that cell's `P95(measured - predicted)` by
     /// exactly `c`, so its derivative (with the sign of a predicted 95th percentile) is
     /// `c / h`, and the cell's `z` is that of the differences.
+    /// With the population statistic the reference follows the predictions (eval module
+    /// docs, "Population statistic"): the cells' null comes from `Samples::null_of` at
+    /// the fitted model's predictions, and a step's derivative takes in the change of
+    /// the reference as well as that of `P95(measured - predicted)`; a cell the step
+    /// does not move keeps both.
+    #[test]
+    fn population_steps_move_the_reference_with_the_predictions() {
+        let (np, rows) = (40, 2);
+        let n = np * rows;
+        let s = Samples {
+            cells: eval::Cells::Pooled,
+            statistic: eval::CellStatistic::Population,
+            stride: 0,
+            pixels: (0..np).map(|i| (0, i)).collect(),
+            exposures: vec![1, 2],
+            measured: (0..n).map(|i| 0.5 + 0.01 * ((i * 7) % 13) as f64).collect(),
+            noise: vec![0.02; rows],
+            shot_var_per_e_per_s: vec![eval::SHOT_VAR_LINE_FIT / 180.0; rows],
+            spread_rel: vec![0.075; n],
+            fluence_e: vec![5e4; n],
+            neighbour_excess_e: vec![0.0; n],
+            // two time bins: one cell per row
+            t_since_s: vec![100.0, 1000.0],
+            event: vec![0; rows],
+            illumination_time_s: vec![481.0; rows],
+            temperature_k: vec![80.0; rows],
+            earlier_illuminations: vec![0.0; rows],
+            radius: vec![0.5; np],
+        };
+        let pred0: Vec<f64> = (0..n).map(|i| 0.55 + 0.001 * (i % np) as f64).collect();
+        let cells = make_cells(&s, &pred0, Statistic::Pooled);
+        assert_eq!(cells.members.len(), 2);
+        for (k, idx) in cells.members.iter().enumerate() {
+            for (j, &i) in idx.iter().enumerate() {
+                let (o, sd, _) = s.null_of(i, pred0[i]);
+                assert_eq!((cells.offset[k][j], cells.sigma[k][j]), (o, sd));
+                assert!(o < 0.0 && sd > 0.02);
+            }
+        }
+        // the step raises the first row's predictions by 10 %, leaves the second's
+        let h = 0.1;
+        let at = scaled_first(&pred0, 1.1, np);
+        let reference = |pred: &[f64], idx: &[usize]| {
+            let (o, sd): (Vec<f64>, Vec<f64>) = idx
+                .iter()
+                .map(|&i| {
+                    let (o, sd, _) = s.null_of(i, pred[i]);
+                    (o, sd)
+                })
+                .unzip();
+            noisy_quantile(&o, &sd, 0.95).0
+        };
+        let steps = Steps::paired(&cells, &pred0, vec![(h, at.clone())], Some(&s));
+        let (_, _, dp) = steps.linearise(&cells, &s.measured);
+        let idx = &cells.members[0];
+        let p95 = |pred: &[f64]| {
+            let d: Vec<f64> = idx.iter().map(|&i| s.measured[i] - pred[i]).collect();
+            quantile(&d, 0.95)
+        };
+        let shift = reference(&at, idx) - reference(&pred0, idx);
+        assert!(shift.abs() > 1e-4, "{shift}");
+        let want = -((p95(&at) - p95(&pred0)) - shift) / h;
+        assert!((dp[0][0] - want).abs() < 1e-9, "{} vs {want}", dp[0][0]);
+        assert_eq!(dp[0][1], 0.0);
+        // without the samples (the paired statistic) the reference stays
+        let paired = Steps::paired(&cells, &pred0, vec![(h, at)], None);
+        let (_, _, dp) = paired.linearise(&cells, &s.measured);
+        let want = -(p95(&scaled_first(&pred0, 1.1, np)) - p95(&pred0)) / h;
+        assert!((dp[0][0] - want).abs() < 1e-9, "{} vs {want}", dp[0][0]);
+    }
+
+    /// `pred` with its first `np` values scaled by `f`.
+    fn scaled_first(pred: &[f64], f: f64, np: usize) -> Vec<f64> {
+        pred.iter()
+            .enumerate()
+            .map(|(i, p)| if i < np { p * f } else { *p })
+            .collect()
+    }
+
     #[test]
     fn paired_steps_move_a_cell_by_the_change_of_its_predictions() {
         let cells = Cells {
             members: (0..3).map(|k| (10 * k..10 * k + 10).collect()).collect(),
             sigma: vec![vec![0.1; 10]; 3],
+            offset: vec![vec![0.0; 10]; 3],
             noise: vec![0.1; 3],
             group: vec![0; 3],
             n_groups: 1,
@@ -1710,7 +1854,7 @@ mod tests {
             .collect();
         let (h, shift) = (0.5, [0.2, 0.0, -0.1]);
         let at: Vec<f64> = (0..30).map(|i| pred0[i] + shift[i / 10]).collect();
-        let steps = Steps::paired(&cells, &pred0, vec![(h, at)]);
+        let steps = Steps::paired(&cells, &pred0, vec![(h, at)], None);
         let Steps::Paired { noise_p95, .. } = &steps else {
             unreachable!()
         };
@@ -1731,13 +1875,14 @@ mod tests {
         let cells = Cells {
             members: (0..4).map(|k| (12 * k..12 * k + 12).collect()).collect(),
             sigma: (0..4).map(|k| vec![0.1 + 0.05 * k as f64; 12]).collect(),
+            offset: vec![vec![0.0; 12]; 4],
             noise: (0..4).map(|k| 0.1 + 0.05 * k as f64).collect(),
             group: vec![0, 0, 1, 1],
             n_groups: 2,
         };
         let pred: Vec<f64> = (0..48).map(|i| 1.0 + 0.02 * i as f64).collect();
         let at = |f: f64| -> Vec<f64> { pred.iter().map(|p| p * f).collect() };
-        let steps = Steps::paired(&cells, &pred, vec![(0.1, at(1.1)), (-0.2, at(0.9))]);
+        let steps = Steps::paired(&cells, &pred, vec![(0.1, at(1.1)), (-0.2, at(0.9))], None);
         let dirs = [None, Some(-1.0)];
         let run = |batch| {
             let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(7);

@@ -75,15 +75,40 @@
 //! `cells_of_data_drawn_from_the_model_have_unit_rms`). The figures keep showing the
 //! cells' measured and predicted 95th percentiles.
 //!
-//! Known bias: the reference `P95(noise)` is what `P95(d)` is when every pixel of a
-//! history has its predicted current. The knots are the 95th percentile of a
-//! population; for a Gaussian spread `s` below it, `P95(d) = 1.645 (sqrt(s^2 +
-//! sigma^2) - s)`, lower. Where `s` and the noise are alike (the first dark at 1e4-1e4.6
-//! e-, 128 x 128) `z` is biased low by 3.4-5.0 in the calibration's own illumination
-//! (`z` -3.7 to -5.2 there, -1.8 to 1.2 against the reference with a Gaussian spread
-//! taken from the median of `d`). That reference removes the bias there but is wrong in
-//! the later darks, whose upper tail is heavier (docs/diagnose_matrix.md, nineteenth
-//! session; `examples/cell_parts`). Not changed.
+//! Known biases (both removed by the population statistic below, not by this one): the
+//! reference `P95(noise)` is what `P95(d)` is when every pixel of a history has its
+//! predicted current. The knots are the 95th percentile of a population; for a Gaussian
+//! spread `s` below it, `P95(d) = 1.645 (sqrt(s^2 + sigma^2) - s)`, lower. Where `s` and
+//! the noise are alike (the first dark at 1e4-1e4.6 e-, 128 x 128) `z` is biased low by
+//! 3.4-5.0 in the calibration's own illumination (docs/diagnose_matrix.md, nineteenth
+//! session; `examples/cell_parts`). And `sigma_k` is the noise of the background
+//! pixels: it leaves out the shot noise of the sample's own persistence current, which
+//! above 1e4.6 e- is most of the noise after the first dark (twenty-first session;
+//! `examples/noise_check`), so there `z` is biased high. The two biases have opposite
+//! signs and partly cancel.
+//!
+//! # Population statistic
+//! `--cell-statistic population` ([`CellStatistic::Population`]) is the paired statistic
+//! against the reference those two biases call for. Under the model, sample `i`'s
+//! `d_i = measured_i - predicted_i` is Gaussian ([`Samples::null_of`]) with
+//! - the pixels' spread below the predicted 95th percentile: mean `-1.645 s_i`,
+//!   standard deviation `s_i = r(F_i) max(predicted_i, 0)`, `r` the population's
+//!   relative spread at the sample's fluence, measured once per sequence in the first
+//!   dark after the first illumination ([`super::data::PopulationSpread`]);
+//! - plus the measurement noise `sigma_i^2 = sigma_k^2 + g_k max(predicted_i, 0)`, `g_k
+//!   = 1.2 / t_exposure_s` the shot-noise variance of an unweighted line fit per e-/s of
+//!   current ([`SHOT_VAR_LINE_FIT`]; the predicted current stands for the true one).
+//!
+//! `z = (P95(d) - P95(mixture of N(-1.645 s_i, s_i^2 + sigma_i^2))) / sigma_q`, `sigma_q`
+//! as above with `s` at least the median `sigma_i`. The reference follows the
+//! predictions, so a fit or a score step that moves them moves it too. The bootstrap of
+//! `diagnose` draws its replicas from the same distribution. With `r = 0` and no shot
+//! noise it is the paired statistic. Assumptions: the relative spread is the first
+//! dark's at every time and in every illumination; the population is Gaussian below
+//! its 95th percentile (above saturation the simulator's truth is a mixture of three
+//! populations; the cells there come out at `z` ~ 0 all the same,
+//! docs/diagnose_matrix.md, "Twenty-first session"). On sky data (no laboratory
+//! illumination) `r` is 0: only the shot noise is added.
 //!
 //! # Flag quality (per threshold `thr`)
 //! Missed: measured above `thr + 2 sigma_k` and not flagged (predicted `<= thr`).
@@ -179,6 +204,10 @@ pub enum CellStatistic {
     /// The 95th percentile of each sample's measured minus predicted current.
     #[default]
     Paired,
+    /// [`CellStatistic::Paired`] against the reference of a population of pixels: each
+    /// sample's noise with its own current's shot noise, and the pixels' spread below
+    /// the 95th percentile the model predicts (module docs, "Population statistic").
+    Population,
 }
 
 impl std::str::FromStr for CellStatistic {
@@ -187,9 +216,10 @@ impl std::str::FromStr for CellStatistic {
         match s {
             "levels" => Ok(CellStatistic::Levels),
             "paired" => Ok(CellStatistic::Paired),
+            "population" => Ok(CellStatistic::Population),
             _ => Err(crate::error::Error::invalid(
                 "--cell-statistic",
-                format!("`{s}`: expected `levels` or `paired`"),
+                format!("`{s}`: expected `levels`, `paired` or `population`"),
             )),
         }
     }
@@ -201,6 +231,7 @@ impl std::fmt::Display for CellStatistic {
         f.write_str(match self {
             CellStatistic::Levels => "levels",
             CellStatistic::Paired => "paired",
+            CellStatistic::Population => "population",
         })
     }
 }
@@ -213,6 +244,9 @@ impl CellStatistic {
         match self {
             CellStatistic::Levels => ", levels: measured 95th percentile against the predictions'",
             CellStatistic::Paired => ", paired: each sample against its own prediction",
+            CellStatistic::Population => {
+                ", population: each sample against its own prediction, with shot noise and the pixels' spread"
+            }
         }
     }
 }
@@ -255,7 +289,15 @@ pub struct Samples {
     pub exposures: Vec<usize>,
     /// `[exposures.len() * pixels.len()]`, e-/s, NaN unusable.
     pub measured: Vec<f64>,
+    /// Per exposure row: the exposure noise `sigma_k` (background pixels), e-/s.
     pub noise: Vec<f64>,
+    /// Per exposure row: the variance of a measured current per e-/s of the pixel's own
+    /// current, its shot noise in an unweighted line fit of many evenly spaced reads,
+    /// `6 / (5 t_exposure_s)` ((e-/s)^2 per e-/s; module docs, "Population statistic").
+    pub shot_var_per_e_per_s: Vec<f64>,
+    /// Per sample: the population's relative spread at its fluence
+    /// ([`super::data::PopulationSpread`], measured once per sequence).
+    pub spread_rel: Vec<f64>,
     /// Per sample covariates (same layout as `measured`).
     pub fluence_e: Vec<f64>,
     pub neighbour_excess_e: Vec<f64>,
@@ -332,6 +374,8 @@ impl Samples {
             exposures: rows.iter().map(|&r| self.exposures[r]).collect(),
             measured: self.rows_of(&self.measured, rows),
             noise: per_row(&self.noise),
+            shot_var_per_e_per_s: per_row(&self.shot_var_per_e_per_s),
+            spread_rel: self.rows_of(&self.spread_rel, rows),
             fluence_e: self.rows_of(&self.fluence_e, rows),
             neighbour_excess_e: self.rows_of(&self.neighbour_excess_e, rows),
             t_since_s: per_row(&self.t_since_s),
@@ -380,6 +424,8 @@ impl Samples {
             exposures: Vec::new(),
             measured: Vec::new(),
             noise: Vec::new(),
+            shot_var_per_e_per_s: Vec::new(),
+            spread_rel: Vec::new(),
             fluence_e: Vec::new(),
             neighbour_excess_e: Vec::new(),
             t_since_s: Vec::new(),
@@ -396,6 +442,7 @@ impl Samples {
                 })
                 .collect(),
         };
+        let spread = seq.population_spread();
         let mut cache: Option<(usize, Array2<f64>, Array2<f64>)> = None;
         for k in 0..seq.exposures.len() {
             let Some(a) = seq.last_illumination[k] else {
@@ -413,6 +460,8 @@ impl Samples {
             let m = seq.measured(k);
             s.exposures.push(k);
             s.noise.push(seq.noise_e_per_s[k]);
+            s.shot_var_per_e_per_s
+                .push(SHOT_VAR_LINE_FIT / seq.exposures[k].meta.t_exposure_s);
             s.t_since_s.push(seq.t_mid_after_s(a, k));
             s.event.push(a);
             s.illumination_time_s
@@ -426,6 +475,7 @@ impl Samples {
                 let ok = fl.is_finite() && fl > BACKGROUND_FLUENCE_E;
                 s.measured.push(if ok { m[p] } else { f64::NAN });
                 s.fluence_e.push(fl);
+                s.spread_rel.push(spread.at(fl));
                 s.neighbour_excess_e.push(nb[p]);
             }
         }
@@ -441,7 +491,35 @@ impl Samples {
     pub fn npix(&self) -> usize {
         self.pixels.len()
     }
+
+    /// What `measured - predicted` of sample `i` is under the model when its prediction
+    /// is `pred` (e-/s): `(mean, standard deviation, measurement noise)` of a Gaussian.
+    /// With [`CellStatistic::Population`] (module docs, "Population statistic"): the
+    /// pixels' spread `s = r max(pred, 0)` below the predicted 95th percentile and the
+    /// noise with the sample's own shot noise, `sigma^2 = sigma_k^2 + g_k max(pred, 0)`:
+    /// `(-1.645 s, sqrt(s^2 + sigma^2), sigma)`. Otherwise `(0, sigma_k, sigma_k)`.
+    pub fn null_of(&self, i: usize, pred: f64) -> (f64, f64, f64) {
+        let row = i / self.npix();
+        let sigma_k = self.noise[row];
+        if self.statistic != CellStatistic::Population {
+            return (0.0, sigma_k, sigma_k);
+        }
+        let c = if pred.is_finite() { pred.max(0.0) } else { 0.0 };
+        let sigma = (sigma_k * sigma_k + self.shot_var_per_e_per_s[row] * c).sqrt();
+        let spread = self.spread_rel[i] * c;
+        (
+            -1.645 * spread,
+            (spread * spread + sigma * sigma).sqrt(),
+            sigma,
+        )
+    }
 }
+
+/// The shot-noise variance of an unweighted least-squares slope over many evenly
+/// spaced reads of an integration of length `T`, per e-/s of current, times `T`:
+/// `6 (m^2 + 1) / (5 m (m^2 - 1) dt)` (Rauscher et al. 2007; [`crate::sim::detector`])
+/// for `m` reads `dt` apart is `6 / (5 T)` for large `m`.
+pub const SHOT_VAR_LINE_FIT: f64 = 1.2;
 
 /// The model's predictions (and flags) at the samples.
 #[derive(Debug, Clone)]
@@ -583,7 +661,7 @@ pub struct GroupStat {
 
 /// One group: measured values, predictions and each prediction's exposure noise (the
 /// same samples, in the same order), `noise` the group's typical noise, compared by
-/// `statistic` (module docs).
+/// `statistic` (module docs). [`cell_stat_null`] with no offsets.
 pub fn cell_stat(
     statistic: CellStatistic,
     meas: &[f64],
@@ -591,9 +669,33 @@ pub fn cell_stat(
     pred_sigma: &[f64],
     noise: f64,
 ) -> Option<GroupStat> {
+    cell_stat_null(
+        statistic,
+        meas,
+        pred,
+        &vec![0.0; pred.len()],
+        pred_sigma,
+        noise,
+    )
+}
+
+/// One group: measured values, predictions, and per sample the mean `offset` and
+/// standard deviation `sd` of `measured - predicted` under the model
+/// ([`Samples::null_of`]; the same samples, in the same order); `noise` the group's
+/// typical measurement noise; compared by `statistic` (module docs).
+pub fn cell_stat_null(
+    statistic: CellStatistic,
+    meas: &[f64],
+    pred: &[f64],
+    offset: &[f64],
+    sd: &[f64],
+    noise: f64,
+) -> Option<GroupStat> {
     match statistic {
-        CellStatistic::Levels => group_stat(meas, pred, pred_sigma, noise),
-        CellStatistic::Paired => group_stat_paired(meas, pred, pred_sigma, noise),
+        CellStatistic::Levels => group_stat(meas, pred, sd, noise),
+        CellStatistic::Paired | CellStatistic::Population => {
+            paired_stat(meas, pred, offset, sd, noise, None)
+        }
     }
 }
 
@@ -643,7 +745,7 @@ pub fn group_stat_paired(
     pred_sigma: &[f64],
     noise: f64,
 ) -> Option<GroupStat> {
-    paired_stat(meas, pred, pred_sigma, noise, None)
+    paired_stat(meas, pred, &vec![0.0; pred.len()], pred_sigma, noise, None)
 }
 
 /// `(P95(d), sigma_q, z)` of the paired statistic for the differences `d` (module
@@ -653,11 +755,14 @@ pub fn paired_z(d: &[f64], noise: f64, noise_p95: f64) -> (f64, f64, f64) {
     (p, sigma, (p - noise_p95) / sigma)
 }
 
-/// [`group_stat_paired`], with the noise's 95th percentile of all samples given when
-/// already known (used only if every sample is kept).
+/// The paired statistic of one group (arguments as [`cell_stat_null`]): the reference
+/// is the 95th percentile of the mixture `N(offset_i, sd_i^2)`, given in `all_noise_p95`
+/// when already known (used only if every sample is kept). With zero offsets it is
+/// [`noise_p95`] of `sd`, the [`CellStatistic::Paired`] reference.
 fn paired_stat(
     meas: &[f64],
     pred: &[f64],
+    offset: &[f64],
     pred_sigma: &[f64],
     noise: f64,
     all_noise_p95: Option<f64>,
@@ -669,13 +774,16 @@ fn paired_stat(
     }
     let d: Vec<f64> = idx.iter().map(|&i| meas[i] - pred[i]).collect();
     let sg: Vec<f64> = idx.iter().map(|&i| pred_sigma[i]).collect();
+    let of: Vec<f64> = idx.iter().map(|&i| offset[i]).collect();
     let np95 = match all_noise_p95 {
         Some(v) if idx.len() == meas.len() => v,
-        _ => noise_p95(&sg),
+        _ => noisy_quantile(&of, &sg, 0.95).0,
     };
     let (_, sigma, z) = paired_z(&d, noise, np95);
     let m: Vec<f64> = idx.iter().map(|&i| meas[i]).collect();
-    let p: Vec<f64> = idx.iter().map(|&i| pred[i]).collect();
+    // what a measurement of the predictions would show (the offset is 0 but with the
+    // population statistic)
+    let p: Vec<f64> = idx.iter().map(|&i| pred[i] + offset[i]).collect();
     Some(GroupStat {
         n: d.len(),
         measured_p95_e_per_s: quantile(&m, 0.95),
@@ -741,8 +849,17 @@ pub fn bin_value(covariate: &str, b: i64) -> f64 {
 /// Groups keyed by bins of the given covariates (in their order).
 pub fn groups(s: &Samples, pred: &[f64], keys: &[&str]) -> Vec<(Vec<i64>, GroupStat)> {
     use std::collections::BTreeMap;
-    #[allow(clippy::type_complexity)]
-    let mut g: BTreeMap<Vec<i64>, (Vec<f64>, Vec<f64>, Vec<f64>)> = BTreeMap::new();
+    /// Per group: measured, predicted, and per sample the null's offset, standard
+    /// deviation and measurement noise ([`Samples::null_of`]).
+    #[derive(Default)]
+    struct Group {
+        m: Vec<f64>,
+        p: Vec<f64>,
+        offset: Vec<f64>,
+        sd: Vec<f64>,
+        noise: Vec<f64>,
+    }
+    let mut g: BTreeMap<Vec<i64>, Group> = BTreeMap::new();
     #[allow(clippy::needless_range_loop)]
     for i in 0..s.len() {
         let m = s.measured[i];
@@ -760,15 +877,19 @@ pub fn groups(s: &Samples, pred: &[f64], keys: &[&str]) -> Vec<(Vec<i64>, GroupS
             continue;
         }
         let e = g.entry(key).or_default();
-        e.0.push(m);
-        e.1.push(pred[i]);
-        e.2.push(s.noise[i / s.npix()]);
+        let (offset, sd, noise) = s.null_of(i, pred[i]);
+        e.m.push(m);
+        e.p.push(pred[i]);
+        e.offset.push(offset);
+        e.sd.push(sd);
+        e.noise.push(noise);
     }
     // the groups' statistics in parallel, collected in key order
     let g: Vec<_> = g.into_iter().collect();
     g.into_par_iter()
-        .filter_map(|(k, (m, p, n))| {
-            cell_stat(s.statistic, &m, &p, &n, median(&n)).map(|st| (k, st))
+        .filter_map(|(k, c)| {
+            cell_stat_null(s.statistic, &c.m, &c.p, &c.offset, &c.sd, median(&c.noise))
+                .map(|st| (k, st))
         })
         .collect()
 }
@@ -796,6 +917,8 @@ struct IndexedCell {
     members: Vec<usize>,
     /// Their exposures' noise, e-/s.
     sigma: Vec<f64>,
+    /// Zeros, one per member (the paired statistic's offsets).
+    zero: Vec<f64>,
     /// The median of `sigma`.
     noise: f64,
     /// [`noise_p95`] of `sigma` (the paired statistic's reference, whatever the
@@ -828,9 +951,12 @@ impl CellIndex {
                 let (measured, noise_p95) = match s.statistic {
                     CellStatistic::Levels => (group_stat_p95(&meas, 0.0, noise), f64::NAN),
                     CellStatistic::Paired => (None, noise_p95(&sigma)),
+                    // depends on the predictions: computed in `z`
+                    CellStatistic::Population => (None, f64::NAN),
                 };
                 IndexedCell {
                     key,
+                    zero: vec![0.0; members.len()],
                     members,
                     sigma,
                     noise,
@@ -860,7 +986,20 @@ impl CellIndex {
                 buf.clear();
                 buf.extend(c.members.iter().map(|&i| pred[i]));
                 let all_finite = buf.iter().all(|v| v.is_finite());
-                let st = if s.statistic == CellStatistic::Paired {
+                let st = if s.statistic == CellStatistic::Population {
+                    meas.clear();
+                    meas.extend(c.members.iter().map(|&i| s.measured[i]));
+                    let (mut offset, mut sd, mut noise) = (Vec::new(), Vec::new(), Vec::new());
+                    for (&i, p) in c.members.iter().zip(&buf) {
+                        let (o, d, n) = s.null_of(i, *p);
+                        offset.push(o);
+                        sd.push(d);
+                        if p.is_finite() {
+                            noise.push(n);
+                        }
+                    }
+                    paired_stat(&meas, &buf, &offset, &sd, median(&noise), None)
+                } else if s.statistic == CellStatistic::Paired {
                     meas.clear();
                     meas.extend(c.members.iter().map(|&i| s.measured[i]));
                     // the typical noise of the samples `groups` keeps
@@ -869,7 +1008,7 @@ impl CellIndex {
                     } else {
                         median(&Self::gather(s, &c.members, pred).1)
                     };
-                    paired_stat(&meas, &buf, &c.sigma, noise, Some(c.noise_p95))
+                    paired_stat(&meas, &buf, &c.zero, &c.sigma, noise, Some(c.noise_p95))
                 } else if all_finite {
                     let m = c.measured?;
                     let pp = noisy_quantile(&buf, &c.sigma, 0.95).0;
@@ -1042,6 +1181,8 @@ mod tests {
             exposures: (1..=rows).collect(),
             measured,
             noise: (0..rows).map(|r| 0.01 * (1 + r) as f64).collect(),
+            shot_var_per_e_per_s: vec![0.0; rows],
+            spread_rel: vec![0.0; n],
             fluence_e: (0..n)
                 .map(|i| 10f64.powf(3.0 + (i % np) as f64 / np as f64))
                 .collect(),
@@ -1094,6 +1235,8 @@ mod tests {
             exposures: (1..=rows).collect(),
             measured,
             noise,
+            shot_var_per_e_per_s: vec![0.0; rows],
+            spread_rel: vec![0.0; n],
             fluence_e,
             neighbour_excess_e: vec![0.0; n],
             t_since_s,
@@ -1130,6 +1273,88 @@ mod tests {
         assert!(paired > 0.6 && paired < 1.4, "paired rms {paired}");
     }
 
+    /// Why [`CellStatistic::Population`] (module docs): data drawn from a population of
+    /// pixels whose 95th percentile is the prediction (lognormal, 8 % scatter: the
+    /// simulator's `D_lin`), with each sample's own shot noise on top of the exposure
+    /// noise (a 180 s line fit). The population statistic has RMS ~1 there; the paired
+    /// one, which knows neither, does not.
+    #[test]
+    fn population_cells_of_a_spread_population_with_shot_noise_have_unit_rms() {
+        use rand_distr::StandardNormal;
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(5);
+        let (np, rows) = (2000, 6);
+        let n = np * rows;
+        let r = (1.0 - (-1.645f64 * 0.08).exp()) / 1.645;
+        let g_k = SHOT_VAR_LINE_FIT / 180.0;
+        let noise = vec![0.02; rows];
+        let fluence_e: Vec<f64> = (0..n)
+            .map(|i| 10f64.powf(4.0 + 1.5 * (i % np) as f64 / np as f64))
+            .collect();
+        let t_since_s: Vec<f64> = (0..rows).map(|r| 60.0 * 3f64.powi(r as i32)).collect();
+        // the population's 95th percentile: grows with fluence, falls as 1/t
+        let pred: Vec<f64> = (0..n)
+            .map(|i| 1e-5 * fluence_e[i] * (60.0 / t_since_s[i / np]))
+            .collect();
+        let measured: Vec<f64> = (0..n)
+            .map(|i| {
+                let g: f64 = rng.sample(StandardNormal);
+                let c = pred[i] * (0.08 * (g - 1.645)).exp();
+                let sd = (noise[i / np] * noise[i / np] + g_k * c).sqrt();
+                c + sd * rng.sample::<f64, _>(StandardNormal)
+            })
+            .collect();
+        let s = Samples {
+            cells: Cells::Pooled,
+            statistic: CellStatistic::Population,
+            stride: 0,
+            pixels: (0..np).map(|i| (i / 50, i % 50)).collect(),
+            exposures: (1..=rows).collect(),
+            measured,
+            noise,
+            shot_var_per_e_per_s: vec![g_k; rows],
+            spread_rel: vec![r; n],
+            fluence_e,
+            neighbour_excess_e: vec![0.0; n],
+            t_since_s,
+            event: vec![0; rows],
+            illumination_time_s: vec![481.0; rows],
+            temperature_k: vec![80.0; rows],
+            earlier_illuminations: vec![0.0; rows],
+            radius: vec![0.5; np],
+        };
+        let cells = cell_z(&s, &pred);
+        assert!(cells.len() >= 30, "{}", cells.len());
+        let population = rms(&cells);
+        let paired = rms(&cell_z(
+            &s.clone().with_statistic(CellStatistic::Paired),
+            &pred,
+        ));
+        // each half of the reference alone
+        let no_spread = Samples {
+            spread_rel: vec![0.0; n],
+            ..s.clone()
+        };
+        let no_shot = Samples {
+            shot_var_per_e_per_s: vec![0.0; rows],
+            ..s.clone()
+        };
+        let no_spread = rms(&cell_z(&no_spread, &pred));
+        let no_shot = rms(&cell_z(&no_shot, &pred));
+        assert!(
+            population > 0.6 && population < 1.4,
+            "population rms {population}"
+        );
+        for (what, v) in [
+            ("paired", paired),
+            ("no spread", no_spread),
+            ("no shot", no_shot),
+        ] {
+            assert!(v > 1.5, "{what}: rms {v}");
+        }
+        // and the index the fits use gives the same cells
+        assert_eq!(CellIndex::new(&s).z(&s, &pred), cells);
+    }
+
     /// Why `Cells::Neighbours` (module docs, "Neighbour contrast"): pixels next to a far
     /// brighter one, predicted far too high, are a tenth of their fluence x time cells; a
     /// cell's 95th percentile of measured minus predicted does not see them, their own
@@ -1157,6 +1382,8 @@ mod tests {
             exposures: (1..=rows).collect(),
             measured,
             noise: vec![sd; rows],
+            shot_var_per_e_per_s: vec![0.0; rows],
+            spread_rel: vec![0.0; n],
             // one fluence bin; the contrast pixels' neighbours far above saturation
             fluence_e: vec![5e3; n],
             neighbour_excess_e: (0..n)
@@ -1260,6 +1487,8 @@ mod tests {
             exposures: vec![1, 3],
             measured,
             noise: vec![1e-4; rows],
+            shot_var_per_e_per_s: vec![0.0; rows],
+            spread_rel: vec![0.0; np * rows],
             fluence_e: vec![5e4; np * rows],
             neighbour_excess_e: vec![0.0; np * rows],
             t_since_s: vec![300.0; rows],
@@ -1306,6 +1535,8 @@ mod tests {
             exposures: vec![1],
             measured,
             noise: vec![1e-3],
+            shot_var_per_e_per_s: vec![0.0],
+            spread_rel: vec![0.0; np],
             fluence_e: vec![2e5; np],
             neighbour_excess_e: vec![0.0; np],
             t_since_s: vec![300.0],
