@@ -16,7 +16,11 @@
 //! `--cell-statistic paired` (the default, [`super::eval::CellStatistic::Paired`]) it is
 //! `z_c = (P95(measured - predicted) - P95(noise)) / sigma_c`, `sigma_c` from the spread
 //! of the differences, and a score step's change of the cell's 95th percentile is taken
-//! from the differences at the step, anew for each bootstrap replica.
+//! from the differences at the step, anew for each bootstrap replica. With
+//! `--cell-statistic population` ([`super::eval::CellStatistic::Population`]) the
+//! reference is the population's and follows the predictions: a step's change of the
+//! cell also takes in the change of its reference (computed once per step, it does not
+//! depend on the measurements).
 //!
 //! # Score (Lagrange-multiplier) test per library effect
 //! For each registry effect not in the model, its switch parameter `theta` is moved from
@@ -57,7 +61,9 @@
 //! # Threshold: parametric bootstrap from the fitted model
 //! `B` replicas (`--bootstrap`, default [`DEFAULT_BOOTSTRAP`]) of the measured samples:
 //! the fitted model's prediction plus Gaussian noise with the exposure's own noise
-//! `sigma_k` ([`super::data`]). On each replica the whole score computation is re-run:
+//! `sigma_k` ([`super::data`]); with the population statistic, plus the distribution
+//! its reference assumes (the pixels' spread below the prediction and each sample's
+//! shot noise, [`super::eval::Samples::null_of`]). On each replica the whole score computation is re-run:
 //! the cells' measured P95, spread and `sigma_c` (hence `r` and `j`), the residual scale
 //! `s^2`, and the LM of every effect. The threshold is the `1 - ALPHA` (95 %) point of
 //! the largest LM over the library (a family-wise level over the library). It is the
@@ -821,7 +827,7 @@ fn one_sided(p: &crate::model::effect::ParamSpec, null: f64, h: f64) -> Option<f
 }
 
 /// The largest LM of each of `b` parametric bootstrap replicas: measurements drawn
-/// as `pred` plus each member's Gaussian noise (`c.sigma`), in order from `rng`, and
+/// as `pred` plus each member's Gaussian null (`c.offset`, `c.sigma`), in order from `rng`, and
 /// scored in parallel `batch` replicas at a time (the same maxima whatever `batch`).
 #[allow(clippy::too_many_arguments)]
 fn bootstrap_maxima(
