@@ -16,7 +16,7 @@
 //! `--reference-fit-cn` (the reference also fits the `C_n`, `persist fit --fit-cn`; then
 //! every `fit --with` of the matrix refits them jointly too, from the reference's),
 //! `--reference-fit-amplification`, `--amplification A`, `--rates-per-s r1,r2,...`,
-//! `--t-min-s T`, `--decay-offset-s T0`, `--cells pooled|illumination|neighbours`, `--cell-statistic levels|paired` (the
+//! `--t-min-s T`, `--decay-offset-s T0`, `--cells pooled|illumination|neighbours`, `--cell-statistic levels|paired|population` (the
 //! reference's `persist fit` options, also used by every fit and diagnosis of the
 //! matrix; a reference effect `NAME:param=value,...` pins those parameters, as `persist
 //! fit --with` does), `--refit candidate|full` (`persist diagnose --refit`),
