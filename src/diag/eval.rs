@@ -515,10 +515,10 @@ impl Samples {
     }
 }
 
-/// The shot-noise variance of an unweighted least-squares slope over many evenly
-/// spaced reads of an integration of length `T`, per e-/s of current, times `T`:
-/// `6 (m^2 + 1) / (5 m (m^2 - 1) dt)` (Rauscher et al. 2007; [`crate::sim::detector`])
-/// for `m` reads `dt` apart is `6 / (5 T)` for large `m`.
+/// `T` times the shot-noise variance, per e-/s of current, of an unweighted
+/// least-squares slope over an integration of length `T`: for `m` reads `dt` apart the
+/// variance is `6 (m^2 + 1) / (5 m (m^2 - 1) dt)` per e-/s (Rauscher et al. 2007;
+/// [`crate::sim::detector`]), which is `6 / (5 T)` for many reads.
 pub const SHOT_VAR_LINE_FIT: f64 = 1.2;
 
 /// The model's predictions (and flags) at the samples.
