@@ -1198,6 +1198,38 @@ mod tests {
         }
     }
 
+    /// Pooled samples of one illumination at `np` pixels, one row per entry of `noise`
+    /// and `t_since_s` (no shot noise, no population spread).
+    fn pooled_samples(
+        statistic: CellStatistic,
+        np: usize,
+        measured: Vec<f64>,
+        noise: Vec<f64>,
+        fluence_e: Vec<f64>,
+        t_since_s: Vec<f64>,
+    ) -> Samples {
+        let (rows, n) = (noise.len(), measured.len());
+        Samples {
+            cells: Cells::Pooled,
+            statistic,
+            stride: 0,
+            pixels: (0..np).map(|i| (i / 50, i % 50)).collect(),
+            exposures: (1..=rows).collect(),
+            measured,
+            noise,
+            shot_var_per_e_per_s: vec![0.0; rows],
+            spread_rel: vec![0.0; n],
+            fluence_e,
+            neighbour_excess_e: vec![0.0; n],
+            t_since_s,
+            event: vec![0; rows],
+            illumination_time_s: vec![481.0; rows],
+            temperature_k: vec![80.0; rows],
+            earlier_illuminations: vec![0.0; rows],
+            radius: vec![0.5; np],
+        }
+    }
+
     /// Regression: the cell statistic removed the read noise from the measured 95th
     /// percentile in quadrature (`signal_p95`), which is biased when the signal's spread
     /// in a cell is below the noise or skewed, so data drawn from the model itself had a
@@ -1227,25 +1259,14 @@ mod tests {
         let measured: Vec<f64> = (0..n)
             .map(|i| pred[i] + noise[i / np] * rng.sample::<f64, _>(StandardNormal))
             .collect();
-        let s = Samples {
-            cells: Cells::Pooled,
-            statistic: CellStatistic::Levels,
-            stride: 0,
-            pixels: (0..np).map(|i| (i / 50, i % 50)).collect(),
-            exposures: (1..=rows).collect(),
+        let s = pooled_samples(
+            CellStatistic::Levels,
+            np,
             measured,
             noise,
-            shot_var_per_e_per_s: vec![0.0; rows],
-            spread_rel: vec![0.0; n],
             fluence_e,
-            neighbour_excess_e: vec![0.0; n],
             t_since_s,
-            event: vec![0; rows],
-            illumination_time_s: vec![481.0; rows],
-            temperature_k: vec![80.0; rows],
-            earlier_illuminations: vec![0.0; rows],
-            radius: vec![0.5; np],
-        };
+        );
         let cells = cell_z(&s, &pred);
         assert!(cells.len() >= 20, "{}", cells.len());
         let now = rms(&cells);
@@ -1304,23 +1325,16 @@ mod tests {
             })
             .collect();
         let s = Samples {
-            cells: Cells::Pooled,
-            statistic: CellStatistic::Population,
-            stride: 0,
-            pixels: (0..np).map(|i| (i / 50, i % 50)).collect(),
-            exposures: (1..=rows).collect(),
-            measured,
-            noise,
             shot_var_per_e_per_s: vec![g_k; rows],
             spread_rel: vec![r; n],
-            fluence_e,
-            neighbour_excess_e: vec![0.0; n],
-            t_since_s,
-            event: vec![0; rows],
-            illumination_time_s: vec![481.0; rows],
-            temperature_k: vec![80.0; rows],
-            earlier_illuminations: vec![0.0; rows],
-            radius: vec![0.5; np],
+            ..pooled_samples(
+                CellStatistic::Population,
+                np,
+                measured,
+                noise,
+                fluence_e,
+                t_since_s,
+            )
         };
         let cells = cell_z(&s, &pred);
         assert!(cells.len() >= 30, "{}", cells.len());
