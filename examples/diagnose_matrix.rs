@@ -16,7 +16,7 @@
 //! `--reference-fit-cn` (the reference also fits the `C_n`, `persist fit --fit-cn`; then
 //! every `fit --with` of the matrix refits them jointly too, from the reference's),
 //! `--reference-fit-amplification`, `--amplification A`, `--rates-per-s r1,r2,...`,
-//! `--t-min-s T`, `--decay-offset-s T0`, `--cells pooled|illumination|neighbours`, `--cell-statistic levels|paired|population` (the
+//! `--t-min-s T`, `--decay-offset-s T0`, `--cells pooled|illumination|neighbours`, `--cell-statistic levels|paired|population`, `--background median|line` (the
 //! reference's `persist fit` options, also used by every fit and diagnosis of the
 //! matrix; a reference effect `NAME:param=value,...` pins those parameters, as `persist
 //! fit --with` does), `--refit candidate|full` (`persist diagnose --refit`),
@@ -40,7 +40,7 @@
 //! measured current).
 
 use persist::calib::{self, effects as ceffects, CalibConfig};
-use persist::diag::data::Sequence;
+use persist::diag::data::{Background, Sequence};
 use persist::diag::diagnose::{self, Config, Statistic};
 use persist::diag::eval::{self, Samples};
 use persist::model::ModelParams;
@@ -55,7 +55,13 @@ struct Sim {
     truth: Vec<ndarray::Array2<f32>>,
 }
 
-fn simulate(size: usize, seed: u64, effects: &[&str], campaign: &[Illumination]) -> Sim {
+fn simulate(
+    size: usize,
+    seed: u64,
+    effects: &[&str],
+    campaign: &[Illumination],
+    background: Background,
+) -> Sim {
     let cfg = LabConfig {
         size,
         seed,
@@ -75,7 +81,9 @@ fn simulate(size: usize, seed: u64, effects: &[&str], campaign: &[Illumination])
     })
     .expect("simulation");
     Sim {
-        seq: Sequence::from_exposures(ex).expect("sequence"),
+        seq: Sequence::from_exposures(ex)
+            .expect("sequence")
+            .with_background(background),
         truth,
     }
 }
@@ -264,6 +272,7 @@ const VALUE_OPTIONS: &[&str] = &[
     "--decay-offset-s",
     "--cells",
     "--cell-statistic",
+    "--background",
     "--pixels",
     "--bootstrap",
     "--statistic",
@@ -367,6 +376,9 @@ fn main() {
             if let Some(v) = arg(&args, "--cell-statistic") {
                 c.cell_statistic = v.parse().unwrap();
             }
+            if let Some(v) = arg(&args, "--background") {
+                c.background = v.parse().unwrap();
+            }
             c
         },
     };
@@ -396,9 +408,10 @@ fn main() {
     } else {
         ""
     } + &format!(
-        ", {} cells, {} cell statistic",
+        ", {} cells, {} cell statistic, {} background",
         reference.calib.cells.describe(),
-        reference.calib.cell_statistic
+        reference.calib.cell_statistic,
+        reference.calib.background
     );
     let ref_label = if reference.effects.is_empty() {
         "the paper's model (`persist fit`)".to_string()
@@ -425,6 +438,8 @@ fn main() {
     }
     cfg.cells = reference.calib.cells;
     cfg.cell_statistic = reference.calib.cell_statistic;
+    cfg.background = reference.calib.background;
+    let bg = reference.calib.background;
     if let Some(v) = arg(&args, "--refit") {
         cfg.refit = v.parse().unwrap();
     }
@@ -450,7 +465,7 @@ fn main() {
         writeln!(md, "## No hidden effect (reference: {ref_label})\n\n| seed | residual RMS | threshold | top score (effect) | significant | spatial R^2 | seconds |\n|---|---|---|---|---|---|---|").unwrap();
         let mut clean = 0;
         for seed in first..first + nbase {
-            let sim = simulate(size, seed, &[], &campaign);
+            let sim = simulate(size, seed, &[], &campaign, bg);
             let t0 = Instant::now();
             let (_, d) = calibrate_and_diagnose(&sim.seq, seed, &cfg, &reference);
             let secs = t0.elapsed().as_secs_f64();
@@ -500,10 +515,10 @@ fn main() {
         for e in &effects {
             let mut ok_all = true;
             for seed in first..first + nseed {
-                let sim = simulate(size, seed, &[e.as_str()], &campaign);
+                let sim = simulate(size, seed, &[e.as_str()], &campaign, bg);
                 let base_sim = match baselines.get(seed as usize - 1) {
                     Some(Some(_)) => None,
-                    _ => Some(simulate(size, seed, &[], &campaign)),
+                    _ => Some(simulate(size, seed, &[], &campaign, bg)),
                 };
                 let b = base_sim
                     .as_ref()
@@ -591,7 +606,7 @@ fn main() {
         writeln!(md, "## Two hidden effects: {} (reference: {ref_label})\n\n| seed | round 1 declared | round 2 declared | RMS m0 -> m1 -> m2 | error falls each round | both found |\n|---|---|---|---|---|---|", pair.join(" + ")).unwrap();
         for seed in first..first + nseed {
             let names: Vec<&str> = pair.iter().map(String::as_str).collect();
-            let sim = simulate(size, seed, &names, &campaign);
+            let sim = simulate(size, seed, &names, &campaign, bg);
             let s2 = reference.calib.samples(&sim.seq);
             let (m0, d1) = calibrate_and_diagnose(&sim.seq, seed, &cfg, &reference);
             let w1 = declared_first(&d1);

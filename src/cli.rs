@@ -12,6 +12,7 @@
 use clap::{Args, Parser, Subcommand};
 use persist::calib::Preset;
 use persist::checkpoint::Retention;
+use persist::diag::data::Background;
 use persist::diag::diagnose::Refit;
 use persist::diag::eval::{CellStatistic, Cells};
 use persist::model::{Model, ModelParams};
@@ -515,6 +516,13 @@ pub struct CellArgs {
     /// percentile against its predictions').
     #[arg(long, default_value_t = CellStatistic::default(), value_parser = parse_flag::<CellStatistic>)]
     pub cell_statistic: CellStatistic,
+    /// How each exposure's dark level is measured, in `fit`'s calibration too:
+    /// `median` (the median of the background pixels, those never lit above 3000 e-)
+    /// or `line` (the intercept at zero fluence of a line through the background
+    /// pixels' values against their fluence in the last illumination, which leaves
+    /// out their own persistence; see `persist::diag::data` "Background").
+    #[arg(long, default_value_t = Background::default(), value_parser = parse_flag::<Background>)]
+    pub background: Background,
 }
 
 /// A flag's value through the library's `FromStr` (whose error names the flag and the
@@ -970,6 +978,7 @@ fn fit(a: &FitArgs) -> persist::Result<ExitCode> {
         },
         cells: a.cells.cells,
         cell_statistic: a.cells.cell_statistic,
+        background: a.cells.background,
         ..p
     };
     let with = a.preset.with(&a.with);
@@ -995,6 +1004,7 @@ fn compare(a: &CompareArgs) -> persist::Result<ExitCode> {
         touched_min_e_per_s: a.touched_min_e_per_s,
         cells: a.cells.cells,
         cell_statistic: a.cells.cell_statistic,
+        background: a.cells.background,
     };
     let s = persist::diag::compare::run_with(&a.input, &a.models, &a.report, &opts)?;
     out!("{s}");
@@ -1010,6 +1020,7 @@ fn diagnose(a: &DiagnoseArgs) -> persist::Result<ExitCode> {
         statistic: a.statistic.parse()?,
         cells: a.cells.cells,
         cell_statistic: a.cells.cell_statistic,
+        background: a.cells.background,
         refit: a.refit,
         joint: a.joint,
     };

@@ -15,7 +15,9 @@
 //! 2. Per bin, the measured current of the first dark integration (image minus the
 //!    background, [`crate::diag::data`]): its 3-sigma-clipped median and its 95th
 //!    percentile ([`crate::diag::data::signal_p95`], read noise removed in quadrature).
-//! 3. Per bin, the clipped median of the first dark ramp (background ramp subtracted)
+//! 3. Per bin, the clipped median of the first dark ramp (background ramp subtracted:
+//!    per read, the background pixels' median, or with `--background line` their
+//!    line's intercept at zero fluence, [`crate::diag::data`] "Background")
 //!    fitted with Eq. (logfit) `q(t) = A_0 ln(t + tau) + q_0` ([`logfit`]).
 //! 4. `A_bin = amplification * A_0` (paper: 1.2) and, through the 95th percentile,
 //!    `A_95 = A_bin * p95 / median`; the piecewise-linear `A_k` has one knot per bin
@@ -48,7 +50,7 @@ use crate::diag::data::{
 };
 use crate::error::{Error, Result};
 use crate::model::params::{Calibration, Knot, ModelParams, Term, PAPER_TERMS};
-use crate::sim::analysis::{clipped_median, median};
+use crate::sim::analysis::clipped_median;
 use logfit::LogFit;
 use nalgebra::{DMatrix, DVector};
 use serde::Serialize;
@@ -68,6 +70,9 @@ pub struct CalibConfig {
     pub cells: crate::diag::eval::Cells,
     /// What those cells compare ([`crate::diag::eval::CellStatistic`]).
     pub cell_statistic: crate::diag::eval::CellStatistic,
+    /// How each exposure's background is measured, in the calibration too
+    /// ([`crate::diag::data::Background`]).
+    pub background: crate::diag::data::Background,
 }
 
 impl CalibConfig {
@@ -103,6 +108,7 @@ impl Default for CalibConfig {
             rates_per_s: PAPER_TERMS.iter().map(|t| t.1).collect(),
             cells: crate::diag::eval::Cells::default(),
             cell_statistic: crate::diag::eval::CellStatistic::default(),
+            background: crate::diag::data::Background::default(),
         }
     }
 }
@@ -272,13 +278,15 @@ pub fn calibrate(seq: &Sequence, cfg: &CalibConfig) -> Result<(ModelParams, Cali
         .filter(|(p, v)| **v < BACKGROUND_FLUENCE_E && meas[*p].is_finite())
         .map(|(p, _)| p)
         .collect();
+    // by the sequence's background (its median, or its line's intercept at zero
+    // fluence, crate::diag::data "Background")
     let bg_ramp: Vec<f64> = (0..nsamp)
         .map(|s| {
-            let v: Vec<f64> = bg_px
+            let v: Vec<(f64, f64)> = bg_px
                 .iter()
-                .map(|&(y, x)| f64::from(ramp[[s, y, x]]))
+                .map(|&(y, x)| (f[[y, x]], f64::from(ramp[[s, y, x]])))
                 .collect();
-            median(&v)
+            seq.background_of(&v)
         })
         .collect();
     // bins
@@ -623,6 +631,8 @@ pub struct FitReport {
     pub cells: usize,
     /// What the cells compare.
     pub cell_statistic: crate::diag::eval::CellStatistic,
+    /// How each exposure's background was measured.
+    pub background: crate::diag::data::Background,
     pub model_identity: String,
 }
 
@@ -668,7 +678,7 @@ pub fn run(
     out: &std::path::Path,
     report_path: &std::path::Path,
 ) -> Result<String> {
-    let seq = Sequence::load(input)?;
+    let seq = Sequence::load(input)?.with_background(cfg.background);
     let (mut params, cal) = calibrate(&seq, cfg).map_err(|e| e.path(input))?;
     let samples = cfg.samples(&seq);
     let mut ef = None;
@@ -700,6 +710,7 @@ pub fn run(
         residual_rms_normalised: crate::diag::eval::rms(&cells),
         cells: cells.len(),
         cell_statistic: cfg.cell_statistic,
+        background: cfg.background,
         model_identity: params.identity(),
     };
     write_text(out, &(params.to_json_pretty() + "\n"))?;

@@ -129,6 +129,9 @@ pub struct Options {
     pub cells: eval::Cells,
     /// What they compare (`--cell-statistic`, [`eval::CellStatistic`]).
     pub cell_statistic: eval::CellStatistic,
+    /// How each exposure's background is measured (`--background`,
+    /// [`super::data::Background`]).
+    pub background: super::data::Background,
 }
 
 impl Default for Options {
@@ -138,6 +141,7 @@ impl Default for Options {
             touched_min_e_per_s: TOUCHED_MIN_E_PER_S,
             cells: eval::Cells::default(),
             cell_statistic: eval::CellStatistic::default(),
+            background: super::data::Background::default(),
         }
     }
 }
@@ -150,6 +154,8 @@ pub struct Summary {
     pub cells: eval::Cells,
     /// What a cell's `z` compares.
     pub cell_statistic: eval::CellStatistic,
+    /// How each exposure's background was measured (`definitions.measured`).
+    pub background: super::data::Background,
     pub exposures_compared: usize,
     pub pixels_sampled: usize,
     pub pixel_stride: usize,
@@ -307,14 +313,18 @@ fn rms_by_illumination(seq: &Sequence, cells: &[(Vec<i64>, GroupStat)]) -> Vec<I
         .collect()
 }
 
-pub fn definitions(cells: eval::Cells, statistic: eval::CellStatistic) -> BTreeMap<String, String> {
+pub fn definitions(
+    cells: eval::Cells,
+    statistic: eval::CellStatistic,
+    background: super::data::Background,
+) -> BTreeMap<String, String> {
     let rms = match cells {
         eval::Cells::Pooled => "RMS of z over cells fluence (5 per decade) x time since illumination (4 per decade), all illuminations together",
         eval::Cells::Illumination => "RMS of z over cells illumination x fluence (5 per decade) x time since illumination (4 per decade); the map figure shows, per fluence x time, the illumination with the largest |z|",
         eval::Cells::Neighbours => "RMS of z over cells illumination x neighbour contrast (1 where the four nearest neighbours' mean fluence above 2e5 e- exceeds the pixel's own) x fluence (5 per decade) x time since illumination (4 per decade); the map figure shows, per fluence x time, the cell with the largest |z|",
     };
     BTreeMap::from([
-        ("measured".into(), "image minus the median of the background pixels of the same exposure (fluence < 3000 e- in every illumination so far, no on-board flag); noise 1.4826 MAD of the same pixels".into()),
+        ("measured".into(), background.describe().into()),
         ("samples".into(), "every 2nd pixel in x and y with fluence > 3000 e- in the last illumination, every exposure after an illumination".into()),
         ("z".into(), match statistic {
             eval::CellStatistic::Levels => "(P95 of measured - P95 of predicted plus each sample's noise) / (2.12 s / sqrt(n)), s = 1.4826 MAD of measured, at least the noise",
@@ -522,7 +532,7 @@ pub fn run_with(
     out: &Path,
     opts: &Options,
 ) -> Result<String> {
-    let seq = Sequence::load(input)?;
+    let seq = Sequence::load(input)?.with_background(opts.background);
     let samples = Samples::new(&seq, STRIDE)
         .with_cells(opts.cells)
         .with_statistic(opts.cell_statistic);
@@ -551,9 +561,10 @@ pub fn run_with(
     )?;
     let summary = Summary {
         input: input.display().to_string(),
-        definitions: definitions(samples.cells, samples.statistic),
+        definitions: definitions(samples.cells, samples.statistic, seq.background),
         cells: samples.cells,
         cell_statistic: samples.statistic,
+        background: seq.background,
         exposures_compared: samples.exposures.len(),
         pixels_sampled: samples.npix(),
         pixel_stride: STRIDE,

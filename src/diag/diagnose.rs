@@ -269,6 +269,8 @@ pub struct Config {
     pub cells: eval::Cells,
     /// What every cell compares, in the score test too ([`eval::CellStatistic`]).
     pub cell_statistic: eval::CellStatistic,
+    /// How each exposure's background is measured ([`super::data::Background`]).
+    pub background: super::data::Background,
     /// What the refits and the held-out check free.
     pub refit: Refit,
     /// Run the joint check when no candidate is significant alone (module docs,
@@ -285,6 +287,7 @@ impl Default for Config {
             statistic: Statistic::Within,
             cells: eval::Cells::default(),
             cell_statistic: eval::CellStatistic::default(),
+            background: super::data::Background::default(),
             refit: Refit::default(),
             joint: false,
         }
@@ -399,6 +402,9 @@ fn fit_command(
     }
     if cfg.cell_statistic != eval::CellStatistic::default() {
         s += &format!(" --cell-statistic {}", cfg.cell_statistic);
+    }
+    if cfg.background != super::data::Background::default() {
+        s += &format!(" --background {}", cfg.background);
     }
     s
 }
@@ -536,6 +542,8 @@ pub struct Diagnosis {
     pub residual_cells: eval::Cells,
     /// What every cell compares.
     pub cell_statistic: eval::CellStatistic,
+    /// How each exposure's background was measured.
+    pub background: super::data::Background,
     /// What the refits freed.
     pub refit: Refit,
     /// RMS of the cell residuals (as `compare`, on the subsample).
@@ -1392,6 +1400,7 @@ pub fn diagnose(
         events,
         residual_cells: samples.cells,
         cell_statistic: samples.statistic,
+        background: seq.background,
         refit: cfg.refit,
         residual_rms_normalised: rms,
         bootstrap_replicas: b,
@@ -1522,7 +1531,7 @@ fn cautions(params: &ModelParams) -> Vec<String> {
 
 /// `persist diagnose`.
 pub fn run(input: &Path, model: &Path, json: Option<&Path>, cfg: &Config) -> Result<String> {
-    let seq = Sequence::load(input)?;
+    let seq = Sequence::load(input)?.with_background(cfg.background);
     let params = crate::model_file::load(model)?;
     let d = diagnose(&params, &seq, cfg, input, model)?;
     if let Some(p) = json {
