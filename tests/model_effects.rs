@@ -178,7 +178,7 @@ fn active_pixels_predict_bit_identically_to_the_whole_array() {
 /// Regression: with `[capacity, refill]` in the model file the step handed the new
 /// response to capacity (the first accumulator) and refill got nothing to combine, so
 /// `fit --with refill` on a model holding capacity fitted a parameter with no effect.
-/// Accumulators now run by role (combine, then saturate): both orders are one model,
+/// Accumulators now run by role (limit, then combine): both orders are one model,
 /// and refill really acts on the second illumination.
 #[test]
 fn accumulators_run_by_role_not_by_model_file_order() {

@@ -24,9 +24,11 @@
 //!    Accumulating effects run by [`AccumulateRole`], not by their order in the model
 //!    file: first the `Combine` ones (how old and new trapped charge combine: refill;
 //!    only the first of them is handed the new response; the plain sum when there is
-//!    none), then the `Saturate` ones ([`Effect::saturate`]: how much of what the
-//!    combination added the pixel can still take, given the decayed amplitudes:
-//!    capacity). So `[capacity, refill]` and `[refill, capacity]` are the same model.
+//!    none), and before them the `Limit` ones ([`Effect::limit`]: the factor on what
+//!    the exposed traps of every term can hold, from the charge the pixel still
+//!    holds; the new response is multiplied by it before the combination, the fraction
+//!    each exposure fills unchanged: capacity). So `[capacity, refill]` and
+//!    `[refill, capacity]` are the same model.
 //!    An exposure that adds nothing leaves the decayed amplitudes as they are, whatever
 //!    the effects (a saturating map of the whole amplitude would compound once per
 //!    exposure).
@@ -48,15 +50,16 @@ use std::collections::BTreeMap;
 use std::fmt::Debug;
 
 /// Where an accumulating effect runs in the step's accumulate stage (see the module
-/// docs, item 4): all `Combine` effects (in model-file order) before all `Saturate`
-/// ones.
+/// docs, item 4): the `Limit` effects scale the new response, then the `Combine`
+/// effects (in model-file order) combine it with the decayed amplitudes.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord)]
 pub enum AccumulateRole {
     /// Combines the decayed amplitude with the new response (the first such effect
     /// receives the response; later ones are called with zeros).
     Combine,
-    /// Limits what the combination added ([`Effect::saturate`]).
-    Saturate,
+    /// Limits what the exposed traps can hold before the combination
+    /// ([`Effect::limit`]).
+    Limit,
 }
 
 /// One named parameter of an effect.
@@ -278,13 +281,16 @@ pub trait Effect: Send + Sync + Debug {
             *x += y;
         }
     }
-    /// `Saturate` effects (instead of [`Effect::accumulate`]): `a` holds the decayed
-    /// amplitudes combined with this exposure's response, `decayed` the decayed
-    /// amplitudes alone, `charge_per_amplitude` each term's charge per unit amplitude,
-    /// `C_n tau_n` (the integral of its current: `sum_n decayed_n C_n tau_n` is the
-    /// charge the pixel holds, electrons); limit what was added. Must leave `a`
-    /// unchanged where it equals `decayed` (nothing added), and keep it finite and >= 0.
-    fn saturate(&self, _a: &mut [f64], _decayed: &[f64], _charge_per_amplitude: &[f64]) {}
+    /// `Limit` effects (instead of [`Effect::accumulate`]): the factor, finite and in
+    /// [0, 1], on what the exposed traps of every term can hold in this exposure, given
+    /// `held_e`, the charge the pixel holds as it begins (`sum_n D_n C_n tau_n` over the
+    /// decayed amplitudes `D_n`, electrons), and `capacity_e`, the charge its exposed
+    /// traps could hold (`sum_n Cap_n C_n tau_n`, the response before the fill fraction
+    /// of [`Effect::response_is_fill`]). The step multiplies the new response by it
+    /// before the combination, leaving the fraction each term fills as it was.
+    fn limit(&self, _held_e: f64, _capacity_e: f64) -> f64 {
+        1.0
+    }
 }
 
 /// The observe hook of a measurement model: each term's weight becomes

@@ -243,8 +243,8 @@ pub(crate) fn step(
         rate_held_per_s: &held_rates,
         response: k.response,
     };
-    // combining effects before saturating ones, whatever the model file's order
-    let (combiners, saturators): (Vec<&dyn Effect>, Vec<&dyn Effect>) = effects
+    // limiting effects before combining ones, whatever the model file's order
+    let (combiners, limiters): (Vec<&dyn Effect>, Vec<&dyn Effect>) = effects
         .iter()
         .filter(|e| e.has_accumulate())
         .map(|e| e.as_ref())
@@ -262,7 +262,7 @@ pub(crate) fn step(
     let zero = vec![0.0; n];
     let zero = zero.as_slice();
     // each term's charge per unit amplitude, C_n tau_n (the model's terms, for
-    // `saturate`)
+    // `limit`)
     let charge_per_amplitude: Vec<f64> = sum
         .c_per_s
         .iter()
@@ -303,7 +303,7 @@ pub(crate) fn step(
                 .filter(|_| quiet_rows.is_none_or(|r| y % r != 0))
                 .map(|a| &a[y * nx..(y + 1) * nx]);
             let mut fixed = vec![0.0; n];
-            let mut decayed = vec![0.0; n];
+            let mut limited = vec![0.0; n];
             let ones = vec![1.0; n];
             let mut fill = vec![1.0; n];
             for (x, a) in a_row.chunks_exact_mut(n).enumerate() {
@@ -336,8 +336,31 @@ pub(crate) fn step(
                 for (aj, dj) in a.iter_mut().zip(&decay) {
                     *aj *= dj;
                 }
-                if !saturators.is_empty() {
-                    decayed.copy_from_slice(a);
+                // the capacity the pixel can still expose (`limit`): the response scaled,
+                // the fraction of the exposed traps it fills (`fill`, below) as it was
+                let unlimited = add;
+                if !limiters.is_empty() {
+                    let charge = |v: &[f64]| -> f64 {
+                        v.iter()
+                            .zip(&charge_per_amplitude)
+                            .map(|(a, q)| a * q)
+                            .sum()
+                    };
+                    let held = charge(a);
+                    let exposed = match capacity {
+                        Some(c) if hooked => charge(&c[(y * nx + x) * n..(y * nx + x + 1) * n]),
+                        _ => charge(add),
+                    };
+                    let keep: f64 = limiters.iter().map(|e| e.limit(held, exposed)).product();
+                    let keep = if keep.is_finite() {
+                        keep.clamp(0.0, 1.0)
+                    } else {
+                        1.0
+                    };
+                    for (l, v) in limited.iter_mut().zip(add) {
+                        *l = v * keep;
+                    }
+                    add = &limited;
                 }
                 if combiners.is_empty() {
                     for (aj, bj) in a.iter_mut().zip(add) {
@@ -347,7 +370,7 @@ pub(crate) fn step(
                     let fill = match capacity {
                         Some(c) if hooked => {
                             let c = &c[(y * nx + x) * n..(y * nx + x + 1) * n];
-                            for ((f, cj), aj) in fill.iter_mut().zip(c).zip(add) {
+                            for ((f, cj), aj) in fill.iter_mut().zip(c).zip(unlimited) {
                                 *f = if *cj > 0.0 && cj.is_finite() {
                                     (aj / cj).clamp(0.0, 1.0)
                                 } else {
@@ -362,9 +385,6 @@ pub(crate) fn step(
                     for (i, e) in combiners.iter().enumerate() {
                         e.accumulate(a, if i == 0 { add } else { zero }, fill);
                     }
-                }
-                for e in &saturators {
-                    e.saturate(a, &decayed, &charge_per_amplitude);
                 }
                 for aj in a.iter_mut() {
                     if !(aj.is_finite() && *aj >= 0.0) {

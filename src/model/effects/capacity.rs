@@ -7,24 +7,35 @@
 //! saturation of a single fill is already in them; what they cannot know is the charge
 //! still trapped from earlier illuminations, in any of the pixel's traps, which takes
 //! capacity away from the next fill of all of them.
-//! Equation (saturate hook, [`crate::model::effect::AccumulateRole::Saturate`]), with
-//! the decayed amplitudes `D_n = A_n' exp(-t_elapsed/tau_n)`, `T_n` the amplitude after
-//! combining `D_n` with the new response (`D_n + A_k,n` in the paper; what `refill`
-//! gives when it is in the model), and `H = sum_m D_m C_m tau_m` the charge the pixel
-//! still holds (electrons: the integral of its remaining current):
-//! `A_n = D_n + (T_n - D_n) / (1 + H * inv_q_max_per_e)`.
-//! A first illumination (`H` = 0) gives the paper's `A_k,n`; an exposure that adds
-//! nothing leaves `D`; the fill of every term is cut by the same factor, the short
-//! terms included, whose own held charge has long decayed.
-//! This is the simulator's truth `capacity` (`sim::effects::capacity`): there every
-//! bin's exposed capacity is divided by `1 + (C_tot + H) / n_max`, whose first-fill part
-//! the knots take in, leaving `1 / (1 + H / (n_max + C_tot))` for a repeated fill.
+//! Equation (limit hook, [`crate::model::effect::AccumulateRole::Limit`]), with
+//! `H = sum_m D_m C_m tau_m` the charge the pixel still holds as the exposure begins
+//! (electrons: the integral of its remaining current; `D_m` the decayed amplitudes)
+//! and `Q = sum_m Cap_m C_m tau_m` the charge its exposed traps could hold (the
+//! knots' response before any fill fraction): every term's exposed capacity is
+//! multiplied by
+//! `k = (1 + C / Q_max) / (1 + (C + H) / Q_max)`, `C = Q / (1 - min(Q / Q_max, 0.9))`,
+//! before the new response is combined with `D` (by `refill`, or the paper's sum).
+//! This is the simulator's truth (`sim::effects::capacity`): there every bin's exposed
+//! capacity is divided by `1 + (C_tot + H) / n_max`, `C_tot` the pixel's exposed
+//! capacity without the effect. The knots are the calibration's first fill (`H` = 0),
+//! already divided by `1 + C_tot / n_max`, so a later fill keeps `k` of it; `C` is
+//! `C_tot` recovered from the knots' compressed `Q = C_tot / (1 + C_tot / n_max)`.
+//! With `refill` at `beta` 1 the occupancy then relaxes toward the limited capacity,
+//! `D + f max(0, k Cap - D)` (`f` the fraction filled), as the truth's bins do: a term
+//! that still holds more than `k Cap` gains nothing. A first illumination (`H` = 0)
+//! gives the paper's `A_k,n`; an exposure that adds nothing leaves `D`.
 //! (History: until 2026-11-22 the map `T / (1 + T * inv)` was applied to the whole
 //! amplitude at every exposure and compounded, found with `examples/truth_shape`; until
 //! 2026-11-24 the limit was per term, `D_n + (T_n - D_n)(1 - D_n * inv_a_max_per_e)`,
 //! so a term's fill saw only that term's held charge: the short terms, empty 30 minutes
 //! after an illumination, were never limited, where the held charge is in the long ones.
-//! Model files naming `inv_a_max_per_e` are refused, naming the parameter.)
+//! Until 2026-11-25 the cut applied to what the combination added,
+//! `D_n + (T_n - D_n) / (1 + H * inv_q_max_per_e)`, not to the capacity before it: a
+//! term holding half its capacity then gained `k` of the other half where the truth
+//! gains `k Cap - D`, and `C` was left out; on the 8-repeat campaign at 128 x 128 the
+//! fit's RMS was 1.61 where this form gives 1.33, docs/diagnose_matrix.md,
+//! "Twenty-second session". Model files naming `inv_a_max_per_e` are refused, naming
+//! the parameter.)
 //! Parameter: `inv_q_max_per_e` (1 / the held charge that halves a new fill, 1/e-;
 //! default 5e-5, i.e. 20,000 e-, about twice the charge a saturated pixel of the paper
 //! holds; bounds [0, 0.01], null 0).
@@ -36,7 +47,7 @@ use crate::model::effect::{AccumulateRole, Effect, EffectDef, ParamSpec};
 
 pub const DEF: EffectDef = EffectDef {
     name: "capacity",
-    summary: "held charge takes capacity: A = D + (T - D) / (1 + H / Q_max)",
+    summary: "held charge takes capacity: Cap *= (1 + C / Q_max) / (1 + (C + H) / Q_max)",
     params: &[ParamSpec {
         name: "inv_q_max_per_e",
         default: 5e-5,
@@ -70,21 +81,16 @@ impl Effect for Capacity {
         true
     }
     fn accumulate_role(&self) -> AccumulateRole {
-        AccumulateRole::Saturate
+        AccumulateRole::Limit
     }
-    fn saturate(&self, a: &mut [f64], decayed: &[f64], charge_per_amplitude: &[f64]) {
-        if self.inv_q_max_per_e <= 0.0 {
-            return;
+    fn limit(&self, held_e: f64, capacity_e: f64) -> f64 {
+        let inv = self.inv_q_max_per_e;
+        if !(inv > 0.0 && held_e > 0.0) {
+            return 1.0;
         }
-        let held: f64 = decayed
-            .iter()
-            .zip(charge_per_amplitude)
-            .map(|(d, q)| d * q)
-            .sum();
-        let keep = 1.0 / (1.0 + held.max(0.0) * self.inv_q_max_per_e);
-        for (t, d) in a.iter_mut().zip(decayed) {
-            *t = d + (*t - d) * keep;
-        }
+        let q = capacity_e.max(0.0);
+        let c = q / (1.0 - (q * inv).min(0.9));
+        (1.0 + c * inv) / (1.0 + (c + held_e) * inv)
     }
 }
 
@@ -93,38 +99,30 @@ mod tests {
     use super::*;
 
     #[test]
-    fn saturates_by_hand() {
-        // Q_max = 1000 e-; held charge H = 2 * 250 + 1 * 0 = 500 e- -> a new fill is
-        // kept at 1 / (1 + 0.5) = 2/3, in every term (the empty second one too)
+    fn limits_by_hand() {
+        // Q_max = 1000 e-; nothing exposed (C = 0), H = 500 e- held: 1 / (1 + 0.5)
         let c = Capacity {
             inv_q_max_per_e: 1e-3,
         };
-        let mut a = [550.0, 90.0];
-        c.saturate(&mut a, &[250.0, 0.0], &[2.0, 1.0]);
-        assert!(
-            (a[0] - 450.0).abs() < 1e-12 && (a[1] - 60.0).abs() < 1e-12,
-            "{a:?}"
+        assert!((c.limit(500.0, 0.0) - 2.0 / 3.0).abs() < 1e-12);
+        // Q = 450 e- exposed: C = 450 / (1 - 0.45) = 818.18 e- (the knots' compressed
+        // 450 = C / (1 + C / Q_max)), k = (1 + 0.81818) / (1 + 1.31818) = 0.78431
+        let k = c.limit(500.0, 450.0);
+        let cc: f64 = 450.0 / 0.55;
+        assert!((cc / (1.0 + cc * 1e-3) - 450.0).abs() < 1e-9);
+        assert!((k - (1.0 + cc * 1e-3) / (1.0 + (cc + 500.0) * 1e-3)).abs() < 1e-12);
+        assert!((k - 0.784_31).abs() < 1e-5, "{k}");
+        // nothing held, or no effect: the whole capacity
+        assert_eq!(c.limit(0.0, 450.0), 1.0);
+        assert_eq!(
+            Capacity {
+                inv_q_max_per_e: 0.0
+            }
+            .limit(500.0, 450.0),
+            1.0
         );
-        // nothing held: the whole fill
-        let mut a = [400.0, 90.0];
-        c.saturate(&mut a, &[0.0, 0.0], &[2.0, 1.0]);
-        assert_eq!(a, [400.0, 90.0]);
-    }
-
-    /// Regression: the old map `T / (1 + T / A_max)` was applied to the whole amplitude
-    /// at every exposure, so each dark exposure shrank a bright pixel's amplitude again.
-    /// An exposure that adds nothing must leave the decayed amplitude as it is.
-    #[test]
-    fn an_exposure_adding_nothing_leaves_the_amplitude_unchanged() {
-        let c = Capacity {
-            inv_q_max_per_e: 1e-3,
-        };
-        let d = [500.0, 999.0, 0.0, 20.0, 3000.0];
-        let q = [1.8, 1.8, 1.8, 1.8, 1.8];
-        let mut a = d;
-        for _ in 0..100 {
-            c.saturate(&mut a, &d, &q);
-        }
-        assert_eq!(a, d);
+        // a pixel whose exposed capacity reaches Q_max is capped at C = 10 Q
+        let k = c.limit(500.0, 5000.0);
+        assert!(k.is_finite() && k > 0.0 && k < 1.0, "{k}");
     }
 }
