@@ -23,9 +23,9 @@
 //! Covariate: earlier illuminations: only pixels lit again while their traps
 //! still hold charge change; a single illumination is not affected.
 //!
-//! Role [`AccumulateRole::Combine`]: in a model with `capacity` as well, `refill`
-//! combines old and new charge first and `capacity` limits what that added, whatever
-//! their order in the model file.
+//! Role [`AccumulateRole::Combine`]: in a model with `capacity` as well, `capacity`
+//! first limits the capacity the new response exposes and `refill` then combines old
+//! and new charge, whatever their order in the model file.
 
 use super::get;
 use crate::model::effect::{AccumulateRole, Effect, EffectDef, ParamSpec};
