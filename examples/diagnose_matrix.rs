@@ -81,9 +81,7 @@ fn simulate(
     })
     .expect("simulation");
     Sim {
-        seq: Sequence::from_exposures(ex)
-            .expect("sequence")
-            .with_background(background),
+        seq: Sequence::from_exposures_with(ex, background).expect("sequence"),
         truth,
     }
 }

@@ -678,7 +678,7 @@ pub fn run(
     out: &std::path::Path,
     report_path: &std::path::Path,
 ) -> Result<String> {
-    let seq = Sequence::load(input)?.with_background(cfg.background);
+    let seq = Sequence::load_with(input, cfg.background)?;
     let (mut params, cal) = calibrate(&seq, cfg).map_err(|e| e.path(input))?;
     let samples = cfg.samples(&seq);
     let mut ef = None;

@@ -532,7 +532,7 @@ pub fn run_with(
     out: &Path,
     opts: &Options,
 ) -> Result<String> {
-    let seq = Sequence::load(input)?.with_background(opts.background);
+    let seq = Sequence::load_with(input, opts.background)?;
     let samples = Samples::new(&seq, STRIDE)
         .with_cells(opts.cells)
         .with_statistic(opts.cell_statistic);

@@ -69,6 +69,11 @@ pub struct Sequence {
 impl Sequence {
     /// Read every product (`*.h5`, recursively) of the first detector found in `dir`.
     pub fn load(dir: &Path) -> Result<Sequence> {
+        Sequence::load_with(dir, Background::Median)
+    }
+
+    /// [`Sequence::load`], the background measured by `background`.
+    pub fn load_with(dir: &Path, background: Background) -> Result<Sequence> {
         let files = crate::stage::queue::candidates(dir)?;
         let mut metas = Vec::new();
         for f in &files {
@@ -84,10 +89,18 @@ impl Sequence {
             let _ = d;
             exposures.push(read::read_exposure(f)?);
         }
-        Sequence::from_exposures(exposures).map_err(|e| e.path(dir))
+        Sequence::from_exposures_with(exposures, background).map_err(|e| e.path(dir))
     }
 
     pub fn from_exposures(exposures: Vec<Exposure>) -> Result<Sequence> {
+        Sequence::from_exposures_with(exposures, Background::Median)
+    }
+
+    /// [`Sequence::from_exposures`], the background measured by `background`.
+    pub fn from_exposures_with(
+        exposures: Vec<Exposure>,
+        background: Background,
+    ) -> Result<Sequence> {
         let Some(first) = exposures.first() else {
             return Err(Error::new(ErrorKind::Usage, "no exposures"));
         };
@@ -120,7 +133,7 @@ impl Sequence {
             illuminations,
             background_e_per_s: Vec::new(),
             noise_e_per_s: Vec::new(),
-            background: Background::Median,
+            background,
             last_illumination: last,
             ny,
             nx,
@@ -192,24 +205,25 @@ impl Sequence {
                 no_background.push(e.meta.exposure_index);
             }
             let fitted = if line && !is_ill {
-                let with_f: Vec<(f64, f64)> =
-                    pts.iter().copied().filter(|p| p.0.is_finite()).collect();
-                background_line(&with_f).map(|(b, s)| {
-                    let dev: Vec<f64> = with_f.iter().map(|(x, y)| (y - b - s * x).abs()).collect();
-                    (b, dev)
-                })
+                background_line(&pts)
             } else {
                 None
             };
-            let (b, dev) = fitted.clone().unwrap_or_else(|| {
-                let vals: Vec<f64> = pts.iter().map(|p| p.1).collect();
-                let b = median(&vals);
-                let dev: Vec<f64> = vals.iter().map(|v| (v - b).abs()).collect();
-                (b, dev)
-            });
-            if fitted.is_some() {
-                intercepts.push((i, b));
-            }
+            let (b, dev): (f64, Vec<f64>) = match fitted {
+                Some((b, slope)) => {
+                    intercepts.push((i, b));
+                    let dev = pts
+                        .iter()
+                        .filter(|p| p.0.is_finite())
+                        .map(|(x, y)| (y - b - slope * x).abs())
+                        .collect();
+                    (b, dev)
+                }
+                None => {
+                    let b = median(&pts.iter().map(|p| p.1).collect::<Vec<_>>());
+                    (b, pts.iter().map(|p| (p.1 - b).abs()).collect())
+                }
+            };
             background.push(if b.is_finite() { b } else { 0.0 });
             let s = 1.4826 * median(&dev);
             noise.push(if s.is_finite() && s > 0.0 { s } else { 0.1 });
@@ -248,8 +262,7 @@ impl Sequence {
     /// fitted). One set of values: nothing is pooled.
     pub fn background_of(&self, pts: &[(f64, f64)]) -> f64 {
         if self.background == Background::Line {
-            let with_f: Vec<(f64, f64)> = pts.iter().copied().filter(|p| p.0.is_finite()).collect();
-            if let Some((b, _)) = background_line(&with_f) {
+            if let Some((b, _)) = background_line(pts) {
                 return b;
             }
         }
@@ -477,14 +490,14 @@ impl Background {
 
 /// The line `value = intercept + slope * fluence` through the medians (of both
 /// coordinates) of [`BACKGROUND_LINE_BINS`] bins of equal count of `(fluence, value)`
-/// points, by least squares: `(intercept, slope)`; None with fewer than 10 points per
-/// bin or no spread of fluence.
+/// points (those of finite fluence), by least squares: `(intercept, slope)`; None with
+/// fewer than 10 points per bin or no spread of fluence.
 pub fn background_line(pts: &[(f64, f64)]) -> Option<(f64, f64)> {
     const BINS: usize = BACKGROUND_LINE_BINS;
-    if pts.len() < 10 * BINS {
+    let mut p: Vec<(f64, f64)> = pts.iter().copied().filter(|q| q.0.is_finite()).collect();
+    if p.len() < 10 * BINS {
         return None;
     }
-    let mut p = pts.to_vec();
     p.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.total_cmp(&b.1)));
     let (mut bx, mut by) = (Vec::new(), Vec::new());
     for b in 0..BINS {

@@ -1531,7 +1531,7 @@ fn cautions(params: &ModelParams) -> Vec<String> {
 
 /// `persist diagnose`.
 pub fn run(input: &Path, model: &Path, json: Option<&Path>, cfg: &Config) -> Result<String> {
-    let seq = Sequence::load(input)?.with_background(cfg.background);
+    let seq = Sequence::load_with(input, cfg.background)?;
     let params = crate::model_file::load(model)?;
     let d = diagnose(&params, &seq, cfg, input, model)?;
     if let Some(p) = json {
