@@ -14,7 +14,11 @@
 //!    each.
 //! 2. Per bin, the measured current of the first dark integration (image minus the
 //!    background, [`crate::diag::data`]): its 3-sigma-clipped median and its 95th
-//!    percentile ([`crate::diag::data::signal_p95`], read noise removed in quadrature).
+//!    percentile ([`crate::diag::data::signal_p95`], read noise removed in quadrature;
+//!    with `--cell-statistic population` also the shot noise of the bin's median
+//!    current, [`crate::diag::data::shot_noise_added`]: that statistic's reference adds
+//!    each sample's shot noise to the prediction, which must then be the noise-free 95th
+//!    percentile; the model file records it, `calibration.knots_shot_noise_removed`).
 //! 3. Per bin, the clipped median of the first dark ramp (background ramp subtracted:
 //!    per read, the background pixels' median, or with `--background line` their
 //!    line's intercept at zero fluence, [`crate::diag::data`] "Background")
@@ -46,7 +50,8 @@ pub mod knots;
 pub mod logfit;
 
 use crate::diag::data::{
-    fluence, neighbour_dominated, quantile, signal_p95, Sequence, BACKGROUND_FLUENCE_E,
+    fluence, neighbour_dominated, quantile, shot_noise_added, signal_p95, Sequence,
+    BACKGROUND_FLUENCE_E,
 };
 use crate::error::{Error, Result};
 use crate::model::params::{Calibration, Knot, ModelParams, Term, PAPER_TERMS};
@@ -85,7 +90,15 @@ impl CalibConfig {
             rates_per_s: self.rates_per_s.clone(),
             fit_cn: false,
             fit_amplification: false,
+            knots_shot_noise_removed: self.knots_shot_noise_removed(),
         }
+    }
+
+    /// Whether the knots' 95th percentiles leave out the pixels' own shot noise: with the
+    /// `population` cell statistic, whose reference adds each sample's shot noise to a
+    /// noise-free predicted 95th percentile (module docs, step 2).
+    pub fn knots_shot_noise_removed(&self) -> bool {
+        self.cell_statistic == crate::diag::eval::CellStatistic::Population
     }
 
     /// The samples of the effect fit and of the report: every second pixel, grouped and
@@ -187,9 +200,11 @@ impl Preset {
     /// True if calibration record `c` has this preset's options (before anything was
     /// freed after it).
     pub fn matches(self, c: &Calibration) -> bool {
+        // (the knots' noise follows the cell statistic, not the preset)
         let before_freeing = Calibration {
             fit_cn: false,
             fit_amplification: false,
+            knots_shot_noise_removed: false,
             ..c.clone()
         };
         before_freeing == self.config().record()
@@ -321,7 +336,12 @@ pub fn calibrate(seq: &Sequence, cfg: &CalibConfig) -> Result<(ModelParams, Cali
         let edge = |i: f64| 10f64.powf(lo_exp + i / cfg.bins_per_decade);
         let cur: Vec<f64> = px.iter().map(|p| meas[*p]).collect();
         let (med, sd) = clipped_median(&cur, 3.0);
-        let p95 = signal_p95(&cur, med, noise);
+        let p95 = if cfg.knots_shot_noise_removed() {
+            let shot = crate::diag::eval::SHOT_VAR_LINE_FIT / seq.exposures[d].meta.t_exposure_s;
+            signal_p95(&cur, med, shot_noise_added(noise, shot, med))
+        } else {
+            signal_p95(&cur, med, noise)
+        };
         let q: Vec<f64> = (0..nsamp)
             .map(|s| {
                 let v: Vec<f64> = px
@@ -537,6 +557,23 @@ mod tests {
         assert_eq!("readout".parse::<Preset>().unwrap(), Preset::Readout);
         let e = "r14".parse::<Preset>().unwrap_err().to_string();
         assert!(e.contains("--preset") && e.contains("r14"), "{e}");
+    }
+
+    /// Under `--cell-statistic population` the knots leave out the shot noise and the
+    /// model file says so; the preset is still recognised, and a record without it
+    /// writes no such key (older model files keep their identity).
+    #[test]
+    fn population_statistic_calibrates_noise_free_knots_and_records_it() {
+        let pop = CalibConfig {
+            cell_statistic: crate::diag::eval::CellStatistic::Population,
+            ..Preset::Readout.config()
+        };
+        assert!(pop.knots_shot_noise_removed() && pop.record().knots_shot_noise_removed);
+        assert!(Preset::Readout.matches(&pop.record()));
+        assert!(!Preset::Readout.config().record().knots_shot_noise_removed);
+        let json = |c: &CalibConfig| serde_json::to_string(&c.record()).unwrap();
+        assert!(json(&pop).contains("\"knots_shot_noise_removed\":true"));
+        assert!(!json(&Preset::Readout.config()).contains("knots_shot_noise_removed"));
     }
 
     #[test]

@@ -312,6 +312,7 @@ impl Sequence {
             &fluence(&self.exposures[a]),
             &self.measured(k),
             self.noise_e_per_s[k],
+            super::eval::SHOT_VAR_LINE_FIT / self.exposures[k].meta.t_exposure_s,
         )
     }
 
@@ -333,7 +334,11 @@ impl Sequence {
 /// [`BACKGROUND_FLUENCE_E`]: with the current's trend in `log10 F` within the bin
 /// removed (least squares; a bin a tenth of a decade wide spans 26 % of fluence, which
 /// would otherwise count as spread), the median of the measured current and its 95th
-/// percentile with the exposure noise removed in quadrature ([`signal_p95`]). A bin is kept when it
+/// percentile with the noise removed in quadrature ([`signal_p95`]): the exposure noise
+/// and the shot noise of the bin's median current ([`shot_noise_added`]), which the
+/// statistic adds back sample by sample, so that `r` is the spread of the pixels'
+/// currents themselves (twenty-third session: with the shot noise left in, the
+/// statistic counted it twice). A bin is kept when it
 /// holds at least [`PopulationSpread::MIN_PIXELS`] pixels and its 95th percentile is at
 /// least [`PopulationSpread::MIN_SNR`] times the noise: removing the noise in quadrature
 /// is biased when the spread is below the noise (by +40 % in `r` at 4.5 times the noise,
@@ -358,8 +363,16 @@ impl PopulationSpread {
     pub const MIN_SNR: f64 = 10.0;
 
     /// From the illumination's fluence and the next dark integration's measured current
-    /// (e-/s, NaN where unusable) with exposure noise `noise_e_per_s`.
-    pub fn measure(fluence_e: &Array2<f64>, current: &Array2<f64>, noise_e_per_s: f64) -> Self {
+    /// (e-/s, NaN where unusable) with exposure noise `noise_e_per_s` and the shot noise
+    /// of the pixels' own current, variance `shot_var_per_e_per_s` per e-/s (the line
+    /// fit's [`super::eval::SHOT_VAR_LINE_FIT`] over the integration's length; 0 for
+    /// none).
+    pub fn measure(
+        fluence_e: &Array2<f64>,
+        current: &Array2<f64>,
+        noise_e_per_s: f64,
+        shot_var_per_e_per_s: f64,
+    ) -> Self {
         use std::collections::BTreeMap;
         let mut bins: BTreeMap<i64, (Vec<f64>, Vec<f64>)> = BTreeMap::new();
         for (f, c) in fluence_e.iter().zip(current.iter()) {
@@ -388,7 +401,8 @@ impl PopulationSpread {
                     .map(|(x, y)| y - slope * (x - lm))
                     .collect();
                 let med = median(&c);
-                let p95 = signal_p95(&c, med, noise_e_per_s);
+                let noise = shot_noise_added(noise_e_per_s, shot_var_per_e_per_s, med);
+                let p95 = signal_p95(&c, med, noise);
                 (p95 >= Self::MIN_SNR * noise_e_per_s && p95 > 0.0)
                     .then(|| (lm, ((p95 - med) / (1.645 * p95)).clamp(0.0, 0.5)))
             })
@@ -678,6 +692,13 @@ fn std_normal_quantile(q: f64) -> f64 {
     0.5 * (lo + hi)
 }
 
+/// The noise of a measured current of median `median_e_per_s`: the exposure noise
+/// `noise_e_per_s` and the current's own shot noise (variance `shot_var_per_e_per_s`
+/// per e-/s) in quadrature.
+pub fn shot_noise_added(noise_e_per_s: f64, shot_var_per_e_per_s: f64, median_e_per_s: f64) -> f64 {
+    (noise_e_per_s.powi(2) + shot_var_per_e_per_s * median_e_per_s.max(0.0)).sqrt()
+}
+
 /// The 95th percentile of the *signal* in a set of measurements with Gaussian noise
 /// `sigma`: `median + sqrt(max(0, (p95 - median)^2 - (1.645 sigma)^2))` (spreads add in
 /// quadrature). The paper's calibration uses it (the 95th percentile of the first
@@ -710,7 +731,7 @@ mod tests {
             let e: f64 = rng.sample(StandardNormal);
             1e-5 * f[[0, i]] * (0.08 * (g - 1.645)).exp() + sigma * e
         });
-        let p = PopulationSpread::measure(&f, &c, sigma);
+        let p = PopulationSpread::measure(&f, &c, sigma, 0.0);
         let want = (1.0 - (-1.645f64 * 0.08).exp()) / 1.645;
         // kept: 95th percentile 1e-5 F >= 10 sigma = 0.2 e-/s, F >= 20,000 e-
         let first = p.knots.first().expect("bins kept").0;
@@ -730,9 +751,49 @@ mod tests {
         assert_eq!(PopulationSpread::default().at(1e5), 0.0);
         // a current buried in the noise keeps no bin
         let quiet = c.mapv(|v| v * 1e-3);
-        assert!(PopulationSpread::measure(&f, &quiet, sigma)
+        assert!(PopulationSpread::measure(&f, &quiet, sigma, 0.0)
             .knots
             .is_empty());
+    }
+
+    /// The same population with each pixel's own shot noise (a 180 s line fit:
+    /// variance 1.2 / 180 per e-/s, [`super::super::eval::SHOT_VAR_LINE_FIT`]) on top of
+    /// the exposure noise: told the shot noise, `r` is the 8 % lognormal's 0.075 within
+    /// 15 % at 1e4.3-1e5 e-, where the shot noise is 1-2.6 times the spread below the
+    /// 95th percentile; told only the exposure noise (as before the twenty-third
+    /// session), `r` counts the shot noise as spread and stands more than 30 % high at
+    /// 1e4.3-1e4.5 e-.
+    #[test]
+    fn population_spread_leaves_out_the_shot_noise() {
+        use rand::{Rng, SeedableRng};
+        use rand_distr::StandardNormal;
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(5);
+        let (n, sigma, g) = (40_000, 0.02, super::super::eval::SHOT_VAR_LINE_FIT / 180.0);
+        let f = Array2::from_shape_fn((1, n), |(_, i)| 10f64.powf(4.3 + 0.7 * i as f64 / n as f64));
+        let c = Array2::from_shape_fn((1, n), |(_, i)| {
+            let (a, b, e): (f64, f64, f64) = (
+                rng.sample(StandardNormal),
+                rng.sample(StandardNormal),
+                rng.sample(StandardNormal),
+            );
+            let s = 1e-5 * f[[0, i]] * (0.08 * (a - 1.645)).exp();
+            s + (g * s).sqrt() * b + sigma * e
+        });
+        let want = (1.0 - (-1.645f64 * 0.08).exp()) / 1.645;
+        let told = PopulationSpread::measure(&f, &c, sigma, g);
+        let untold = PopulationSpread::measure(&f, &c, sigma, 0.0);
+        assert!(told.knots.len() >= 5, "{:?}", told.knots);
+        for &(lf, r) in &told.knots {
+            assert!(
+                (r - want).abs() < 0.15 * want,
+                "log10 F {lf}: r {r}, want {want}"
+            );
+        }
+        let low: Vec<&(f64, f64)> = untold.knots.iter().filter(|k| k.0 < 4.5).collect();
+        assert!(low.len() >= 2, "{:?}", untold.knots);
+        for &&(lf, r) in &low {
+            assert!(r > 1.3 * want, "log10 F {lf}: r {r} without the shot noise");
+        }
     }
 
     /// Background pixels lit up to 3000 e- whose persistence is 1e-5 e-/s per e- above a

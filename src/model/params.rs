@@ -238,6 +238,13 @@ pub struct Calibration {
     /// The knots' level was then fitted to the campaign (`--fit-amplification`).
     #[serde(default)]
     pub fit_amplification: bool,
+    /// Each bin's 95th percentile had the shot noise of the pixels' own current removed
+    /// in quadrature as well as the exposure noise (`fit --cell-statistic population`,
+    /// whose reference takes the predictions for noise-free 95th percentiles;
+    /// `persist::calib`, step 2). Absent (false) otherwise, so older files keep their
+    /// identity.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub knots_shot_noise_removed: bool,
 }
 
 /// Eq. (bbdetexpsum): `(C_n, 1/tau_n)` for detector BBDet.
