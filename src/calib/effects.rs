@@ -359,25 +359,40 @@ fn scan_start(problem: &mut Problem<'_>) {
     let mut order: Vec<usize> = (0..problem.slots.len()).collect();
     order.sort_by_key(|&i| !problem.slots[i].added);
     for i in order {
-        let (lo, hi) = (problem.slots[i].lo, problem.slots[i].hi);
-        let Some(null) = problem.slots[i].null else {
+        let s = &problem.slots[i];
+        let Some(null) = s.null else {
             continue;
         };
-        let mut p = problem.p.as_slice().to_vec();
+        let p = problem.p.as_slice().to_vec();
         let d = p[i] - null;
-        if d == 0.0 {
-            continue;
-        }
-        let mut best = (problem.rss(&p), p[i]);
-        for f in SCAN {
-            p[i] = (null + f * d).clamp(lo, hi);
-            let r = problem.rss(&p);
-            if r < best.0 {
-                best = (r, p[i]);
-            }
-        }
-        problem.p[i] = best.1;
+        problem.p[i] = scan_point(&p, i, null, d, (s.lo, s.hi), |q| problem.rss(q));
     }
+}
+
+/// The value of parameter `i` that fits best (least `rss`) among `p[i]` itself and
+/// `null + f d` for `f` in [`SCAN`] (within `bounds`), the others as in `p`; `p[i]`
+/// when `d` is 0. Ties keep the earlier: `p[i]`, then the null.
+fn scan_point(
+    p: &[f64],
+    i: usize,
+    null: f64,
+    d: f64,
+    (lo, hi): (f64, f64),
+    rss: impl Fn(&[f64]) -> f64,
+) -> f64 {
+    if d == 0.0 {
+        return p[i];
+    }
+    let mut q = p.to_vec();
+    let mut best = (rss(&q), p[i]);
+    for f in SCAN {
+        q[i] = (null + f * d).clamp(lo, hi);
+        let r = rss(&q);
+        if r < best.0 {
+            best = (r, q[i]);
+        }
+    }
+    best.1
 }
 
 /// Levenberg-Marquardt from `problem`'s parameters; the start is kept when the projected
@@ -413,25 +428,16 @@ fn minimize(problem: Problem<'_>) -> (Problem<'_>, String) {
 fn rescan_nulls(problem: &mut Problem<'_>, initial: &[f64]) -> Vec<String> {
     let mut moved = Vec::new();
     for i in 0..problem.slots.len() {
-        let (lo, hi) = (problem.slots[i].lo, problem.slots[i].hi);
-        let Some(null) = problem.slots[i].null else {
+        let s = &problem.slots[i];
+        let p = problem.p.as_slice().to_vec();
+        let Some(null) = s.null.filter(|n| p[i] == *n) else {
             continue;
         };
-        let mut p = problem.p.as_slice().to_vec();
-        let d = initial[i] - null;
-        if p[i] != null || d == 0.0 {
-            continue;
-        }
-        let mut best = (problem.rss(&p), null);
-        for f in &SCAN[1..] {
-            p[i] = (null + f * d).clamp(lo, hi);
-            let r = problem.rss(&p);
-            if r < best.0 {
-                best = (r, p[i]);
-            }
-        }
-        if best.1 != null {
-            problem.p[i] = best.1;
+        let v = scan_point(&p, i, null, initial[i] - null, (s.lo, s.hi), |q| {
+            problem.rss(q)
+        });
+        if v != null {
+            problem.p[i] = v;
             moved.push(problem.slot_name(i));
         }
     }
@@ -745,4 +751,39 @@ pub fn fit_with(
             knots_rescaled,
         },
     ))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The pathology [`rescan_nulls`] is for, on a made-up sum of squares: `soak`'s
+    /// `capture_ratio` (slot 0, null 0, start 0.1) has no gradient at its null, and
+    /// `refill`'s `beta` (slot 1) is best at 1. While `beta` holds its start 0.5 the
+    /// null is the best scan point, so [`scan_start`] leaves it there; once `beta` is
+    /// fitted, the scan point 0.005 (0.05 times the start) fits better than the null and
+    /// the rescan takes it. With `d` 0 nothing is scanned.
+    #[test]
+    fn a_parameter_flat_at_its_null_is_scanned_again_once_the_others_are_fitted() {
+        let rss = |q: &[f64]| {
+            let b = 40.0 * (q[1] - 1.0).powi(2);
+            if q[0] == 0.0 {
+                1.0 + 0.1 * b
+            } else {
+                0.5 + 0.1 * (q[0] / 0.006).ln().powi(2) + b
+            }
+        };
+        let bounds = (0.0, 100.0);
+        // the first scan: beta at its start
+        assert_eq!(scan_point(&[0.1, 0.5], 0, 0.0, 0.1, bounds, rss), 0.0);
+        // the rescan: beta fitted, the distance from the start before the first scan
+        let v = scan_point(&[0.0, 1.0], 0, 0.0, 0.1, bounds, rss);
+        assert!((v - 0.005).abs() < 1e-12, "{v}");
+        // nothing to scan at distance 0; a bound clamps the scan points
+        assert_eq!(scan_point(&[0.0, 1.0], 0, 0.0, 0.0, bounds, rss), 0.0);
+        assert_eq!(
+            scan_point(&[0.0, 1.0], 0, 0.0, 0.1, (0.0, 0.003), rss),
+            0.003
+        );
+    }
 }
