@@ -21,7 +21,10 @@
 //! The steps are projected onto the bounds, which can end above the start's sum of
 //! squares; the start is then kept. The null is one of the starts tried, so the fit ends
 //! no worse than the model without the effect (measured before: a joint fit of four
-//! effects, the reference at RMS 8.146, ended at 8.177).
+//! effects, the reference at RMS 8.146, ended at 8.177). A switch parameter that the
+//! fit leaves at its null is scanned again with the others at their fitted values, and
+//! the fit restarts from the best scan point when that fits better (`rescan_nulls`: the
+//! first scan held the others at their starts, where the null could look best).
 //!
 //! # `--fit-cn`: the decay shape from the data
 //! With [`Free::c_n`] ([`fit_with`], `persist fit --fit-cn`) the terms' `C_n` are fitted too,
@@ -422,9 +425,10 @@ fn minimize(problem: Problem<'_>) -> (Problem<'_>, String) {
 /// docs) has no gradient, and the first scan chose its start with the other
 /// parameters at their starts. Measured (128 x 128 campaigns with eight repeats, the
 /// population statistic, the line background): `fit --with soak` on the readout preset
-/// ended with `capture_ratio` at 0 at three of eight fits (RMS 1.76 where 0.007 gives
-/// 1.36), because `refill`'s `beta` was still at its start of 0.5 when `soak` was
-/// scanned.
+/// ended with `capture_ratio` at 0 at three of eight fits, because `refill`'s `beta` was
+/// still at its start of 0.5 when `soak` was scanned (seed 1 without a hidden effect:
+/// RMS 1.76; rescanned and refitted, `capture_ratio` 0.0079 and RMS 1.16;
+/// docs/diagnose_matrix.md, "Twenty-third session").
 fn rescan_nulls(problem: &mut Problem<'_>, initial: &[f64]) -> Vec<String> {
     let mut moved = Vec::new();
     for i in 0..problem.slots.len() {

@@ -94,7 +94,12 @@
 //! - the pixels' spread below the predicted 95th percentile: mean `-1.645 s_i`,
 //!   standard deviation `s_i = r(F_i) max(predicted_i, 0)`, `r` the population's
 //!   relative spread at the sample's fluence, measured once per sequence in the first
-//!   dark after the first illumination ([`super::data::PopulationSpread`]);
+//!   dark after the first illumination with the exposure noise and the pixels' own shot
+//!   noise removed ([`super::data::PopulationSpread`]; both are added back below, and
+//!   until the twenty-third session the shot noise stayed in `r` as well, so it was
+//!   counted twice); the predictions stand for noise-free 95th percentiles, so `fit
+//!   --cell-statistic population` removes the shot noise from the knots too
+//!   ([`crate::calib`], step 2);
 //! - plus the measurement noise `sigma_i^2 = sigma_k^2 + g_k max(predicted_i, 0)`, `g_k
 //!   = 1.2 / t_exposure_s` the shot-noise variance of an unweighted line fit per e-/s of
 //!   current ([`SHOT_VAR_LINE_FIT`]; the predicted current stands for the true one).
