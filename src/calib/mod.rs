@@ -328,6 +328,10 @@ pub fn calibrate(seq: &Sequence, cfg: &CalibConfig) -> Result<(ModelParams, Cali
             members[b as usize].push((y, x));
         }
     }
+    // the first dark's shot-noise variance per e-/s, when the knots leave it out
+    let knot_shot_var = cfg
+        .knots_shot_noise_removed()
+        .then(|| seq.shot_var_per_e_per_s(d));
     let mut bins = Vec::new();
     for (b, px) in members.iter().enumerate() {
         if px.len() < cfg.min_pixels {
@@ -336,11 +340,9 @@ pub fn calibrate(seq: &Sequence, cfg: &CalibConfig) -> Result<(ModelParams, Cali
         let edge = |i: f64| 10f64.powf(lo_exp + i / cfg.bins_per_decade);
         let cur: Vec<f64> = px.iter().map(|p| meas[*p]).collect();
         let (med, sd) = clipped_median(&cur, 3.0);
-        let p95 = if cfg.knots_shot_noise_removed() {
-            let shot = crate::diag::eval::SHOT_VAR_LINE_FIT / seq.exposures[d].meta.t_exposure_s;
-            signal_p95(&cur, med, shot_noise_added(noise, shot, med))
-        } else {
-            signal_p95(&cur, med, noise)
+        let p95 = match knot_shot_var {
+            Some(g) => signal_p95(&cur, med, shot_noise_added(noise, g, med)),
+            None => signal_p95(&cur, med, noise),
         };
         let q: Vec<f64> = (0..nsamp)
             .map(|s| {

@@ -292,6 +292,12 @@ impl Sequence {
         ek.t_start.0 + 0.5 * ek.t_exposure_s - (ea.t_start.0 + ea.t_exposure_s)
     }
 
+    /// The shot-noise variance of exposure `k`'s line-fit current per e-/s of current:
+    /// [`super::eval::SHOT_VAR_LINE_FIT`] over its integration's length.
+    pub fn shot_var_per_e_per_s(&self, k: usize) -> f64 {
+        super::eval::SHOT_VAR_LINE_FIT / self.exposures[k].meta.t_exposure_s
+    }
+
     /// The pixels' relative spread below their 95th percentile, per fluence, measured
     /// in the first dark integration after the first illumination ([`PopulationSpread`]);
     /// empty (spread 0 everywhere) on sky data or when no exposure follows the first
@@ -312,7 +318,7 @@ impl Sequence {
             &fluence(&self.exposures[a]),
             &self.measured(k),
             self.noise_e_per_s[k],
-            super::eval::SHOT_VAR_LINE_FIT / self.exposures[k].meta.t_exposure_s,
+            self.shot_var_per_e_per_s(k),
         )
     }
 

@@ -465,8 +465,7 @@ impl Samples {
             let m = seq.measured(k);
             s.exposures.push(k);
             s.noise.push(seq.noise_e_per_s[k]);
-            s.shot_var_per_e_per_s
-                .push(SHOT_VAR_LINE_FIT / seq.exposures[k].meta.t_exposure_s);
+            s.shot_var_per_e_per_s.push(seq.shot_var_per_e_per_s(k));
             s.t_since_s.push(seq.t_mid_after_s(a, k));
             s.event.push(a);
             s.illumination_time_s
