@@ -56,6 +56,19 @@ fn compare_summary_is_consistent_and_report_self_contained() {
                     .abs()
                     < 1e-12
             );
+            // where they are: the cells' missed and over-flagged add up to the whole's
+            let cells = m["flag_quality_by_cell"][t].as_array().unwrap();
+            let sum = |k: &str| -> u64 { cells.iter().map(|c| c[k].as_u64().unwrap()).sum() };
+            assert_eq!(sum("missed"), q["missed"].as_u64().unwrap(), "{t}");
+            assert_eq!(
+                sum("over_flagged"),
+                q["over_flagged"].as_u64().unwrap(),
+                "{t}"
+            );
+            assert!(cells.iter().all(|c| c["missed"].as_u64().unwrap()
+                + c["over_flagged"].as_u64().unwrap()
+                > 0
+                && c["fluence_e"].as_f64().unwrap() > 0.0));
         }
     }
     let html = std::fs::read_to_string(tmp.path().join("cmp/report.html")).unwrap();
@@ -65,6 +78,7 @@ fn compare_summary_is_consistent_and_report_self_contained() {
         "no external resources"
     );
     assert!(!html.contains("<script"));
+    assert!(html.contains("Where the flags at 0.1 e-/s fail") && html.contains("most missed: "));
 
     // Regression: on a single illumination (the paper's laboratory sequence) the default
     // within statistic has nothing to compare; the refusal says what to use instead.

@@ -59,6 +59,20 @@ pub struct Cell {
     pub stat: GroupStat,
 }
 
+/// One cell's flag quality at one threshold ([`eval::flag_quality_by_cell`]): the
+/// cell as in [`Cell`], the counts and fractions as in `flag_quality`.
+#[derive(Debug, Clone, Serialize)]
+pub struct CellFlags {
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub illumination: Option<u64>,
+    pub fluence_e: f64,
+    pub time_s: f64,
+    #[serde(skip_serializing_if = "std::ops::Not::not")]
+    pub next_to_brighter: bool,
+    #[serde(flatten)]
+    pub quality: FlagQuality,
+}
+
 #[derive(Debug, Clone, Serialize)]
 pub struct ModelSummary {
     pub path: String,
@@ -75,6 +89,10 @@ pub struct ModelSummary {
     pub breakdown: BTreeMap<String, Vec<Bin>>,
     /// Keyed by the threshold in e-/s, e.g. "0.1".
     pub flag_quality: BTreeMap<String, FlagQuality>,
+    /// Where the missed and over-flagged samples are: per threshold (keyed as
+    /// `flag_quality`), the cells of the map with at least one of either, in the map's
+    /// order.
+    pub flag_quality_by_cell: BTreeMap<String, Vec<CellFlags>>,
     /// The same over the touched pixels (module docs), when a baseline is given.
     #[serde(skip_serializing_if = "BTreeMap::is_empty")]
     pub flag_quality_touched: BTreeMap<String, TouchedQuality>,
@@ -211,16 +229,25 @@ pub fn summarise_touched(
                     .collect::<Vec<_>>()
             },
         );
+        // a cell key's illumination (exposure index), fluence, time and contrast
+        let place = |k: &[i64]| {
+            let (fluence_e, time_s) = eval::cell_fluence_time(k);
+            (
+                eval::cell_illumination(k).map(|a| seq.exposures[a].meta.exposure_index),
+                fluence_e,
+                time_s,
+                eval::cell_next_to_brighter(k),
+            )
+        };
         let map = cells
             .iter()
             .map(|(k, g)| {
-                let (fluence_e, time_s) = eval::cell_fluence_time(k);
+                let (illumination, fluence_e, time_s, next_to_brighter) = place(k);
                 Cell {
-                    illumination: eval::cell_illumination(k)
-                        .map(|a| seq.exposures[a].meta.exposure_index),
+                    illumination,
                     fluence_e,
                     time_s,
-                    next_to_brighter: eval::cell_next_to_brighter(k),
+                    next_to_brighter,
                     stat: *g,
                 }
             })
@@ -240,6 +267,7 @@ pub fn summarise_touched(
         }
         let mut fq = BTreeMap::new();
         let mut fqt = BTreeMap::new();
+        let mut fqc = BTreeMap::new();
         let high = params.thresholds.high_e_per_s;
         let mut ths = vec![0.1, 0.01, high, params.thresholds.low_e_per_s];
         ths.sort_by(|a, b| a.total_cmp(b));
@@ -249,6 +277,23 @@ pub fn summarise_touched(
             fq.insert(
                 format!("{t}"),
                 eval::flag_quality(samples, &pr.current, flags, t),
+            );
+            fqc.insert(
+                format!("{t}"),
+                eval::flag_quality_by_cell(samples, &pr.current, flags, t)
+                    .into_iter()
+                    .filter(|(_, q)| q.missed + q.over_flagged > 0)
+                    .map(|(k, quality)| {
+                        let (illumination, fluence_e, time_s, next_to_brighter) = place(&k);
+                        CellFlags {
+                            illumination,
+                            fluence_e,
+                            time_s,
+                            next_to_brighter,
+                            quality,
+                        }
+                    })
+                    .collect::<Vec<_>>(),
             );
             if let Some(mask) = touched {
                 let q = eval::flag_quality_of(samples, &pr.current, flags, t, Some(mask));
@@ -280,6 +325,7 @@ pub fn summarise_touched(
             map,
             breakdown,
             flag_quality: fq,
+            flag_quality_by_cell: fqc,
             flag_quality_touched: fqt,
             spatial: super::spatial::coherence(seq, params)?,
         });
@@ -334,6 +380,7 @@ pub fn definitions(
         ("residual_rms_normalised".into(), rms.into()),
         ("missed".into(), "measured > threshold + 2 noise and not flagged".into()),
         ("over_flagged".into(), "flagged and measured < threshold - 2 noise".into()),
+        ("flag_quality_by_cell".into(), "per threshold, the cells of the map (as residual_rms_normalised groups them) with at least one missed or over-flagged sample, and their counts; a sample counts when its measurement is finite, whatever its prediction".into()),
         ("flags".into(), "at the model's high threshold from the model as the stage runs it (early release on); other thresholds: prediction > threshold with early release off".into()),
         ("spatial".into(), format!("with two illuminations or more: per illumination, the first exposure after it, ln(measured / predicted) at pixels predicted above {} e-/s less the median of its fluence bin (20 per decade), smoothed over 4, 8, 16 and 32 px (three masked box passes); R^2 of one illumination's map against another's ratio, mean over the ordered pairs; at or above {} a field shared by neighbouring pixels (src/diag/spatial.rs)", super::spatial::MIN_PREDICTED_E_PER_S, super::spatial::COHERENT_R2)),
     ])

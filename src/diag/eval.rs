@@ -1122,38 +1122,89 @@ fn flag_quality_where(
     thr: f64,
     keep: impl Fn(usize) -> bool,
 ) -> FlagQuality {
-    let (mut n, mut above, mut fl, mut missed, mut over) = (0, 0, 0, 0, 0);
+    let mut c = FlagCounts::default();
     for i in 0..s.len() {
-        let m = s.measured[i];
-        if !m.is_finite() || !keep(i) {
+        if keep(i) {
+            c.add(s, pred, flagged, thr, i);
+        }
+    }
+    c.quality(thr)
+}
+
+/// Flag quality at `thr` per cell of `s` ([`Cells`], the keys of [`cell_z`]): where the
+/// missed and over-flagged samples are. Every cell with a usable sample, in key order.
+/// A sample enters its cell when its measurement is finite and its covariates give a
+/// key, whatever the prediction (as in [`flag_quality`]), so the cells' samples can
+/// outnumber [`cell_z`]'s where a prediction is not finite.
+pub fn flag_quality_by_cell(
+    s: &Samples,
+    pred: &[f64],
+    flagged: Option<&[bool]>,
+    thr: f64,
+) -> Vec<(Vec<i64>, FlagQuality)> {
+    let keys = s.cells.keys();
+    let mut g: std::collections::BTreeMap<Vec<i64>, FlagCounts> = Default::default();
+    for i in 0..s.len() {
+        if !s.measured[i].is_finite() {
             continue;
         }
-        n += 1;
+        let key: Option<Vec<i64>> = keys.iter().map(|k| bin_of(s, k, i)).collect();
+        if let Some(key) = key {
+            g.entry(key).or_default().add(s, pred, flagged, thr, i);
+        }
+    }
+    g.into_iter().map(|(k, c)| (k, c.quality(thr))).collect()
+}
+
+/// The counts behind a [`FlagQuality`] (module docs: missed is measured above
+/// `thr + 2 sigma_k` and not flagged; over-flagged is flagged and measured below
+/// `thr - 2 sigma_k`).
+#[derive(Debug, Clone, Copy, Default)]
+struct FlagCounts {
+    samples: usize,
+    above: usize,
+    flagged: usize,
+    missed: usize,
+    over: usize,
+}
+
+impl FlagCounts {
+    /// Counts sample `i` if its measurement is finite. Flagged: `flagged[i]`, or the
+    /// prediction above `thr` when no flags are given.
+    fn add(&mut self, s: &Samples, pred: &[f64], flagged: Option<&[bool]>, thr: f64, i: usize) {
+        let m = s.measured[i];
+        if !m.is_finite() {
+            return;
+        }
+        self.samples += 1;
         let sig = s.noise[i / s.npix()];
         let f = match flagged {
             Some(f) => f[i],
             None => pred[i] > thr,
         };
-        fl += f as usize;
+        self.flagged += f as usize;
         if m > thr + 2.0 * sig {
-            above += 1;
-            missed += !f as usize;
+            self.above += 1;
+            self.missed += !f as usize;
         }
         if f && m < thr - 2.0 * sig {
-            over += 1;
+            self.over += 1;
         }
     }
-    let fr = |a: usize, b: usize| if b == 0 { 0.0 } else { a as f64 / b as f64 };
-    FlagQuality {
-        threshold_e_per_s: thr,
-        samples: n,
-        measured_above: above,
-        flagged: fl,
-        missed,
-        over_flagged: over,
-        missed_flag_fraction: fr(missed, n),
-        missed_of_measured_above: fr(missed, above),
-        over_flag_fraction: fr(over, n),
+
+    fn quality(&self, thr: f64) -> FlagQuality {
+        let fr = |a: usize, b: usize| if b == 0 { 0.0 } else { a as f64 / b as f64 };
+        FlagQuality {
+            threshold_e_per_s: thr,
+            samples: self.samples,
+            measured_above: self.above,
+            flagged: self.flagged,
+            missed: self.missed,
+            over_flagged: self.over,
+            missed_flag_fraction: fr(self.missed, self.samples),
+            missed_of_measured_above: fr(self.missed, self.above),
+            over_flag_fraction: fr(self.over, self.samples),
+        }
     }
 }
 
@@ -1241,6 +1292,46 @@ mod tests {
     /// ~1, a floor under every model comparison. Now the noise goes on the predicted side
     /// (`noisy_quantile`); here, on skewed (lognormal) predictions whose spread ranges from
     /// below to above the noise, the RMS must be ~1 and the old form must not be.
+    /// The per-cell counts add up to the whole's, and a sample measured far above the
+    /// threshold and left unflagged is missed in its own cell only.
+    #[test]
+    fn flag_quality_by_cell_places_each_missed_sample_in_its_cell() {
+        let mut s = synthetic();
+        let np = s.npix();
+        // nothing flagged, every measurement below the threshold less twice the largest
+        // noise (0.06 e-/s) but one
+        for m in s.measured.iter_mut().filter(|m| m.is_finite()) {
+            *m = -0.05;
+        }
+        let hit = 4 * np + 100;
+        s.measured[hit] = 1.0;
+        let pred = vec![0.0; s.len()];
+        let whole = flag_quality(&s, &pred, None, 0.1);
+        let cells = flag_quality_by_cell(&s, &pred, None, 0.1);
+        assert_eq!(sum_of(&cells, |q| q.samples), whole.samples);
+        assert_eq!((sum_of(&cells, |q| q.missed), whole.missed), (1, 1));
+        let key: Vec<i64> = s
+            .cells
+            .keys()
+            .iter()
+            .map(|k| bin_of(&s, k, hit).unwrap())
+            .collect();
+        let (k, q) = cells.iter().find(|(_, q)| q.missed == 1).unwrap();
+        assert_eq!(k, &key);
+        assert_eq!((q.measured_above, q.flagged, q.over_flagged), (1, 0, 0));
+        assert!((q.missed_flag_fraction - 1.0 / q.samples as f64).abs() < 1e-15);
+        // flag everything: nothing missed, every other sample over-flagged
+        let flags = vec![true; s.len()];
+        let cells = flag_quality_by_cell(&s, &pred, Some(&flags), 0.1);
+        let whole = flag_quality(&s, &pred, Some(&flags), 0.1);
+        assert_eq!(sum_of(&cells, |q| q.missed), 0);
+        assert_eq!(sum_of(&cells, |q| q.over_flagged), whole.samples - 1);
+    }
+
+    fn sum_of(cells: &[(Vec<i64>, FlagQuality)], f: fn(&FlagQuality) -> usize) -> usize {
+        cells.iter().map(|(_, q)| f(q)).sum()
+    }
+
     #[test]
     fn cells_of_data_drawn_from_the_model_have_unit_rms() {
         use super::super::data::signal_p95;

@@ -193,6 +193,49 @@ fn line_svg(m: &super::compare::ModelSummary, cov: &str) -> Result<String> {
     Ok(s)
 }
 
+/// The cells with the most missed, then the most over-flagged, samples at 0.1 e-/s
+/// (`flag_quality_by_cell`), ten of each.
+fn flag_cells_html(m: &super::compare::ModelSummary) -> Result<String> {
+    let Some(cells) = m.flag_quality_by_cell.get("0.1") else {
+        return Ok("<p>-</p>".into());
+    };
+    let mut h = String::new();
+    type Count = fn(&crate::diag::eval::FlagQuality) -> usize;
+    let parts: [(&str, Count); 2] = [
+        ("most missed", |q| q.missed),
+        ("most over-flagged", |q| q.over_flagged),
+    ];
+    for (title, count) in parts {
+        let mut top: Vec<_> = cells.iter().filter(|c| count(&c.quality) > 0).collect();
+        // most first; the map's order among equals (a stable sort)
+        top.sort_by_key(|c| std::cmp::Reverse(count(&c.quality)));
+        let total: usize = top.iter().map(|c| count(&c.quality)).sum();
+        h += &format!("<p>{title}: {total} samples in {} cells</p>", top.len());
+        if top.is_empty() {
+            continue;
+        }
+        h += "<table><tr><th>illumination</th><th>fluence (e-)</th><th>time (s)</th>\
+<th>samples</th><th>measured above</th><th>flagged</th><th>missed</th><th>over-flagged</th></tr>";
+        for c in top.iter().take(10) {
+            let q = &c.quality;
+            h += &format!(
+                "<tr><td>{}{}</td><td>{:.3e}</td><td>{:.0}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td></tr>",
+                c.illumination.map_or("-".into(), |i| i.to_string()),
+                if c.next_to_brighter { " (next to brighter)" } else { "" },
+                c.fluence_e,
+                c.time_s,
+                q.samples,
+                q.measured_above,
+                q.flagged,
+                q.missed,
+                q.over_flagged
+            );
+        }
+        h += "</table>";
+    }
+    Ok(h)
+}
+
 pub fn html(sum: &Summary) -> Result<String> {
     let mut h = String::from(
         "<!DOCTYPE html><html><head><meta charset=\"utf-8\"><title>persist compare</title>\
@@ -288,6 +331,10 @@ pub fn html(sum: &Summary) -> Result<String> {
     for c in BREAKDOWNS {
         figure(&format!("Normalised residual by {c}"), &|m| line_svg(m, c))?;
     }
+    figure(
+        "Where the flags at 0.1 e-/s fail: cells of the map by missed and over-flagged samples",
+        &flag_cells_html,
+    )?;
     if sum.models.iter().any(|m| m.spatial.is_some()) {
         figure(
             "Where the residual is on the array (spatial check; red: measured above predicted)",
