@@ -44,8 +44,19 @@ pub struct Bin {
     pub stat: GroupStat,
 }
 
+/// One cell of the map: where it is and what it compares.
 #[derive(Debug, Clone, Serialize)]
 pub struct Cell {
+    #[serde(flatten)]
+    pub place: CellPlace,
+    #[serde(flatten)]
+    pub stat: GroupStat,
+}
+
+/// Where a cell of the map is: its illumination, fluence and time since (the bins'
+/// centres), and its neighbour contrast.
+#[derive(Debug, Clone, Copy, Serialize)]
+pub struct CellPlace {
     /// With `--cells illumination`: the exposure index of the cell's illumination.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub illumination: Option<u64>,
@@ -55,20 +66,14 @@ pub struct Cell {
     /// (`eval::cell_next_to_brighter`; written only when true).
     #[serde(skip_serializing_if = "std::ops::Not::not")]
     pub next_to_brighter: bool,
-    #[serde(flatten)]
-    pub stat: GroupStat,
 }
 
 /// One cell's flag quality at one threshold ([`eval::flag_quality_by_cell`]): the
 /// cell as in [`Cell`], the counts and fractions as in `flag_quality`.
 #[derive(Debug, Clone, Serialize)]
 pub struct CellFlags {
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub illumination: Option<u64>,
-    pub fluence_e: f64,
-    pub time_s: f64,
-    #[serde(skip_serializing_if = "std::ops::Not::not")]
-    pub next_to_brighter: bool,
+    #[serde(flatten)]
+    pub place: CellPlace,
     #[serde(flatten)]
     pub quality: FlagQuality,
 }
@@ -229,27 +234,21 @@ pub fn summarise_touched(
                     .collect::<Vec<_>>()
             },
         );
-        // a cell key's illumination (exposure index), fluence, time and contrast
         let place = |k: &[i64]| {
             let (fluence_e, time_s) = eval::cell_fluence_time(k);
-            (
-                eval::cell_illumination(k).map(|a| seq.exposures[a].meta.exposure_index),
+            CellPlace {
+                illumination: eval::cell_illumination(k)
+                    .map(|a| seq.exposures[a].meta.exposure_index),
                 fluence_e,
                 time_s,
-                eval::cell_next_to_brighter(k),
-            )
+                next_to_brighter: eval::cell_next_to_brighter(k),
+            }
         };
         let map = cells
             .iter()
-            .map(|(k, g)| {
-                let (illumination, fluence_e, time_s, next_to_brighter) = place(k);
-                Cell {
-                    illumination,
-                    fluence_e,
-                    time_s,
-                    next_to_brighter,
-                    stat: *g,
-                }
+            .map(|(k, g)| Cell {
+                place: place(k),
+                stat: *g,
             })
             .collect();
         let mut breakdown = BTreeMap::new();
@@ -283,15 +282,9 @@ pub fn summarise_touched(
                 eval::flag_quality_by_cell(samples, &pr.current, flags, t)
                     .into_iter()
                     .filter(|(_, q)| q.missed + q.over_flagged > 0)
-                    .map(|(k, quality)| {
-                        let (illumination, fluence_e, time_s, next_to_brighter) = place(&k);
-                        CellFlags {
-                            illumination,
-                            fluence_e,
-                            time_s,
-                            next_to_brighter,
-                            quality,
-                        }
+                    .map(|(k, quality)| CellFlags {
+                        place: place(&k),
+                        quality,
                     })
                     .collect::<Vec<_>>(),
             );

@@ -26,7 +26,7 @@ fn map_svg(m: &super::compare::ModelSummary) -> Result<String> {
         Default::default();
     for c in &m.map {
         let e = shown
-            .entry((c.fluence_e.to_bits(), c.time_s.to_bits()))
+            .entry((c.place.fluence_e.to_bits(), c.place.time_s.to_bits()))
             .or_insert(c);
         if c.stat.z.abs() > e.stat.z.abs() {
             *e = c;
@@ -34,12 +34,15 @@ fn map_svg(m: &super::compare::ModelSummary) -> Result<String> {
     }
     let (fx0, fx1) = m.map.iter().fold((f64::MAX, f64::MIN), |a, c| {
         (
-            a.0.min(c.fluence_e.log10()),
-            a.1.max(c.fluence_e.log10() + 0.2),
+            a.0.min(c.place.fluence_e.log10()),
+            a.1.max(c.place.fluence_e.log10() + 0.2),
         )
     });
     let (ty0, ty1) = m.map.iter().fold((f64::MAX, f64::MIN), |a, c| {
-        (a.0.min(c.time_s.log10()), a.1.max(c.time_s.log10() + 0.25))
+        (
+            a.0.min(c.place.time_s.log10()),
+            a.1.max(c.place.time_s.log10() + 0.25),
+        )
     });
     heat_svg(
         (420, 320),
@@ -47,7 +50,7 @@ fn map_svg(m: &super::compare::ModelSummary) -> Result<String> {
         (fx0..fx1, ty0..ty1),
         ("log10 fluence (e-)", "log10 t (s)"),
         shown.values().map(|c| {
-            let (x, y) = (c.fluence_e.log10(), c.time_s.log10());
+            let (x, y) = (c.place.fluence_e.log10(), c.place.time_s.log10());
             ([(x, y), (x + 0.2, y + 0.25)], diverging(c.stat.z / 10.0))
         }),
     )
@@ -220,10 +223,10 @@ fn flag_cells_html(m: &super::compare::ModelSummary) -> Result<String> {
             let q = &c.quality;
             h += &format!(
                 "<tr><td>{}{}</td><td>{:.3e}</td><td>{:.0}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td></tr>",
-                c.illumination.map_or("-".into(), |i| i.to_string()),
-                if c.next_to_brighter { " (next to brighter)" } else { "" },
-                c.fluence_e,
-                c.time_s,
+                c.place.illumination.map_or("-".into(), |i| i.to_string()),
+                if c.place.next_to_brighter { " (next to brighter)" } else { "" },
+                c.place.fluence_e,
+                c.place.time_s,
                 q.samples,
                 q.measured_above,
                 q.flagged,
