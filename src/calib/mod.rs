@@ -738,6 +738,18 @@ pub fn run(
                 cfg.amplification * k.value
             );
         }
+        if margin_taken_in(cfg, free, &f) {
+            tracing::warn!(
+                amplification = cfg.amplification,
+                "effect parameters fitted against knots at {} times the measured level \
+                 (the paper's flagging margin): they take that margin and the terms' shape \
+                 in as a residual (on the simulator's temperature campaign `temperature` \
+                 fitted 1.20 eV where the truth has 0.25); to measure them fit with \
+                 --preset readout, and to flag with the margin hold them here \
+                 (--with NAME:param=value; README, \"Which model to compare\")",
+                cfg.amplification
+            );
+        }
         ef = Some(f);
     }
     let pr = crate::diag::eval::predict(&params, &seq, &samples, false)?;
@@ -790,6 +802,20 @@ pub fn run(
     }
     s += &format!("model {} , report {}", out.display(), report_path.display());
     Ok(s)
+}
+
+/// True when `persist fit` fitted effect parameters against knots held away from the
+/// measured level with nothing else free to carry the level: the paper's amplification
+/// is a margin for flagging, and compared with measurements it is a residual the
+/// effects take in (module docs of [`effects`]). With `--fit-amplification` the knots'
+/// factor, and with `--fit-cn` the `C_n`'s scale, carry it instead.
+fn margin_taken_in(cfg: &CalibConfig, free: effects::Free, f: &effects::EffectFit) -> bool {
+    cfg.amplification != 1.0
+        && !free.knot_scale
+        && !free.c_n
+        && f.params
+            .iter()
+            .any(|p| p.effect != "knots" && p.effect != "terms")
 }
 
 /// Write a text file atomically (temporary name, rename).
