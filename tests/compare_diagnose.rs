@@ -29,10 +29,10 @@ fn compare_summary_is_consistent_and_report_self_contained() {
         let mut a = vec!["compare", "--input", &lab, "--model", &m, "--model", &p];
         a.extend(["--report", &r]);
         a.extend(extra);
-        persist(&a);
+        persist(&a)
     };
     // the cells that were the defaults when this was written (pooled, levels)
-    compare("cmp", &common::OLD_CELLS);
+    let printed = compare("cmp", &common::OLD_CELLS);
     let s: serde_json::Value = serde_json::from_str(
         &std::fs::read_to_string(tmp.path().join("cmp/summary.json")).unwrap(),
     )
@@ -69,6 +69,12 @@ fn compare_summary_is_consistent_and_report_self_contained() {
                 + c["over_flagged"].as_u64().unwrap()
                 > 0
                 && c["fluence_e"].as_f64().unwrap() > 0.0));
+            // the printed summary names the cell with the most missed at 0.1 e-/s
+            let most = cells.iter().map(|c| c["missed"].as_u64().unwrap()).max();
+            if let Some(n) = most.filter(|n| *n > 0 && t == "0.1") {
+                let line = format!("most missed@0.1 in one cell: {n} of ");
+                assert!(printed.contains(&line), "{printed}");
+            }
         }
     }
     let html = std::fs::read_to_string(tmp.path().join("cmp/report.html")).unwrap();

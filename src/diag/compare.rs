@@ -655,6 +655,29 @@ pub fn run_with(
                 .collect();
             s += &format!("    by illumination (exposure: RMS) {}\n", per.join(", "));
         }
+        // the cell with the most missed samples at 0.1 e-/s (the first in the map's order
+        // among equals)
+        let worst = m.flag_quality_by_cell.get("0.1").and_then(|c| {
+            c.iter().filter(|c| c.quality.missed > 0).reduce(|a, b| {
+                if b.quality.missed > a.quality.missed {
+                    b
+                } else {
+                    a
+                }
+            })
+        });
+        if let Some(c) = worst {
+            s += &format!(
+                "    most missed@0.1 in one cell: {} of {} samples at {}{:.3e} e-, {:.0} s\n",
+                c.quality.missed,
+                c.quality.samples,
+                c.place
+                    .illumination
+                    .map_or(String::new(), |i| format!("illumination {i}, ")),
+                c.place.fluence_e,
+                c.place.time_s
+            );
+        }
     }
     s += &format!("report {}", out.join("report.html").display());
     Ok(s)
