@@ -109,12 +109,8 @@ fn quality(p: &ModelParams, seq: &Sequence, s: &Samples, touched: Option<&[bool]
             .missed_flag_fraction
     });
     let missed_touched_pixels = touched.map(|t| {
-        let np = s.npix();
-        let px: Vec<bool> = (0..np)
-            .map(|p| t.iter().skip(p).step_by(np).any(|&x| x))
-            .collect();
-        let tp: Vec<bool> = (0..s.len()).map(|i| px[i % np]).collect();
-        eval::flag_quality_of_samples(s, &fl.current, Some(&fl.flagged), 0.1, &tp)
+        let px = eval::pixels_of(s, t);
+        eval::flag_quality_of(s, &fl.current, Some(&fl.flagged), 0.1, Some(&px))
             .missed_flag_fraction
     });
     Quality {

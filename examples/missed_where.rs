@@ -63,16 +63,13 @@ fn main() {
         })
         .collect();
     let qr = eval::flag_quality_of_samples(&s, &fl.current, Some(&fl.flagged), 0.1, &rel);
-    let px: Vec<bool> = (0..np)
-        .map(|p| (0..s.len() / np).any(|r| t[r * np + p]))
-        .collect();
-    let tp: Vec<bool> = (0..s.len()).map(|i| px[i % np]).collect();
-    let qp = eval::flag_quality_of_samples(&s, &fl.current, Some(&fl.flagged), 0.1, &tp);
+    let px = eval::pixels_of(&s, &t);
+    let qp = eval::flag_quality_of(&s, &fl.current, Some(&fl.flagged), 0.1, Some(&px));
     println!(
         "relative only: {} samples, missed {:.4}; every sample of a touched pixel: {} samples, missed {:.4}",
         rel.iter().filter(|&&x| x).count(),
         qr.missed_flag_fraction,
-        tp.iter().filter(|&&x| x).count(),
+        px.iter().filter(|&&x| x).count() * (s.len() / np),
         qp.missed_flag_fraction
     );
     // per (illumination, time bin, fluence bin): the touched samples, the missed, and

@@ -798,6 +798,12 @@ fn paired_stat(
     })
 }
 
+/// Sample `i`'s group key: its bin of each covariate in `keys` ([`bin_of`]), or None
+/// when one has none. The key of [`groups`], [`CellIndex`] and [`flag_quality_by_cell`].
+pub fn key_of(s: &Samples, keys: &[&str], i: usize) -> Option<Vec<i64>> {
+    keys.iter().map(|k| bin_of(s, k, i)).collect()
+}
+
 /// Bin index of a sample for a covariate; None to leave it out.
 pub fn bin_of(s: &Samples, covariate: &str, i: usize) -> Option<i64> {
     let (row, px) = (i / s.npix(), i % s.npix());
@@ -870,16 +876,9 @@ pub fn groups(s: &Samples, pred: &[f64], keys: &[&str]) -> Vec<(Vec<i64>, GroupS
         if !m.is_finite() || !pred[i].is_finite() {
             continue;
         }
-        let mut key = Vec::with_capacity(keys.len());
-        for k in keys {
-            match bin_of(s, k, i) {
-                Some(b) => key.push(b),
-                None => break,
-            }
-        }
-        if key.len() != keys.len() {
+        let Some(key) = key_of(s, keys, i) else {
             continue;
-        }
+        };
         let e = g.entry(key).or_default();
         let (offset, sd, noise) = s.null_of(i, pred[i]);
         e.m.push(m);
@@ -942,8 +941,7 @@ impl CellIndex {
                 continue;
             }
             // the keys of `groups` (same covariates, same order)
-            let key: Option<Vec<i64>> = s.cells.keys().iter().map(|k| bin_of(s, k, i)).collect();
-            if let Some(key) = key {
+            if let Some(key) = key_of(s, s.cells.keys(), i) {
                 g.entry(key).or_default().push(i);
             }
         }
@@ -1095,6 +1093,15 @@ pub fn flag_quality_of_samples(
     flag_quality_where(s, pred, flagged, thr, |i| sample_mask[i])
 }
 
+/// The sampled pixels ([`Samples::pixels`]) where `sample_mask` (one entry per sample)
+/// is true at any sample: a per-sample mask as the pixel mask of [`flag_quality_of`].
+pub fn pixels_of(s: &Samples, sample_mask: &[bool]) -> Vec<bool> {
+    let np = s.npix();
+    (0..np)
+        .map(|p| sample_mask.iter().skip(p).step_by(np).any(|&x| x))
+        .collect()
+}
+
 /// The samples an effect touches: where the true persistence current with it differs
 /// from the same simulation's without it by more than 10 % (and 0.01 e-/s).
 /// `with_truth` and `without_truth` hold one plane per exposure of the sequence
@@ -1148,8 +1155,7 @@ pub fn flag_quality_by_cell(
         if !s.measured[i].is_finite() {
             continue;
         }
-        let key: Option<Vec<i64>> = keys.iter().map(|k| bin_of(s, k, i)).collect();
-        if let Some(key) = key {
+        if let Some(key) = key_of(s, keys, i) {
             g.entry(key).or_default().add(s, pred, flagged, thr, i);
         }
     }
@@ -1285,13 +1291,6 @@ mod tests {
         }
     }
 
-    /// Regression: the cell statistic removed the read noise from the measured 95th
-    /// percentile in quadrature (`signal_p95`), which is biased when the signal's spread
-    /// in a cell is below the noise or skewed, so data drawn from the model itself had a
-    /// normalised residual RMS of 2.9 (64 x 64 campaign) to 5.0 (256 x 256) instead of
-    /// ~1, a floor under every model comparison. Now the noise goes on the predicted side
-    /// (`noisy_quantile`); here, on skewed (lognormal) predictions whose spread ranges from
-    /// below to above the noise, the RMS must be ~1 and the old form must not be.
     /// The per-cell counts add up to the whole's, and a sample measured far above the
     /// threshold and left unflagged is missed in its own cell only.
     #[test]
@@ -1310,12 +1309,7 @@ mod tests {
         let cells = flag_quality_by_cell(&s, &pred, None, 0.1);
         assert_eq!(sum_of(&cells, |q| q.samples), whole.samples);
         assert_eq!((sum_of(&cells, |q| q.missed), whole.missed), (1, 1));
-        let key: Vec<i64> = s
-            .cells
-            .keys()
-            .iter()
-            .map(|k| bin_of(&s, k, hit).unwrap())
-            .collect();
+        let key = key_of(&s, s.cells.keys(), hit).unwrap();
         let (k, q) = cells.iter().find(|(_, q)| q.missed == 1).unwrap();
         assert_eq!(k, &key);
         assert_eq!((q.measured_above, q.flagged, q.over_flagged), (1, 0, 0));
@@ -1332,6 +1326,13 @@ mod tests {
         cells.iter().map(|(_, q)| f(q)).sum()
     }
 
+    /// Regression: the cell statistic removed the read noise from the measured 95th
+    /// percentile in quadrature (`signal_p95`), which is biased when the signal's spread
+    /// in a cell is below the noise or skewed, so data drawn from the model itself had a
+    /// normalised residual RMS of 2.9 (64 x 64 campaign) to 5.0 (256 x 256) instead of
+    /// ~1, a floor under every model comparison. Now the noise goes on the predicted side
+    /// (`noisy_quantile`); here, on skewed (lognormal) predictions whose spread ranges from
+    /// below to above the noise, the RMS must be ~1 and the old form must not be.
     #[test]
     fn cells_of_data_drawn_from_the_model_have_unit_rms() {
         use super::super::data::signal_p95;
