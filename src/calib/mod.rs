@@ -804,15 +804,22 @@ pub fn run(
     Ok(s)
 }
 
+/// True when a fit `--with` an effect on top of this calibration would fit it against
+/// knots held at `amplification` times the measured level with nothing else free to
+/// carry the level (neither `--fit-cn` nor `--fit-amplification`): the effect's
+/// parameters would take the margin in ([`margin_taken_in`]; `persist diagnose` then
+/// also names the `--preset readout` fit that measures them).
+pub fn knots_held_off_level(amplification: f64, fit_cn: bool, fit_amplification: bool) -> bool {
+    amplification != 1.0 && !fit_cn && !fit_amplification
+}
+
 /// True when `persist fit` fitted effect parameters against knots held away from the
 /// measured level with nothing else free to carry the level: the paper's amplification
 /// is a margin for flagging, and compared with measurements it is a residual the
 /// effects take in (module docs of [`effects`]). With `--fit-amplification` the knots'
 /// factor, and with `--fit-cn` the `C_n`'s scale, carry it instead.
 fn margin_taken_in(cfg: &CalibConfig, free: effects::Free, f: &effects::EffectFit) -> bool {
-    cfg.amplification != 1.0
-        && !free.knot_scale
-        && !free.c_n
+    knots_held_off_level(cfg.amplification, free.c_n, free.knot_scale)
         && f.params
             .iter()
             .any(|p| p.effect != "knots" && p.effect != "terms")

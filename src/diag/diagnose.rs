@@ -409,6 +409,53 @@ fn fit_command(
     s
 }
 
+/// When the model's knots stand away from the measured level with nothing free to
+/// carry it ([`crate::calib::knots_held_off_level`]; a model without a calibration
+/// record has `fit`'s defaults, the paper's 1.2), [`fit_command`] would fit the
+/// candidates against that margin, and their parameters would take it in (`persist
+/// fit` warns; twenty-fourth session: `temperature` fitted 1.20 eV for the truth's
+/// 0.25 under the paper's preset, 0.250 under `--preset readout`). Then: the same
+/// effects and cells calibrated with `--preset readout`, which measures them, written
+/// beside the model as `MODEL.readout+NAMES.json`. `None` otherwise.
+fn measure_command(
+    input: &Path,
+    model_path: &Path,
+    params: &ModelParams,
+    names: &[&str],
+    cfg: &Config,
+) -> Option<String> {
+    use crate::calib::Preset;
+    let c = params
+        .calibration
+        .clone()
+        .unwrap_or_else(|| crate::calib::CalibConfig::default().record());
+    if !crate::calib::knots_held_off_level(c.amplification, c.fit_cn, c.fit_amplification) {
+        return None;
+    }
+    let mut readout = params.clone();
+    readout.calibration = Some(Preset::Readout.config().record());
+    let out = model_path.with_extension("readout.json");
+    Some(fit_command(input, &out, &readout, names, cfg))
+}
+
+/// The verdict's sentence on [`measure_command`], empty without one.
+fn margin_note(measure: Option<&str>, params: &ModelParams) -> String {
+    let Some(m) = measure else {
+        return String::new();
+    };
+    let a = params
+        .calibration
+        .as_ref()
+        .map_or(crate::calib::CalibConfig::default().amplification, |c| {
+            c.amplification
+        });
+    format!(
+        ". That fit holds the knots at {a} times the measured level (the paper's flagging \
+         margin), which the effect's parameters would take in (fit warns); to measure \
+         them: {m}"
+    )
+}
+
 /// The `persist fit --preset` other than the default whose options calibration `c`
 /// has ([`crate::calib::Preset::matches`]).
 fn preset_of(c: &crate::model::params::Calibration) -> Option<crate::calib::Preset> {
@@ -510,6 +557,11 @@ pub struct Candidate {
     pub refused_no_field: bool,
     pub covariate: String,
     pub command: String,
+    /// When `command` would fit the candidate against knots held at the paper's
+    /// flagging margin ([`crate::calib::knots_held_off_level`]): the `--preset readout`
+    /// fit that measures its parameters instead ([`measure_command`]).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub measure_command: Option<String>,
 }
 
 /// A pair of library effects refitted together (module docs, "Joint check").
@@ -528,6 +580,9 @@ pub struct Joint {
     pub held_out: Option<HeldOut>,
     pub significant: bool,
     pub command: String,
+    /// As [`Candidate::measure_command`].
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub measure_command: Option<String>,
 }
 
 #[derive(Debug, Clone, Serialize)]
@@ -1201,6 +1256,7 @@ pub fn diagnose(
                 refused_no_field: false,
                 covariate: def.covariate.into(),
                 command: fit_command(input, model_path, params, &[name], cfg),
+                measure_command: measure_command(input, model_path, params, &[name], cfg),
             }
         })
         .collect();
@@ -1347,18 +1403,19 @@ pub fn diagnose(
                 "no library effect is significant alone, but {} and {} are together \
                  (dBIC {:.1} against the model, {:.1} against {} alone; held-out gain {:.2}): \
                  neither accounts for the residual without the other, so they act \
-                 together; add both with: {}",
+                 together; add both with: {}{}",
                 j.effects[0],
                 j.effects[1],
                 j.delta_bic,
                 j.delta_bic_over_leader,
                 j.effects[0],
                 j.held_out.as_ref().map_or(f64::NAN, |h| h.gain),
-                j.command
+                j.command,
+                margin_note(j.measure_command.as_deref(), params)
             )
         }
         Some(c) => format!(
-            "missing effect: {} (the evidence is in the residual against {}{}); add it with: {}",
+            "missing effect: {} (the evidence is in the residual against {}{}); add it with: {}{}",
             c.effect,
             c.covariate,
             if c.held_out.is_none() {
@@ -1366,7 +1423,8 @@ pub fn diagnose(
             } else {
                 ""
             },
-            c.command
+            c.command,
+            margin_note(c.measure_command.as_deref(), params)
         ),
         None => {
             let w: Vec<String> = largest
@@ -1475,6 +1533,7 @@ fn joint_check(
                     held_out: None,
                     significant: false,
                     command: fit_command(j.input, j.model_path, j.params, &pair, j.cfg),
+                    measure_command: measure_command(j.input, j.model_path, j.params, &pair, j.cfg),
                 },
                 fitted,
             ))
@@ -1979,6 +2038,49 @@ mod tests {
             calibration_args(Some(&c)),
             " --amplification 1 --decay-offset-s 0.2 --rates-per-s 1,0.0000158489 --fit-cn"
         );
+    }
+
+    /// Against knots held at the paper's margin (a model of the paper's preset, or one
+    /// without a calibration record) the suggested fit would take the margin into the
+    /// candidate's parameters: the diagnosis also names the `--preset readout` fit of
+    /// the same effects and cells. Not for a readout model, nor where `--fit-cn` or
+    /// `--fit-amplification` carries the level.
+    #[test]
+    fn a_candidate_against_the_paper_margin_also_gets_the_readout_fit() {
+        use crate::calib::{CalibConfig, Preset};
+        let mut p = ModelParams::default();
+        p.effects.push(EffectSpec::named("soak"));
+        let cfg = Config {
+            cell_statistic: eval::CellStatistic::Population,
+            ..Config::default()
+        };
+        let cmd = |p: &ModelParams| {
+            measure_command(
+                Path::new("lab"),
+                Path::new("m.json"),
+                p,
+                &["temperature"],
+                &cfg,
+            )
+        };
+        let readout = "persist fit --input lab --out m.readout+temperature.json --preset readout \
+                       --with soak --with temperature --cell-statistic population";
+        for c in [None, Some(CalibConfig::default().record())] {
+            p.calibration = c;
+            assert_eq!(cmd(&p).as_deref(), Some(readout));
+            assert!(margin_note(cmd(&p).as_deref(), &p).contains("1.2 times the measured level"));
+        }
+        let mut c = CalibConfig::default().record();
+        c.fit_amplification = true;
+        p.calibration = Some(c.clone());
+        assert_eq!(cmd(&p), None);
+        c.fit_amplification = false;
+        c.fit_cn = true;
+        p.calibration = Some(c);
+        assert_eq!(cmd(&p), None);
+        p.calibration = Some(Preset::Readout.config().record());
+        assert_eq!(cmd(&p), None);
+        assert_eq!(margin_note(None, &p), "");
     }
 
     /// A model calibrated with `fit --preset readout` gets `--preset readout` back, its
