@@ -1,0 +1,189 @@
+//! Where the `populations` row's residual comes from (docs/diagnose_matrix.md,
+//! "Twenty-fifth session"). Under `--cell-statistic population --background line`:
+//!
+//! 1. the cell RMS with the pixels sampled every 2, 4 and 8 pixels (two offsets each):
+//!    if the residual is the cells' 95th percentiles moving together because
+//!    neighbouring pixels share their traps (the truth's field), the excess over a
+//!    campaign without the field falls as the samples grow apart;
+//! 2. a per-pixel map learnt from the data: the first dark's log ratio of measured to
+//!    predicted (`persist::diag::spatial::log_ratios`), of the first illumination or
+//!    averaged over all, smoothed over `L_PX`, applied to the predictions as
+//!    `exp(strength (M - mean M))` with the knots' level refitted on a grid, and the
+//!    population's spread measured anew about it (the measured current divided by the
+//!    map, [`PopulationSpread::measure`]), so that the reference follows the map.
+//! 3. the stride-2 cells with each cell's `sigma_q` widened by its design effect for
+//!    pixels whose spread is correlated as the truth's field is (`L_PX` as the
+//!    simulator's `length_px`: three box passes of half-width `L/2`, a Gaussian of
+//!    `sigma^2 = L (L + 2) / 4`; correlation `exp(-d^2 / (4 sigma^2))` at `d` pixels):
+//!    `deff = 1 + mean over pairs of rho_ij s_i s_j / (sd_i sd_j) * (n - 1)`, from 20,000
+//!    random pairs per cell, `s` the population part of each sample's spread and `sd`
+//!    its whole ([`Samples::null_of`]). The RMS such a statistic would give, had the
+//!    model said the pixels' spread is correlated over `L_PX`.
+//!
+//! ```sh
+//! target/release/examples/populations_stride LAB_DIR MODEL.json [L_PX]
+//! ```
+use persist::diag::data::{fluence, Background, PopulationSpread, Sequence};
+use persist::diag::eval::{self, Samples};
+use persist::diag::spatial;
+use std::path::Path;
+
+fn main() {
+    let a: Vec<String> = std::env::args().collect();
+    if a.len() < 3 {
+        eprintln!("usage: populations_stride LAB_DIR MODEL.json [L_PX]");
+        std::process::exit(2);
+    }
+    let seq = Sequence::load_with(Path::new(&a[1]), Background::Line).expect("sequence");
+    let model = persist::model_file::load(Path::new(&a[2])).expect("model");
+    let length_px: f64 = a.get(3).map_or(8.0, |s| s.parse().expect("L_PX"));
+    let cells = |s: Samples| {
+        s.with_cells(eval::Cells::Illumination)
+            .with_statistic(eval::CellStatistic::Population)
+    };
+    println!("stride  offset  cells  RMS");
+    for stride in [2usize, 4, 8] {
+        for off in [0usize, 1] {
+            let pixels: Vec<(usize, usize)> = (0..seq.ny)
+                .filter(|y| y % stride == off)
+                .flat_map(|y| {
+                    (0..seq.nx)
+                        .filter(|x| x % stride == off)
+                        .map(move |x| (y, x))
+                })
+                .collect();
+            let s = cells(Samples::with_pixels(&seq, pixels, stride));
+            let pr = eval::predict(&model, &seq, &s, false).expect("predict");
+            let z = eval::cell_z(&s, &pr.current);
+            println!("{stride:6}  {off:6}  {:5}  {:.3}", z.len(), eval::rms(&z));
+        }
+    }
+    design_effect(&seq, &model, length_px);
+    let ratios = spatial::log_ratios(&seq, &model).expect("ratios");
+    let Some(first) = ratios.first() else {
+        return;
+    };
+    let s0 = cells(Samples::new(&seq, 2));
+    let pr = eval::predict(&model, &seq, &s0, false).expect("predict");
+    let a0 = seq.illuminations[0];
+    let k = a0 + 1;
+    let np = s0.npix();
+    println!("map     L_px  strength  RMS    level");
+    for (label, base) in [
+        ("first", first.ratio.clone()),
+        ("mean", spatial::mean_ratio(&ratios)),
+    ] {
+        let map = spatial::smooth(&base, length_px).mapv(|v| if v.is_finite() { v } else { 0.0 });
+        let mu = map.iter().sum::<f64>() / map.len() as f64;
+        for strength in [0.0, 0.5, 1.0, 2.0] {
+            let scale = map.mapv(|m| (strength * (m - mu)).exp());
+            let spread = PopulationSpread::measure(
+                &fluence(&seq.exposures[a0]),
+                &(&seq.measured(k) / &scale),
+                seq.noise_e_per_s[k],
+                seq.shot_var_per_e_per_s(k),
+            );
+            let mut s = s0.clone();
+            for i in 0..s.len() {
+                s.spread_rel[i] = spread.at(s.fluence_e[i]);
+            }
+            let mut best = (f64::INFINITY, 0.0);
+            for j in 0..=40 {
+                let level = 0.8 + 0.4 * f64::from(j) / 40.0;
+                let scaled: Vec<f64> = pr
+                    .current
+                    .iter()
+                    .enumerate()
+                    .map(|(i, q)| {
+                        let (y, x) = s.pixels[i % np];
+                        level * q * scale[[y, x]]
+                    })
+                    .collect();
+                let r = eval::rms(&eval::cell_z(&s, &scaled));
+                if r < best.0 {
+                    best = (r, level);
+                }
+            }
+            println!(
+                "{label:6}  {length_px:4}  {strength:8}  {:.3}  {:.3}",
+                best.0, best.1
+            );
+        }
+    }
+}
+
+/// Section 3 (module docs).
+fn design_effect(seq: &Sequence, model: &persist::model::ModelParams, length_px: f64) {
+    use rand::{Rng, SeedableRng};
+    let s = Samples::new(seq, 2)
+        .with_cells(eval::Cells::Illumination)
+        .with_statistic(eval::CellStatistic::Population);
+    let pr = eval::predict(model, seq, &s, false).expect("predict");
+    let h = (length_px / 2.0).round().max(1.0);
+    // one box pass of half-width h has variance h (h + 1) / 3; three passes
+    let var = h * (h + 1.0);
+    let mut g: std::collections::BTreeMap<Vec<i64>, Vec<usize>> = Default::default();
+    for i in 0..s.len() {
+        if s.measured[i].is_finite() && pr.current[i].is_finite() {
+            if let Some(k) = eval::key_of(&s, s.cells.keys(), i) {
+                g.entry(k).or_default().push(i);
+            }
+        }
+    }
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(1);
+    let (mut plain, mut widened, mut deffs) = (Vec::new(), Vec::new(), Vec::new());
+    for members in g.values() {
+        let meas: Vec<f64> = members.iter().map(|&i| s.measured[i]).collect();
+        let pred: Vec<f64> = members.iter().map(|&i| pr.current[i]).collect();
+        let nulls: Vec<(f64, f64, f64)> = members
+            .iter()
+            .zip(&pred)
+            .map(|(&i, &p)| s.null_of(i, p))
+            .collect();
+        let offset: Vec<f64> = nulls.iter().map(|n| n.0).collect();
+        let sd: Vec<f64> = nulls.iter().map(|n| n.1).collect();
+        let mut noise: Vec<f64> = nulls.iter().map(|n| n.2).collect();
+        noise.sort_by(f64::total_cmp);
+        let Some(st) = eval::cell_stat_null(
+            s.statistic,
+            &meas,
+            &pred,
+            &offset,
+            &sd,
+            noise[noise.len() / 2],
+        ) else {
+            continue;
+        };
+        let n = members.len();
+        let mut acc = 0.0;
+        let pairs = 20_000;
+        for _ in 0..pairs {
+            let a = rng.random_range(0..n);
+            let mut b = rng.random_range(0..n - 1);
+            if b >= a {
+                b += 1;
+            }
+            let (ya, xa) = s.pixels[members[a] % s.npix()];
+            let (yb, xb) = s.pixels[members[b] % s.npix()];
+            let d2 = (ya as f64 - yb as f64).powi(2) + (xa as f64 - xb as f64).powi(2);
+            let pop = |k: usize| (-offset[k] / 1.645) / sd[k].max(1e-300);
+            acc += (-d2 / (4.0 * var)).exp() * pop(a) * pop(b);
+        }
+        let deff = 1.0 + acc / f64::from(pairs) * (n - 1) as f64;
+        plain.push(st.z);
+        widened.push(st.z / deff.sqrt());
+        deffs.push(deff);
+    }
+    let rms = |v: &[f64]| (v.iter().map(|z| z * z).sum::<f64>() / v.len().max(1) as f64).sqrt();
+    deffs.sort_by(f64::total_cmp);
+    println!(
+        "design effect, L {length_px} px: {} cells, RMS {:.3} -> {:.3}; deff median {:.2}, \
+         10-90 % {:.2}-{:.2}",
+        plain.len(),
+        rms(&plain),
+        rms(&widened),
+        deffs[deffs.len() / 2],
+        deffs[deffs.len() / 10],
+        deffs[deffs.len() * 9 / 10]
+    );
+}
