@@ -18,7 +18,10 @@
 //!    `deff = 1 + mean over pairs of rho_ij s_i s_j / (sd_i sd_j) * (n - 1)`, from 20,000
 //!    random pairs per cell, `s` the population part of each sample's spread and `sd`
 //!    its whole ([`Samples::null_of`]). The RMS such a statistic would give, had the
-//!    model said the pixels' spread is correlated over `L_PX`.
+//!    model said the pixels' spread is correlated over `L_PX`; and the score test of a
+//!    correlated fraction `f` of that spread at this length (`deff(f) = 1 + f (deff -
+//!    1)`, Gaussian cells): `sum (deff_c - 1) (z_c^2 - 1) / sqrt(2 sum (deff_c - 1)^2)`,
+//!    standard normal when the cells' `z` are.
 //!
 //! ```sh
 //! target/release/examples/populations_stride LAB_DIR MODEL.json [L_PX]
@@ -132,6 +135,7 @@ fn design_effect(seq: &Sequence, model: &persist::model::ModelParams, length_px:
     }
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(1);
     let (mut plain, mut widened, mut deffs) = (Vec::new(), Vec::new(), Vec::new());
+    let (mut num, mut den) = (0.0, 0.0);
     for members in g.values() {
         let meas: Vec<f64> = members.iter().map(|&i| s.measured[i]).collect();
         let pred: Vec<f64> = members.iter().map(|&i| pr.current[i]).collect();
@@ -170,6 +174,9 @@ fn design_effect(seq: &Sequence, model: &persist::model::ModelParams, length_px:
             acc += (-d2 / (4.0 * var)).exp() * pop(a) * pop(b);
         }
         let deff = 1.0 + acc / f64::from(pairs) * (n - 1) as f64;
+        // the score of a correlated fraction f at this length, deff(f) = 1 + f (deff - 1)
+        num += (deff - 1.0) * (st.z * st.z - 1.0);
+        den += 2.0 * (deff - 1.0).powi(2);
         plain.push(st.z);
         widened.push(st.z / deff.sqrt());
         deffs.push(deff);
@@ -178,12 +185,13 @@ fn design_effect(seq: &Sequence, model: &persist::model::ModelParams, length_px:
     deffs.sort_by(f64::total_cmp);
     println!(
         "design effect, L {length_px} px: {} cells, RMS {:.3} -> {:.3}; deff median {:.2}, \
-         10-90 % {:.2}-{:.2}",
+         10-90 % {:.2}-{:.2}; score of a correlated fraction (N(0,1) under the null) {:.1}",
         plain.len(),
         rms(&plain),
         rms(&widened),
         deffs[deffs.len() / 2],
         deffs[deffs.len() / 10],
-        deffs[deffs.len() * 9 / 10]
+        deffs[deffs.len() * 9 / 10],
+        num / den.sqrt()
     );
 }
