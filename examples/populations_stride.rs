@@ -61,13 +61,13 @@ fn main() {
             println!("{stride:6}  {off:6}  {:5}  {:.3}", z.len(), eval::rms(&z));
         }
     }
-    design_effect(&seq, &model, length_px);
+    let s0 = cells(Samples::new(&seq, 2));
+    let pr = eval::predict(&model, &seq, &s0, false).expect("predict");
+    design_effect(&s0, &pr.current, length_px);
     let ratios = spatial::log_ratios(&seq, &model).expect("ratios");
     let Some(first) = ratios.first() else {
         return;
     };
-    let s0 = cells(Samples::new(&seq, 2));
-    let pr = eval::predict(&model, &seq, &s0, false).expect("predict");
     let a0 = seq.illuminations[0];
     let k = a0 + 1;
     let np = s0.npix();
@@ -115,20 +115,16 @@ fn main() {
     }
 }
 
-/// Section 3 (module docs).
-fn design_effect(seq: &Sequence, model: &persist::model::ModelParams, length_px: f64) {
+/// Section 3 (module docs), on the stride-2 population cells `s` and their predictions.
+fn design_effect(s: &Samples, pred: &[f64], length_px: f64) {
     use rand::{Rng, SeedableRng};
-    let s = Samples::new(seq, 2)
-        .with_cells(eval::Cells::Illumination)
-        .with_statistic(eval::CellStatistic::Population);
-    let pr = eval::predict(model, seq, &s, false).expect("predict");
     let h = (length_px / 2.0).round().max(1.0);
     // one box pass of half-width h has variance h (h + 1) / 3; three passes
     let var = h * (h + 1.0);
     let mut g: std::collections::BTreeMap<Vec<i64>, Vec<usize>> = Default::default();
-    for i in 0..s.len() {
-        if s.measured[i].is_finite() && pr.current[i].is_finite() {
-            if let Some(k) = eval::key_of(&s, s.cells.keys(), i) {
+    for (i, q) in pred.iter().enumerate().take(s.len()) {
+        if s.measured[i].is_finite() && q.is_finite() {
+            if let Some(k) = eval::key_of(s, s.cells.keys(), i) {
                 g.entry(k).or_default().push(i);
             }
         }
@@ -138,24 +134,19 @@ fn design_effect(seq: &Sequence, model: &persist::model::ModelParams, length_px:
     let (mut num, mut den) = (0.0, 0.0);
     for members in g.values() {
         let meas: Vec<f64> = members.iter().map(|&i| s.measured[i]).collect();
-        let pred: Vec<f64> = members.iter().map(|&i| pr.current[i]).collect();
+        let p: Vec<f64> = members.iter().map(|&i| pred[i]).collect();
         let nulls: Vec<(f64, f64, f64)> = members
             .iter()
-            .zip(&pred)
-            .map(|(&i, &p)| s.null_of(i, p))
+            .zip(&p)
+            .map(|(&i, &q)| s.null_of(i, q))
             .collect();
         let offset: Vec<f64> = nulls.iter().map(|n| n.0).collect();
         let sd: Vec<f64> = nulls.iter().map(|n| n.1).collect();
         let mut noise: Vec<f64> = nulls.iter().map(|n| n.2).collect();
         noise.sort_by(f64::total_cmp);
-        let Some(st) = eval::cell_stat_null(
-            s.statistic,
-            &meas,
-            &pred,
-            &offset,
-            &sd,
-            noise[noise.len() / 2],
-        ) else {
+        let Some(st) =
+            eval::cell_stat_null(s.statistic, &meas, &p, &offset, &sd, noise[noise.len() / 2])
+        else {
             continue;
         };
         let n = members.len();

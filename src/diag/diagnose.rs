@@ -425,10 +425,7 @@ fn measure_command(
     cfg: &Config,
 ) -> Option<String> {
     use crate::calib::Preset;
-    let c = params
-        .calibration
-        .clone()
-        .unwrap_or_else(|| crate::calib::CalibConfig::default().record());
+    let c = calibration_or_fit_default(params);
     if !crate::calib::knots_held_off_level(c.amplification, c.fit_cn, c.fit_amplification) {
         return None;
     }
@@ -438,17 +435,21 @@ fn measure_command(
     Some(fit_command(input, &out, &readout, names, cfg))
 }
 
+/// The calibration the model records, or `fit`'s defaults (the paper's) for a model
+/// without the record.
+fn calibration_or_fit_default(params: &ModelParams) -> crate::model::params::Calibration {
+    params
+        .calibration
+        .clone()
+        .unwrap_or_else(|| crate::calib::CalibConfig::default().record())
+}
+
 /// The verdict's sentence on [`measure_command`], empty without one.
 fn margin_note(measure: Option<&str>, params: &ModelParams) -> String {
     let Some(m) = measure else {
         return String::new();
     };
-    let a = params
-        .calibration
-        .as_ref()
-        .map_or(crate::calib::CalibConfig::default().amplification, |c| {
-            c.amplification
-        });
+    let a = calibration_or_fit_default(params).amplification;
     format!(
         ". That fit holds the knots at {a} times the measured level (the paper's flagging \
          margin), which the effect's parameters would take in (fit warns); to measure \
