@@ -23,12 +23,25 @@
 //!    1)`, Gaussian cells): `sum (deff_c - 1) (z_c^2 - 1) / sqrt(2 sum (deff_c - 1)^2)`,
 //!    standard normal when the cells' `z` are.
 //!
+//! 4. the design effect measured from the data alone (no kernel, no length): in each
+//!    stride-2 cell, the samples standardised by their reference (`e = (d - mean) /
+//!    sd`, [`Samples::null_of`]) and the indicator `J` of the cell's top 5 % of `e`;
+//!    the correlation of `J` between pairs of samples of one cell, pooled over the
+//!    cells by class (same exposure or not, distance rounded to a pixel, up to
+//!    `MAX_LAG_PX`; the same pixel at two exposures is the class "other exposure,
+//!    distance 0"); then per cell `deff = 1 + (2 / n) sum over its pairs of rho(class)`
+//!    (the variance of a 95th percentile is that of the mean of its indicators), and
+//!    the RMS of `z / sqrt(deff)`: with every class, with the same exposure's
+//!    neighbours alone (the spatial part) and with the other exposures alone.
+//!
 //! ```sh
-//! target/release/examples/populations_stride LAB_DIR MODEL.json [L_PX]
+//! target/release/examples/populations_stride LAB_DIR MODEL.json [L_PX] [--measured-only]
 //! ```
 use persist::diag::data::{fluence, Background, PopulationSpread, Sequence};
 use persist::diag::eval::{self, Samples};
-use persist::diag::spatial;
+use persist::diag::{spatial, spread};
+use rand::{Rng, SeedableRng};
+use rand_distr::StandardNormal;
 use std::path::Path;
 
 fn main() {
@@ -39,11 +52,21 @@ fn main() {
     }
     let seq = Sequence::load_with(Path::new(&a[1]), Background::Line).expect("sequence");
     let model = persist::model_file::load(Path::new(&a[2])).expect("model");
-    let length_px: f64 = a.get(3).map_or(8.0, |s| s.parse().expect("L_PX"));
+    let length_px: f64 = a
+        .get(3)
+        .filter(|s| !s.starts_with("--"))
+        .map_or(8.0, |s| s.parse().expect("L_PX"));
+    let measured_only = a.iter().any(|s| s == "--measured-only");
     let cells = |s: Samples| {
         s.with_cells(eval::Cells::Illumination)
             .with_statistic(eval::CellStatistic::Population)
     };
+    if measured_only {
+        let s0 = cells(Samples::new(&seq, 2));
+        let pr = eval::predict(&model, &seq, &s0, false).expect("predict");
+        measured_design_effect(&s0, &pr.current);
+        return;
+    }
     println!("stride  offset  cells  RMS");
     for stride in [2usize, 4, 8] {
         for off in [0usize, 1] {
@@ -64,6 +87,7 @@ fn main() {
     let s0 = cells(Samples::new(&seq, 2));
     let pr = eval::predict(&model, &seq, &s0, false).expect("predict");
     design_effect(&s0, &pr.current, length_px);
+    measured_design_effect(&s0, &pr.current);
     let ratios = spatial::log_ratios(&seq, &model).expect("ratios");
     let Some(first) = ratios.first() else {
         return;
@@ -117,18 +141,10 @@ fn main() {
 
 /// Section 3 (module docs), on the stride-2 population cells `s` and their predictions.
 fn design_effect(s: &Samples, pred: &[f64], length_px: f64) {
-    use rand::{Rng, SeedableRng};
     let h = (length_px / 2.0).round().max(1.0);
     // one box pass of half-width h has variance h (h + 1) / 3; three passes
     let var = h * (h + 1.0);
-    let mut g: std::collections::BTreeMap<Vec<i64>, Vec<usize>> = Default::default();
-    for (i, q) in pred.iter().enumerate().take(s.len()) {
-        if s.measured[i].is_finite() && q.is_finite() {
-            if let Some(k) = eval::key_of(s, s.cells.keys(), i) {
-                g.entry(k).or_default().push(i);
-            }
-        }
-    }
+    let g = cell_members(s, pred);
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(1);
     let (mut plain, mut widened, mut deffs) = (Vec::new(), Vec::new(), Vec::new());
     let (mut num, mut den) = (0.0, 0.0);
@@ -172,7 +188,7 @@ fn design_effect(s: &Samples, pred: &[f64], length_px: f64) {
         widened.push(st.z / deff.sqrt());
         deffs.push(deff);
     }
-    let rms = |v: &[f64]| (v.iter().map(|z| z * z).sum::<f64>() / v.len().max(1) as f64).sqrt();
+    let rms = rms_of;
     deffs.sort_by(f64::total_cmp);
     println!(
         "design effect, L {length_px} px: {} cells, RMS {:.3} -> {:.3}; deff median {:.2}, \
@@ -185,4 +201,83 @@ fn design_effect(s: &Samples, pred: &[f64], length_px: f64) {
         deffs[deffs.len() * 9 / 10],
         num / den.sqrt()
     );
+}
+
+/// The samples of each cell of `s` with a finite measurement and prediction.
+fn cell_members(s: &Samples, pred: &[f64]) -> std::collections::BTreeMap<Vec<i64>, Vec<usize>> {
+    let mut g: std::collections::BTreeMap<Vec<i64>, Vec<usize>> = Default::default();
+    for (i, q) in pred.iter().enumerate().take(s.len()) {
+        if s.measured[i].is_finite() && q.is_finite() {
+            if let Some(k) = eval::key_of(s, s.cells.keys(), i) {
+                g.entry(k).or_default().push(i);
+            }
+        }
+    }
+    g
+}
+
+/// Section 4 (module docs), on the stride-2 population cells `s` and their predictions.
+fn measured_design_effect(s: &Samples, pred: &[f64]) {
+    let pc = spread::pair_correlation(s, pred);
+    println!("indicator correlation (centred, pairs): distance px, same exposure, other exposures");
+    for d in 1..=spread::MAX_LAG_PX {
+        let (a, b) = (pc.same_exposure_pairs[d], pc.other_exposures_pairs[d]);
+        if a + b > 0 {
+            println!(
+                "  {d:3}  {:+.4} ({a:8})  {:+.4} ({b:8})",
+                pc.same_exposure[d], pc.other_exposures[d]
+            );
+        }
+    }
+    let z = eval::cell_z(s, pred);
+    let c = spread::check(s, pred, &z);
+    if let Some(kf) = c.kernel {
+        println!(
+            "kernel: corr {:.4} +- {:.4}, length {:.2} +- {:.2} px, level {:+.4}, weighted RMS \
+             {:.2}, converged {}",
+            kf.kernel.corr,
+            kf.sigma_corr,
+            kf.kernel.length_px,
+            kf.sigma_length_px,
+            kf.level,
+            kf.rms_weighted,
+            kf.converged
+        );
+    }
+    println!(
+        "design effect of the fitted kernel: {} cells, RMS {:.3} -> {:.3}; deff median {:.2}",
+        z.len(),
+        eval::rms(&z),
+        c.residual_rms_normalised_correlated,
+        c.design_effect_median
+    );
+    let (t, n) = (c.score, c.score_pairs);
+    // the same score on replicas drawn from the reference (independent samples)
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(2);
+    let mut rep = s.clone();
+    let ts: Vec<f64> = (0..20)
+        .map(|_| {
+            for (i, &q) in pred.iter().enumerate().take(s.len()) {
+                if s.measured[i].is_finite() && q.is_finite() {
+                    let (o, sd, _) = s.null_of(i, q);
+                    rep.measured[i] = q + o + sd * rng.sample::<f64, _>(StandardNormal);
+                }
+            }
+            spread::score(&rep, pred, spread::SCORE_LENGTH_PX).0
+        })
+        .collect();
+    println!(
+        "score T at {} px: {t:.2} over {n} pairs; 20 replicas from the reference: mean {:.2}, \
+         sd {:.2}, max {:.2}",
+        spread::SCORE_LENGTH_PX,
+        ts.iter().sum::<f64>() / ts.len() as f64,
+        (ts.iter().map(|v| v * v).sum::<f64>() / ts.len() as f64
+            - (ts.iter().sum::<f64>() / ts.len() as f64).powi(2))
+        .sqrt(),
+        ts.iter().copied().fold(f64::NEG_INFINITY, f64::max)
+    );
+}
+
+fn rms_of(v: &[f64]) -> f64 {
+    (v.iter().map(|z| z * z).sum::<f64>() / v.len().max(1) as f64).sqrt()
 }

@@ -44,6 +44,11 @@ fn compare_summary_is_consistent_and_report_self_contained() {
         let map = m["map"].as_array().unwrap();
         let z2: f64 = map.iter().map(|c| c["z"].as_f64().unwrap().powi(2)).sum();
         assert!((rms - (z2 / map.len() as f64).sqrt()).abs() < 1e-9 * rms.max(1.0));
+        // the spread check: a finite score, and design effects >= 1 can only lower the RMS
+        let sp = &m["spread"];
+        assert!(sp["score"].as_f64().unwrap().is_finite(), "{sp}");
+        let rc = sp["residual_rms_normalised_correlated"].as_f64().unwrap();
+        assert!(rc <= rms + 1e-12 && sp["design_effect_median"].as_f64().unwrap() >= 1.0);
         for t in ["0.1", "0.01"] {
             let q = &m["flag_quality"][t];
             for k in ["missed_flag_fraction", "over_flag_fraction"] {
@@ -77,6 +82,11 @@ fn compare_summary_is_consistent_and_report_self_contained() {
             }
         }
     }
+    assert_eq!(
+        printed.matches("pixels moving together: score ").count(),
+        2,
+        "{printed}"
+    );
     let html = std::fs::read_to_string(tmp.path().join("cmp/report.html")).unwrap();
     assert!(html.matches("<svg").count() >= 16, "two models x 8 figures");
     assert!(

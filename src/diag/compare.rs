@@ -105,6 +105,9 @@ pub struct ModelSummary {
     /// more.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub spatial: Option<super::spatial::Coherence>,
+    /// Whether the cells' pixels move together, and the cells' RMS if the statistic
+    /// knew how much ([`super::spread`]).
+    pub spread: super::spread::SpreadCheck,
 }
 
 /// Flag quality over the samples of the touched pixels (module docs).
@@ -321,6 +324,7 @@ pub fn summarise_touched(
             flag_quality_by_cell: fqc,
             flag_quality_touched: fqt,
             spatial: super::spatial::coherence(seq, params)?,
+            spread: super::spread::check(samples, &pr.current, &cells),
         });
     }
     Ok(out)
@@ -376,6 +380,7 @@ pub fn definitions(
         ("flag_quality_by_cell".into(), "per threshold, the cells of the map (as residual_rms_normalised groups them) with at least one missed or over-flagged sample, and their counts; a sample counts when its measurement is finite, whatever its prediction".into()),
         ("flags".into(), "at the model's high threshold from the model as the stage runs it (early release on); other thresholds: prediction > threshold with early release off".into()),
         ("spatial".into(), format!("with two illuminations or more: per illumination, the first exposure after it, ln(measured / predicted) at pixels predicted above {} e-/s less the median of its fluence bin (20 per decade), smoothed over 4, 8, 16 and 32 px (three masked box passes); R^2 of one illumination's map against another's ratio, mean over the ordered pairs; at or above {} a field shared by neighbouring pixels (src/diag/spatial.rs)", super::spatial::MIN_PREDICTED_E_PER_S, super::spatial::COHERENT_R2)),
+        ("spread".into(), format!("whether the pixels above each cell's 95th percentile come in patches (neighbouring pixels sharing their traps, which makes a cell's percentile move as if it had fewer pixels): per cell, each sample's indicator of the cell's top 5 % of (measured - predicted - offset) / sd, standardised; score: the pairwise score of a correlation over {} px between distinct pixels of one cell (each pixel's indicators averaged over the cell's exposures), about N(0, 1) for independent pixels; kernel: c exp(-d^2 / (2 l^2)) + level fitted to the mean centred products by distance (up to {} px); residual_rms_normalised_correlated: the cells' z divided by sqrt(design effect), deff = 1 + (2 / n) sum over the cell's pairs of c exp(-d^2 / (2 l^2)); a statement about the statistic's noise, not the predictions (src/diag/spread.rs)", super::spread::SCORE_LENGTH_PX, super::spread::MAX_LAG_PX)),
     ])
 }
 
@@ -644,6 +649,18 @@ pub fn run_with(
             s += &format!(
                 "  missed@0.1 of touched {:.4}",
                 t.missed_flag_fraction_touched
+            );
+        }
+        s += "\n";
+        let sp = &m.spread;
+        s += &format!(
+            "    pixels moving together: score {:.1} (about N(0, 1) for independent pixels)",
+            sp.score
+        );
+        if let Some(k) = sp.kernel.filter(|k| k.kernel.corr > 0.0) {
+            s += &format!(
+                "; correlation {:.3} over {:.1} px, RMS {:.2} with it",
+                k.kernel.corr, k.kernel.length_px, sp.residual_rms_normalised_correlated
             );
         }
         s += "\n";

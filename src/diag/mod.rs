@@ -8,3 +8,4 @@ pub mod diagnose;
 pub mod eval;
 pub mod report;
 pub mod spatial;
+pub mod spread;
