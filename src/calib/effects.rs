@@ -26,6 +26,19 @@
 //! the fit restarts from the best scan point when that fits better (`rescan_nulls`: the
 //! first scan held the others at their starts, where the null could look best).
 //!
+//! # The pixels' spread correlation (`populations`)
+//! A model that states how its pixels' spread is correlated between neighbours
+//! (`populations`' `spread_corr`, `spread_length_px`) has its cells widened by their
+//! design effects ([`crate::diag::spread::model_cell_z`]); the fit keeps that
+//! correlation fixed while it fits the predictions (the design effects computed once,
+//! from the start model's predictions; they depend on the cells' pixels alone). With
+//! `--with populations` (its spread parameters not pinned) the correlation is then
+//! measured on the fitted model's residuals ([`crate::diag::spread::fit_kernel`], a
+//! moment estimator), set in the model and reported with its uncertainty, and the
+//! residual RMS after is that of the widened cells. Not by least squares on the cells:
+//! any widening lowers their sum of squares. The predictions are not refitted under
+//! the new weights (one pass).
+//!
 //! # `--fit-cn`: the decay shape from the data
 //! With [`Free::c_n`] ([`fit_with`], `persist fit --fit-cn`) the terms' `C_n` are fitted too,
 //! jointly with the effects' parameters, in the same problem: one slot per term, the
@@ -84,6 +97,7 @@
 
 use crate::diag::data::Sequence;
 use crate::diag::eval::{self, Samples};
+use crate::diag::spread;
 use crate::error::{Error, Result};
 use crate::model::effects;
 use crate::model::params::{EffectSpec, ModelParams};
@@ -91,6 +105,7 @@ use levenberg_marquardt::{LeastSquaresProblem, LevenbergMarquardt};
 use nalgebra::{storage::Owned, DMatrix, DVector, Dyn};
 use serde::Serialize;
 use std::cell::RefCell;
+use std::collections::BTreeMap;
 
 /// One fitted parameter.
 #[derive(Debug, Clone, Serialize)]
@@ -240,6 +255,9 @@ struct Problem<'a> {
     seq: &'a Sequence,
     samples: &'a Samples,
     cells: eval::CellIndex,
+    /// Design effects of the start model's spread correlation, if it states one
+    /// (module docs, "The pixels' spread correlation").
+    deff: Option<BTreeMap<Vec<i64>, f64>>,
     slots: Vec<Slot>,
     p: DVector<f64>,
     cache: Cache,
@@ -292,7 +310,10 @@ impl Problem<'_> {
         let z = eval::predict(&m, self.seq, self.samples, false)
             .ok()
             .map(|pr| {
-                let c = self.cells.z(self.samples, &pr.current);
+                let mut c = self.cells.z(self.samples, &pr.current);
+                if let Some(d) = &self.deff {
+                    spread::widen(&mut c, d);
+                }
                 DVector::from_iterator(c.len(), c.iter().map(|(_, g)| g.z))
             });
         let mut cache = self.cache.borrow_mut();
@@ -622,10 +643,14 @@ pub fn fit_with(
         start.push(0.0);
     }
     let cells = eval::CellIndex::new(samples);
-    let before = {
-        let pr = eval::predict(base, seq, samples, false)?;
-        eval::rms(&cells.z(samples, &pr.current))
-    };
+    let base_pred = eval::predict(base, seq, samples, false)?.current;
+    let before = eval::rms(&spread::model_cell_z(base, samples, &base_pred));
+    let deff = effects::spread_correlation(&m.effects).map(|k| {
+        let pred = eval::predict(&m, seq, samples, false).map(|p| p.current);
+        spread::design_effects(samples, pred.as_deref().unwrap_or(&base_pred), &k)
+            .into_iter()
+            .collect()
+    });
     let knots_from = super::knots::scale_of(base, seq)?;
     let mut problem = Problem {
         base: m.clone(),
@@ -633,6 +658,7 @@ pub fn fit_with(
         seq,
         samples,
         cells,
+        deff,
         slots,
         p: DVector::from_vec(start),
         cache: RefCell::new(Vec::new()),
@@ -651,14 +677,19 @@ pub fn fit_with(
         );
     }
     let p = problem.p.as_slice().to_vec();
-    let fitted = problem.params_at(&p);
+    let mut fitted = problem.params_at(&p);
     let r = problem.z_at(&p).unwrap_or_else(|| DVector::zeros(0));
     let cells = r.len();
-    let after = if cells == 0 {
+    let mut after = if cells == 0 {
         f64::NAN
     } else {
         (r.norm_squared() / cells as f64).sqrt()
     };
+    let spread_params = measure_spread(&mut fitted, &names, seq, samples)?;
+    if !spread_params.is_empty() {
+        let pr = eval::predict(&fitted, seq, samples, false)?;
+        after = eval::rms(&spread::model_cell_z(&fitted, samples, &pr.current));
+    }
     let cov = problem
         .jacobian()
         .and_then(|j| (j.transpose() * &j).try_inverse());
@@ -667,7 +698,7 @@ pub fn fit_with(
         cov.as_ref()
             .map_or(f64::NAN, |c| (s2 * c[(i, i)]).max(0.0).sqrt())
     };
-    let params = problem
+    let params: Vec<FittedParam> = problem
         .slots
         .iter()
         .enumerate()
@@ -699,6 +730,8 @@ pub fn fit_with(
             },
         })
         .collect();
+    let mut params = params;
+    params.extend(spread_params);
     let c_n = fit_cn.then(|| {
         let terms: Vec<FittedCn> = (n_effect_slots..problem.slots.len())
             .zip(&c_start)
@@ -755,6 +788,52 @@ pub fn fit_with(
             knots_rescaled,
         },
     ))
+}
+
+/// With `populations` among `names` and its spread parameters not pinned: measure the
+/// spread correlation on `fitted`'s residuals and set it there (module docs, "The
+/// pixels' spread correlation"); the two parameters as fitted, or none.
+fn measure_spread(
+    fitted: &mut ModelParams,
+    names: &[&str],
+    seq: &Sequence,
+    samples: &Samples,
+) -> Result<Vec<FittedParam>> {
+    const NAME: &str = "populations";
+    let Some(e) = fitted.effects.iter().position(|e| e.name == NAME) else {
+        return Ok(Vec::new());
+    };
+    let pinned = |k: &str| fitted.effects[e].fixed.iter().any(|f| f == k);
+    if !names.contains(&NAME) || pinned("spread_corr") || pinned("spread_length_px") {
+        return Ok(Vec::new());
+    }
+    let def = effects::lookup(NAME).expect("registered");
+    let spec = |k: &str| def.params.iter().find(|p| p.name == k).expect("declared");
+    let (sc, sl) = (spec("spread_corr"), spec("spread_length_px"));
+    let pr = eval::predict(fitted, seq, samples, false)?;
+    let kf = spread::fit_kernel(&spread::pair_correlation(samples, &pr.current));
+    let (corr, length, s_corr, s_length) = match kf {
+        Some(k) if k.kernel.corr > 0.0 => (
+            k.kernel.corr.clamp(sc.lo, sc.hi),
+            k.kernel.length_px.clamp(sl.lo, sl.hi),
+            k.sigma_corr,
+            k.sigma_length_px,
+        ),
+        // no pair classes, or no correlation: independent pixels
+        _ => (0.0, sl.default, f64::NAN, f64::NAN),
+    };
+    let p = &mut fitted.effects[e].params;
+    p.insert(sc.name.into(), serde_json::json!(corr));
+    p.insert(sl.name.into(), serde_json::json!(length));
+    let param = |s: &crate::model::effect::ParamSpec, value: f64, sigma: f64| FittedParam {
+        effect: NAME.into(),
+        name: s.name.into(),
+        value,
+        sigma,
+        lo: s.lo,
+        hi: s.hi,
+    };
+    Ok(vec![param(sc, corr, s_corr), param(sl, length, s_length)])
 }
 
 #[cfg(test)]

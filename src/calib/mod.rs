@@ -753,7 +753,7 @@ pub fn run(
         ef = Some(f);
     }
     let pr = crate::diag::eval::predict(&params, &seq, &samples, false)?;
-    let cells = crate::diag::eval::cell_z(&samples, &pr.current);
+    let cells = crate::diag::spread::model_cell_z(&params, &samples, &pr.current);
     let rep = FitReport {
         input: input.display().to_string(),
         calibration: cal,

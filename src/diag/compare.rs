@@ -228,7 +228,7 @@ pub fn summarise_touched(
         );
         let (pr, fl) = (pr?, fl?);
         // the cells, and each covariate's groups, in parallel
-        let (cells, by) = rayon::join(
+        let (plain, by) = rayon::join(
             || eval::cell_z(samples, &pr.current),
             || {
                 BREAKDOWNS
@@ -237,6 +237,13 @@ pub fn summarise_touched(
                     .collect::<Vec<_>>()
             },
         );
+        // the model's cells: widened by the spread correlation it states, if any
+        let spread = super::spread::check(samples, &pr.current, &plain);
+        let mut cells = plain;
+        if let Some(k) = crate::model::effects::spread_correlation(&params.effects) {
+            let deff = super::spread::design_effects(samples, &pr.current, &k);
+            super::spread::widen(&mut cells, &deff.into_iter().collect());
+        }
         let place = |k: &[i64]| {
             let (fluence_e, time_s) = eval::cell_fluence_time(k);
             CellPlace {
@@ -324,7 +331,7 @@ pub fn summarise_touched(
             flag_quality_by_cell: fqc,
             flag_quality_touched: fqt,
             spatial: super::spatial::coherence(seq, params)?,
-            spread: super::spread::check(samples, &pr.current, &cells),
+            spread,
         });
     }
     Ok(out)

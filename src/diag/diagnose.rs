@@ -58,6 +58,20 @@
 //!   calibration's own freedom); on single-illumination data `within` has no degrees of
 //!   freedom and declares nothing.
 //!
+//! # Spread correlation
+//! An effect whose switch parameter states how the pixels' spread is correlated between
+//! neighbours (`populations`' `spread_corr`) changes no prediction, so its LM above is 0.
+//! Its score is instead `max(T, 0)^2`, `T` the pairwise score of [`super::spread::score`]
+//! on the samples and the model's predictions (one-sided: a correlation cannot be
+//! negative), about chi-square(1) where positive under independent pixels, as an LM is.
+//! The bootstrap below does not recompute it on each replica (the pair loop is too slow
+//! for ~200 replicas); its replicas, independent samples, give it 0, so the family-wise
+//! threshold leaves out its null. Measured on 20 replicas per campaign at 128 and 256
+//! (docs/diagnose_matrix.md, "Twenty-sixth session"): `T` mean -0.2 to 0.3, sd 0.64-1.18,
+//! largest 2.4, against thresholds of 4 and more. Its refit measures the correlation
+//! ([`crate::calib::effects`], "The pixels' spread correlation") and the refitted model's
+//! cells are widened by it, in the change in BIC and the held-out check alike.
+//!
 //! # Threshold: parametric bootstrap from the fitted model
 //! `B` replicas (`--bootstrap`, default [`DEFAULT_BOOTSTRAP`]) of the measured samples:
 //! the fitted model's prediction plus Gaussian noise with the exposure's own noise
@@ -142,6 +156,7 @@
 
 use super::data::{noisy_quantile, quantile, quantile_in_place, Sequence};
 use super::eval::{self, Samples};
+use super::spread;
 use crate::error::{Error, ErrorKind, Result};
 use crate::model::effects::REGISTRY;
 use crate::model::params::{EffectSpec, ModelParams};
@@ -890,6 +905,22 @@ fn one_sided(p: &crate::model::effect::ParamSpec, null: f64, h: f64) -> Option<f
     (null <= p.lo || null >= p.hi).then_some(h.signum())
 }
 
+/// Whether `def` with its switch `p` at `value` (its other parameters at their
+/// defaults) states a spread correlation ([`crate::model::effect::Effect::spread_correlation`]).
+fn states_spread(
+    def: &crate::model::effect::EffectDef,
+    p: &crate::model::effect::ParamSpec,
+    value: f64,
+) -> bool {
+    let mut map = serde_json::Map::new();
+    map.insert(p.name.into(), serde_json::json!(value));
+    crate::model::effects::build(&EffectSpec {
+        params: map,
+        ..EffectSpec::named(def.name)
+    })
+    .is_ok_and(|e| e.spread_correlation().is_some())
+}
+
 /// The largest LM of each of `b` parametric bootstrap replicas: measurements drawn
 /// as `pred` plus each member's Gaussian null (`c.offset`, `c.sigma`), in order from `rng`, and
 /// scored in parallel `batch` replicas at a time (the same maxima whatever `batch`).
@@ -992,17 +1023,23 @@ pub fn held_out(
             let (fitted, _) =
                 crate::calib::effects::fit(start.unwrap_or(params), &names, seq, &fs)?;
             // `params`' own prediction of the test rows: already computed, not run again
-            let before = eval::cell_z(&ts, &samples.rows_of(base_current, &test_rows));
+            let before =
+                spread::model_cell_z(params, &ts, &samples.rows_of(base_current, &test_rows));
             (fitted, before)
         } else {
             // the model's own effects refitted on the fit half's samples, alone and
             // with the candidate (both fits start from values fitted on all samples)
             let base = refit_own(params, &own, seq, &fs)?;
             let (fitted, _) = fit_candidate(&base, &own, start, names, seq, &fs)?;
-            let before = eval::cell_z(&ts, &eval::predict(&base, seq, &ts, false)?.current);
+            let before =
+                spread::model_cell_z(&base, &ts, &eval::predict(&base, seq, &ts, false)?.current);
             (fitted, before)
         };
-        let after = eval::cell_z(&ts, &eval::predict(&fitted, seq, &ts, false)?.current);
+        let after = spread::model_cell_z(
+            &fitted,
+            &ts,
+            &eval::predict(&fitted, seq, &ts, false)?.current,
+        );
         Ok(HeldOutSums::of(&before, &after))
     };
     let (f0, f1) = rayon::join(|| fold(0), || fold(1));
@@ -1218,7 +1255,15 @@ pub fn diagnose(
         .iter()
         .map(|&(_, p, null, h)| one_sided(p, null, h))
         .collect();
-    let lm = scores(&cells, &samples.measured, &steps, &dirs, cfg.statistic);
+    let mut lm = scores(&cells, &samples.measured, &steps, &dirs, cfg.statistic);
+    // an effect whose switch states the pixels' spread correlation changes no
+    // prediction: its score is the spread score (module docs, "Spread correlation")
+    for (i, &(def, p, null, h)) in tests.iter().enumerate() {
+        if states_spread(def, p, null + h) {
+            let (t, _) = spread::score(&samples, &base.current, spread::SCORE_LENGTH_PX);
+            lm[i] = t.max(0.0).powi(2);
+        }
+    }
     // parametric bootstrap from the fitted model
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(cfg.seed ^ 0x9e37_79b9_7f4a_7c15);
     let b = cfg.bootstrap;
@@ -1354,7 +1399,7 @@ pub fn diagnose(
         (false, true) => std::cmp::Ordering::Greater,
         (false, false) => b.score.total_cmp(&a.score),
     });
-    let residual = eval::cell_z(&samples, &base.current);
+    let residual = spread::model_cell_z(params, &samples, &base.current);
     let rms = eval::rms(&residual);
     let mut largest: Vec<&(Vec<i64>, eval::GroupStat)> = residual.iter().collect();
     largest.sort_by(|a, b| b.1.z.abs().total_cmp(&a.1.z.abs()));

@@ -1038,7 +1038,7 @@ pub fn rss(z: &[(Vec<i64>, GroupStat)]) -> (f64, usize) {
 /// `params` run over `seq`: [`rss`] of its [`cell_z`] at the samples `s`.
 pub fn rss_cells(params: &ModelParams, seq: &Sequence, s: &Samples) -> Result<(f64, usize)> {
     let pr = predict(params, seq, s, false)?;
-    Ok(rss(&cell_z(s, &pr.current)))
+    Ok(rss(&super::spread::model_cell_z(params, s, &pr.current)))
 }
 
 /// `sqrt(mean z^2)` over the cells.

@@ -260,20 +260,35 @@ pub fn pair_correlation(s: &Samples, pred: &[f64]) -> PairCorrelation {
     }
 }
 
-/// The indicators' correlation between two distinct pixels (module docs, "Kernel").
-#[derive(Debug, Clone, Copy, Serialize, PartialEq)]
-pub struct Kernel {
-    /// `c`, the correlation at distance 0.
-    pub corr: f64,
-    /// `l`, pixels.
-    pub length_px: f64,
+/// The indicators' correlation between two distinct pixels (module docs, "Kernel"):
+/// the model's statement of it ([`crate::model::effect::SpreadCorrelation`], the
+/// `populations` effect's `spread_corr` and `spread_length_px`).
+pub use crate::model::effect::SpreadCorrelation as Kernel;
+
+/// Each cell's `z` divided and its `sigma_e_per_s` multiplied by the square root of
+/// its design effect in `deff` (cells not in it: 1).
+pub fn widen(z: &mut [(Vec<i64>, eval::GroupStat)], deff: &BTreeMap<Vec<i64>, f64>) {
+    for (k, g) in z.iter_mut() {
+        let f = deff.get(k).copied().unwrap_or(1.0).max(1.0).sqrt();
+        g.z /= f;
+        g.sigma_e_per_s *= f;
+    }
 }
 
-impl Kernel {
-    /// `rho(d)` at `d` px.
-    pub fn at(&self, d_px: f64) -> f64 {
-        self.corr * (-d_px * d_px / (2.0 * self.length_px * self.length_px)).exp()
+/// [`eval::cell_z`] of a model's predictions `pred` at the samples `s`, widened by
+/// the design effects of the spread correlation the model states
+/// ([`crate::model::effects::spread_correlation`]; the plain cells when it states
+/// none). What `compare`, `fit` and `diagnose` call a model's cells.
+pub fn model_cell_z(
+    params: &crate::model::ModelParams,
+    s: &Samples,
+    pred: &[f64],
+) -> Vec<(Vec<i64>, eval::GroupStat)> {
+    let mut z = eval::cell_z(s, pred);
+    if let Some(k) = crate::model::effects::spread_correlation(&params.effects) {
+        widen(&mut z, &design_effects(s, pred, &k).into_iter().collect());
     }
+    z
 }
 
 /// [`fit_kernel`]'s result.

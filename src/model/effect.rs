@@ -291,6 +291,33 @@ pub trait Effect: Send + Sync + Debug {
     fn limit(&self, _held_e: f64, _capacity_e: f64) -> f64 {
         1.0
     }
+    /// How the pixels' spread about the prediction is correlated between neighbours
+    /// ([`SpreadCorrelation`]; `populations`). Never read by the step: it changes no
+    /// prediction and no flag, only how `compare`, `fit` and `diagnose` weigh a cell's
+    /// 95th percentile. None: independent pixels.
+    fn spread_correlation(&self) -> Option<SpreadCorrelation> {
+        None
+    }
+}
+
+/// The correlation of two distinct pixels' places in their population's spread (above
+/// or below a cell's 95th percentile) at a distance `d`: `corr exp(-d^2 / (2
+/// length_px^2))` (neighbouring pixels sharing their traps; measured and used by
+/// `crate::diag::spread`). A statement about the noise of statistics over many
+/// pixels, not about any pixel's persistence.
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]
+pub struct SpreadCorrelation {
+    /// At distance 0, in [0, 1].
+    pub corr: f64,
+    /// Pixels, > 0.
+    pub length_px: f64,
+}
+
+impl SpreadCorrelation {
+    /// The correlation at `d_px` pixels.
+    pub fn at(&self, d_px: f64) -> f64 {
+        self.corr * (-d_px * d_px / (2.0 * self.length_px * self.length_px)).exp()
+    }
 }
 
 /// The observe hook of a measurement model: each term's weight becomes

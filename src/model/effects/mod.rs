@@ -72,6 +72,15 @@ pub fn build(spec: &EffectSpec) -> Result<Box<dyn Effect>, String> {
     Ok((def.build)(&p))
 }
 
+/// The pixels' spread correlation a model's effects state (the first that states one;
+/// [`Effect::spread_correlation`]), None when none does or an entry does not resolve.
+pub fn spread_correlation(effects: &[EffectSpec]) -> Option<super::effect::SpreadCorrelation> {
+    effects
+        .iter()
+        .filter_map(|e| build(e).ok())
+        .find_map(|e| e.spread_correlation())
+}
+
 /// Parameter value from a resolved map (present by construction).
 pub(crate) fn get(p: &BTreeMap<String, f64>, name: &str) -> f64 {
     p.get(name).copied().unwrap_or(f64::NAN)

@@ -16,8 +16,19 @@
 //! edge, +1 at the other, the same normalisation as `compare`'s position covariate).
 //! There is no constant term: the global scale is the knot table's.
 //! Parameters: `gx`, `gy`, `gxx`, `gxy`, `gyy` (default 0, bounds [-2, 2], null 0; all
-//! zero is bit-identical to no effect; `diagnose` tests the first, `gx`; `fit --with`
-//! fits all five).
+//! zero is bit-identical to no effect; `fit --with` fits all five). `diagnose` tests
+//! the effect's first parameter with a null, `spread_corr` (below), by the spread
+//! score (`crate::diag::spread::score`).
+//!
+//! The pixels' spread: `spread_corr` and `spread_length_px` state how the pixels'
+//! places in their population's spread are correlated between neighbours
+//! ([`crate::model::effect::SpreadCorrelation`]: patches of a few pixels that share
+//! their traps, the simulator's default field). They change no prediction and no flag;
+//! `compare`, `fit` and `diagnose` widen each cell's `sigma_q` by its design effect
+//! (`crate::diag::spread`). `fit --with populations` measures them from the fitted
+//! model's residuals (a moment estimator, `crate::diag::spread::fit_kernel`), not by
+//! least squares on the cells, which any widening lowers; they are not fitted
+//! otherwise. Defaults 0 and 4 px (bounds [0, 1] and [1, 16]): independent pixels.
 //!
 //! Limit: it follows array-scale trends only. Patches a few pixels across (the
 //! simulator's default correlation length, `length_px` 8) are not representable by
@@ -26,7 +37,7 @@
 //! Covariate: position on the array.
 
 use super::get;
-use crate::model::effect::{Effect, EffectDef, ParamSpec, ResponseCtx};
+use crate::model::effect::{Effect, EffectDef, ParamSpec, ResponseCtx, SpreadCorrelation};
 use ndarray::{Array2, Array3};
 use std::sync::OnceLock;
 
@@ -44,8 +55,28 @@ const fn coef(name: &'static str, doc: &'static str) -> ParamSpec {
 
 pub const DEF: EffectDef = EffectDef {
     name: "populations",
-    summary: "smooth trap-density scale across the array: log A *= quadratic in position",
+    summary: "trap density across the array: log A *= quadratic in position; the pixels' \
+              spread correlated between neighbours (noise only)",
     params: &[
+        ParamSpec {
+            name: "spread_corr",
+            default: 0.0,
+            lo: 0.0,
+            hi: 1.0,
+            null: Some(0.0),
+            fitted: false,
+            doc: "correlation of two neighbouring pixels' places in their population's \
+                  spread at distance 0 (module docs; measured by `fit --with`, not fitted)",
+        },
+        ParamSpec {
+            name: "spread_length_px",
+            default: 4.0,
+            lo: 1.0,
+            hi: 16.0,
+            null: None,
+            fitted: false,
+            doc: "pixels: the correlation's Gaussian length (module docs)",
+        },
         coef("gx", "log amplitude per half array width in x (u)"),
         coef("gy", "log amplitude per half array height in y (v)"),
         coef("gxx", "coefficient of u^2 in log amplitude"),
@@ -53,13 +84,18 @@ pub const DEF: EffectDef = EffectDef {
         coef("gyy", "coefficient of v^2 in log amplitude"),
     ],
     build: |p| {
-        Box::new(Populations::new([
+        let mut e = Populations::new([
             get(p, "gx"),
             get(p, "gy"),
             get(p, "gxx"),
             get(p, "gxy"),
             get(p, "gyy"),
-        ]))
+        ]);
+        e.spread = SpreadCorrelation {
+            corr: get(p, "spread_corr"),
+            length_px: get(p, "spread_length_px"),
+        };
+        Box::new(e)
     },
     covariate: "position",
 };
@@ -68,6 +104,8 @@ pub const DEF: EffectDef = EffectDef {
 pub struct Populations {
     /// `gx, gy, gxx, gxy, gyy`.
     pub g: [f64; 5],
+    /// The pixels' spread correlation (module docs); `corr` 0: independent pixels.
+    pub spread: SpreadCorrelation,
     /// The scale map of the first array size asked for, kept: it depends on the
     /// parameters and the position only, and a model steps the same array at every
     /// exposure (one `exp` per pixel per exposure saved).
@@ -76,7 +114,10 @@ pub struct Populations {
 
 impl std::fmt::Debug for Populations {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("Populations").field("g", &self.g).finish()
+        f.debug_struct("Populations")
+            .field("g", &self.g)
+            .field("spread", &self.spread)
+            .finish()
     }
 }
 
@@ -84,6 +125,10 @@ impl Populations {
     pub fn new(g: [f64; 5]) -> Populations {
         Populations {
             g,
+            spread: SpreadCorrelation {
+                corr: 0.0,
+                length_px: 4.0,
+            },
             map: OnceLock::new(),
         }
     }
@@ -110,6 +155,9 @@ impl Effect for Populations {
     /// It scales each pixel's planes by its position alone.
     fn response_reach_px(&self) -> Option<usize> {
         Some(0)
+    }
+    fn spread_correlation(&self) -> Option<SpreadCorrelation> {
+        (self.spread.corr > 0.0).then_some(self.spread)
     }
     fn response(&self, _ctx: &ResponseCtx<'_>, ak: &mut Array3<f64>) {
         if self.g.iter().all(|g| *g == 0.0) {
