@@ -114,7 +114,7 @@ fn quality(p: &ModelParams, seq: &Sequence, s: &Samples, touched: Option<&[bool]
             .missed_flag_fraction
     });
     Quality {
-        rms: eval::rms(&eval::cell_z(s, &pr.current)),
+        rms: eval::rms(&persist::diag::spread::model_cell_z(p, s, &pr.current)),
         missed: q.missed_flag_fraction,
         missed_touched,
         missed_touched_pixels,

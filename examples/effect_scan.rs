@@ -31,7 +31,7 @@ fn main() {
         let pr = eval::predict(&q, &seq, &s2, false).unwrap();
         println!(
             "{eff}.{par} = {v}: rms {:.3}",
-            eval::rms(&eval::cell_z(&s2, &pr.current))
+            eval::rms(&persist::diag::spread::model_cell_z(&q, &s2, &pr.current))
         );
     }
 }

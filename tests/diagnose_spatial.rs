@@ -102,3 +102,45 @@ fn hidden_populations_are_a_field_shared_by_neighbours_and_only_then_declared() 
         "{p0}"
     );
 }
+
+/// `fit --with populations` measures how the pixels' spread is correlated between
+/// neighbours on the fitted model's residuals (src/diag/spread.rs; a noise statement,
+/// the predictions unchanged by it): a positive correlation over a few pixels with the
+/// hidden field, none without it, and the cells widened by it lower the RMS. 32 x 32
+/// campaigns, seed 1, `fit`'s defaults; measured (twenty-sixth session): 0.071 +- 0.031
+/// over 3.0 px with the field (RMS 8.34 -> 4.82), 0 without (7.48 -> 7.42).
+#[test]
+fn fit_with_populations_measures_the_spread_correlation_only_where_the_field_is() {
+    let tmp = tempfile::tempdir().unwrap();
+    let path = |n: &str| tmp.path().join(n).to_str().unwrap().to_string();
+    let spread_of = |extra: &[&str], name: &str| {
+        let lab = path(name);
+        common::lab_campaign(&lab, 32, 1, extra);
+        let model = path(&format!("{name}.json"));
+        persist_ok(&[
+            "fit",
+            "--input",
+            &lab,
+            "--out",
+            &model,
+            "--with",
+            "populations",
+            "--log-level",
+            "warn",
+        ]);
+        let m = read_json(&model);
+        let e = m["effects"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .find(|e| e["name"] == "populations")
+            .unwrap()
+            .clone();
+        let p = |k: &str| e["params"][k].as_f64().unwrap();
+        (p("spread_corr"), p("spread_length_px"))
+    };
+    let (c1, l1) = spread_of(&["--effect", "populations"], "with");
+    assert!(c1 > 0.02 && (1.0..8.0).contains(&l1), "{c1} {l1}");
+    let (c0, _) = spread_of(&[], "without");
+    assert!(c0 < 0.02, "{c0}");
+}
