@@ -38,8 +38,9 @@
 //! Kuhn-Tucker score test for a parameter on the boundary). Without this, an effect whose
 //! direction the data reject ranks high and its refit stays at the null (measured: the
 //! two-sided score ranked `temperature` at 33-97 on baseline campaigns whose refits ended
-//! at the null, delta BIC +5.1). Effects with the null inside the bounds (`populations`)
-//! keep the two-sided score. The bootstrap uses the same statistic.
+//! at the null, delta BIC +5.1). An effect whose null lies inside its bounds keeps the
+//! two-sided score (`populations` did, with the surface's `gx` as its switch, until the
+//! twenty-sixth session). The bootstrap uses the same statistic.
 //!
 //! - `pooled`: `r` = the fluence x time cells, `dof = m`.
 //! - `within` (default): cells split by illumination event; `r` and `j` are demeaned
@@ -1867,7 +1868,9 @@ mod tests {
         assert_eq!(neg[0], 0.0);
         assert!(neg[1] > 1.0);
         // which effects are one-sided
-        for (name, want) in [("capacity", true), ("soak", true), ("populations", false)] {
+        // (populations: its switch is `spread_corr`, null 0 at its lower bound, since the
+        // twenty-sixth session; it was the surface's `gx`, null inside its bounds)
+        for (name, want) in [("capacity", true), ("soak", true), ("populations", true)] {
             let def = crate::model::effects::lookup(name).expect("registered");
             let (p, null) = def.switch().expect("has a switch");
             let h = score_step(p, null);
