@@ -645,9 +645,9 @@ pub fn fit_with(
     let cells = eval::CellIndex::new(samples);
     let base_pred = eval::predict(base, seq, samples, false)?.current;
     let before = eval::rms(&spread::model_cell_z(base, samples, &base_pred));
+    // the cells' pixels, hence their design effects, as the base model predicts them
     let deff = effects::spread_correlation(&m.effects).map(|k| {
-        let pred = eval::predict(&m, seq, samples, false).map(|p| p.current);
-        spread::design_effects(samples, pred.as_deref().unwrap_or(&base_pred), &k)
+        spread::design_effects(samples, &base_pred, &k)
             .into_iter()
             .collect()
     });
@@ -686,9 +686,8 @@ pub fn fit_with(
         (r.norm_squared() / cells as f64).sqrt()
     };
     let spread_params = measure_spread(&mut fitted, &names, seq, samples)?;
-    if !spread_params.is_empty() {
-        let pr = eval::predict(&fitted, seq, samples, false)?;
-        after = eval::rms(&spread::model_cell_z(&fitted, samples, &pr.current));
+    if let Some((_, pred)) = &spread_params {
+        after = eval::rms(&spread::model_cell_z(&fitted, samples, pred));
     }
     let cov = problem
         .jacobian()
@@ -731,7 +730,7 @@ pub fn fit_with(
         })
         .collect();
     let mut params = params;
-    params.extend(spread_params);
+    params.extend(spread_params.into_iter().flat_map(|(p, _)| p));
     let c_n = fit_cn.then(|| {
         let terms: Vec<FittedCn> = (n_effect_slots..problem.slots.len())
             .zip(&c_start)
@@ -792,20 +791,21 @@ pub fn fit_with(
 
 /// With `populations` among `names` and its spread parameters not pinned: measure the
 /// spread correlation on `fitted`'s residuals and set it there (module docs, "The
-/// pixels' spread correlation"); the two parameters as fitted, or none.
+/// pixels' spread correlation"); the two parameters as fitted and `fitted`'s
+/// prediction at `samples` (which they do not change), or None.
 fn measure_spread(
     fitted: &mut ModelParams,
     names: &[&str],
     seq: &Sequence,
     samples: &Samples,
-) -> Result<Vec<FittedParam>> {
+) -> Result<Option<(Vec<FittedParam>, Vec<f64>)>> {
     const NAME: &str = "populations";
     let Some(e) = fitted.effects.iter().position(|e| e.name == NAME) else {
-        return Ok(Vec::new());
+        return Ok(None);
     };
     let pinned = |k: &str| fitted.effects[e].fixed.iter().any(|f| f == k);
     if !names.contains(&NAME) || pinned("spread_corr") || pinned("spread_length_px") {
-        return Ok(Vec::new());
+        return Ok(None);
     }
     let def = effects::lookup(NAME).expect("registered");
     let spec = |k: &str| def.params.iter().find(|p| p.name == k).expect("declared");
@@ -833,7 +833,10 @@ fn measure_spread(
         lo: s.lo,
         hi: s.hi,
     };
-    Ok(vec![param(sc, corr, s_corr), param(sl, length, s_length)])
+    Ok(Some((
+        vec![param(sc, corr, s_corr), param(sl, length, s_length)],
+        pr.current,
+    )))
 }
 
 #[cfg(test)]

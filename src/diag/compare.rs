@@ -240,10 +240,7 @@ pub fn summarise_touched(
         // the model's cells: widened by the spread correlation it states, if any
         let spread = super::spread::check(samples, &pr.current, &plain);
         let mut cells = plain;
-        if let Some(k) = crate::model::effects::spread_correlation(&params.effects) {
-            let deff = super::spread::design_effects(samples, &pr.current, &k);
-            super::spread::widen(&mut cells, &deff.into_iter().collect());
-        }
+        super::spread::widen_for_model(params, samples, &pr.current, &mut cells);
         let place = |k: &[i64]| {
             let (fluence_e, time_s) = eval::cell_fluence_time(k);
             CellPlace {

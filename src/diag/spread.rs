@@ -285,10 +285,21 @@ pub fn model_cell_z(
     pred: &[f64],
 ) -> Vec<(Vec<i64>, eval::GroupStat)> {
     let mut z = eval::cell_z(s, pred);
-    if let Some(k) = crate::model::effects::spread_correlation(&params.effects) {
-        widen(&mut z, &design_effects(s, pred, &k).into_iter().collect());
-    }
+    widen_for_model(params, s, pred, &mut z);
     z
+}
+
+/// [`widen`] the cells `z` of `pred` by the design effects of the spread correlation
+/// `params` states (nothing when it states none).
+pub fn widen_for_model(
+    params: &crate::model::ModelParams,
+    s: &Samples,
+    pred: &[f64],
+    z: &mut [(Vec<i64>, eval::GroupStat)],
+) {
+    if let Some(k) = crate::model::effects::spread_correlation(&params.effects) {
+        widen(z, &design_effects(s, pred, &k).into_iter().collect());
+    }
 }
 
 /// [`fit_kernel`]'s result.
