@@ -55,9 +55,11 @@
 //! `s.stride`, or of 1 px for random samples). The pairs of samples of two pixels are
 //! never visited one by one: their products sum to `W_a W_b` (`W` a pixel's sum of
 //! `w` over the cell's exposures), and only the rows both pixels have (the
-//! same-exposure pairs) are merged. The work is linear in a cell's exposures; visiting
-//! every pair of samples made `compare` on the 256 x 256 14 h lab sequence, whose cells
-//! hold hundreds of exposures, ten times slower (89.5 s against 8.2 s).
+//! same-exposure pairs) are merged. The work is linear in a cell's exposures. Visiting
+//! every pair of samples instead (4547d73) made `compare` on the 256 x 256 14 h lab
+//! sequence, whose cells hold hundreds of exposures, take 88.9 s against 11.9 s
+//! (medians of three runs each, in turns; docs/diagnose_matrix.md, "Twenty-seventh
+//! session").
 
 use super::eval::{self, Samples};
 use levenberg_marquardt::{LeastSquaresProblem, LevenbergMarquardt};
@@ -695,7 +697,7 @@ mod tests {
         assert!(deff[0].1 > 5.0, "{deff:?}");
     }
 
-    /// Regression (compare took 89.5 s on the 256 x 256 14 h lab sequence): the pair
+    /// Regression (compare took 88.9 s on the 256 x 256 14 h lab sequence): the pair
     /// correlations and design effects summed per pixel equal the sums over every pair
     /// of samples, with pixels missing some exposures (unusable samples).
     #[test]
