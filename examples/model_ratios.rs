@@ -9,8 +9,10 @@
 //! session": `soak` and `temperature` at 82 K).
 //!
 //! ```sh
-//! target/release/examples/model_ratios LAB_DIR MODEL.json SET [SET ...]
+//! target/release/examples/model_ratios LAB_DIR MODEL.json [--fluence LO,HI] SET [SET ...]
 //! ```
+//! `--fluence LO,HI` averages only the samples whose measured fluence in the last
+//! illumination lies in `[LO, HI)` e- (`truth_ratios --fluence` takes the true one).
 //! e.g. `... st128 m.json soak:capture_ratio=0.02 temperature:activation_ev=0.25
 //! soak:capture_ratio=0.02+temperature:activation_ev=0.25`.
 use persist::calib::effects::parse_with;
@@ -22,20 +24,38 @@ use std::path::Path;
 /// One `--with` argument: the effect's name and its parameters.
 type With = (String, Vec<(String, f64)>);
 
-/// Per sequence exposure row of `s`: the mean prediction over the sampled pixels.
-fn means(params: &ModelParams, seq: &Sequence, s: &Samples) -> Vec<f64> {
+/// Per sequence exposure row of `s`: the mean prediction over the sampled pixels whose
+/// fluence lies in `band`.
+fn means(params: &ModelParams, seq: &Sequence, s: &Samples, band: (f64, f64)) -> Vec<f64> {
     let pr = eval::predict(params, seq, s, false).expect("predict");
     let np = s.npix();
     pr.current
         .chunks(np)
-        .map(|row| row.iter().sum::<f64>() / np as f64)
+        .zip(s.fluence_e.chunks(np))
+        .map(|(row, fl)| {
+            let (mut sum, mut n) = (0.0, 0usize);
+            for (&v, f) in row.iter().zip(fl) {
+                if (band.0..band.1).contains(f) {
+                    sum += v;
+                    n += 1;
+                }
+            }
+            sum / n.max(1) as f64
+        })
         .collect()
 }
 
 fn main() {
-    let a: Vec<String> = std::env::args().collect();
+    let mut a: Vec<String> = std::env::args().collect();
+    let mut band = (0.0, f64::INFINITY);
+    if let Some(i) = a.iter().position(|x| x == "--fluence") {
+        let v = a.get(i + 1).expect("--fluence LO,HI").clone();
+        let (lo, hi) = v.split_once(',').expect("--fluence LO,HI");
+        band = (lo.parse().expect("LO"), hi.parse().expect("HI"));
+        a.drain(i..i + 2);
+    }
     if a.len() < 4 {
-        eprintln!("usage: model_ratios LAB_DIR MODEL.json SET [SET ...]");
+        eprintln!("usage: model_ratios LAB_DIR MODEL.json [--fluence LO,HI] SET [SET ...]");
         std::process::exit(2);
     }
     let seq = Sequence::load(Path::new(&a[1])).expect("sequence");
@@ -54,7 +74,7 @@ fn main() {
     let (ny, nx) = (seq.ny, seq.nx);
     let pixels = (0..ny).flat_map(|y| (0..nx).map(move |x| (y, x))).collect();
     let s = Samples::with_pixels(&seq, pixels, 1);
-    let without = means(&base, &seq, &s);
+    let without = means(&base, &seq, &s, band);
     let with: Vec<Vec<f64>> = sets
         .iter()
         .map(|set| {
@@ -69,7 +89,7 @@ fn main() {
                     fixed: Vec::new(),
                 });
             }
-            means(&p, &seq, &s)
+            means(&p, &seq, &s, band)
         })
         .collect();
     println!(

@@ -10,16 +10,20 @@
 //! target/release/examples/truth_ratios [--size 64] [--seed 1] [--spots centred] [--temperatures mixed] EFFECT[+EFFECT] ...
 //! ```
 //! Each argument is one hidden set, effects joined by `+` (e.g. `soak temperature
-//! soak+temperature`).
+//! soak+temperature`). `--fluence LO,HI` averages only the pixels whose true fluence
+//! (flux times illuminated time) in the last illumination lies in `[LO, HI)` e-, as
+//! `examples/model_ratios --fluence` does with the measured fluence.
 use persist::sim::effect::EffectSpec;
 use persist::sim::lab::{self, Illumination, LabConfig, Spots, Temperatures};
 
-/// Per exposure: (kind, array-mean true persistence e-/s, focal-plane temperature K).
+/// Per exposure: (kind, mean true persistence e-/s over the pixels of the fluence band,
+/// focal-plane temperature K).
 fn run(
     size: usize,
     seed: u64,
     campaign: &[Illumination],
     effects: &[&str],
+    band: (f64, f64),
 ) -> Vec<(String, f64, f64)> {
     let cfg = LabConfig {
         size,
@@ -32,9 +36,20 @@ fn run(
         ..LabConfig::default()
     };
     let mut out = Vec::new();
+    let mut fluence: Vec<f64> = Vec::new();
     lab::run(&cfg, |s| {
-        let p = &s.true_persistence;
-        let mean = p.iter().map(|&v| f64::from(v)).sum::<f64>() / p.len() as f64;
+        if s.kind == "illuminated" {
+            let t_on = s.exposure.meta.t_illuminated_s();
+            fluence = s.true_flux.iter().map(|&f| f64::from(f) * t_on).collect();
+        }
+        let (mut sum, mut n) = (0.0, 0usize);
+        for (&v, &f) in s.true_persistence.iter().zip(&fluence) {
+            if (band.0..band.1).contains(&f) {
+                sum += f64::from(v);
+                n += 1;
+            }
+        }
+        let mean = sum / n.max(1) as f64;
         let t = s.exposure.meta.focal_plane_temp_k.unwrap_or(f64::NAN);
         out.push((s.kind.clone(), mean, t));
         Ok(())
@@ -57,6 +72,10 @@ fn main() {
         v.parse().expect("--temperatures")
     });
     let campaign = temperatures.apply(spots.campaign());
+    let band = opt("--fluence").map_or((0.0, f64::INFINITY), |v| {
+        let (lo, hi) = v.split_once(',').expect("--fluence LO,HI");
+        (lo.parse().expect("LO"), hi.parse().expect("HI"))
+    });
     let mut sets = Vec::new();
     let mut skip = false;
     for a in &args {
@@ -68,10 +87,18 @@ fn main() {
             sets.push(a.clone());
         }
     }
-    let base = run(size, seed, &campaign, &[]);
+    let base = run(size, seed, &campaign, &[], band);
     let runs: Vec<_> = sets
         .iter()
-        .map(|s| run(size, seed, &campaign, &s.split('+').collect::<Vec<_>>()))
+        .map(|s| {
+            run(
+                size,
+                seed,
+                &campaign,
+                &s.split('+').collect::<Vec<_>>(),
+                band,
+            )
+        })
         .collect();
     println!(
         "| illumination | dark | T (K) | truth without (e-/s) | {} |",
