@@ -12,7 +12,11 @@
 //! target/release/examples/model_ratios LAB_DIR MODEL.json [--fluence LO,HI] SET [SET ...]
 //! ```
 //! `--fluence LO,HI` averages only the samples whose measured fluence in the last
-//! illumination lies in `[LO, HI)` e- (`truth_ratios --fluence` takes the true one).
+//! illumination lies in `[LO, HI)` e- (`truth_ratios --fluence` takes the true one); a
+//! pixel of unknown fluence (a ramp without a slope) is in no band. Name in the sets
+//! every effect of the model file that the comparison should leave out of "without":
+//! the others stay in it (e.g. `temperature:activation_ev=0` beside a `soak` set, when
+//! the truth's `soak` column has no temperature effect).
 //! e.g. `... st128 m.json soak:capture_ratio=0.02 temperature:activation_ev=0.25
 //! soak:capture_ratio=0.02+temperature:activation_ev=0.25`.
 use persist::calib::effects::parse_with;
@@ -25,8 +29,8 @@ use std::path::Path;
 type With = (String, Vec<(String, f64)>);
 
 /// Per sequence exposure row of `s`: the mean prediction over the sampled pixels whose
-/// fluence lies in `band`.
-fn means(params: &ModelParams, seq: &Sequence, s: &Samples, band: (f64, f64)) -> Vec<f64> {
+/// fluence lies in `band` (every pixel without one, those of unknown fluence included).
+fn means(params: &ModelParams, seq: &Sequence, s: &Samples, band: Option<(f64, f64)>) -> Vec<f64> {
     let pr = eval::predict(params, seq, s, false).expect("predict");
     let np = s.npix();
     pr.current
@@ -35,7 +39,7 @@ fn means(params: &ModelParams, seq: &Sequence, s: &Samples, band: (f64, f64)) ->
         .map(|(row, fl)| {
             let (mut sum, mut n) = (0.0, 0usize);
             for (&v, f) in row.iter().zip(fl) {
-                if (band.0..band.1).contains(f) {
+                if band.is_none_or(|(lo, hi)| (lo..hi).contains(f)) {
                     sum += v;
                     n += 1;
                 }
@@ -47,11 +51,14 @@ fn means(params: &ModelParams, seq: &Sequence, s: &Samples, band: (f64, f64)) ->
 
 fn main() {
     let mut a: Vec<String> = std::env::args().collect();
-    let mut band = (0.0, f64::INFINITY);
+    let mut band = None;
     if let Some(i) = a.iter().position(|x| x == "--fluence") {
         let v = a.get(i + 1).expect("--fluence LO,HI").clone();
         let (lo, hi) = v.split_once(',').expect("--fluence LO,HI");
-        band = (lo.parse().expect("LO"), hi.parse().expect("HI"));
+        band = Some((
+            lo.parse::<f64>().expect("LO"),
+            hi.parse::<f64>().expect("HI"),
+        ));
         a.drain(i..i + 2);
     }
     if a.len() < 4 {
