@@ -220,13 +220,15 @@ impl PairCorrelation {
 /// One cell's members gathered by pixel (module docs, "Cost").
 struct ByPixel {
     /// One member per pixel (its first sample in the cell) with `w` the sum of the
-    /// pixel's `w` over the cell's exposures: [`visit_pairs`] on it visits each pair of
-    /// distinct pixels once.
+    /// pixel's `w` over the cell's exposures ([`score`] divides it by `count`: the
+    /// mean): [`visit_pairs`] on it visits each pair of distinct pixels once.
     pixels: Cell,
     /// Per pixel: how many of the cell's samples it has.
     count: Vec<f64>,
     /// Per pixel: its samples' `(row, w)`, rows ascending.
     rows: Vec<Vec<(usize, f64)>>,
+    /// The cell's samples (`n` of the module docs).
+    samples: usize,
 }
 
 /// [`ByPixel`] of one cell.
@@ -240,6 +242,7 @@ fn by_pixel(s: &Samples, c: &Cell) -> ByPixel {
         },
         count: Vec::new(),
         rows: Vec::new(),
+        samples: c.members.len(),
     };
     // members are in index order, so each pixel's rows come ascending
     for (&i, &w) in c.members.iter().zip(&c.w) {
@@ -275,20 +278,27 @@ fn shared_rows(a: &[(usize, f64)], b: &[(usize, f64)]) -> (f64, f64) {
     (sum, n)
 }
 
-/// Runs `f(cell index, cell's members, by pixel, a, b, d)` over every pair of distinct
-/// pixels `a`, `b` (positions in the [`ByPixel`]) of every cell up to [`MAX_LAG_PX`]
-/// apart (module docs, "Pairs" and "Cost").
+/// The cells of `s` under `pred` ([`cells`]) gathered by pixel, in key order.
+fn pixel_cells(s: &Samples, pred: &[f64]) -> Vec<(Vec<i64>, ByPixel)> {
+    cells(s, pred)
+        .into_iter()
+        .map(|(k, c)| (k, by_pixel(s, &c)))
+        .collect()
+}
+
+/// Runs `f(cell index, cell, a, b, d)` over every pair of distinct pixels `a`, `b`
+/// (positions in the [`ByPixel`]) of every cell up to [`MAX_LAG_PX`] apart (module docs,
+/// "Pairs" and "Cost").
 fn for_each_pixel_pair(
     s: &Samples,
-    cells: &[(Vec<i64>, Cell)],
-    mut f: impl FnMut(usize, &Cell, &ByPixel, usize, usize, f64),
+    cells: &[(Vec<i64>, ByPixel)],
+    mut f: impl FnMut(usize, &ByPixel, usize, usize, f64),
 ) {
     let (ny, nx) = extent(s);
     let lags = lags(s.stride);
     let mut head = vec![u32::MAX; ny * nx];
     let mut next = Vec::new();
-    for (ci, (_, c)) in cells.iter().enumerate() {
-        let bp = by_pixel(s, c);
+    for (ci, (_, bp)) in cells.iter().enumerate() {
         visit_pairs(
             s,
             &bp.pixels,
@@ -296,7 +306,7 @@ fn for_each_pixel_pair(
             (ny, nx),
             &mut head,
             &mut next,
-            &mut |a, b, d| f(ci, c, &bp, a, b, d),
+            &mut |a, b, d| f(ci, bp, a, b, d),
         );
     }
 }
@@ -308,11 +318,11 @@ fn for_each_pixel_pair(
 /// `m_a m_b` pairs; the rows both pixels have are the same-exposure pairs and the rest
 /// the pairs of two exposures.
 pub fn pair_correlation(s: &Samples, pred: &[f64]) -> PairCorrelation {
-    let cells = cells(s, pred);
+    let cells = pixel_cells(s, pred);
     let nclass = MAX_LAG_PX + 1;
     let (mut sum, mut cnt) = (vec![0.0; 2 * nclass], vec![0.0_f64; 2 * nclass]);
-    for_each_pixel_pair(s, &cells, |_, c, bp, a, b, d| {
-        let centre = 1.0 / (c.w.len() as f64 - 1.0);
+    for_each_pixel_pair(s, &cells, |_, bp, a, b, d| {
+        let centre = 1.0 / (bp.samples as f64 - 1.0);
         let all = bp.pixels.w[a] * bp.pixels.w[b];
         let n_all = bp.count[a] * bp.count[b];
         let (same, n_same) = shared_rows(&bp.rows[a], &bp.rows[b]);
@@ -502,15 +512,15 @@ pub fn fit_kernel(pc: &PairCorrelation) -> Option<KernelFit> {
 /// Per cell of `s` under `pred` (the cells of [`eval::cell_z`] with at least 10
 /// samples, in key order): its key and design effect under `kernel` (module docs).
 pub fn design_effects(s: &Samples, pred: &[f64], kernel: &Kernel) -> Vec<(Vec<i64>, f64)> {
-    let cells = cells(s, pred);
+    let cells = pixel_cells(s, pred);
     let mut acc = vec![0.0; cells.len()];
-    for_each_pixel_pair(s, &cells, |ci, _, bp, a, b, d| {
+    for_each_pixel_pair(s, &cells, |ci, bp, a, b, d| {
         acc[ci] += kernel.at(d) * bp.count[a] * bp.count[b];
     });
     cells
         .iter()
         .zip(acc)
-        .map(|((k, c), a)| (k.clone(), (1.0 + 2.0 * a / c.members.len() as f64).max(1.0)))
+        .map(|((k, bp), a)| (k.clone(), (1.0 + 2.0 * a / bp.samples as f64).max(1.0)))
         .collect()
 }
 
@@ -560,39 +570,33 @@ pub fn check(s: &Samples, pred: &[f64], z: &[(Vec<i64>, eval::GroupStat)]) -> Sp
     }
 }
 
-/// Each cell with one member per pixel: the pixel's first sample in the cell, with
-/// `w` the mean of the pixel's `w` over the cell's exposures (module docs, "Score").
-fn per_pixel(s: &Samples, cells: Vec<(Vec<i64>, Cell)>) -> Vec<(Vec<i64>, Cell)> {
-    cells
-        .into_iter()
-        .map(|(k, c)| {
-            let mut bp = by_pixel(s, &c);
-            for (w, n) in bp.pixels.w.iter_mut().zip(&bp.count) {
-                *w /= n;
-            }
-            (k, bp.pixels)
-        })
-        .collect()
-}
-
 /// The score `T` of module docs, "Score", with a kernel of length `length_px`, and the
 /// number of pairs of pixels it sums.
 pub fn score(s: &Samples, pred: &[f64], length_px: f64) -> (f64, u64) {
-    let cells = per_pixel(s, cells(s, pred));
+    let mut cells = pixel_cells(s, pred);
+    // each pixel's w averaged over the cell's exposures (module docs, "Score")
+    for (_, bp) in &mut cells {
+        for (w, n) in bp.pixels.w.iter_mut().zip(&bp.count) {
+            *w /= n;
+        }
+    }
     // per cell: the mean square of its pixels' w, the null variance of one product
     let v: Vec<f64> = cells
         .iter()
-        .map(|(_, c)| c.w.iter().map(|w| w * w).sum::<f64>() / c.w.len().max(1) as f64)
+        .map(|(_, bp)| {
+            let w = &bp.pixels.w;
+            w.iter().map(|w| w * w).sum::<f64>() / w.len().max(1) as f64
+        })
         .collect();
     let shape = Kernel {
         corr: 1.0,
         length_px,
     };
     let (mut num, mut den, mut n) = (0.0, 0.0, 0u64);
-    for_each_pixel_pair(s, &cells, |ci, c, _, a, b, d| {
-        let k = shape.at(d);
-        let m = c.w.len() as f64;
-        num += k * (c.w[a] * c.w[b] + v[ci] / (m - 1.0).max(1.0));
+    for_each_pixel_pair(s, &cells, |ci, bp, a, b, d| {
+        let (k, w) = (shape.at(d), &bp.pixels.w);
+        let m = w.len() as f64;
+        num += k * (w[a] * w[b] + v[ci] / (m - 1.0).max(1.0));
         den += k * k * v[ci] * v[ci];
         n += 1;
     });
