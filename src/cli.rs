@@ -13,7 +13,7 @@ use clap::{Args, Parser, Subcommand};
 use persist::calib::Preset;
 use persist::checkpoint::Retention;
 use persist::diag::data::Background;
-use persist::diag::diagnose::Refit;
+use persist::diag::diagnose::{Refit, Statistic};
 use persist::diag::eval::{CellStatistic, Cells};
 use persist::model::{Model, ModelParams};
 use persist::stage::lock::DirLock;
@@ -572,8 +572,8 @@ pub struct DiagnoseArgs {
     #[arg(long, default_value_t = persist::diag::diagnose::DEFAULT_PIXELS)]
     pub pixels: usize,
     /// Residuals of the score test: `within` (illumination contrasts) or `pooled`.
-    #[arg(long, default_value = "within")]
-    pub statistic: String,
+    #[arg(long, default_value_t = Statistic::Within, value_parser = parse_flag::<Statistic>)]
+    pub statistic: Statistic,
     // the score test's groups are the `--statistic`'s; `--cells` keys the refits, the
     // held-out check and the reported RMS
     #[command(flatten)]
@@ -1017,7 +1017,7 @@ fn diagnose(a: &DiagnoseArgs) -> persist::Result<ExitCode> {
         pixels: a.pixels,
         bootstrap: a.bootstrap,
         seed: a.seed,
-        statistic: a.statistic.parse()?,
+        statistic: a.statistic,
         cells: a.cells.cells,
         cell_statistic: a.cells.cell_statistic,
         background: a.cells.background,

@@ -22,6 +22,8 @@
 //!
 //! Units: seconds, electrons, electrons per second; names carry them (`t_exposure_s`).
 
+#[macro_use]
+pub mod choice;
 pub mod bench;
 pub mod calib;
 pub mod checkpoint;

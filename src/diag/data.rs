@@ -464,29 +464,7 @@ pub enum Background {
     Line,
 }
 
-impl std::str::FromStr for Background {
-    type Err = Error;
-    fn from_str(s: &str) -> Result<Background> {
-        match s {
-            "median" => Ok(Background::Median),
-            "line" => Ok(Background::Line),
-            _ => Err(Error::invalid(
-                "--background",
-                format!("`{s}`: expected `median` or `line`"),
-            )),
-        }
-    }
-}
-
-impl std::fmt::Display for Background {
-    /// The name `--background` takes.
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.write_str(match self {
-            Background::Median => "median",
-            Background::Line => "line",
-        })
-    }
-}
+choices!(Background, "--background", Median => "median", Line => "line");
 
 impl Background {
     /// What `compare`'s summary says the measured current is.

@@ -223,19 +223,7 @@ pub enum Statistic {
     Within,
 }
 
-impl std::str::FromStr for Statistic {
-    type Err = Error;
-    fn from_str(s: &str) -> Result<Self> {
-        match s {
-            "pooled" => Ok(Statistic::Pooled),
-            "within" => Ok(Statistic::Within),
-            o => Err(Error::invalid(
-                "--statistic",
-                format!("unknown statistic `{o}` (known: within, pooled)"),
-            )),
-        }
-    }
-}
+choices!(Statistic, "--statistic", Pooled => "pooled", Within => "within");
 
 /// What a candidate's refit frees (module docs, "Refit"). The default, [`Refit::Full`],
 /// is that of `persist diagnose` (`--refit`, whose default is this one).
@@ -250,29 +238,7 @@ pub enum Refit {
     Full,
 }
 
-impl std::fmt::Display for Refit {
-    /// The name `--refit` takes (and the JSON output records).
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.write_str(match self {
-            Refit::Candidate => "candidate",
-            Refit::Full => "full",
-        })
-    }
-}
-
-impl std::str::FromStr for Refit {
-    type Err = Error;
-    fn from_str(s: &str) -> Result<Self> {
-        match s {
-            "candidate" => Ok(Refit::Candidate),
-            "full" => Ok(Refit::Full),
-            o => Err(Error::invalid(
-                "--refit",
-                format!("unknown refit `{o}` (known: candidate, full)"),
-            )),
-        }
-    }
-}
+choices!(Refit, "--refit", Candidate => "candidate", Full => "full");
 
 #[derive(Debug, Clone)]
 pub struct Config {

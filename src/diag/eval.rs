@@ -152,31 +152,7 @@ pub enum Cells {
     Neighbours,
 }
 
-impl std::str::FromStr for Cells {
-    type Err = crate::error::Error;
-    fn from_str(s: &str) -> Result<Cells> {
-        match s {
-            "pooled" => Ok(Cells::Pooled),
-            "illumination" => Ok(Cells::Illumination),
-            "neighbours" => Ok(Cells::Neighbours),
-            _ => Err(crate::error::Error::invalid(
-                "--cells",
-                format!("`{s}`: expected `pooled`, `illumination` or `neighbours`"),
-            )),
-        }
-    }
-}
-
-impl std::fmt::Display for Cells {
-    /// The name `--cells` takes (and the JSON outputs record).
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.write_str(match self {
-            Cells::Pooled => "pooled",
-            Cells::Illumination => "illumination",
-            Cells::Neighbours => "neighbours",
-        })
-    }
-}
+choices!(Cells, "--cells", Pooled => "pooled", Illumination => "illumination", Neighbours => "neighbours");
 
 impl Cells {
     /// What keys a cell, in words.
@@ -215,31 +191,7 @@ pub enum CellStatistic {
     Population,
 }
 
-impl std::str::FromStr for CellStatistic {
-    type Err = crate::error::Error;
-    fn from_str(s: &str) -> Result<CellStatistic> {
-        match s {
-            "levels" => Ok(CellStatistic::Levels),
-            "paired" => Ok(CellStatistic::Paired),
-            "population" => Ok(CellStatistic::Population),
-            _ => Err(crate::error::Error::invalid(
-                "--cell-statistic",
-                format!("`{s}`: expected `levels`, `paired` or `population`"),
-            )),
-        }
-    }
-}
-
-impl std::fmt::Display for CellStatistic {
-    /// The name `--cell-statistic` takes (and the JSON outputs record).
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.write_str(match self {
-            CellStatistic::Levels => "levels",
-            CellStatistic::Paired => "paired",
-            CellStatistic::Population => "population",
-        })
-    }
-}
+choices!(CellStatistic, "--cell-statistic", Levels => "levels", Paired => "paired", Population => "population");
 
 impl CellStatistic {
     /// What the printed outputs add after the cells' description, for either

@@ -247,31 +247,7 @@ impl Spots {
     }
 }
 
-impl std::str::FromStr for Spots {
-    type Err = crate::Error;
-    fn from_str(s: &str) -> crate::Result<Spots> {
-        match s {
-            "centred" => Ok(Spots::Centred),
-            "shifted" => Ok(Spots::Shifted),
-            "pinholes" => Ok(Spots::Pinholes),
-            _ => Err(crate::Error::invalid(
-                "--spots",
-                format!("`{s}`: expected `centred`, `shifted` or `pinholes`"),
-            )),
-        }
-    }
-}
-
-impl std::fmt::Display for Spots {
-    /// The name `--spots` takes.
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.write_str(match self {
-            Spots::Centred => "centred",
-            Spots::Shifted => "shifted",
-            Spots::Pinholes => "pinholes",
-        })
-    }
-}
+choices!(Spots, "--spots", Centred => "centred", Shifted => "shifted", Pinholes => "pinholes");
 
 /// How long the campaign's dark integrations are (`persist simulate lab --dark-lengths`;
 /// module docs, "Dark lengths").
@@ -339,29 +315,7 @@ impl DarkLengths {
     }
 }
 
-impl std::str::FromStr for DarkLengths {
-    type Err = crate::Error;
-    fn from_str(s: &str) -> crate::Result<DarkLengths> {
-        match s {
-            "uniform" => Ok(DarkLengths::Uniform),
-            "varied" => Ok(DarkLengths::Varied),
-            _ => Err(crate::Error::invalid(
-                "--dark-lengths",
-                format!("`{s}`: expected `uniform` or `varied`"),
-            )),
-        }
-    }
-}
-
-impl std::fmt::Display for DarkLengths {
-    /// The name `--dark-lengths` takes.
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.write_str(match self {
-            DarkLengths::Uniform => "uniform",
-            DarkLengths::Varied => "varied",
-        })
-    }
-}
+choices!(DarkLengths, "--dark-lengths", Uniform => "uniform", Varied => "varied");
 
 /// Where the campaign's temperatures are (`persist simulate lab --temperatures`; module
 /// docs, "Temperatures apart").
@@ -403,29 +357,7 @@ impl Temperatures {
     }
 }
 
-impl std::str::FromStr for Temperatures {
-    type Err = crate::Error;
-    fn from_str(s: &str) -> crate::Result<Temperatures> {
-        match s {
-            "mixed" => Ok(Temperatures::Mixed),
-            "apart" => Ok(Temperatures::Apart),
-            _ => Err(crate::Error::invalid(
-                "--temperatures",
-                format!("`{s}`: expected `mixed` or `apart`"),
-            )),
-        }
-    }
-}
-
-impl std::fmt::Display for Temperatures {
-    /// The name `--temperatures` takes.
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.write_str(match self {
-            Temperatures::Mixed => "mixed",
-            Temperatures::Apart => "apart",
-        })
-    }
-}
+choices!(Temperatures, "--temperatures", Mixed => "mixed", Apart => "apart");
 
 /// `--repeats N` (module docs, "Repeated illuminations"): what each added illumination
 /// is, and its dark gap.
