@@ -224,7 +224,11 @@ impl std::str::FromStr for Preset {
             .into_iter()
             .find(|p| p.name() == s)
             .ok_or_else(|| {
-                Error::invalid("--preset", format!("`{s}`: expected `paper` or `readout`"))
+                let words = Preset::ALL.map(Preset::name);
+                Error::invalid(
+                    "--preset",
+                    format!("`{s}`: expected {}", crate::choice::one_of(&words)),
+                )
             })
     }
 }
