@@ -17,13 +17,14 @@ use persist::sim::effect::EffectSpec;
 use persist::sim::lab::{self, Illumination, LabConfig, Spots, Temperatures};
 
 /// Per exposure: (kind, mean true persistence e-/s over the pixels of the fluence band,
-/// focal-plane temperature K).
+/// every pixel without one, focal-plane temperature K). A pixel has no fluence before
+/// the first illumination, so it is in no band then.
 fn run(
     size: usize,
     seed: u64,
     campaign: &[Illumination],
     effects: &[&str],
-    band: (f64, f64),
+    band: Option<(f64, f64)>,
 ) -> Vec<(String, f64, f64)> {
     let cfg = LabConfig {
         size,
@@ -43,8 +44,10 @@ fn run(
             fluence = s.true_flux.iter().map(|&f| f64::from(f) * t_on).collect();
         }
         let (mut sum, mut n) = (0.0, 0usize);
-        for (&v, &f) in s.true_persistence.iter().zip(&fluence) {
-            if (band.0..band.1).contains(&f) {
+        for (i, &v) in s.true_persistence.iter().enumerate() {
+            let in_band =
+                |(lo, hi): (f64, f64)| fluence.get(i).is_some_and(|f| (lo..hi).contains(f));
+            if band.is_none_or(in_band) {
                 sum += f64::from(v);
                 n += 1;
             }
@@ -72,7 +75,7 @@ fn main() {
         v.parse().expect("--temperatures")
     });
     let campaign = temperatures.apply(spots.campaign());
-    let band = opt("--fluence").map_or((0.0, f64::INFINITY), |v| {
+    let band = opt("--fluence").map(|v| {
         let (lo, hi) = v.split_once(',').expect("--fluence LO,HI");
         (lo.parse().expect("LO"), hi.parse().expect("HI"))
     });
