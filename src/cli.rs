@@ -703,7 +703,7 @@ fn simulate(scenario: SimScenario) -> persist::Result<ExitCode> {
 fn validate(files: &[PathBuf]) -> ExitCode {
     let mut failed = false;
     for path in files {
-        match persist::product::validate_path(path) {
+        match persist::validate::validate_path(path) {
             Ok(kind) => out!("ok {kind} {}", path.display()),
             Err(errors) => {
                 failed = true;

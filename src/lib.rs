@@ -38,7 +38,9 @@ pub mod plot;
 pub mod product;
 pub mod sim;
 pub mod stage;
+pub mod stats;
 pub mod units;
+pub mod validate;
 
 pub use error::{Error, ErrorKind, Result};
 

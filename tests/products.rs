@@ -9,10 +9,11 @@ use persist::flags::{bits, pbits};
 use persist::model::{ModelParams, State};
 use persist::product::synthetic::tiny_exposure;
 use persist::product::{
-    read_exposure, read_output, validate_path, write_exposure, write_output, Exposure,
-    PersistenceAttrs, PersistencePlanes, ProductKind,
+    read_exposure, read_output, write_exposure, write_output, Exposure, PersistenceAttrs,
+    PersistencePlanes,
 };
 use persist::units::DetectorId;
+use persist::validate::{validate_path, ProductKind};
 use persist::{Error, ErrorKind};
 use std::path::{Path, PathBuf};
 

@@ -37,8 +37,7 @@
 //! In the default campaign every illumination is the same pattern, scaled, so a pixel's
 //! fluence is a function of its radius from the array centre in every illumination:
 //! an effect that differs between illuminations can then be mimicked by a smooth
-//! surface over the array (the model's `populations`; docs/diagnose_matrix.md, ninth
-//! session, the pair). The shifted campaign is the same five illuminations with the
+//! surface over the array (the model's `populations`). The shifted campaign is the same five illuminations with the
 //! spot's centre moved for illuminations 2-5, as a laboratory would move the
 //! pinhole, so that radius and fluence no longer go together across illuminations:
 //!
@@ -79,12 +78,12 @@
 //!
 //! | # | reset after the shutter | darks after |
 //! |---|---|---|
-//! | 2 | 132 s | 30 of 60 s (30 min, as before) |
+//! | 2 | 132 s | 30 of 60 s (30 min, as in the default campaign) |
 //! | 3 | 12 s | 10 of 540 s (90 min) |
 //!
 //! Illumination 3's reset comes 12 s after its shutter, so its first dark starts on the
-//! steep part of the decay, where the bias is largest (about 32 % for a `1/t` decay;
-//! docs/diagnose_matrix.md, thirteenth session). The others, illumination 1 (the
+//! steep part of the decay, where the bias is largest (about 32 % for a `1/t` decay).
+//! The others, illumination 1 (the
 //! calibration's) included, keep 180 s darks and the 132 s wait.
 //!
 //! # Temperatures apart (`--temperatures apart`, [`Temperatures::apply`])
@@ -94,7 +93,7 @@
 //! or of the hours-long tail (the simulator's `soak`) and one of the temperature (its
 //! `temperature`) then show in the same illumination, and where they interact (soak's
 //! capture time follows the emission time, which the temperature changes) they nearly
-//! cancel (docs/diagnose_matrix.md, thirteenth session). The apart campaign moves
+//! cancel. The apart campaign moves
 //! illumination 4 to 80 K and follows it with 3 h of darks, and adds a sixth
 //! illumination, the fifth's twin at 78 K:
 //!
