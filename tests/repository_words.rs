@@ -11,10 +11,14 @@
 //!
 //! What is *not* a hit, so that the check stays quiet on legitimate text:
 //! - `#` followed by digits inside code: a format spec (`{v:#04x}`), a colour
-//!   (`"#1f77b4"`), an attribute (`#[...]`): a bare reference must follow the start of
-//!   the line, a space or an opening parenthesis, have 1 to 5 digits and end there;
+//!   (`"#1f77b4"`, or `#999;` in CSS), an attribute (`#[...]`): a bare reference must
+//!   follow the start of the line, a space or an opening parenthesis, have 1 to 5
+//!   digits and end there (not before `;` or `}`);
 //! - hex-looking numbers: `0x...` literals, digit groups joined by `_`, decimal
-//!   exponents (`8.617333e-5`), and runs longer than 40 (SHA-256 digests in tests).
+//!   exponents (`8.617333e-5`), and runs longer than 40 (SHA-256 digests in tests);
+//! - a commit named on a line that says it was generated (the provenance header of a
+//!   page that a command in the repository regenerates, which names the date, the
+//!   machine and the commit).
 
 use std::path::Path;
 use std::process::Command;
@@ -77,7 +81,9 @@ fn hash_number_reference(line: &str) -> Option<String> {
         let before_ok = i == 0 || matches!(b[i - 1], b' ' | b'\t' | b'(');
         let n = b[i + 1..].iter().take_while(|d| d.is_ascii_digit()).count();
         let end = i + 1 + n;
-        let after_ok = end == b.len() || !(b[end].is_ascii_alphanumeric() || b[end] == b'_');
+        // not followed by a word character, nor by `;` or `}` (a CSS colour, `#999;`)
+        let after_ok =
+            end == b.len() || !(b[end].is_ascii_alphanumeric() || b"_;}".contains(&b[end]));
         if before_ok && (1..=5).contains(&n) && after_ok {
             return Some(line[i..end].to_string());
         }
@@ -112,6 +118,12 @@ fn commit_hash(line: &str) -> Option<String> {
     None
 }
 
+/// A line that says it was generated (the header of a page a command regenerates) may
+/// name the commit it was generated at: that is provenance, not history.
+fn generated_header(line: &str) -> bool {
+    line.to_ascii_lowercase().contains("generated")
+}
+
 /// Every forbidden reference of one line, described.
 fn hits(line: &str) -> Vec<String> {
     let mut out = Vec::new();
@@ -127,7 +139,7 @@ fn hits(line: &str) -> Vec<String> {
     if let Some(r) = hash_number_reference(line) {
         out.push(format!("an issue reference `{r}`"));
     }
-    if let Some(h) = commit_hash(line) {
+    if let Some(h) = commit_hash(line).filter(|_| !generated_header(line)) {
         out.push(format!("a commit hash `{h}`"));
     }
     out
@@ -147,6 +159,8 @@ fn the_patterns_catch_references_and_spare_code() {
     assert_eq!(hits(&format!("{hash} 1. A heading, tissue 3")).len(), 0);
     assert_eq!(hits(&format!("run on commit {commit} it fails")).len(), 1);
     assert_eq!(hits(&format!("hash {commit}ab2")).len(), 1);
+    let header = format!("Generated 2026-01-02 on a 2-core VM at commit {commit}.");
+    assert!(hits(&header).is_empty());
     for code in [
         r#"format!("holds {bad:#04x}")"#,
         "#[derive(Debug)] #![allow(x)]",
@@ -156,6 +170,7 @@ fn the_patterns_catch_references_and_spare_code() {
         "a decade, defaced facade",
         "sha256 5f70bf18a086007016e948b04aed3b82103a36bea41755b6cddfaf10ace3c6ef",
         "HDF5 1.14 and H5Fopen and x#3",
+        "td{border:1px solid #999;padding:2px} a{color: #333}",
     ] {
         assert!(hits(code).is_empty(), "{code}: {:?}", hits(code));
     }
