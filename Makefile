@@ -16,6 +16,7 @@ test:
 lint: bootstrap
 	cargo fmt --check
 	cargo clippy --all-targets -- -D warnings
+	RUSTDOCFLAGS="-D warnings" cargo doc --no-deps
 
 bench: bootstrap
 	cargo bench

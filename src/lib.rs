@@ -3,8 +3,8 @@
 //! The data take one straight path, each step one module:
 //!
 //! ```text
-//! product::read -> fluence -> model::Model::step -> product::write -> checkpoint
-//!                               (predict, flag, early release, decay, respond)
+//! product::read -> model::fluence -> model::Model::step -> product::write -> checkpoint
+//!                                      (predict, flag, early release, decay, respond)
 //! ```
 //!
 //! - [`model`] is the pure core (no files, no clock, no HDF5); everything else reuses it.
@@ -15,6 +15,11 @@
 //! - [`h5io`] holds what products and checkpoints share: deterministic HDF5 creation
 //!   (no object times) and atomic publication (`.NAME.part`, validate, sync, rename).
 //! - [`stage`] runs detectors' histories through the model.
+//! - [`validate`] recognises any file (product, checkpoint, model file) and checks it;
+//!   it sits above [`product`] and [`checkpoint`]: [`checkpoint`] reuses
+//!   [`product::schema`], and [`product`] imports neither.
+//! - [`stats`] holds the robust statistics (medians, clipped medians, quantiles) that
+//!   the simulator's checks, the fitter, the diagnostics and the benchmarks share.
 //!
 //! Invariants: NaN or Inf never enters the model state; an output is published (renamed
 //! into place) only after it validates, and before the checkpoint that includes it; the
