@@ -279,7 +279,7 @@ fn writer_refuses_invalid_and_leaves_nothing() {
 // Malformed inputs
 
 #[test]
-fn missing_attribute() {
+fn a_missing_attribute_is_refused_naming_it() {
     let dir = tempfile::tempdir().unwrap();
     let p = modified(dir.path(), "a.h5", &exposure(), |f| {
         f.delete_attr("t_exposure_s").unwrap();
@@ -290,7 +290,7 @@ fn missing_attribute() {
 }
 
 #[test]
-fn detector_as_string() {
+fn a_detector_written_as_a_string_is_refused() {
     let dir = tempfile::tempdir().unwrap();
     let p = modified(dir.path(), "a.h5", &exposure(), |f| {
         f.delete_attr("detector").unwrap();
@@ -325,7 +325,7 @@ fn detector_out_of_range_and_bad_time() {
 }
 
 #[test]
-fn image_float64() {
+fn a_float64_image_is_refused() {
     let dir = tempfile::tempdir().unwrap();
     let p = modified(dir.path(), "a.h5", &exposure(), |f| {
         f.unlink("image").unwrap();
@@ -353,7 +353,7 @@ fn image_flags_shape_mismatch() {
 }
 
 #[test]
-fn absurd_dimensions() {
+fn absurd_or_empty_dimensions_are_refused() {
     let dir = tempfile::tempdir().unwrap();
     for (name, shape) in [("big.h5", (9000, 2)), ("empty.h5", (0, 12))] {
         let p = modified(dir.path(), name, &exposure(), |f| {
@@ -375,7 +375,7 @@ fn absurd_dimensions() {
 }
 
 #[test]
-fn truncated_file() {
+fn a_truncated_file_is_refused_naming_the_file() {
     let dir = tempfile::tempdir().unwrap();
     let p = dir.path().join("a.h5");
     write_exposure(&p, &lab_exposure()).unwrap();
@@ -389,7 +389,7 @@ fn truncated_file() {
 }
 
 #[test]
-fn random_bytes() {
+fn random_bytes_are_an_hdf5_error_naming_the_file() {
     use rand::{RngCore, SeedableRng};
     let dir = tempfile::tempdir().unwrap();
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(7);
@@ -413,7 +413,7 @@ fn random_bytes() {
 }
 
 #[test]
-fn inf_in_image() {
+fn inf_in_the_image_is_refused_naming_the_pixel() {
     let dir = tempfile::tempdir().unwrap();
     let p = modified(dir.path(), "a.h5", &exposure(), |f| {
         let mut img = exposure().image;
@@ -428,7 +428,7 @@ fn inf_in_image() {
 }
 
 #[test]
-fn all_nan_image() {
+fn an_all_nan_image_is_refused() {
     let dir = tempfile::tempdir().unwrap();
     let p = modified(dir.path(), "a.h5", &exposure(), |f| {
         let img = Array2::<f32>::from_elem((16, 12), f32::NAN);
@@ -439,7 +439,7 @@ fn all_nan_image() {
 }
 
 #[test]
-fn persist_bit_in_input() {
+fn a_persist_bit_in_the_input_is_refused() {
     let dir = tempfile::tempdir().unwrap();
     let p = modified(dir.path(), "a.h5", &exposure(), |f| {
         let mut flags = exposure().flags;
