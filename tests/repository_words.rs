@@ -164,28 +164,18 @@ fn hits(line: &str, provenance: bool) -> Vec<String> {
 fn the_patterns_catch_references_and_spare_code() {
     let w = &work_period_words()[0];
     let (issue, hash, commit) = ("issue", '#', format!("{}{}", "fdbe", "6c7"));
-    assert_eq!(hits(&format!("As the {w} found"), false).len(), 1);
-    assert_eq!(
-        hits(&format!("many {}S here", w.to_uppercase()), false).len(),
-        1
-    );
-    assert!(hits(&format!("{w}_id and pre{w}"), false).is_empty());
+    let count = |line: String| hits(&line, false).len();
+    assert_eq!(count(format!("As the {w} found")), 1);
+    assert_eq!(count(format!("many {}S here", w.to_uppercase())), 1);
+    assert_eq!(count(format!("{w}_id and pre{w}")), 0);
     let both = format!("see {issue} 38 and Issues {hash}4");
-    assert_eq!(
-        hits(&both, false)[0],
-        format!("an issue reference `{issue} 38`")
-    );
-    assert_eq!(hits(&format!("Issues {hash}4 only"), false).len(), 2);
-    assert_eq!(hits(&format!("({hash}12) was fixed"), false).len(), 1);
-    assert_eq!(
-        hits(&format!("{hash} 1. A heading, tissue 3"), false).len(),
-        0
-    );
-    assert_eq!(
-        hits(&format!("run on commit {commit} it fails"), false).len(),
-        1
-    );
-    assert_eq!(hits(&format!("hash {commit}ab2"), false).len(), 1);
+    let first = format!("an issue reference `{issue} 38`");
+    assert_eq!(hits(&both, false)[0], first);
+    assert_eq!(count(format!("Issues {hash}4 only")), 2);
+    assert_eq!(count(format!("({hash}12) was fixed")), 1);
+    assert_eq!(count(format!("{hash} 1. A heading, tissue 3")), 0);
+    assert_eq!(count(format!("run on commit {commit} it fails")), 1);
+    assert_eq!(count(format!("hash {commit}ab2")), 1);
     let page = format!(
         "# Page\n{HEADER_OPEN}: script -->\n| commit | `{commit}` |\n{HEADER_CLOSE} -->\n\
          at commit {commit} again\n"
@@ -202,11 +192,8 @@ fn the_patterns_catch_references_and_spare_code() {
         "HDF5 1.14 and H5Fopen and x#3",
         "td{border:1px solid #999;padding:2px} a{color: #333}",
     ] {
-        assert!(
-            hits(code, false).is_empty(),
-            "{code}: {:?}",
-            hits(code, false)
-        );
+        let found = hits(code, false);
+        assert!(found.is_empty(), "{code}: {found:?}");
     }
 }
 
