@@ -282,7 +282,10 @@ fn the_readout_preset_is_the_long_form_and_is_suggested_back() {
         "fastest",
     ]);
     assert_eq!(code, Some(2), "{text}");
-    assert!(text.contains("--preset") && text.contains("fastest"), "{text}");
+    assert!(
+        text.contains("--preset") && text.contains("fastest"),
+        "{text}"
+    );
 
     // negative values reach the validator, which names the option (clap read `-1` as
     // a flag and answered "unexpected argument")
