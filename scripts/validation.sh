@@ -13,7 +13,8 @@
 #                                               runs in about a minute)
 #   matrix  docs/validation/diagnose_matrix.md  examples/diagnose_matrix $MATRIX_ARGS
 #                                               (default --size 128: hours)
-# Without arguments every page is regenerated. Release builds; run it on a quiet machine
+# Without arguments every page is regenerated. Release builds (PERSIST_BIN=path skips the
+# build of the binary); run it on a quiet machine
 # (the header records the load average at the start).
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -32,8 +33,14 @@ for p in "${pages[@]}"; do
     esac
 done
 
-cargo build --release --quiet
-persist=$root/target/release/persist
+# PERSIST_BIN: use this binary instead of building one (it must be built from the
+# commit the header names).
+if [[ -n "${PERSIST_BIN:-}" ]]; then
+    persist=$(realpath "$PERSIST_BIN")
+else
+    cargo build --release --quiet
+    persist=$root/target/release/persist
+fi
 tmp=$(mktemp -d)
 trap 'rm -rf "$tmp"' EXIT
 

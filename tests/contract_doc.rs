@@ -56,7 +56,10 @@ fn contract_names_everything_the_schemas_define() {
         .filter(|p| p.extension().is_some_and(|e| e == "json"))
         .collect();
     schemas.sort();
-    assert!(schemas.len() >= 4, "expected the four schemas, found {schemas:?}");
+    assert!(
+        schemas.len() >= 4,
+        "expected the four schemas, found {schemas:?}"
+    );
 
     let mut missing = Vec::new();
     let mut all = BTreeSet::new();

@@ -80,7 +80,10 @@ fn readme_runnable_blocks_run() {
             String::from_utf8_lossy(&out.stdout),
             String::from_utf8_lossy(&out.stderr)
         );
-        eprintln!("README block at line {line}: {:.1} s", t.elapsed().as_secs_f64());
+        eprintln!(
+            "README block at line {line}: {:.1} s",
+            t.elapsed().as_secs_f64()
+        );
     }
     eprintln!(
         "{} README blocks in {:.1} s",
