@@ -1,6 +1,6 @@
 # The two commands of the README: `make demo` (main job on a built-in default) and
 # `make test` (the test suite). Both install what a fresh Debian 12 machine lacks.
-.PHONY: demo test bootstrap lint bench fixtures
+.PHONY: demo test bootstrap lint bench fixtures validation
 
 bootstrap:
 	@bash scripts/bootstrap.sh
@@ -23,3 +23,8 @@ bench: bootstrap
 
 fixtures: bootstrap
 	cargo run --example make_fixtures -- fixtures
+
+# The validation pages under docs/validation/ (every page, or PAGES="floor bench matrix";
+# BENCH_ARGS=--quick, MATRIX_ARGS="--size 64 ..." as scripts/validation.sh says).
+validation: bootstrap
+	@bash scripts/validation.sh $(PAGES)

@@ -64,7 +64,13 @@ fn stdout_failed(e: std::io::Error) {
 #[command(
     name = "persist",
     version,
-    about = "Predict and flag image persistence in HAWAII-2RG arrays (SPHEREx)"
+    about = "Predict and flag image persistence in HAWAII-2RG arrays (SPHEREx)",
+    after_help = "Exit codes: 0 done, or stopped by SIGINT/SIGTERM after the exposure in hand \
+                  and its checkpoint; 1 some input or output failed (the rest was processed, \
+                  every failure reported, bad inputs quarantined); 2 the command could not \
+                  run (usage, model file, directories locked by another stage).\n\
+                  Environment: PERSIST_LOG (a log filter, overrides --log-level), \
+                  SOURCE_DATE_EPOCH (pins the processing time recorded in outputs)."
 )]
 pub struct Cli {
     #[command(subcommand)]
@@ -117,6 +123,9 @@ pub enum Command {
     /// Benchmark the model step, the memory bound, the whole stage and the HDF5 I/O
     /// bound, each case in a child process; prints a markdown table and writes JSON.
     Bench(BenchArgs),
+    /// Print the command-line reference (docs/cli.md) as markdown.
+    #[command(hide = true)]
+    HelpMarkdown,
 }
 
 #[derive(Subcommand, Debug)]
@@ -643,6 +652,11 @@ pub fn run(cli: Cli) -> persist::Result<ExitCode> {
         Command::Compare(a) => compare(&a),
         Command::Diagnose(a) => diagnose(&a),
         Command::Bench(args) => bench(&args),
+        Command::HelpMarkdown => {
+            use clap::CommandFactory;
+            out_nonl!("{}", crate::cli_reference::markdown(Cli::command()));
+            Ok(ExitCode::SUCCESS)
+        }
     }
 }
 
