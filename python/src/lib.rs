@@ -57,9 +57,9 @@ fn array2<'py, T: numpy::Element>(
     dtype: &str,
 ) -> PyResult<numpy::PyReadonlyArray2<'py, T>> {
     match arg.cast::<PyArray2<T>>() {
-        Ok(a) => Ok(a.try_readonly().map_err(|e| {
-            PyValueError::new_err(format!("{name}: cannot borrow the array: {e}"))
-        })?),
+        Ok(a) => Ok(a
+            .try_readonly()
+            .map_err(|e| PyValueError::new_err(format!("{name}: cannot borrow the array: {e}")))?),
         Err(_) => {
             let got = match (arg.getattr("dtype"), arg.getattr("ndim")) {
                 (Ok(d), Ok(n)) => format!("a {n}-D array of {d}"),
@@ -357,9 +357,7 @@ fn read_product<'py>(py: Python<'py>, path: PathBuf) -> PyResult<Bound<'py, PyDi
     };
     let d = PyDict::new(py);
     if has_persistence {
-        let (e, planes, attrs) = py
-            .detach(|| product::read_output(&path))
-            .map_err(err)?;
+        let (e, planes, attrs) = py.detach(|| product::read_output(&path)).map_err(err)?;
         exposure_into(py, &d, e)?;
         let p = PyDict::new(py);
         p.set_item("current_e_per_s", planes.current_e_per_s.into_pyarray(py))?;
@@ -374,9 +372,7 @@ fn read_product<'py>(py: Python<'py>, path: PathBuf) -> PyResult<Bound<'py, PyDi
         p.set_item("processed_utc", attrs.processed_utc)?;
         d.set_item("persistence", p)?;
     } else {
-        let e = py
-            .detach(|| product::read_exposure(&path))
-            .map_err(err)?;
+        let e = py.detach(|| product::read_exposure(&path)).map_err(err)?;
         exposure_into(py, &d, e)?;
         d.set_item("persistence", py.None())?;
     }
@@ -413,7 +409,9 @@ fn req_item<'py, T: for<'a> FromPyObject<'a, 'py>>(
 fn write_product(py: Python<'_>, path: PathBuf, product: &Bound<'_, PyDict>) -> PyResult<()> {
     let detector: i64 = req_item(product, "detector")?;
     let detector = DetectorId::new(detector).ok_or_else(|| {
-        PyValueError::new_err(format!("product: `detector` must be in 1..=6, got {detector}"))
+        PyValueError::new_err(format!(
+            "product: `detector` must be in 1..=6, got {detector}"
+        ))
     })?;
     let t_start_utc: String = req_item(product, "t_start_utc")?;
     let t_start = UtcSeconds::parse(&t_start_utc)
@@ -431,9 +429,7 @@ fn write_product(py: Python<'_>, path: PathBuf, product: &Bound<'_, PyDict>) -> 
         .as_array()
         .to_owned();
     let flags = match product.get_item("flags")? {
-        Some(f) if !f.is_none() => array2::<u32>(&f, "flags", "uint32")?
-            .as_array()
-            .to_owned(),
+        Some(f) if !f.is_none() => array2::<u32>(&f, "flags", "uint32")?.as_array().to_owned(),
         _ => Array2::zeros(image.dim()),
     };
     let ramp: Option<Array3<f32>> = match product.get_item("ramp")? {
@@ -588,7 +584,9 @@ fn compare<'py>(
     report: PathBuf,
 ) -> PyResult<Bound<'py, PyAny>> {
     if models.is_empty() {
-        return Err(PyValueError::new_err("models: give at least one model file"));
+        return Err(PyValueError::new_err(
+            "models: give at least one model file",
+        ));
     }
     let summary = report.join("summary.json");
     let text = py
@@ -650,10 +648,7 @@ fn diagnose<'py>(
 }
 
 fn effect_specs(effects: &[String]) -> PyResult<Vec<persist::sim::effect::EffectSpec>> {
-    effects
-        .iter()
-        .map(|s| s.parse().map_err(err))
-        .collect()
+    effects.iter().map(|s| s.parse().map_err(err)).collect()
 }
 
 #[pyfunction]
