@@ -6,8 +6,11 @@
 //! - `Model.step` runs [`Model::step_with`], the stage's own fused step, on the caller's
 //!   arrays: the image is read in place through a numpy view (no copy; any strides);
 //!   the on-board flags are copied once, because the step writes the `PERSIST` bit into
-//!   its own flag plane; the outputs are allocated in Rust and handed to numpy without
-//!   a copy. The GIL is released while the step runs.
+//!   its own flag plane; the outputs are written into planes the state keeps and
+//!   handed to numpy as views of them (no copy). Planes are written again only when no
+//!   Python object refers to them any more, so a result's arrays never change under
+//!   the caller; a loop `r = model.step(...)` allocates nothing after its second step.
+//!   The GIL is released while the step runs.
 //! - Nothing here computes: every function calls the crate's entry point that the CLI
 //!   calls (product read/write, checkpoint load, stage run, compare, diagnose,
 //!   simulate), so Python and the command line give the same results.
@@ -157,14 +160,26 @@ impl PyModel {
         let image = array2::<f32>(image, "image", "float32")?;
         let image = image.as_array();
         let shape = image.dim();
-        let mut flags_out: Array2<u32> = match flags {
-            Some(f) if !f.is_none() => {
-                let f = array2::<u32>(f, "flags", "uint32")?;
-                f.as_array().to_owned()
-            }
-            _ => Array2::zeros(shape),
+        let flags = match flags {
+            Some(f) if !f.is_none() => Some(array2::<u32>(f, "flags", "uint32")?),
+            _ => None,
         };
+        if let Some(f) = &flags {
+            if f.shape() != [shape.0, shape.1] {
+                return Err(PyValueError::new_err(format!(
+                    "flags: shape {:?} differs from the image's {shape:?}",
+                    f.shape()
+                )));
+            }
+        }
         let mut st = state.borrow_mut();
+        if st.inner.shape() != shape {
+            return Err(PersistError::new_err(format!(
+                "image: shape {shape:?} differs from the detector's state {:?}",
+                st.inner.shape()
+            )));
+        }
+        let planes = st.free_planes(py, shape)?;
         let t_start = match (t_start_unix_s, t_slew_s) {
             (Some(t), None) => t,
             (None, Some(slew)) => st.inner.t_reset_unix_s.unwrap_or(0.0) + slew,
@@ -195,29 +210,48 @@ impl PyModel {
             focal_plane_temp_k,
             active_pixels: None,
         };
-        let mut current = Array2::<f32>::zeros(shape);
-        let mut pflags = Array2::<u8>::zeros(shape);
         let model = &self.inner;
         let inner: &mut State = &mut st.inner;
-        let summary = py
-            .detach(|| {
+        let summary = {
+            let mut pl = planes.bind(py).borrow_mut();
+            let pl: &mut Planes = &mut pl;
+            let flags_in = flags.as_ref().map(|f| f.as_array());
+            py.detach(|| {
+                match flags_in {
+                    Some(f) => pl.flags.assign(&f),
+                    None => pl.flags.fill(0),
+                }
                 model.step_with(
                     inner,
                     &input,
                     &ctx,
                     &mut Output {
-                        flags: &mut flags_out,
-                        current_e_per_s: &mut current,
-                        pflags: &mut pflags,
+                        flags: &mut pl.flags,
+                        current_e_per_s: &mut pl.current,
+                        pflags: &mut pl.pflags,
                     },
                 )
             })
-            .map_err(err)?;
+            .map_err(err)?
+        };
         drop(st);
+        let owner = planes.bind(py);
+        let pl = owner.borrow();
+        // SAFETY: the arrays keep `owner` alive (their base object), and a `Planes` is
+        // written again only when nothing but its state refers to it
+        // (`PyState::free_planes`), so never while one of these arrays exists; the
+        // step does not reallocate them (they are in standard layout).
+        let (current, pflags, flags_out) = unsafe {
+            (
+                PyArray2::borrow_from_array(&pl.current, owner.clone().into_any()),
+                PyArray2::borrow_from_array(&pl.pflags, owner.clone().into_any()),
+                PyArray2::borrow_from_array(&pl.flags, owner.clone().into_any()),
+            )
+        };
         Ok(StepResult {
-            current_e_per_s: current.into_pyarray(py).unbind(),
-            persistence_flags: pflags.into_pyarray(py).unbind(),
-            flags: flags_out.into_pyarray(py).unbind(),
+            current_e_per_s: current.unbind(),
+            persistence_flags: pflags.unbind(),
+            flags: flags_out.unbind(),
             t_meas_s: summary.t_meas_s,
             summary: value_to_py(py, &summary)?.unbind(),
         })
@@ -253,6 +287,55 @@ impl StepResult {
 #[pyclass(name = "State", module = "persist")]
 pub struct PyState {
     inner: State,
+    /// Output planes of earlier steps, reused once no Python object refers to them.
+    pool: Vec<Py<Planes>>,
+}
+
+/// The planes one step writes. The arrays of a [`StepResult`] are views of them.
+#[pyclass(module = "persist")]
+pub struct Planes {
+    current: Array2<f32>,
+    pflags: Array2<u8>,
+    flags: Array2<u32>,
+}
+
+/// Output planes kept per state: two, so that `r = model.step(...)` in a loop (the
+/// previous result alive during the call) allocates nothing after its second step.
+const POOL: usize = 2;
+
+impl PyState {
+    fn with(inner: State) -> Self {
+        PyState {
+            inner,
+            pool: Vec::new(),
+        }
+    }
+
+    /// Planes of `shape` that nothing outside this state refers to (a result's arrays
+    /// hold a reference to their planes): one of the pool, or new ones.
+    fn free_planes(&mut self, py: Python<'_>, shape: (usize, usize)) -> PyResult<Py<Planes>> {
+        self.pool.retain(|p| p.bind(py).borrow().current.dim() == shape);
+        // SAFETY: reading the reference count of a live object while holding the GIL.
+        let free = self
+            .pool
+            .iter()
+            .find(|p| unsafe { pyo3::ffi::Py_REFCNT(p.as_ptr()) } == 1);
+        if let Some(p) = free {
+            return Ok(p.clone_ref(py));
+        }
+        let p = Py::new(
+            py,
+            Planes {
+                current: Array2::zeros(shape),
+                pflags: Array2::zeros(shape),
+                flags: Array2::zeros(shape),
+            },
+        )?;
+        if self.pool.len() < POOL {
+            self.pool.push(p.clone_ref(py));
+        }
+        Ok(p)
+    }
 }
 
 #[pymethods]
@@ -264,16 +347,14 @@ impl PyState {
                 "shape: must be two positive sizes, got {shape:?}"
             )));
         }
-        Ok(PyState {
-            inner: model.inner.new_state(shape.0, shape.1),
-        })
+        Ok(PyState::with(model.inner.new_state(shape.0, shape.1)))
     }
 
     /// The state saved in a checkpoint (fully checked), to go on stepping from it.
     #[staticmethod]
     fn from_checkpoint(path: PathBuf) -> PyResult<Self> {
         let (_, inner) = persist::checkpoint::load(&path).map_err(err)?;
-        Ok(PyState { inner })
+        Ok(PyState::with(inner))
     }
 
     #[getter]
@@ -312,9 +393,7 @@ impl PyState {
     }
 
     fn copy(&self) -> Self {
-        PyState {
-            inner: self.inner.clone(),
-        }
+        PyState::with(self.inner.clone())
     }
 
     fn __repr__(&self) -> String {

@@ -140,3 +140,35 @@ def test_image_is_read_in_place_from_any_layout():
     rb = model.step(b, img, None, 112.0, 20.0)
     assert np.array_equal(ra.current_e_per_s, rb.current_e_per_s)
     assert (ra.current_e_per_s > 0).any()
+
+
+def test_results_stay_valid_and_planes_are_reused():
+    """A result's arrays are views of planes the state keeps: they never change while
+    the caller holds them, and once dropped the planes serve a later step (no
+    allocation in a stepping loop)."""
+    model = persist.Model.default()
+    state = persist.State(model, (32, 32))
+    img = np.full((32, 32), 5e4, np.float32)
+    r1 = model.step(state, img, None, 112.0, 0.0)
+    r2 = model.step(state, img, None, 112.0, 30.0)
+    kept = r2.current_e_per_s.copy(), r2.persistence_flags.copy(), r2.flags.copy()
+    assert (kept[0] > 0).all() and r2.current_e_per_s.base is not None
+    address = r1.current_e_per_s.__array_interface__["data"][0]
+    del r1
+    r3 = model.step(state, np.zeros((32, 32), np.float32), None, 112.0, 30.0)
+    # r2 unchanged by the step after it
+    assert np.array_equal(r2.current_e_per_s, kept[0])
+    assert np.array_equal(r2.persistence_flags, kept[1])
+    assert np.array_equal(r2.flags, kept[2])
+    assert not np.array_equal(r3.current_e_per_s, kept[0])
+    # r1's planes, free again, were written by the third step
+    assert r3.current_e_per_s.__array_interface__["data"][0] == address
+    # an array kept on its own keeps its planes too
+    c3 = r3.current_e_per_s
+    saved = c3.copy()
+    del r3
+    r4 = model.step(state, img, None, 112.0, 30.0)
+    assert np.array_equal(c3, saved)
+    assert r4.current_e_per_s.__array_interface__["data"][0] != c3.__array_interface__["data"][0]
+    with pytest.raises(ValueError, match="flags: shape"):
+        model.step(state, img, np.zeros((4, 4), np.uint32), 112.0, 30.0)

@@ -8,7 +8,7 @@ times each `model.step(...)` call whole (argument conversion, the copy of the fl
 plane the step writes into, output allocation, the summary as a dict). Rounds
 interleave the two so that a change in the machine's load hits both.
 
-    python python/bench_step.py [--size 2040] [--reps 5] [--rounds 3] [--json FILE]
+    python python/benches/bench_step.py [--size 2040] [--reps 5] [--rounds 3] [--json FILE]
 
 Prints the medians and their ratio (the criterion: Python within 1.2 x of Rust).
 """
