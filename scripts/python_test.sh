@@ -3,10 +3,9 @@
 # checkout, install it into the current Python, check that it imports, and run its
 # pytest suite (python/tests; it also runs docs/python_example.py).
 # scripts/bootstrap.sh --python installs maturin, numpy, h5py, pytest and matplotlib.
-# The build shares the crate's target directory (release profile).
+# The build is a release build in python/target (a crate of its own, with its own lock).
 set -euo pipefail
 cd "$(dirname "$0")/.."
-export CARGO_TARGET_DIR="${CARGO_TARGET_DIR:-$PWD/target}"
 start=$(date +%s)
 python3 -m pip install --quiet --no-build-isolation --force-reinstall --no-deps ./python
 built=$(date +%s)

@@ -314,7 +314,8 @@ impl PyState {
     /// Planes of `shape` that nothing outside this state refers to (a result's arrays
     /// hold a reference to their planes): one of the pool, or new ones.
     fn free_planes(&mut self, py: Python<'_>, shape: (usize, usize)) -> PyResult<Py<Planes>> {
-        self.pool.retain(|p| p.bind(py).borrow().current.dim() == shape);
+        self.pool
+            .retain(|p| p.bind(py).borrow().current.dim() == shape);
         // SAFETY: reading the reference count of a live object while holding the GIL.
         let free = self
             .pool
