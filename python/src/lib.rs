@@ -172,7 +172,9 @@ impl PyModel {
                 )));
             }
         }
-        let mut st = state.borrow_mut();
+        let mut st = state
+            .try_borrow_mut()
+            .map_err(|e| PyValueError::new_err(format!("state: in use by another step ({e})")))?;
         if st.inner.shape() != shape {
             return Err(PersistError::new_err(format!(
                 "image: shape {shape:?} differs from the detector's state {:?}",
