@@ -9,6 +9,7 @@ cd "$(dirname "$0")/.."
 start=$(date +%s)
 python3 -m pip install --quiet --no-build-isolation --force-reinstall --no-deps ./python
 built=$(date +%s)
+echo "python: build+install $((built - start)) s" >&2
 python3 -c "import persist; print('python package persist', persist.__version__, 'imported')"
+# pytest's summary line stays the last line of `make test`.
 python3 -m pytest -q python/tests
-echo "python: build+install $((built - start)) s, tests $(($(date +%s) - built)) s" >&2
