@@ -72,8 +72,9 @@ class Model:
         and add this exposure's response.
 
         image: line-fit current, e-/s, float32 [ny, nx] (read in place, not copied).
-        flags: on-board flags, uint32 [ny, nx] (None: all zero); copied, the copy
-            returned with the PERSIST bit set where the prediction is HIGH.
+        flags: on-board flags, uint32 [ny, nx] (None: all zero); copied into the
+            step's flag plane, returned with the PERSIST bit set where the prediction
+            is HIGH.
         t_exposure_s: integration time, s (> 0).
         t_slew_s: time from the reset ending the previous exposure to this exposure's
             start, s (a new state's clock starts at 0); or give t_start_unix_s instead,
@@ -94,7 +95,9 @@ class Model:
         """
 
 class StepResult:
-    """What Model.step returns: numpy arrays owned by Python (no copy was made)."""
+    """What Model.step returns. The arrays are views (no copy) of output planes the
+    State keeps; they never change while anything refers to them, and the State writes
+    a set of planes again only once no result or array refers to it."""
 
     current_e_per_s: npt.NDArray[np.float32]
     """Predicted persistence current at t_meas, e-/s [ny, nx] (/persistence/current)."""
