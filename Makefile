@@ -8,10 +8,12 @@ bootstrap:
 demo: bootstrap
 	cargo run --release --quiet -- demo
 
-# The tests also open a report in headless Chromium (tests/report_chromium.rs).
+# The tests also open a report in headless Chromium (tests/report_chromium.rs), then
+# build and test the Python package (scripts/python_test.sh).
 test:
-	@bash scripts/bootstrap.sh --chromium
+	@bash scripts/bootstrap.sh --chromium --python
 	cargo test
+	@bash scripts/python_test.sh
 
 lint: bootstrap
 	cargo fmt --check

@@ -21,3 +21,22 @@ if [ "${1:-}" = "--chromium" ] && ! command -v chromium >/dev/null 2>&1; then
   $SUDO apt-get install -y -qq chromium >/dev/null
   chromium --version >&2 || true
 fi
+# With --python (anywhere in the arguments), also what the Python package and its tests
+# need (scripts/python_test.sh): pip, then maturin, numpy, h5py, pytest and matplotlib
+# from PyPI when they are missing.
+for arg in "$@"; do
+  if [ "$arg" = "--python" ]; then
+    if ! python3 -m pip --version >/dev/null 2>&1; then
+      echo "bootstrap: pip not found; installing Debian's python3-pip python3-venv" >&2
+      if [ "$updated" -eq 0 ]; then $SUDO apt-get update -qq; updated=1; fi
+      $SUDO apt-get install -y -qq python3-pip python3-venv >/dev/null
+    fi
+    if ! python3 -c "import maturin, numpy, h5py, pytest, matplotlib" >/dev/null 2>&1; then
+      echo "bootstrap: installing maturin numpy h5py pytest matplotlib (pip)" >&2
+      # Debian's own python3 refuses pip installs outside a venv (PEP 668) unless told.
+      python3 -m pip install --quiet maturin numpy h5py pytest matplotlib 2>/dev/null \
+        || python3 -m pip install --quiet --break-system-packages \
+          maturin numpy h5py pytest matplotlib
+    fi
+  fi
+done
