@@ -45,6 +45,7 @@
 //! ([`crate::model::effects::chord`], `first_read_s`) then shows as a first-dark
 //! deficit (docs/diagnose_matrix.md, "Fourteenth session").
 
+pub mod dark;
 pub mod effects;
 pub mod knots;
 pub mod logfit;
@@ -266,8 +267,12 @@ pub struct CalibReport {
     pub config: CalibConfig,
     pub illumination_exposure_index: u64,
     pub first_dark_exposure_index: u64,
+    /// The first dark's dark level (with the late plateau, the median of the pixels'),
+    /// e-/s, and its noise, e-/s.
     pub background_e_per_s: f64,
     pub noise_e_per_s: f64,
+    /// Where the dark level came from ([`dark`]).
+    pub dark_level: dark::DarkReport,
     /// Pixels left out of the fluence bins as neighbour-dominated (module docs, step 1).
     pub neighbour_dominated_left_out: usize,
     pub bins: Vec<BinResult>,
@@ -282,32 +287,31 @@ pub fn calibrate(seq: &Sequence, cfg: &CalibConfig) -> Result<(ModelParams, Cali
     }
     let cr = knots::CalibRamp::of(seq)?;
     let (i0, d) = (cr.illumination, cr.dark);
-    let ramp = seq.exposures[d]
-        .ramp
-        .as_ref()
-        .expect("checked by CalibRamp::of");
-    let t = &cr.t_s;
     let f = fluence(&seq.exposures[i0]);
+    if !f.iter().any(|v| v.is_finite() && *v >= BACKGROUND_FLUENCE_E) {
+        return Err(Error::invalid(
+            "image",
+            format!(
+                "exposure {}: no pixel has an extrapolated fluence of {BACKGROUND_FLUENCE_E} e- \
+                 or more (image times t_illuminated_s = {} s): nothing was lit, so there is no \
+                 persistence to calibrate; an illumination reaching at least 1e4 e- over a few \
+                 hundred pixels is needed",
+                seq.exposures[i0].meta.exposure_index, cr.t_illuminated_s
+            ),
+        ));
+    }
     let meas = seq.measured(d);
-    let noise = seq.noise_e_per_s[d];
-    let nsamp = ramp.shape()[0];
-    // background ramp
+    // the background pixels of the first dark
     let bg_px: Vec<(usize, usize)> = f
         .indexed_iter()
         .filter(|(p, v)| **v < BACKGROUND_FLUENCE_E && meas[*p].is_finite())
         .map(|(p, _)| p)
         .collect();
-    // by the sequence's background (its median, or its line's intercept at zero
-    // fluence, crate::diag::data "Background")
-    let bg_ramp: Vec<f64> = (0..nsamp)
-        .map(|s| {
-            let v: Vec<(f64, f64)> = bg_px
-                .iter()
-                .map(|&(y, x)| (f[[y, x]], f64::from(ramp[[s, y, x]])))
-                .collect();
-            seq.background_of(&v)
-        })
-        .collect();
+    let late = if bg_px.len() >= cfg.min_pixels.max(1) {
+        None
+    } else {
+        Some(dark::LatePlateau::of(seq, i0, d)?)
+    };
     // bins
     let fmax = f
         .iter()
@@ -318,9 +322,13 @@ pub fn calibrate(seq: &Sequence, cfg: &CalibConfig) -> Result<(ModelParams, Cali
     let n_bins = (((fmax.max(1e4)).log10() - lo_exp) * cfg.bins_per_decade).ceil() as usize + 1;
     let mut members: Vec<Vec<(usize, usize)>> = vec![Vec::new(); n_bins];
     let dominated = neighbour_dominated(&f);
+    let usable = |p: (usize, usize)| match &late {
+        None => meas[p].is_finite(),
+        Some(l) => l.first[p].is_finite() && l.plateau[p].is_finite(),
+    };
     let mut left_out = 0;
     for ((y, x), v) in f.indexed_iter() {
-        if !(v.is_finite() && *v > 0.0 && meas[(y, x)].is_finite()) {
+        if !(v.is_finite() && *v > 0.0 && usable((y, x))) {
             continue;
         }
         if dominated[(y, x)] {
@@ -332,58 +340,78 @@ pub fn calibrate(seq: &Sequence, cfg: &CalibConfig) -> Result<(ModelParams, Cali
             members[b as usize].push((y, x));
         }
     }
-    // the first dark's shot-noise variance per e-/s, when the knots leave it out
-    let knot_shot_var = cfg
-        .knots_shot_noise_removed()
-        .then(|| seq.shot_var_per_e_per_s(d));
-    let mut bins = Vec::new();
-    for (b, px) in members.iter().enumerate() {
-        if px.len() < cfg.min_pixels {
-            continue;
+    let (bins, dark_report) = match &late {
+        None => {
+            let noise = seq.noise_e_per_s[d];
+            let bins = bin_results(seq, cfg, &cr, &f, &members, &BinDark::Background(&bg_px), noise)
+                .into_iter()
+                .map(|b| b.1)
+                .collect();
+            let rep = dark::DarkReport {
+                source: dark::DarkSource::BackgroundPixels,
+                late_exposures: Vec::new(),
+                late_t_s: None,
+                late_fraction_max: None,
+                median_e_per_s: seq.background_e_per_s[d],
+                noise_e_per_s: noise,
+            };
+            (bins, rep)
         }
-        let edge = |i: f64| 10f64.powf(lo_exp + i / cfg.bins_per_decade);
-        let cur: Vec<f64> = px.iter().map(|p| meas[*p]).collect();
-        let (med, sd) = clipped_median(&cur, 3.0);
-        let p95 = match knot_shot_var {
-            Some(g) => signal_p95(&cur, med, shot_noise_added(noise, g, med)),
-            None => signal_p95(&cur, med, noise),
-        };
-        let q: Vec<f64> = (0..nsamp)
-            .map(|s| {
-                let v: Vec<f64> = px
-                    .iter()
-                    .map(|&(y, x)| f64::from(ramp[[s, y, x]]))
-                    .collect();
-                clipped_median(&v, 3.0).0 - bg_ramp[s]
-            })
-            .collect();
-        let ok: Vec<usize> = (0..nsamp)
-            .filter(|&s| q[s].is_finite() && t[s] > 0.0)
-            .collect();
-        let ts: Vec<f64> = ok.iter().map(|&s| t[s]).collect();
-        let qs: Vec<f64> = ok.iter().map(|&s| q[s]).collect();
-        let lf = logfit::fit(&ts, &qs);
-        let significant = med > 3.0 * sd / (px.len() as f64).sqrt() && med > 0.0;
-        let a_bin = lf
-            .filter(|l| l.a0_e > 0.0 && !l.undetermined)
-            .map(|l| cfg.amplification * l.a0_e);
-        let a_95 = a_bin
-            .map(|a| a * p95 / med)
-            .filter(|a| a.is_finite() && *a >= 0.0);
-        bins.push(BinResult {
-            fluence_lo_e: edge(b as f64),
-            fluence_hi_e: edge(b as f64 + 1.0),
-            fluence_mean_e: px.iter().map(|p| f[*p]).sum::<f64>() / px.len() as f64,
-            pixels: px.len(),
-            median_e_per_s: med,
-            sd_e_per_s: sd,
-            p95_e_per_s: p95,
-            logfit: lf,
-            a_bin_e: a_bin,
-            a_95_e: a_95,
-            knot: significant && a_95.is_some(),
-        });
-    }
+        Some(l) => {
+            // module docs of `dark`, "Bias": a first pass with r = 0, then each bin's r
+            // from its fitted tau
+            let mut r = vec![0.0; n_bins];
+            let mut bins = Vec::new();
+            for _ in 0..dark::PLATEAU_PASSES {
+                bins = bin_results(seq, cfg, &cr, &f, &members, &BinDark::Late(l, &r), l.noise_e_per_s);
+                r.iter_mut().for_each(|v| *v = 0.0);
+                for (b, res) in &bins {
+                    // a bin whose ramp has no fitted decay keeps the plain plateau
+                    if let Some(lf) = res.logfit.filter(|lf| {
+                        !lf.undetermined && lf.a0_e > 0.0 && lf.tau_s.is_finite() && lf.tau_s >= 0.0
+                    }) {
+                        r[*b] = l.late_fraction(lf.tau_s);
+                    }
+                }
+            }
+            let bins: Vec<BinResult> = bins.into_iter().map(|b| b.1).collect();
+            let r_max = r.iter().copied().fold(0.0, f64::max);
+            if r_max > dark::MAX_LATE_FRACTION {
+                let t_end = l.spans_s.last().map_or(0.0, |s| s.1);
+                return Err(Error::invalid(
+                    "image",
+                    format!(
+                        "no background pixel, and the darks after exposure {} end {t_end:.0} s \
+                         after the illumination, where persistence is still {:.0} % of the first \
+                         dark's (at most {:.0} % for the dark level to come from the pixels' late \
+                         darks; `persist::calib::dark`): add darks up to about {:.0} s after the \
+                         illumination, or pixels masked from the source",
+                        seq.exposures[d].meta.exposure_index,
+                        100.0 * r_max,
+                        100.0 * dark::MAX_LATE_FRACTION,
+                        t_end * r_max / dark::MAX_LATE_FRACTION * 1.5,
+                    ),
+                ));
+            }
+            let levels: Vec<f64> = members
+                .iter()
+                .zip(&r)
+                .flat_map(|(px, &rb)| px.iter().map(move |&p| l.dark_at(p, rb)))
+                .collect();
+            let rep = dark::DarkReport {
+                source: dark::DarkSource::LatePlateau,
+                late_exposures: l.exposure_indices(seq),
+                late_t_s: Some([
+                    l.spans_s.first().map_or(f64::NAN, |s| 0.5 * (s.0 + s.1)),
+                    l.spans_s.last().map_or(f64::NAN, |s| 0.5 * (s.0 + s.1)),
+                ]),
+                late_fraction_max: Some(r_max),
+                median_e_per_s: crate::sim::analysis::median(&levels),
+                noise_e_per_s: l.noise_e_per_s,
+            };
+            (bins, rep)
+        }
+    };
     let knots: Vec<Knot> = bins
         .iter()
         .filter(|b| b.knot)
@@ -395,7 +423,18 @@ pub fn calibrate(seq: &Sequence, cfg: &CalibConfig) -> Result<(ModelParams, Cali
     if knots.is_empty() {
         return Err(Error::invalid(
             "image",
-            "no fluence bin has a significant first-dark current: nothing to calibrate",
+            format!(
+                "exposure {}: no fluence bin has a significant first-dark current (median \
+                 above 3 standard errors and a rising ramp) after the dark level ({}) is \
+                 removed: nothing to calibrate; {} bins of at least {} pixels were tried",
+                seq.exposures[d].meta.exposure_index,
+                match dark_report.source {
+                    dark::DarkSource::BackgroundPixels => "background pixels",
+                    dark::DarkSource::LatePlateau => "the pixels' late darks",
+                },
+                bins.len(),
+                cfg.min_pixels
+            ),
         ));
     }
     let base = ModelParams::default();
@@ -431,14 +470,126 @@ pub fn calibrate(seq: &Sequence, cfg: &CalibConfig) -> Result<(ModelParams, Cali
             config: cfg.clone(),
             illumination_exposure_index: seq.exposures[i0].meta.exposure_index,
             first_dark_exposure_index: seq.exposures[d].meta.exposure_index,
-            background_e_per_s: seq.background_e_per_s[d],
-            noise_e_per_s: noise,
+            background_e_per_s: dark_report.median_e_per_s,
+            noise_e_per_s: dark_report.noise_e_per_s,
+            dark_level: dark_report,
             neighbour_dominated_left_out: left_out,
             bins,
             knots,
             c_n,
         },
     ))
+}
+
+/// The dark level under the first dark ([`dark`]): the background pixels, or each
+/// pixel's late plateau with each bin's late fraction `r`.
+enum BinDark<'a> {
+    Background(&'a [(usize, usize)]),
+    Late(&'a dark::LatePlateau, &'a [f64]),
+}
+
+/// Steps 2-4 of the module docs for every bin of at least `min_pixels` pixels, with its
+/// index in `members`.
+fn bin_results(
+    seq: &Sequence,
+    cfg: &CalibConfig,
+    cr: &knots::CalibRamp,
+    f: &ndarray::Array2<f64>,
+    members: &[Vec<(usize, usize)>],
+    dark: &BinDark,
+    noise: f64,
+) -> Vec<(usize, BinResult)> {
+    let d = cr.dark;
+    let ramp = seq.exposures[d]
+        .ramp
+        .as_ref()
+        .expect("checked by CalibRamp::of");
+    let t = &cr.t_s;
+    let nsamp = ramp.shape()[0];
+    // the read times since the first dark's reset (the dark current's charge)
+    let t_since_reset: Vec<f64> = t.iter().map(|x| x - cr.t_reset_s).collect();
+    let meas = seq.measured(d);
+    // the background ramp, by the sequence's background (its median, or its line's
+    // intercept at zero fluence, crate::diag::data "Background")
+    let bg_ramp: Vec<f64> = match dark {
+        BinDark::Background(bg_px) => (0..nsamp)
+            .map(|s| {
+                let v: Vec<(f64, f64)> = bg_px
+                    .iter()
+                    .map(|&(y, x)| (f[[y, x]], f64::from(ramp[[s, y, x]])))
+                    .collect();
+                seq.background_of(&v)
+            })
+            .collect(),
+        BinDark::Late(..) => vec![0.0; nsamp],
+    };
+    // the first dark's shot-noise variance per e-/s, when the knots leave it out
+    let knot_shot_var = cfg
+        .knots_shot_noise_removed()
+        .then(|| seq.shot_var_per_e_per_s(d));
+    let lo_exp = 3.0;
+    let mut bins = Vec::new();
+    for (b, px) in members.iter().enumerate() {
+        if px.len() < cfg.min_pixels {
+            continue;
+        }
+        // each pixel's dark level, e-/s (0 with background pixels: removed as a whole)
+        let dark_of = |p: (usize, usize)| match dark {
+            BinDark::Background(_) => 0.0,
+            BinDark::Late(l, r) => l.dark_at(p, r[b]),
+        };
+        let edge = |i: f64| 10f64.powf(lo_exp + i / cfg.bins_per_decade);
+        let cur: Vec<f64> = match dark {
+            BinDark::Background(_) => px.iter().map(|p| meas[*p]).collect(),
+            BinDark::Late(l, _) => px.iter().map(|&p| l.first[p] - dark_of(p)).collect(),
+        };
+        let (med, sd) = clipped_median(&cur, 3.0);
+        let p95 = match knot_shot_var {
+            Some(g) => signal_p95(&cur, med, shot_noise_added(noise, g, med)),
+            None => signal_p95(&cur, med, noise),
+        };
+        let q: Vec<f64> = (0..nsamp)
+            .map(|s| {
+                let v: Vec<f64> = px
+                    .iter()
+                    .map(|&(y, x)| {
+                        f64::from(ramp[[s, y, x]]) - dark_of((y, x)) * t_since_reset[s]
+                    })
+                    .collect();
+                clipped_median(&v, 3.0).0 - bg_ramp[s]
+            })
+            .collect();
+        let ok: Vec<usize> = (0..nsamp)
+            .filter(|&s| q[s].is_finite() && t[s] > 0.0)
+            .collect();
+        let ts: Vec<f64> = ok.iter().map(|&s| t[s]).collect();
+        let qs: Vec<f64> = ok.iter().map(|&s| q[s]).collect();
+        let lf = logfit::fit(&ts, &qs);
+        let significant = med > 3.0 * sd / (px.len() as f64).sqrt() && med > 0.0;
+        let a_bin = lf
+            .filter(|l| l.a0_e > 0.0 && !l.undetermined)
+            .map(|l| cfg.amplification * l.a0_e);
+        let a_95 = a_bin
+            .map(|a| a * p95 / med)
+            .filter(|a| a.is_finite() && *a >= 0.0);
+        bins.push((
+            b,
+            BinResult {
+                fluence_lo_e: edge(b as f64),
+                fluence_hi_e: edge(b as f64 + 1.0),
+                fluence_mean_e: px.iter().map(|p| f[*p]).sum::<f64>() / px.len() as f64,
+                pixels: px.len(),
+                median_e_per_s: med,
+                sd_e_per_s: sd,
+                p95_e_per_s: p95,
+                logfit: lf,
+                a_bin_e: a_bin,
+                a_95_e: a_95,
+                knot: significant && a_95.is_some(),
+            },
+        ));
+    }
+    bins
 }
 
 /// Step 5 of the module docs.
