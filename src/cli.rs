@@ -668,7 +668,10 @@ fn simulate(scenario: SimScenario) -> persist::Result<ExitCode> {
                 ));
             }
             if a.dark_pixels && !paper {
-                return Err(persist::Error::invalid("--dark-pixels", "needs --spots paper"));
+                return Err(persist::Error::invalid(
+                    "--dark-pixels",
+                    "needs --spots paper",
+                ));
             }
             let cfg = lab::LabConfig {
                 paper_pattern: paper.then_some(lab::PaperPattern {

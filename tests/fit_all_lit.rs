@@ -62,7 +62,10 @@ fn every_pixel_lit_calibrates_from_the_late_plateau() {
     for (f, a_paper) in PAPER_TABLE1_A_BIN {
         let a = a_bin_at(&rep.bins, f);
         let rel = a / a_paper - 1.0;
-        println!("Table 1 fluence {f:>9.0} e-: A_bin {a:7.1} e-, paper {a_paper:6.1} e-, {:+.1} %", 100.0 * rel);
+        println!(
+            "Table 1 fluence {f:>9.0} e-: A_bin {a:7.1} e-, paper {a_paper:6.1} e-, {:+.1} %",
+            100.0 * rel
+        );
         if f == 401_000.0 || f == 3_833_000.0 {
             worst = worst.max(rel.abs());
         }
@@ -78,7 +81,10 @@ fn every_pixel_lit_calibrates_from_the_late_plateau() {
     let (_, rep2) = calibrate(&seq2, &CalibConfig::default()).unwrap();
     assert_eq!(rep2.dark_level.source, DarkSource::BackgroundPixels);
     // the two dark levels give knots within 10 % of each other below saturation
-    let (a, b) = (a_bin_at(&rep.bins, 101_000.0), a_bin_at(&rep2.bins, 101_000.0));
+    let (a, b) = (
+        a_bin_at(&rep.bins, 101_000.0),
+        a_bin_at(&rep2.bins, 101_000.0),
+    );
     assert!((a / b - 1.0).abs() < 0.10, "{a} {b}");
 }
 
@@ -97,8 +103,8 @@ fn campaigns_with_every_pixel_lit_calibrate() {
         let dir = tmp.path().join(name);
         lab(&dir, "64", &extra);
         let seq = Sequence::load(&dir).unwrap();
-        let (_, rep) = calibrate(&seq, &CalibConfig::default())
-            .unwrap_or_else(|e| panic!("{name}: {e}"));
+        let (_, rep) =
+            calibrate(&seq, &CalibConfig::default()).unwrap_or_else(|e| panic!("{name}: {e}"));
         assert_eq!(rep.dark_level.source, DarkSource::LatePlateau, "{name}");
         let r = rep.dark_level.late_fraction_max.unwrap();
         assert!(r > 0.01 && r <= 0.1, "{name}: {r}");
@@ -127,17 +133,23 @@ fn missing_data_are_named() {
     // nothing lit
     let mut ex = Sequence::load(&dir).unwrap().exposures;
     ex[0].image.fill(0.01);
-    let e = calibrate(&Sequence::from_exposures(ex).unwrap(), &CalibConfig::default())
-        .unwrap_err()
-        .to_string();
+    let e = calibrate(
+        &Sequence::from_exposures(ex).unwrap(),
+        &CalibConfig::default(),
+    )
+    .unwrap_err()
+    .to_string();
     assert!(e.contains("nothing was lit") && e.contains("image"), "{e}");
 
     // no ramp
     let mut ex = Sequence::load(&dir).unwrap().exposures;
     ex[1].ramp = None;
     ex[1].ramp_times_s = None;
-    let e = calibrate(&Sequence::from_exposures(ex).unwrap(), &CalibConfig::default())
-        .unwrap_err()
-        .to_string();
+    let e = calibrate(
+        &Sequence::from_exposures(ex).unwrap(),
+        &CalibConfig::default(),
+    )
+    .unwrap_err()
+    .to_string();
     assert!(e.contains("ramp"), "{e}");
 }

@@ -12,15 +12,20 @@
 //!    model's spatial effects then cannot take back (docs/diagnose_matrix.md). A smooth illumination has no such pixel; one-pixel pinholes have four
 //!    each.
 //! 2. Per bin, the measured current of the first dark integration (image minus the
-//!    background, [`crate::diag::data`]): its 3-sigma-clipped median and its 95th
+//!    dark level, [`dark`]: the background pixels' ([`crate::diag::data`]) when at
+//!    least `min_pixels` pixels stayed below 3000 e-, else, when every pixel was lit as
+//!    in the paper's laboratory data, each pixel's own late darks with its predicted
+//!    persistence there removed; the report's `dark_level` and the model file's
+//!    `calibration.late_plateau_dark` say which): its 3-sigma-clipped median and its 95th
 //!    percentile ([`crate::diag::data::signal_p95`], read noise removed in quadrature;
 //!    with `--cell-statistic population` also the shot noise of the bin's median
 //!    current, [`crate::diag::data::shot_noise_added`]: that statistic's reference adds
 //!    each sample's shot noise to the prediction, which must then be the noise-free 95th
 //!    percentile; the model file records it, `calibration.knots_shot_noise_removed`).
-//! 3. Per bin, the clipped median of the first dark ramp (background ramp subtracted:
+//! 3. Per bin, the clipped median of the first dark ramp (dark ramp subtracted:
 //!    per read, the background pixels' median, or with `--background line` their
-//!    line's intercept at zero fluence, [`crate::diag::data`] "Background")
+//!    line's intercept at zero fluence, [`crate::diag::data`] "Background"; with the
+//!    late plateau each pixel's dark level times the read's time since the reset)
 //!    fitted with Eq. (logfit) `q(t) = A_0 ln(t + tau) + q_0` ([`logfit`]).
 //! 4. `A_bin = amplification * A_0` (paper: 1.2) and, through the 95th percentile,
 //!    `A_95 = A_bin * p95 / median`; the piecewise-linear `A_k` has one knot per bin
@@ -289,7 +294,10 @@ pub fn calibrate(seq: &Sequence, cfg: &CalibConfig) -> Result<(ModelParams, Cali
     let cr = knots::CalibRamp::of(seq)?;
     let (i0, d) = (cr.illumination, cr.dark);
     let f = fluence(&seq.exposures[i0]);
-    if !f.iter().any(|v| v.is_finite() && *v >= BACKGROUND_FLUENCE_E) {
+    if !f
+        .iter()
+        .any(|v| v.is_finite() && *v >= BACKGROUND_FLUENCE_E)
+    {
         return Err(Error::invalid(
             "image",
             format!(
@@ -344,10 +352,18 @@ pub fn calibrate(seq: &Sequence, cfg: &CalibConfig) -> Result<(ModelParams, Cali
     let (bins, dark_report) = match &late {
         None => {
             let noise = seq.noise_e_per_s[d];
-            let bins = bin_results(seq, cfg, &cr, &f, &members, &BinDark::Background(&bg_px), noise)
-                .into_iter()
-                .map(|b| b.1)
-                .collect();
+            let bins: Vec<BinResult> = bin_results(
+                seq,
+                cfg,
+                &cr,
+                &f,
+                &members,
+                &BinDark::Background(&bg_px),
+                noise,
+            )
+            .into_iter()
+            .map(|b| b.1)
+            .collect();
             let rep = dark::DarkReport {
                 source: dark::DarkSource::BackgroundPixels,
                 late_exposures: Vec::new(),
@@ -364,7 +380,15 @@ pub fn calibrate(seq: &Sequence, cfg: &CalibConfig) -> Result<(ModelParams, Cali
             let mut r = vec![0.0; n_bins];
             let mut bins = Vec::new();
             for _ in 0..dark::PLATEAU_PASSES {
-                bins = bin_results(seq, cfg, &cr, &f, &members, &BinDark::Late(l, &r), l.noise_e_per_s);
+                bins = bin_results(
+                    seq,
+                    cfg,
+                    &cr,
+                    &f,
+                    &members,
+                    &BinDark::Late(l, &r),
+                    l.noise_e_per_s,
+                );
                 r.iter_mut().for_each(|v| *v = 0.0);
                 for (b, res) in &bins {
                     // a bin whose ramp has no fitted decay keeps the plain plateau
@@ -556,9 +580,7 @@ fn bin_results(
             .map(|s| {
                 let v: Vec<f64> = px
                     .iter()
-                    .map(|&(y, x)| {
-                        f64::from(ramp[[s, y, x]]) - dark_of((y, x)) * t_since_reset[s]
-                    })
+                    .map(|&(y, x)| f64::from(ramp[[s, y, x]]) - dark_of((y, x)) * t_since_reset[s])
                     .collect();
                 clipped_median(&v, 3.0).0 - bg_ramp[s]
             })
