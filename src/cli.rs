@@ -158,10 +158,16 @@ pub struct LabArgs {
     /// scaled), `shifted` (the spot moved for illuminations 2-5, so that radius and
     /// fluence do not go together; `persist::sim::lab`, "Shifted spots") or `pinholes`
     /// (the centred campaign plus a grid of one-pixel pinholes, for effects that couple
-    /// neighbours; "Sharp pinholes").
+    /// neighbours; "Sharp pinholes"), or `paper` (the centred spots with every pixel
+    /// lit at 30 e-/s or more, like the paper's laboratory data, so that no pixel stays
+    /// below 3000 e-; also without --campaign; "The paper's pattern").
     #[arg(long, default_value_t = persist::sim::lab::Spots::default(),
-          value_parser = parse_flag::<persist::sim::lab::Spots>, requires = "campaign")]
+          value_parser = parse_flag::<persist::sim::lab::Spots>)]
     pub spots: persist::sim::lab::Spots,
+    /// With `--spots paper`: keep a corner of size/8 x size/8 pixels unlit, so that the
+    /// sequence has pixels that were never lit.
+    #[arg(long)]
+    pub dark_pixels: bool,
     /// How long the campaign's dark integrations are: `uniform` (180 s) or `varied`
     /// (illumination 2's darks 60 s; its repeat's 540 s, after a reset 12 s after the
     /// shutter, so that the on-board line fit's bias, which grows with the
@@ -684,7 +690,23 @@ fn simulate(scenario: SimScenario) -> persist::Result<ExitCode> {
     };
     let (out, n) = match scenario {
         SimScenario::Lab(a) => {
+            let paper = a.spots == lab::Spots::Paper;
+            if !a.campaign && !matches!(a.spots, lab::Spots::Centred | lab::Spots::Paper) {
+                return Err(persist::Error::invalid(
+                    "--spots",
+                    format!("`{}` needs --campaign", a.spots),
+                ));
+            }
+            if a.dark_pixels && !paper {
+                return Err(persist::Error::invalid(
+                    "--dark-pixels",
+                    "needs --spots paper",
+                ));
+            }
             let cfg = lab::LabConfig {
+                paper_pattern: paper.then_some(lab::PaperPattern {
+                    dark_pixels: a.dark_pixels,
+                }),
                 size: a.size,
                 seed: a.seed,
                 darks: a.darks,

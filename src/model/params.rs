@@ -244,6 +244,12 @@ pub struct Calibration {
     /// identity.
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub knots_shot_noise_removed: bool,
+    /// The first dark's dark level came from each pixel's own late darks, its predicted
+    /// persistence there removed, because no pixel stayed unlit (`persist::calib::dark`).
+    /// Absent (false) when it came from the background pixels, so older files keep their
+    /// identity.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub late_plateau_dark: bool,
 }
 
 /// Eq. (bbdetexpsum): `(C_n, 1/tau_n)` for detector BBDet.
