@@ -39,6 +39,7 @@ pub mod product;
 pub mod sim;
 pub mod stage;
 pub mod units;
+pub mod verify;
 
 pub use error::{Error, ErrorKind, Result};
 
