@@ -125,6 +125,38 @@ pub enum Command {
     /// Print the command-line reference (docs/cli.md) as markdown.
     #[command(hide = true)]
     HelpMarkdown,
+    /// Persistence measured in flight (no shutter): follow pixels after bright events
+    /// through later sky exposures, stack their excess over the surrounding sky by
+    /// fluence and time, set it beside the stage's predictions and flags; writes
+    /// REPORT/report.html and REPORT/report.json.
+    Verify(VerifyArgs),
+}
+
+#[derive(Args, Debug)]
+pub struct VerifyArgs {
+    /// The stage's input directory (sky exposures; a simulator's `truth/` in it is used).
+    #[arg(long)]
+    pub input: PathBuf,
+    /// The stage's output directory (its products carry the input image and flags).
+    #[arg(long)]
+    pub output: PathBuf,
+    /// Where to write report.html and report.json.
+    #[arg(long)]
+    pub report: PathBuf,
+    /// Extrapolated fluence from which a pixel's exposure is an event, e- [default: 2e5,
+    /// the paper's saturation level; OVERFLOW pixels always are].
+    #[arg(long)]
+    pub event_fluence_e: Option<f64>,
+    /// Reject a track's sample that rises more than this many noise standard deviations
+    /// above its last accepted one (a source in the pixel).
+    #[arg(long, default_value_t = 3.0)]
+    pub spike_nsigma: f64,
+    /// Inner and outer Chebyshev radii of the sky annulus, pixels.
+    #[arg(long, value_delimiter = ',', default_values_t = [3, 6])]
+    pub annulus_px: Vec<usize>,
+    /// Seed of the bootstrap over events.
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
 }
 
 #[derive(Subcommand, Debug)]
@@ -679,7 +711,60 @@ pub fn run(cli: Cli) -> persist::Result<ExitCode> {
             out_nonl!("{}", crate::cli_reference::markdown(Cli::command()));
             Ok(ExitCode::SUCCESS)
         }
+        Command::Verify(a) => verify(&a),
     }
+}
+
+/// `persist verify`: exit code 1 when a check disagrees or a file could not be read.
+fn verify(a: &VerifyArgs) -> persist::Result<ExitCode> {
+    let mut p = persist::verify::VerifyParams {
+        seed: a.seed,
+        ..Default::default()
+    };
+    if let Some(f) = a.event_fluence_e {
+        p.track.event_fluence_e = f;
+    }
+    p.track.spike_nsigma = a.spike_nsigma;
+    if let [inner, outer] = a.annulus_px[..] {
+        if inner == 0 || outer < inner {
+            return Err(Error::new(
+                ErrorKind::Usage,
+                format!("--annulus-px {inner},{outer}: need 0 < inner <= outer"),
+            ));
+        }
+        p.track.annulus_inner_px = inner;
+        p.track.annulus_outer_px = outer;
+    }
+    let r = persist::verify::run(&a.input, &a.output, &p)?;
+    persist::verify::write_report(&r, &a.report)?;
+    let c = &r.checks;
+    out!(
+        "{} exposures, {} events, {} samples; decay {} (slope predicted - measured {:.3} +- {:.3}); \
+         margin {:.2} ({:.2}-{:.2}): {}",
+        r.exposures,
+        r.events,
+        r.samples,
+        if c.decay_agrees { "agrees" } else { "disagrees" },
+        c.slope_difference.mean,
+        c.slope_difference.se,
+        c.margin.0,
+        c.margin.1,
+        c.margin.2,
+        c.margin_verdict
+    );
+    if let Some((inside, n)) = c.truth_inside {
+        out!("truth inside the measured 95 % interval in {inside} of {n} bins");
+    }
+    for e in &r.errors {
+        eprintln!("unreadable: {}: {}", e.file.display(), e.reason);
+    }
+    out!("report: {}", a.report.join("report.html").display());
+    let ok = c.decay_agrees && c.margin_verdict == "ok" && r.errors.is_empty();
+    Ok(if ok {
+        ExitCode::SUCCESS
+    } else {
+        ExitCode::from(1)
+    })
 }
 
 /// `persist simulate lab|sky`: products and truth written as they are simulated.

@@ -46,6 +46,7 @@ pub mod stage;
 pub mod stats;
 pub mod units;
 pub mod validate;
+pub mod verify;
 
 pub use error::{Error, ErrorKind, Result};
 
