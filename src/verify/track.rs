@@ -3,7 +3,7 @@
 //!
 //! # What is measured
 //! An **event** is a pixel whose extrapolated fluence in an exposure (the line-fit current
-//! times the illuminated time, the same rule the stage uses) reaches
+//! times the illuminated time: [`crate::model::fluence`], the rule the stage uses) reaches
 //! [`TrackParams::event_fluence_e`] (default: the paper's saturation level, 200,000 e-),
 //! or that the on-board processing flagged `OVERFLOW`. From the reset that ends that
 //! exposure on, the pixel carries a **track**: in each later exposure its **excess
@@ -43,7 +43,8 @@
 //! in pixel order, so the result does not depend on threads.
 
 use crate::flags::{bits, pbits};
-use crate::sim::analysis::median;
+use crate::model::fluence::{fluence_map_e, FlagBits};
+use crate::stats::median;
 use ndarray::{Array2, ArrayView2};
 
 /// How events are found and tracks measured.
@@ -208,7 +209,12 @@ impl Tracker {
             (ny, nx),
             "frame shape changed within a detector"
         );
-        let fluence = frame.image.mapv(|v| f64::from(v) * frame.t_illuminated_s);
+        let fluence = fluence_map_e(
+            frame.image,
+            frame.flags,
+            &FlagBits::default(),
+            frame.t_illuminated_s,
+        );
         let threshold = self.params.event_fluence_e;
         let event = Array2::from_shape_fn((ny, nx), |(y, x)| {
             let f = frame.flags[[y, x]];
