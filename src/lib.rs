@@ -38,6 +38,7 @@ pub mod plot;
 pub mod product;
 pub mod sim;
 pub mod stage;
+pub mod trapgen;
 pub mod units;
 
 pub use error::{Error, ErrorKind, Result};
