@@ -605,8 +605,25 @@ fn main() {
             lines.push('\n');
             std::fs::write(&jsonl, &lines).expect("write jsonl");
             runs.push(r);
+            write_table(&args, &rows, &runs, &out, &jsonl, size, first, seeds);
         }
     }
+    write_table(&args, &rows, &runs, &out, &jsonl, size, first, seeds);
+    eprintln!("wrote {}", out.display());
+}
+
+/// The Markdown page (rewritten after every run, so a long matrix can be stopped).
+#[allow(clippy::too_many_arguments)]
+fn write_table(
+    args: &[String],
+    rows: &[Row],
+    runs: &[Run],
+    out: &Path,
+    jsonl: &Path,
+    size: usize,
+    first: u64,
+    seeds: u64,
+) {
     let mut md = String::new();
     let now = chrono::Utc::now().format("%Y-%m-%d %H:%M UTC");
     let machine = std::fs::read_to_string("/proc/cpuinfo")
@@ -646,7 +663,7 @@ fn main() {
         "| row | runs | fit ok | diagnose ran | class named first | declared first (each run) | untestable answers | excess RMS before -> after (median) | halved | missed@0.1 touched before -> after (median) |\n|---|---|---|---|---|---|---|---|---|---|"
     )
     .unwrap();
-    for row in &rows {
+    for row in rows {
         let rs: Vec<&Run> = runs.iter().filter(|r| r.row == row.name()).collect();
         let n = rs.len();
         let class = row.hidden.map(|h| h.class());
@@ -737,6 +754,5 @@ fn main() {
         jsonl.display()
     )
     .unwrap();
-    std::fs::write(&out, md).expect("write the table");
-    eprintln!("wrote {}", out.display());
+    std::fs::write(out, md).expect("write the table");
 }
