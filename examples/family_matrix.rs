@@ -635,12 +635,30 @@ fn write_table(
         })
         .unwrap_or_else(|| "unknown".into());
     let cores = std::thread::available_parallelism().map_or(0, |n| n.get());
+    // `git describe --always --dirty`; a bare commit id (no tag) is not written: the
+    // repository's text carries no commit ids, so only the tree's state is recorded
     let describe = Command::new("git")
         .args(["describe", "--always", "--dirty"])
         .output()
         .ok()
         .map(|o| String::from_utf8_lossy(&o.stdout).trim().to_string())
         .unwrap_or_default();
+    let bare_id = describe
+        .trim_end_matches("-dirty")
+        .chars()
+        .all(|c| c.is_ascii_hexdigit());
+    let describe = if bare_id {
+        format!(
+            "no tag (commit id not recorded), {}",
+            if describe.ends_with("-dirty") {
+                "dirty"
+            } else {
+                "clean"
+            }
+        )
+    } else {
+        describe
+    };
     writeln!(
         md,
         "# Diagnostics on the family of the second truth generator\n"
