@@ -166,6 +166,47 @@ pub enum SimScenario {
     Lab(LabArgs),
     /// A SPHEREx-like survey: 112 s integrations, slews, zodiacal light, stars.
     Sky(SkyArgs),
+    /// A laboratory sequence from the second, independent truth generator
+    /// (`persist::trapgen`: continuous emission-time densities, finite capture, each
+    /// seed its own detector), optionally with hidden effects.
+    Family(FamilyArgs),
+}
+
+#[derive(Args, Debug)]
+pub struct FamilyArgs {
+    /// Output directory (products; truth in OUT/truth).
+    #[arg(long)]
+    pub out: PathBuf,
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+    /// Array size N (N x N pixels).
+    #[arg(long, default_value_t = 64)]
+    pub size: usize,
+    /// `single` (the paper's: one 481 s illumination, then darks) or `campaign` (six
+    /// illuminations: durations, a repeat, temperatures; `persist::trapgen`).
+    #[arg(long, default_value_t = persist::trapgen::scene::SequenceKind::Single,
+          value_parser = parse_flag::<persist::trapgen::scene::SequenceKind>)]
+    pub sequence: persist::trapgen::scene::SequenceKind,
+    /// Dark integrations after a single illumination (180 s each).
+    #[arg(long, default_value_t = persist::trapgen::DEFAULT_DARKS)]
+    pub darks: usize,
+    /// Leave the right-hand quarter unlit (otherwise every pixel is lit).
+    #[arg(long)]
+    pub dark_pixels: bool,
+    /// Add the grid of one-pixel pinholes: `on`, `off` [default: drawn by the seed].
+    #[arg(long)]
+    pub pinholes: Option<OnOff>,
+    /// A hidden effect CLASS:FORM (repeatable), e.g. `soak:capture`; see
+    /// `persist::trapgen` for the forms and their physics.
+    #[arg(long = "hidden", value_parser = parse_flag::<persist::trapgen::hidden::Hidden>)]
+    pub hidden: Vec<persist::trapgen::hidden::Hidden>,
+}
+
+/// `on` or `off`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum OnOff {
+    On,
+    Off,
 }
 
 #[derive(Args, Debug)]
@@ -825,6 +866,21 @@ fn simulate(scenario: SimScenario) -> persist::Result<ExitCode> {
             sky::validate(&cfg)?;
             let mut w = Writer::new(&a.out)?;
             let desc = sky::run(&cfg, |e| w.write(&e))?;
+            (a.out, w.finish(desc)?)
+        }
+        SimScenario::Family(a) => {
+            let cfg = persist::trapgen::FamilyConfig {
+                size: a.size,
+                seed: a.seed,
+                sequence: a.sequence,
+                darks: a.darks,
+                dark_pixels: a.dark_pixels,
+                pinholes: a.pinholes.map(|p| p == OnOff::On),
+                hidden: a.hidden,
+            };
+            persist::trapgen::validate(&cfg)?;
+            let mut w = Writer::new(&a.out)?;
+            let desc = persist::trapgen::run(&cfg, |e| w.write(&e))?;
             (a.out, w.finish(desc)?)
         }
     };

@@ -44,6 +44,7 @@ pub mod product;
 pub mod sim;
 pub mod stage;
 pub mod stats;
+pub mod trapgen;
 pub mod units;
 pub mod validate;
 pub mod verify;
