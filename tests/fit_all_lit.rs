@@ -107,7 +107,7 @@ fn campaigns_with_every_pixel_lit_calibrate() {
             calibrate(&seq, &CalibConfig::default()).unwrap_or_else(|e| panic!("{name}: {e}"));
         assert_eq!(rep.dark_level.source, DarkSource::LatePlateau, "{name}");
         let r = rep.dark_level.late_fraction_max.unwrap();
-        assert!(r > 0.01 && r <= 0.1, "{name}: {r}");
+        assert!(r > 0.01 && r < 0.2, "{name}: {r}");
         assert!(!rep.knots.is_empty(), "{name}");
         let a = a_bin_at(&rep.bins, 101_000.0);
         assert!((a / 54.1 - 1.0).abs() < 0.35, "{name}: {a}");
@@ -120,7 +120,7 @@ fn campaigns_with_every_pixel_lit_calibrate() {
 fn missing_data_are_named() {
     let tmp = tempfile::tempdir().unwrap();
     let dir = tmp.path().join("short");
-    lab(&dir, "32", &["--spots", "paper", "--darks", "3"]);
+    lab(&dir, "64", &["--spots", "paper", "--darks", "3"]);
     let seq = Sequence::load(&dir).unwrap();
     let e = calibrate(&seq, &CalibConfig::default())
         .unwrap_err()

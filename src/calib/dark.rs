@@ -40,9 +40,10 @@
 //! current is low by about 5 %; with 14 h of darks (`r` about 0.01) by less than 0.5 %.
 //!
 //! # Limits
-//! The window needs at least [`MIN_LATE_DARKS`] darks and `r` at most
-//! [`MAX_LATE_FRACTION`] in every bin (else the correction, not the data, would set the
-//! dark level): a sequence whose darks after the calibration's illumination stop too
+//! The window needs at least [`MIN_LATE_DARKS`] darks and the median of `r` over the
+//! bins with a fitted decay at most [`MAX_LATE_FRACTION`] (else the correction, not the
+//! data, would set the dark level; a bin's `tau` is taken at most the first dark's
+//! reset time, beyond which its ramp does not measure it): a sequence whose darks after the calibration's illumination stop too
 //! soon is refused with the time it would need. Its noise (`noise_e_per_s`, used to
 //! remove the noise from the bins' 95th percentiles in quadrature) is measured in the
 //! window: 1.4826 times the median absolute difference of two consecutive darks, over

@@ -395,13 +395,16 @@ pub fn calibrate(seq: &Sequence, cfg: &CalibConfig) -> Result<(ModelParams, Cali
                     if let Some(lf) = res.logfit.filter(|lf| {
                         !lf.undetermined && lf.a0_e > 0.0 && lf.tau_s.is_finite() && lf.tau_s >= 0.0
                     }) {
-                        r[*b] = l.late_fraction(lf.tau_s);
+                        // a tau beyond the first read is not a decay the ramp measured
+                        r[*b] = l.late_fraction(lf.tau_s.min(cr.t_reset_s));
                     }
                 }
             }
             let bins: Vec<BinResult> = bins.into_iter().map(|b| b.1).collect();
             let r_max = r.iter().copied().fold(0.0, f64::max);
-            if r_max > dark::MAX_LATE_FRACTION {
+            let fitted: Vec<f64> = r.iter().copied().filter(|v| *v > 0.0).collect();
+            let r_typical = crate::sim::analysis::median(&fitted);
+            if r_typical > dark::MAX_LATE_FRACTION {
                 let t_end = l.spans_s.last().map_or(0.0, |s| s.1);
                 return Err(Error::invalid(
                     "image",
@@ -412,9 +415,9 @@ pub fn calibrate(seq: &Sequence, cfg: &CalibConfig) -> Result<(ModelParams, Cali
                          darks; `persist::calib::dark`): add darks up to about {:.0} s after the \
                          illumination, or pixels masked from the source",
                         seq.exposures[d].meta.exposure_index,
-                        100.0 * r_max,
+                        100.0 * r_typical,
                         100.0 * dark::MAX_LATE_FRACTION,
-                        t_end * r_max / dark::MAX_LATE_FRACTION * 1.5,
+                        t_end * r_typical / dark::MAX_LATE_FRACTION * 1.5,
                     ),
                 ));
             }
