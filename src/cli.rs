@@ -571,8 +571,9 @@ pub struct DiagnoseArgs {
     /// Pixels in the random subsample.
     #[arg(long, default_value_t = persist::diag::diagnose::DEFAULT_PIXELS)]
     pub pixels: usize,
-    /// Residuals of the score test: `within` (illumination contrasts) or `pooled`.
-    #[arg(long, default_value_t = Statistic::Within, value_parser = parse_flag::<Statistic>)]
+    /// Residuals of the score test: `auto` (`within` with two illumination events or
+    /// more, else `pooled`), `within` (illumination contrasts) or `pooled`.
+    #[arg(long, default_value_t = Statistic::Auto, value_parser = parse_flag::<Statistic>)]
     pub statistic: Statistic,
     // the score test's groups are the `--statistic`'s; `--cells` keys the refits, the
     // held-out check and the reported RMS

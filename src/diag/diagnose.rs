@@ -155,6 +155,7 @@
 //! shared by neighbours is standing in for something else (radius and fluence go
 //! together when the spot is centred).
 
+use super::contrast;
 use super::data::{noisy_quantile, quantile, quantile_in_place, Sequence};
 use super::eval::{self, Samples};
 use super::spread;
@@ -219,11 +220,36 @@ pub const MOVED_Z: f64 = 1.0;
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
 #[serde(rename_all = "snake_case")]
 pub enum Statistic {
+    /// `within` with two illumination events or more, else `pooled` (the output says
+    /// which and why).
+    Auto,
     Pooled,
     Within,
 }
 
-choices!(Statistic, "--statistic", Pooled => "pooled", Within => "within");
+choices!(Statistic, "--statistic", Auto => "auto", Pooled => "pooled", Within => "within");
+
+impl Statistic {
+    /// The statistic used on samples from `events` illumination events, and why.
+    pub fn resolve(self, events: usize) -> (Statistic, String) {
+        match self {
+            Statistic::Auto if events >= 2 => (
+                Statistic::Within,
+                format!(
+                    "within (auto: {events} illumination events, compared at equal fluence \
+                     and time)"
+                ),
+            ),
+            Statistic::Auto => (
+                Statistic::Pooled,
+                "pooled (auto: one illumination event, nothing to compare it with; the \
+                 within statistic needs two)"
+                    .into(),
+            ),
+            s => (s, format!("{s} (--statistic)")),
+        }
+    }
+}
 
 /// What a candidate's refit frees (module docs, "Refit"). The default, [`Refit::Full`],
 /// is that of `persist diagnose` (`--refit`, whose default is this one).
@@ -266,7 +292,7 @@ impl Default for Config {
             pixels: DEFAULT_PIXELS,
             bootstrap: DEFAULT_BOOTSTRAP,
             seed: 1,
-            statistic: Statistic::Within,
+            statistic: Statistic::Auto,
             cells: eval::Cells::default(),
             cell_statistic: eval::CellStatistic::default(),
             background: super::data::Background::default(),
@@ -570,7 +596,14 @@ pub struct Joint {
 
 #[derive(Debug, Clone, Serialize)]
 pub struct Diagnosis {
+    /// The statistic used (never `auto`) and why.
     pub statistic: Statistic,
+    pub statistic_reason: String,
+    /// Per contrast class: whether the data can test it, else the measurement that
+    /// would ([`contrast::testability`]). Untestable classes' effects are not scored.
+    pub contrasts: Vec<contrast::Testability>,
+    /// What the flexible base's residual depends on, ranked ([`contrast::dependences`]).
+    pub dependences: Vec<contrast::Dependence>,
     pub pixels_sampled: usize,
     pub samples: usize,
     pub cells: usize,
@@ -626,7 +659,8 @@ struct Cells {
 
 fn make_cells(s: &Samples, pred: &[f64], st: Statistic) -> Cells {
     let keys: &[&str] = match st {
-        Statistic::Pooled => &["fluence", "time"],
+        // `auto` is resolved before the cells are made
+        Statistic::Pooled | Statistic::Auto => &["fluence", "time"],
         Statistic::Within => &["fluence", "time", "event"],
     };
     let mut g: BTreeMap<Vec<i64>, Vec<usize>> = BTreeMap::new();
@@ -844,7 +878,7 @@ impl<'a> Steps<'a> {
 
 /// Demean within groups (the `within` statistic); identity for `pooled`.
 fn project(c: &Cells, v: &[f64], st: Statistic) -> Vec<f64> {
-    if st == Statistic::Pooled {
+    if st != Statistic::Within {
         return v.to_vec();
     }
     let mut sum = vec![0.0; c.n_groups];
@@ -861,7 +895,7 @@ fn project(c: &Cells, v: &[f64], st: Statistic) -> Vec<f64> {
 
 fn dof(c: &Cells, st: Statistic) -> f64 {
     match st {
-        Statistic::Pooled => c.members.len() as f64,
+        Statistic::Pooled | Statistic::Auto => c.members.len() as f64,
         Statistic::Within => (c.members.len() as f64 - c.n_groups as f64).max(1.0),
     }
 }
@@ -1150,16 +1184,23 @@ pub fn diagnose(
         .with_cells(cfg.cells)
         .with_statistic(cfg.cell_statistic);
     let base = eval::predict(params, seq, &samples, false)?;
-    let cells = make_cells(&samples, &base.current, cfg.statistic);
+    let n_events = {
+        let mut e = samples.event.clone();
+        e.sort_unstable();
+        e.dedup();
+        e.len()
+    };
+    let (statistic, statistic_reason) = cfg.statistic.resolve(n_events);
+    let cells = make_cells(&samples, &base.current, statistic);
     let m = cells.members.len();
-    if (m as f64) < 3.0 + (m as f64 - dof(&cells, cfg.statistic)) {
+    if (m as f64) < 3.0 + (m as f64 - dof(&cells, statistic)) {
         return Err(Error::new(
             ErrorKind::Usage,
             format!(
                 "{m} residual cells in {} groups: too few to test (statistic {:?}){}",
                 cells.n_groups,
-                cfg.statistic,
-                if cfg.statistic == Statistic::Within && seq.illuminations.len() < 2 {
+                statistic,
+                if statistic == Statistic::Within && n_events < 2 {
                     "; the within statistic compares illumination events and this input \
                      has one: use --statistic pooled"
                 } else {
@@ -1173,7 +1214,7 @@ pub fn diagnose(
     let calib_ramp = crate::calib::knots::scale_of(params, seq)?;
     // the library effects to test, each predicted at its score step (in parallel;
     // collected in registry order)
-    let tests: Vec<_> = REGISTRY
+    let library: Vec<_> = REGISTRY
         .iter()
         .filter(|def| !params.effects.iter().any(|e| e.name == def.name))
         .filter_map(|def| {
@@ -1181,6 +1222,25 @@ pub fn diagnose(
                 .map(|(p, null)| (def, p, null, score_step(p, null)))
         })
         .collect();
+    // which classes the data hold contrast for; the untestable ones are listed, not
+    // scored ([`super::contrast`])
+    let contrasts = contrast::testability(
+        seq,
+        &samples,
+        &library
+            .iter()
+            .map(|(def, ..)| (def.name, def.covariate))
+            .collect::<Vec<_>>(),
+    );
+    let testable = |def: &crate::model::effect::EffectDef| {
+        let class = contrast::class_of(def.name, def.covariate);
+        contrasts.iter().any(|c| c.class == class && c.testable)
+    };
+    let tests: Vec<_> = library.into_iter().filter(|t| testable(t.0)).collect();
+    // what the flexible base's residual depends on, by permutation
+    let flexible = super::base::predict(seq, &samples, &base.current);
+    let dependences = contrast::dependences(seq, &samples, &flexible, &contrasts, cfg.seed);
+    let winner = dependences.iter().find(|d| d.depends);
     let at_step: Vec<(f64, Vec<f64>)> = tests
         .par_iter()
         .map(|&(def, p, null, h)| {
@@ -1222,7 +1282,7 @@ pub fn diagnose(
         .iter()
         .map(|&(_, p, null, h)| one_sided(p, null, h))
         .collect();
-    let mut lm = scores(&cells, &samples.measured, &steps, &dirs, cfg.statistic);
+    let mut lm = scores(&cells, &samples.measured, &steps, &dirs, statistic);
     // an effect whose switch states the pixels' spread correlation changes no
     // prediction: its score is the spread score (module docs, "Spread correlation")
     for (i, &(def, p, null, h)) in tests.iter().enumerate() {
@@ -1239,7 +1299,7 @@ pub fn diagnose(
         &base.current,
         &steps,
         &dirs,
-        cfg.statistic,
+        statistic,
         b,
         &mut rng,
         BOOT_BATCH,
@@ -1273,11 +1333,13 @@ pub fn diagnose(
             }
         })
         .collect();
-    // the leading candidates refitted in parallel (each fit is its own computation)
+    // the library effects acting on the covariate the base's residual depends on most
+    // are refitted, in parallel (each fit is its own computation); the score test no
+    // longer chooses them (module docs, "Decision")
     let refit: Vec<usize> = ranking
         .iter()
         .enumerate()
-        .filter(|(_, c)| c.passes_score)
+        .filter(|(_, c)| winner.is_some_and(|w| w.effects.contains(&c.effect)))
         .map(|(i, _)| i)
         .take(REFIT)
         .collect();
@@ -1357,11 +1419,15 @@ pub fn diagnose(
         }
         _ => Vec::new(),
     };
+    // significant ones first: the best held-out prediction, else the lowest dBIC
     ranking.sort_by(|a, b| match (a.significant, b.significant) {
-        (true, true) => a
-            .delta_bic
-            .unwrap_or(0.0)
-            .total_cmp(&b.delta_bic.unwrap_or(0.0)),
+        (true, true) => match (&a.held_out, &b.held_out) {
+            (Some(x), Some(y)) => y.gain.total_cmp(&x.gain),
+            _ => a
+                .delta_bic
+                .unwrap_or(0.0)
+                .total_cmp(&b.delta_bic.unwrap_or(0.0)),
+        },
         (true, false) => std::cmp::Ordering::Less,
         (false, true) => std::cmp::Ordering::Greater,
         (false, false) => b.score.total_cmp(&a.score),
@@ -1439,6 +1505,28 @@ pub fn diagnose(
             c.command,
             margin_note(c.measure_command.as_deref(), params)
         ),
+        None if winner.is_some() => {
+            let w = winner.expect("checked");
+            format!(
+                "the base's residual depends on {} (it explains {:.1} % of the residual's sum \
+                 of squares inside the fluence x time cells, {:.1} % at most over {} \
+                 permutations; z {:.1}), but no library effect acting on it ({}) predicts \
+                 held-out data: the missing physics is of this kind in another form. The \
+                 residual by {}: {}",
+                w.class,
+                100.0 * w.r2,
+                100.0 * w.r2_null_max,
+                w.permutations,
+                w.z,
+                w.effects.join(", "),
+                w.class,
+                w.by_bin
+                    .iter()
+                    .map(|(b, n, e)| format!("{b}: {e:+.2} ({n} pixel-events)"))
+                    .collect::<Vec<_>>()
+                    .join("; ")
+            )
+        }
         None => {
             let w: Vec<String> = largest
                 .iter()
@@ -1463,7 +1551,10 @@ pub fn diagnose(
         }
     };
     Ok(Diagnosis {
-        statistic: cfg.statistic,
+        statistic,
+        statistic_reason,
+        contrasts,
+        dependences,
         pixels_sampled: samples.npix(),
         samples: samples.len(),
         cells: m,
@@ -1617,11 +1708,11 @@ pub fn run(input: &Path, model: &Path, json: Option<&Path>, cfg: &Config) -> Res
 /// The printed ranking.
 pub fn render(d: &Diagnosis) -> String {
     let mut s = format!(
-        "persist diagnose: statistic {:?}, {} pixels, {} cells in {} groups, {} illumination events, \
+        "persist diagnose: statistic {}, {} pixels, {} cells in {} groups, {} illumination events, \
          residual RMS {:.2} ({} cells{}{})\nthreshold {:.2} (95 % of the largest score over {} bootstrap replicas \
-         from the fitted model; median {:.2})\n\
+         from the fitted model; median {:.2}; the score ranks, it does not decide)\n\
          {:<16} {:>10} {:>6} {:>9} {:>15} {:>9} {:>15}  covariate\n",
-        d.statistic,
+        d.statistic_reason,
         d.pixels_sampled,
         d.cells,
         d.groups,
@@ -1672,6 +1763,29 @@ pub fn render(d: &Diagnosis) -> String {
                 ""
             }
         );
+    }
+    for c in d.contrasts.iter().filter(|c| !c.testable) {
+        s += &format!(
+            "{:<16} untestable, needs {} ({})\n",
+            c.effects.join(", "),
+            c.needs.as_deref().unwrap_or("-"),
+            c.why
+        );
+    }
+    if !d.dependences.is_empty() {
+        s += "what the base's residual depends on (share of its sum of squares inside the \
+              fluence x time cells; permutations' largest; z):\n";
+        for x in &d.dependences {
+            s += &format!(
+                "  {:<26} {:>6.2} % {:>6.2} % {:>7.1}  {}{}\n",
+                x.class,
+                100.0 * x.r2,
+                100.0 * x.r2_null_max,
+                x.z,
+                x.effects.join(", "),
+                if x.depends { "  DEPENDS" } else { "" }
+            );
+        }
     }
     if !d.joint.is_empty() {
         s += "joint check (no effect significant alone; the leader refitted with each other):\n";

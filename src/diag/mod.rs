@@ -2,7 +2,9 @@
 //! and flag quality ([`compare`]), the search for missing effects ([`diagnose`]), and
 //! the HTML report ([`report`]).
 
+pub mod base;
 pub mod compare;
+pub mod contrast;
 pub mod data;
 pub mod diagnose;
 pub mod eval;
