@@ -194,8 +194,9 @@ pub const DEFAULT_PIXELS: usize = 2048;
 pub const DEFAULT_BOOTSTRAP: usize = 199;
 /// Family-wise false-alarm level of the score threshold.
 pub const ALPHA: f64 = 0.05;
-/// Candidates (above the score threshold, by score) that are refitted.
-pub const REFIT: usize = 3;
+/// Candidates refitted at most: the library effects acting on the covariates the base's
+/// residual depends on, in the order of that dependence.
+pub const REFIT: usize = 4;
 
 /// Bootstrap replicas drawn before they are scored in parallel (memory: this many
 /// copies of the samples).
@@ -1336,11 +1337,11 @@ pub fn diagnose(
     // the library effects acting on the covariate the base's residual depends on most
     // are refitted, in parallel (each fit is its own computation); the score test no
     // longer chooses them (module docs, "Decision")
-    let refit: Vec<usize> = ranking
+    let refit: Vec<usize> = dependences
         .iter()
-        .enumerate()
-        .filter(|(_, c)| winner.is_some_and(|w| w.effects.contains(&c.effect)))
-        .map(|(i, _)| i)
+        .filter(|d| d.depends)
+        .flat_map(|d| &d.effects)
+        .filter_map(|name| ranking.iter().position(|c| &c.effect == name))
         .take(REFIT)
         .collect();
     // with a full refit, the model's own effects refitted alone on these samples are
@@ -1383,7 +1384,8 @@ pub fn diagnose(
             })
         })
         .collect::<Result<_>>()?;
-    // the leader: the first refitted (`refit` is in score order, `results` in its order)
+    // the leader: the first refitted (`refit` in the order of the dependence, `results`
+    // in its order)
     let leader = results.first().map(|r| (r.rank, r.rss_after));
     let spatial = super::spatial::coherence(seq, params)?;
     for r in results {
