@@ -96,14 +96,61 @@ fn compare_summary_is_consistent_and_report_self_contained() {
     assert!(!html.contains("<script"));
     assert!(html.contains("Where the flags at 0.1 e-/s fail") && html.contains("most missed: "));
 
-    // Regression: on a single illumination (the paper's laboratory sequence) the default
-    // within statistic has nothing to compare; the refusal says what to use instead.
-    let (code, err) =
-        common::persist_status(&["diagnose", "--input", &d("lab"), "--model", &d("m.json")]);
-    assert_eq!(code, Some(2), "{err}");
+    // On a single illumination (the paper's laboratory sequence) `diagnose` with no
+    // other option chooses the pooled statistic and says why, lists the classes the data
+    // hold no contrast for with the measurement that would test them, and declares
+    // nothing (nothing is hidden).
+    let dj = d("single.json");
+    let out = persist(&[
+        "diagnose",
+        "--input",
+        &d("lab"),
+        "--model",
+        &d("m.json"),
+        "--json",
+        &dj,
+    ]);
+    let dg: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&dj).unwrap()).unwrap();
+    assert_eq!(dg["statistic"], "pooled", "{out}");
+    assert!(dg["statistic_reason"]
+        .as_str()
+        .unwrap()
+        .contains("one illumination"));
+    let needs = |class: &str| -> Option<String> {
+        let c = dg["contrasts"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .find(|c| c["class"] == class)
+            .unwrap_or_else(|| panic!("{class} missing: {out}"));
+        (!c["testable"].as_bool().unwrap()).then(|| c["needs"].as_str().unwrap().to_string())
+    };
+    assert!(needs("illumination_time")
+        .unwrap()
+        .contains("120 s and 481 s"));
+    assert!(needs("temperature").unwrap().contains("2 K apart"));
+    assert!(needs("earlier_illuminations")
+        .unwrap()
+        .contains("second illumination"));
+    assert!(out.contains("soak             untestable, needs illuminations of two durations"));
+    // untestable effects are not scored
+    let ranked: Vec<&str> = dg["ranking"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|c| c["effect"].as_str().unwrap())
+        .collect();
+    for e in ["soak", "temperature", "capacity", "refill"] {
+        assert!(!ranked.contains(&e), "{e} scored: {out}");
+    }
     assert!(
-        err.contains("lab") && err.contains("--statistic pooled"),
-        "{err}"
+        !dg["ranking"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .any(|c| c["significant"].as_bool().unwrap()),
+        "{out}"
     );
 
     // `--cells illumination` on one illumination: the same cells as pooled, each
@@ -182,7 +229,7 @@ fn compare_summary_is_consistent_and_report_self_contained() {
 /// `cargo test --release --test compare_diagnose -- --ignored`. Written for the
 /// defaults of then, passed here: `diagnose --statistic pooled` (since `within` became
 /// the default, a single illumination is refused without it), pooled cells, the levels
-/// statistic, the candidate-only refit. Run on commit fdbe6c7 it fails: `short_tau_boost`
+/// statistic, the candidate-only refit. Run when written it failed: `short_tau_boost`
 /// is declared besides `soak` (`["soak", "short_tau_boost"]`); not investigated.
 #[test]
 #[ignore]

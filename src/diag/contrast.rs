@@ -48,7 +48,10 @@
 //! time and the noise, and destroys only the link to the covariate. A class depends on
 //! its covariate when `T` exceeds every permutation (p < 1/(P+1)) and the excess over the
 //! permutations' mean explains at least [`MIN_R2`] of the residual's sum of squares.
-//! Classes are ranked by `z = (T - mean) / sd` of the permutations. Two event-level
+//! Classes are ranked by `z = (T - mean) / sd` of the permutations. The effects of every
+//! class whose `T` exceeds every permutation are refitted, and held-out prediction
+//! chooses among them ([`super::diagnose`]): event-level classes are often confounded
+//! (in a campaign the events differ in duration, flux, temperature and history at once). Two event-level
 //! classes whose covariates split the events the same way cannot be told apart; both
 //! are reported, with the same `T`.
 
@@ -377,6 +380,9 @@ pub struct Dependence {
     pub z: f64,
     pub permutations: usize,
     pub depends: bool,
+    /// `T` above every permutation (p < 1/(P+1)), whatever the effect size: its effects
+    /// are refitted and judged by held-out prediction.
+    pub above_permutations: bool,
     /// Mean standardised base residual per covariate bin: (bin, blocks, mean).
     pub by_bin: Vec<(String, usize, f64)>,
 }
@@ -617,6 +623,7 @@ pub fn dependences(
                 z,
                 permutations: PERMUTATIONS,
                 depends: t > max && (t - mean) / ss >= MIN_R2,
+                above_permutations: t > max,
                 by_bin: by
                     .into_iter()
                     .map(|(k, (nb, a, n))| (bin_label(&c.class, k), nb, a / n.max(1.0)))
