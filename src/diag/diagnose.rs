@@ -1,5 +1,30 @@
 //! `persist diagnose`: which library effect is missing from a fitted model.
 //!
+//! # Decision
+//! 1. **Statistic** (`--statistic auto`, the default): `within` with two illumination
+//!    events or more, `pooled` with one; the output says which and why.
+//! 2. **Untestable is an answer**: classes whose covariate has no contrast in the data
+//!    are listed with the measurement that would test them and are not scored
+//!    ([`super::contrast::testability`]).
+//! 3. **A flexible base** ([`super::base`]): the model plus a free response per fluence
+//!    knot and free weights over a fixed grid of decay rates, superposed over every
+//!    illumination, fitted once; its residual, standardised inside fluence x time
+//!    cells, is what an effect must explain.
+//! 4. **What the residual depends on** ([`super::contrast::dependences`]): the share of
+//!    it each testable covariate explains inside the cells, calibrated by permuting the
+//!    covariate among whole pixel-events of one fluence bin; ranked by `z`.
+//! 5. **Identify**: the library effects acting on every covariate above all its
+//!    permutations are refitted (at most [`REFIT`]); an effect is significant when its
+//!    refit passes the change in BIC and the held-out check (below); among significant
+//!    ones the best held-out prediction comes first. When the residual depends on a
+//!    covariate but no effect on it passes, the verdict says so and prints the
+//!    residual by that covariate's bins.
+//!
+//! The score test and its bootstrap threshold (below) are still computed and printed:
+//! they rank the testable effects, they no longer choose which are refitted (a score
+//! along one parametric form, calibrated from the fitted model alone, rises with any
+//! misfit of the base).
+//!
 //! # Sample
 //! A random subsample of `pixels` (default [`DEFAULT_PIXELS`]) of the pixels lit above
 //! the background fluence in some illumination, drawn with ChaCha8 from `--seed`
