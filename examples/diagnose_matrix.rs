@@ -19,7 +19,7 @@
 //! `--t-min-s T`, `--decay-offset-s T0`, `--cells pooled|illumination|neighbours`, `--cell-statistic levels|paired|population`, `--background median|line` (the
 //! reference's `persist fit` options, also used by every fit and diagnosis of the
 //! matrix; a reference effect `NAME:param=value,...` pins those parameters, as `persist
-//! fit --with` does), `--refit candidate|full` (`persist diagnose --refit`),
+//! fit --with` does), `--refit candidate|full` (`persist diagnose --refit`), `--decide contrast|score`,
 //! `--spots centred|shifted|pinholes` (the campaign, `persist simulate lab --campaign --spots`),
 //! `--dark-lengths uniform|varied` (`persist simulate lab --campaign --dark-lengths`),
 //! `--temperatures mixed|apart` (`persist simulate lab --campaign --temperatures`),
@@ -295,6 +295,7 @@ const VALUE_OPTIONS: &[&str] = &[
     "--bootstrap",
     "--statistic",
     "--refit",
+    "--decide",
 ];
 const FLAGS: &[&str] = &[
     "--reference-fit-cn",
@@ -462,6 +463,9 @@ fn main() {
         cfg.refit = v.parse().unwrap();
     }
     cfg.joint = args.iter().any(|a| a == "--joint");
+    if let Some(v) = arg(&args, "--decide") {
+        cfg.decide = v.parse().unwrap();
+    }
     let skip = |f: &str| args.iter().any(|a| a == f);
     let mut md = String::new();
     let mut jl = String::new();

@@ -590,6 +590,11 @@ pub struct DiagnoseArgs {
     /// `persist::diag::diagnose`, "Joint check"). Adds up to seven refits.
     #[arg(long)]
     pub joint: bool,
+    /// What chooses the candidates refitted: `contrast` (what the data can test and what
+    /// a flexible base's residual depends on) or `score` (the score test alone, as the
+    /// matrix of docs/diagnose_matrix.md measured).
+    #[arg(long, default_value_t = persist::diag::diagnose::Decide::default(), value_parser = parse_flag::<persist::diag::diagnose::Decide>)]
+    pub decide: persist::diag::diagnose::Decide,
 }
 
 #[derive(Subcommand, Debug)]
@@ -1024,6 +1029,7 @@ fn diagnose(a: &DiagnoseArgs) -> persist::Result<ExitCode> {
         background: a.cells.background,
         refit: a.refit,
         joint: a.joint,
+        decide: a.decide,
     };
     let s = persist::diag::diagnose::run(&a.input, &a.model, a.json.as_deref(), &cfg)?;
     out!("{s}");

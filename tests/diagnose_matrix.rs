@@ -23,6 +23,7 @@ fn old_defaults() -> Config {
         cells: Cells::Pooled,
         cell_statistic: CellStatistic::Levels,
         refit: diagnose::Refit::Candidate,
+        decide: diagnose::Decide::Score,
         ..Config::default()
     }
 }
@@ -203,6 +204,7 @@ fn paired_diagnose() -> Config {
         cells: Cells::Illumination,
         cell_statistic: CellStatistic::Paired,
         refit: diagnose::Refit::Full,
+        decide: diagnose::Decide::Score,
         ..Config::default()
     }
 }

@@ -277,6 +277,25 @@ impl Statistic {
     }
 }
 
+/// What chooses the candidates that are refitted (module docs, "Decision").
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Decide {
+    /// The contrasts: untestable classes are not scored; the effects acting on the
+    /// covariates the flexible base's residual depends on are refitted.
+    #[default]
+    Contrast,
+    /// The score test alone, as before the contrasts: every library effect is scored
+    /// and the [`REFIT_BY_SCORE`] leading candidates above the bootstrap threshold are
+    /// refitted (what the matrix of docs/diagnose_matrix.md measured).
+    Score,
+}
+
+choices!(Decide, "--decide", Contrast => "contrast", Score => "score");
+
+/// Candidates refitted with [`Decide::Score`] (by score, above the threshold).
+pub const REFIT_BY_SCORE: usize = 3;
+
 /// What a candidate's refit frees (module docs, "Refit"). The default, [`Refit::Full`],
 /// is that of `persist diagnose` (`--refit`, whose default is this one).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize)]
@@ -310,6 +329,8 @@ pub struct Config {
     /// Run the joint check when no candidate is significant alone (module docs,
     /// "Joint check"; `persist diagnose --joint`).
     pub joint: bool,
+    /// What chooses the candidates refitted (`persist diagnose --decide`).
+    pub decide: Decide,
 }
 
 impl Default for Config {
@@ -324,6 +345,7 @@ impl Default for Config {
             background: super::data::Background::default(),
             refit: Refit::default(),
             joint: false,
+            decide: Decide::default(),
         }
     }
 }
@@ -1262,7 +1284,10 @@ pub fn diagnose(
         let class = contrast::class_of(def.name, def.covariate);
         contrasts.iter().any(|c| c.class == class && c.testable)
     };
-    let tests: Vec<_> = library.into_iter().filter(|t| testable(t.0)).collect();
+    let tests: Vec<_> = library
+        .into_iter()
+        .filter(|t| cfg.decide == Decide::Score || testable(t.0))
+        .collect();
     // what the flexible base's residual depends on, by permutation
     let flexible = super::base::predict(seq, &samples, &base.current);
     let dependences = contrast::dependences(seq, &samples, &flexible, &contrasts, cfg.seed);
@@ -1362,13 +1387,22 @@ pub fn diagnose(
     // the library effects acting on the covariate the base's residual depends on most
     // are refitted, in parallel (each fit is its own computation); the score test no
     // longer chooses them (module docs, "Decision")
-    let refit: Vec<usize> = dependences
-        .iter()
-        .filter(|d| d.above_permutations)
-        .flat_map(|d| &d.effects)
-        .filter_map(|name| ranking.iter().position(|c| &c.effect == name))
-        .take(REFIT)
-        .collect();
+    let refit: Vec<usize> = match cfg.decide {
+        Decide::Contrast => dependences
+            .iter()
+            .filter(|d| d.above_permutations)
+            .flat_map(|d| &d.effects)
+            .filter_map(|name| ranking.iter().position(|c| &c.effect == name))
+            .take(REFIT)
+            .collect(),
+        Decide::Score => ranking
+            .iter()
+            .enumerate()
+            .filter(|(_, c)| c.passes_score)
+            .map(|(i, _)| i)
+            .take(REFIT_BY_SCORE)
+            .collect(),
+    };
     // with a full refit, the model's own effects refitted alone on these samples are
     // what each candidate is compared with
     let own = own_effects(params, cfg.refit);
@@ -1532,7 +1566,7 @@ pub fn diagnose(
             c.command,
             margin_note(c.measure_command.as_deref(), params)
         ),
-        None if winner.is_some() => {
+        None if winner.is_some() && cfg.decide == Decide::Contrast => {
             let w = winner.expect("checked");
             format!(
                 "the base's residual depends on {} (it explains {:.1} % of the residual's sum \
