@@ -1480,10 +1480,11 @@ pub fn diagnose(
         }
         _ => Vec::new(),
     };
-    // significant ones first: the best held-out prediction, else the lowest dBIC
+    // significant ones first: the best held-out prediction (the lowest dBIC with the
+    // score decision, or without a held-out check)
     ranking.sort_by(|a, b| match (a.significant, b.significant) {
         (true, true) => match (&a.held_out, &b.held_out) {
-            (Some(x), Some(y)) => y.gain.total_cmp(&x.gain),
+            (Some(x), Some(y)) if cfg.decide == Decide::Contrast => y.gain.total_cmp(&x.gain),
             _ => a
                 .delta_bic
                 .unwrap_or(0.0)
