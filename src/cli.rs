@@ -675,8 +675,9 @@ pub struct DiagnoseArgs {
     /// Pixels in the random subsample.
     #[arg(long, default_value_t = persist::diag::diagnose::DEFAULT_PIXELS)]
     pub pixels: usize,
-    /// Residuals of the score test: `within` (illumination contrasts) or `pooled`.
-    #[arg(long, default_value_t = Statistic::Within, value_parser = parse_flag::<Statistic>)]
+    /// Residuals of the score test: `auto` (`within` with two illumination events or
+    /// more, else `pooled`), `within` (illumination contrasts) or `pooled`.
+    #[arg(long, default_value_t = Statistic::Auto, value_parser = parse_flag::<Statistic>)]
     pub statistic: Statistic,
     // the score test's groups are the `--statistic`'s; `--cells` keys the refits, the
     // held-out check and the reported RMS
@@ -693,6 +694,11 @@ pub struct DiagnoseArgs {
     /// `persist::diag::diagnose`, "Joint check"). Adds up to seven refits.
     #[arg(long)]
     pub joint: bool,
+    /// What chooses the candidates refitted: `contrast` (what the data can test and what
+    /// a flexible base's residual depends on) or `score` (the score test alone, as the
+    /// matrix of docs/diagnose_matrix.md measured).
+    #[arg(long, default_value_t = persist::diag::diagnose::Decide::default(), value_parser = parse_flag::<persist::diag::diagnose::Decide>)]
+    pub decide: persist::diag::diagnose::Decide,
 }
 
 #[derive(Subcommand, Debug)]
@@ -1276,6 +1282,7 @@ fn diagnose(a: &DiagnoseArgs) -> persist::Result<ExitCode> {
         background: a.cells.background,
         refit: a.refit,
         joint: a.joint,
+        decide: a.decide,
     };
     let s = persist::diag::diagnose::run(&a.input, &a.model, a.json.as_deref(), &cfg)?;
     out!("{s}");

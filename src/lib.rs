@@ -37,6 +37,7 @@ pub mod diag;
 pub mod error;
 pub mod flags;
 pub mod h5io;
+pub mod measure;
 pub mod model;
 pub mod model_file;
 pub mod plot;

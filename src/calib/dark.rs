@@ -3,7 +3,7 @@
 //!
 //! # Two sources
 //! - **Background pixels** ([`DarkSource::BackgroundPixels`]): when at least
-//!   `min_pixels` pixels stayed below [`crate::diag::data::BACKGROUND_FLUENCE_E`] in every
+//!   `min_pixels` pixels stayed below [`crate::measure::data::BACKGROUND_FLUENCE_E`] in every
 //!   illumination so far, the dark level of the first dark is theirs, exposure by exposure
 //!   (`diag::data`, "Background"), and the dark ramp read by read. This is the
 //!   measurement `compare` and `diagnose` use on the same data.
@@ -50,7 +50,7 @@
 //! `sqrt 2`, scaled to the first dark's length by `(t_k / t_1)^1.5` (a line fit over
 //! evenly spaced reads of read-noise-limited data; the same length needs no scaling).
 
-use crate::diag::data::Sequence;
+use crate::measure::data::Sequence;
 use crate::error::{Error, Result};
 use crate::sim::analysis::median;
 use ndarray::Array2;
@@ -159,7 +159,7 @@ impl LatePlateau {
                      {} darks after the first, ending where its persistence has fallen below \
                      {} % of the first dark's (about {:.0} s after the illumination for a \
                      1/t decay); add such darks, or pixels masked from the source",
-                    crate::diag::data::BACKGROUND_FLUENCE_E,
+                    crate::measure::data::BACKGROUND_FLUENCE_E,
                     block.len(),
                     index(i0),
                     index(d),

@@ -1,6 +1,6 @@
 //! `fit --with NAME`: the fitted parameters of effects, by Levenberg-Marquardt
 //! (`levenberg-marquardt` 0.15, forward-difference Jacobian) on the normalised cell
-//! residuals `z` of [`crate::diag::eval`] (fluence bin x time since illumination, per
+//! residuals `z` of [`crate::measure::eval`] (fluence bin x time since illumination, per
 //! illumination with `--cells illumination`, the default), the
 //! paper's calibration held fixed except that each trial model's knots carry its
 //! per-pixel response effects ([`super::knots`]: a `short_tau_boost` lowers the knots in
@@ -29,11 +29,11 @@
 //! # The pixels' spread correlation (`populations`)
 //! A model that states how its pixels' spread is correlated between neighbours
 //! (`populations`' `spread_corr`, `spread_length_px`) has its cells widened by their
-//! design effects ([`crate::diag::spread::model_cell_z`]); the fit keeps that
+//! design effects ([`crate::measure::spread::model_cell_z`]); the fit keeps that
 //! correlation fixed while it fits the predictions (the design effects computed once,
 //! from the start model's predictions; they depend on the cells' pixels alone). With
 //! `--with populations` (its spread parameters not pinned) the correlation is then
-//! measured on the fitted model's residuals ([`crate::diag::spread::fit_kernel`], a
+//! measured on the fitted model's residuals ([`crate::measure::spread::fit_kernel`], a
 //! moment estimator), set in the model and reported with its uncertainty, and the
 //! residual RMS after is that of the widened cells. Not by least squares on the cells:
 //! any widening lowers their sum of squares. The predictions are not refitted under
@@ -94,10 +94,10 @@
 //! with `--fit-cn`: a common factor of the `C_n` is nearly the same freedom (exactly
 //! in the paper's linear model; `capacity` and `refill` act in the knots' units).
 
-use crate::diag::data::Sequence;
-use crate::diag::eval::{self, Samples};
-use crate::diag::spread;
 use crate::error::{Error, Result};
+use crate::measure::data::Sequence;
+use crate::measure::eval::{self, Samples};
+use crate::measure::spread;
 use crate::model::effects;
 use crate::model::params::{EffectSpec, ModelParams};
 use levenberg_marquardt::{LeastSquaresProblem, LevenbergMarquardt};

@@ -4,7 +4,7 @@
 //! 1. Extrapolated fluence of the (first) illuminated exposure, `image * t_illuminated`,
 //!    in log-spaced bins (`bins_per_decade`, default 20; bins with fewer than
 //!    `min_pixels` usable pixels are skipped). Pixels dominated by a far brighter
-//!    neighbour ([`crate::diag::data::neighbour_dominated`]: below saturation, next to
+//!    neighbour ([`crate::measure::data::neighbour_dominated`]: below saturation, next to
 //!    neighbours whose mean fluence above saturation exceeds their own) are left out
 //!    (the report's `neighbour_dominated_left_out`): the paper's `A_k` is a pixel's
 //!    response to its own fluence, and what couples neighbours (blooming, inter-pixel
@@ -12,19 +12,19 @@
 //!    model's spatial effects then cannot take back (docs/diagnose_matrix.md). A smooth illumination has no such pixel; one-pixel pinholes have four
 //!    each.
 //! 2. Per bin, the measured current of the first dark integration (image minus the
-//!    dark level, [`dark`]: the background pixels' ([`crate::diag::data`]) when at
+//!    dark level, [`dark`]: the background pixels' ([`crate::measure::data`]) when at
 //!    least `min_pixels` pixels stayed below 3000 e-, else, when every pixel was lit as
 //!    in the paper's laboratory data, each pixel's own late darks with its predicted
 //!    persistence there removed; the report's `dark_level` and the model file's
 //!    `calibration.late_plateau_dark` say which): its 3-sigma-clipped median and its 95th
-//!    percentile ([`crate::diag::data::signal_p95`], read noise removed in quadrature;
+//!    percentile ([`crate::measure::data::signal_p95`], read noise removed in quadrature;
 //!    with `--cell-statistic population` also the shot noise of the bin's median
-//!    current, [`crate::diag::data::shot_noise_added`]: that statistic's reference adds
+//!    current, [`crate::measure::data::shot_noise_added`]: that statistic's reference adds
 //!    each sample's shot noise to the prediction, which must then be the noise-free 95th
 //!    percentile; the model file records it, `calibration.knots_shot_noise_removed`).
 //! 3. Per bin, the clipped median of the first dark ramp (dark ramp subtracted:
 //!    per read, the background pixels' median, or with `--background line` their
-//!    line's intercept at zero fluence, [`crate::diag::data`] "Background"; with the
+//!    line's intercept at zero fluence, [`crate::measure::data`] "Background"; with the
 //!    late plateau each pixel's dark level times the read's time since the reset)
 //!    fitted with Eq. (logfit) `q(t) = A_0 ln(t + tau) + q_0` ([`logfit`]).
 //! 4. `A_bin = amplification * A_0` (paper: 1.2) and, through the 95th percentile,
@@ -54,11 +54,11 @@ pub mod effects;
 pub mod knots;
 pub mod logfit;
 
-use crate::diag::data::{
+use crate::error::{Error, Result};
+use crate::measure::data::{
     fluence, neighbour_dominated, quantile, shot_noise_added, signal_p95, Sequence,
     BACKGROUND_FLUENCE_E,
 };
-use crate::error::{Error, Result};
 use crate::model::params::{Calibration, Knot, ModelParams, Term, PAPER_TERMS};
 use crate::sim::analysis::clipped_median;
 use logfit::LogFit;
@@ -76,13 +76,13 @@ pub struct CalibConfig {
     pub decay_offset_s: f64,
     /// Decay rates `1/tau_n` of the terms, 1/s.
     pub rates_per_s: Vec<f64>,
-    /// Residual cells of the effect fit and of the report ([`crate::diag::eval::Cells`]).
-    pub cells: crate::diag::eval::Cells,
-    /// What those cells compare ([`crate::diag::eval::CellStatistic`]).
-    pub cell_statistic: crate::diag::eval::CellStatistic,
+    /// Residual cells of the effect fit and of the report ([`crate::measure::eval::Cells`]).
+    pub cells: crate::measure::eval::Cells,
+    /// What those cells compare ([`crate::measure::eval::CellStatistic`]).
+    pub cell_statistic: crate::measure::eval::CellStatistic,
     /// How each exposure's background is measured, in the calibration too
-    /// ([`crate::diag::data::Background`]).
-    pub background: crate::diag::data::Background,
+    /// ([`crate::measure::data::Background`]).
+    pub background: crate::measure::data::Background,
 }
 
 impl CalibConfig {
@@ -104,13 +104,13 @@ impl CalibConfig {
     /// `population` cell statistic, whose reference adds each sample's shot noise to a
     /// noise-free predicted 95th percentile (module docs, step 2).
     pub fn knots_shot_noise_removed(&self) -> bool {
-        self.cell_statistic == crate::diag::eval::CellStatistic::Population
+        self.cell_statistic == crate::measure::eval::CellStatistic::Population
     }
 
     /// The samples of the effect fit and of the report: every second pixel, grouped and
     /// compared as this configuration says.
-    pub fn samples(&self, seq: &Sequence) -> crate::diag::eval::Samples {
-        crate::diag::eval::Samples::new(seq, 2)
+    pub fn samples(&self, seq: &Sequence) -> crate::measure::eval::Samples {
+        crate::measure::eval::Samples::new(seq, 2)
             .with_cells(self.cells)
             .with_statistic(self.cell_statistic)
     }
@@ -125,9 +125,9 @@ impl Default for CalibConfig {
             t_min_s: 10.0,
             decay_offset_s: 1.0,
             rates_per_s: PAPER_TERMS.iter().map(|t| t.1).collect(),
-            cells: crate::diag::eval::Cells::default(),
-            cell_statistic: crate::diag::eval::CellStatistic::default(),
-            background: crate::diag::data::Background::default(),
+            cells: crate::measure::eval::Cells::default(),
+            cell_statistic: crate::measure::eval::CellStatistic::default(),
+            background: crate::measure::data::Background::default(),
         }
     }
 }
@@ -541,7 +541,7 @@ fn bin_results(
     let t_since_reset: Vec<f64> = t.iter().map(|x| x - cr.t_reset_s).collect();
     let meas = seq.measured(d);
     // the background ramp, by the sequence's background (its median, or its line's
-    // intercept at zero fluence, crate::diag::data "Background")
+    // intercept at zero fluence, crate::measure::data "Background")
     let bg_ramp: Vec<f64> = match dark {
         BinDark::Background(bg_px) => (0..nsamp)
             .map(|s| {
@@ -750,7 +750,7 @@ mod tests {
     #[test]
     fn population_statistic_calibrates_noise_free_knots_and_records_it() {
         let pop = CalibConfig {
-            cell_statistic: crate::diag::eval::CellStatistic::Population,
+            cell_statistic: crate::measure::eval::CellStatistic::Population,
             ..Preset::Readout.config()
         };
         assert!(pop.knots_shot_noise_removed() && pop.record().knots_shot_noise_removed);
@@ -852,9 +852,9 @@ pub struct FitReport {
     pub residual_rms_normalised: f64,
     pub cells: usize,
     /// What the cells compare.
-    pub cell_statistic: crate::diag::eval::CellStatistic,
+    pub cell_statistic: crate::measure::eval::CellStatistic,
     /// How each exposure's background was measured.
-    pub background: crate::diag::data::Background,
+    pub background: crate::measure::data::Background,
     pub model_identity: String,
 }
 
@@ -934,13 +934,13 @@ pub fn run(
         }
         ef = Some(f);
     }
-    let pr = crate::diag::eval::predict(&params, &seq, &samples, false)?;
-    let cells = crate::diag::spread::model_cell_z(&params, &samples, &pr.current);
+    let pr = crate::measure::eval::predict(&params, &seq, &samples, false)?;
+    let cells = crate::measure::spread::model_cell_z(&params, &samples, &pr.current);
     let rep = FitReport {
         input: input.display().to_string(),
         calibration: cal,
         effects: ef,
-        residual_rms_normalised: crate::diag::eval::rms(&cells),
+        residual_rms_normalised: crate::measure::eval::rms(&cells),
         cells: cells.len(),
         cell_statistic: cfg.cell_statistic,
         background: cfg.background,
