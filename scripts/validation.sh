@@ -13,6 +13,7 @@
 #                                               runs in about a minute)
 #   matrix  docs/validation/diagnose_matrix.md  examples/diagnose_matrix $MATRIX_ARGS
 #                                               (default --size 128: hours)
+#   verify  docs/validation/verify.md           scripts/validate_verify.sh (minutes)
 # Without arguments every page is regenerated. Release builds (PERSIST_BIN=path skips the
 # build of the binary); run it on a quiet machine
 # (the header records the load average at the start).
@@ -24,12 +25,12 @@ mkdir -p "$out_dir"
 
 pages=("$@")
 if [[ ${#pages[@]} -eq 0 ]]; then
-    pages=(floor bench matrix)
+    pages=(floor bench matrix verify)
 fi
 for p in "${pages[@]}"; do
     case $p in
-        floor|bench|matrix) ;;
-        *) echo "validation.sh: unknown page '$p' (floor, bench, matrix)" >&2; exit 2 ;;
+        floor|bench|matrix|verify) ;;
+        *) echo "validation.sh: unknown page '$p' (floor, bench, matrix, verify)" >&2; exit 2 ;;
     esac
 done
 
@@ -169,6 +170,11 @@ TEXT
         cp "$tmp/matrix.jsonl" "$out_dir/diagnose_matrix.jsonl"
     fi
     echo "wrote $page" >&2
+}
+
+# verify: persist verify against the simulator's truth (its own script).
+page_verify() {
+    PERSIST_BIN=$persist scripts/validate_verify.sh
 }
 
 for p in "${pages[@]}"; do

@@ -50,8 +50,8 @@
 //! `sqrt 2`, scaled to the first dark's length by `(t_k / t_1)^1.5` (a line fit over
 //! evenly spaced reads of read-noise-limited data; the same length needs no scaling).
 
-use crate::measure::data::Sequence;
 use crate::error::{Error, Result};
+use crate::measure::data::Sequence;
 use crate::sim::analysis::median;
 use ndarray::Array2;
 use serde::Serialize;

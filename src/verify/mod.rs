@@ -388,10 +388,10 @@ fn summarise(p: &VerifyParams, acc: Acc, s: Summary) -> Report {
             [0.0, 0.0, 0.0, 1.0],
             [0.0, 0.0, 1.0, 0.0],
         ];
-        let Some([meas, pred, diff, time, tdiff, truth]) = bin.means(w, seed_of(p, 1, fb, tb))
-        else {
+        let Some([meas, pred, diff, time, truth]) = bin.means(w, seed_of(p, 1, fb, tb)) else {
             continue;
         };
+        let truth_inside = (truth.mean - meas.mean).abs() <= 1.96 * meas.se;
         let truth = acc.has_truth.then_some(truth);
         decay.push(DecayBin {
             fluence_lo_e: fe[fb],
@@ -405,9 +405,7 @@ fn summarise(p: &VerifyParams, acc: Acc, s: Summary) -> Report {
             predicted: pred,
             difference: diff,
             truth,
-            truth_inside: acc
-                .has_truth
-                .then(|| (truth.mean - meas.mean).abs() <= 1.96 * meas.se),
+            truth_inside: acc.has_truth.then_some(truth_inside),
         });
     }
     let mut flags = Vec::new();
