@@ -389,6 +389,7 @@ pub struct Dependence {
 
 /// The standardised residual of the flexible base (module docs), per sample (NaN where
 /// unusable), cells split by event when `by_event`.
+#[allow(clippy::needless_range_loop)] // i indexes the samples' parallel columns
 fn base_residual(s: &Samples, pred: &[f64], by_event: bool) -> Vec<f64> {
     let np = s.npix();
     let mut cells: HashMap<(i64, i64, usize), Vec<usize>> = HashMap::new();
@@ -469,8 +470,7 @@ fn covariate_bins(
                     let f = prev.entry(e).or_insert_with(|| {
                         seq.illuminations
                             .iter()
-                            .filter(|&&a| a < e)
-                            .next_back()
+                            .rfind(|&&a| a < e)
                             .map(|&a| fluence(&seq.exposures[a]))
                     });
                     let (y, x) = s.pixels[px];

@@ -178,7 +178,7 @@ pub fn quantile(mut v: Vec<f64>, q: f64) -> f64 {
 
 /// Which bin of `edges` (ascending) holds `v`: `edges[i] <= v < edges[i + 1]`.
 pub fn bin_of(edges: &[f64], v: f64) -> Option<usize> {
-    if !(v >= edges[0]) {
+    if v.is_nan() || v < edges[0] {
         return None;
     }
     edges.windows(2).position(|w| v >= w[0] && v < w[1])
