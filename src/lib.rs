@@ -9,7 +9,7 @@
 //!
 //! - [`model`] is the pure core (no files, no clock, no HDF5); everything else reuses it.
 //! - [`product`] is the only code that knows the HDF5 layout of the ICD
-//!   (`../shared/ICD.md`) and checks files against the JSON Schemas in `schemas/`.
+//!   (`docs/contract.md`) and checks files against the JSON Schemas in `schemas/`.
 //! - [`checkpoint`] keeps each detector's state, keyed by (detector, exposure index).
 //! - [`model_file`] reads model files (JSON, `schemas/model.schema.json`).
 //! - [`h5io`] holds what products and checkpoints share: deterministic HDF5 creation

@@ -87,7 +87,7 @@ fn contract_names_everything_the_schemas_define() {
         "/persistence/current",
         "model_id",
         "t_meas_s",
-        "amplitudes_e",
+        "/amplitudes_e",
         "amplitude_knots",
         "threshold_high_e_per_s",
     ] {
