@@ -12,7 +12,7 @@ demo: bootstrap
 # build and test the Python package (scripts/python_test.sh).
 test:
 	@bash scripts/bootstrap.sh --chromium --python
-	cargo test
+	cargo test --no-fail-fast
 	@bash scripts/python_test.sh
 
 lint: bootstrap

@@ -392,11 +392,19 @@ pub fn calibrate(seq: &Sequence, cfg: &CalibConfig) -> Result<(ModelParams, Cali
                 r.iter_mut().for_each(|v| *v = 0.0);
                 for (b, res) in &bins {
                     // a bin whose ramp has no fitted decay keeps the plain plateau
-                    if let Some(lf) = res.logfit.filter(|lf| {
-                        !lf.undetermined && lf.a0_e > 0.0 && lf.tau_s.is_finite() && lf.tau_s >= 0.0
-                    }) {
-                        // a tau beyond the first read is not a decay the ramp measured
-                        r[*b] = l.late_fraction(lf.tau_s.min(cr.t_reset_s));
+                    if let Some(lf) = res
+                        .logfit
+                        .filter(|lf| !lf.undetermined && lf.a0_e > 0.0 && lf.tau_s.is_finite())
+                    {
+                        // a tau beyond the first read is not a decay the ramp measured; one
+                        // at or below zero (the fit's lower bound) is not measured either:
+                        // the calibration's own decay offset (the paper's 1 s) stands in
+                        let tau = if lf.tau_s > 0.0 {
+                            lf.tau_s.min(cr.t_reset_s)
+                        } else {
+                            cfg.decay_offset_s
+                        };
+                        r[*b] = l.late_fraction(tau);
                     }
                 }
             }
