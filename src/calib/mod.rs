@@ -997,7 +997,7 @@ pub fn run(
 /// True when a fit `--with` an effect on top of this calibration would fit it against
 /// knots held at `amplification` times the measured level with nothing else free to
 /// carry the level (neither `--fit-cn` nor `--fit-amplification`): the effect's
-/// parameters would take the margin in ([`margin_taken_in`]; `persist diagnose` then
+/// parameters would take the margin in (`margin_taken_in`; `persist diagnose` then
 /// also names the `--preset readout` fit that measures them).
 pub fn knots_held_off_level(amplification: f64, fit_cn: bool, fit_amplification: bool) -> bool {
     amplification != 1.0 && !fit_cn && !fit_amplification

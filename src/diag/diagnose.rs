@@ -616,7 +616,7 @@ pub struct Candidate {
     pub command: String,
     /// When `command` would fit the candidate against knots held at the paper's
     /// flagging margin ([`crate::calib::knots_held_off_level`]): the `--preset readout`
-    /// fit that measures its parameters instead ([`measure_command`]).
+    /// fit that measures its parameters instead (`measure_command`).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub measure_command: Option<String>,
 }
