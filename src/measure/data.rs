@@ -533,30 +533,7 @@ pub fn fluence(e: &Exposure) -> Array2<f64> {
     f
 }
 
-/// The `q`-quantile (0..1) of finite values, linear interpolation; NaN when none.
-pub fn quantile(v: &[f64], q: f64) -> f64 {
-    quantile_in_place(&mut v.to_vec(), q)
-}
-
-/// [`quantile`] of `a`, reordering it (and dropping its values that are not finite)
-/// instead of copying it: the same value.
-pub fn quantile_in_place(a: &mut Vec<f64>, q: f64) -> f64 {
-    a.retain(|x| x.is_finite());
-    if a.is_empty() {
-        return f64::NAN;
-    }
-    let pos = q.clamp(0.0, 1.0) * (a.len() - 1) as f64;
-    let i = pos.floor() as usize;
-    // the i-th and (i+1)-th smallest by selection (the values a full sort would give)
-    let (_, ai, rest) = a.select_nth_unstable_by(i, |x, y| x.total_cmp(y));
-    let ai = *ai;
-    let aj = rest
-        .iter()
-        .copied()
-        .min_by(|x, y| x.total_cmp(y))
-        .unwrap_or(ai);
-    ai + (aj - ai) * (pos - i as f64)
-}
+pub use crate::stats::{quantile, quantile_in_place};
 
 /// The `q`-quantile (0..1) of what a measurement of these predictions would show: of
 /// the mixture `mean_i N(pred_i, sigma_i^2)` (each predicted value plus its sample's

@@ -8,6 +8,7 @@
 //! are drawn with replacement, whole, [`BOOTSTRAP_REPLICAS`] times, from a generator seeded
 //! by the bin, so the result is deterministic. A bin needs [`MIN_CLUSTERS`] clusters.
 
+use crate::stats::quantile;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use std::collections::BTreeMap;
@@ -139,7 +140,7 @@ impl QuantileBin {
         }
         let cl: Vec<&Vec<f64>> = self.clusters.values().collect();
         let all: Vec<f64> = cl.iter().flat_map(|c| c.iter().copied()).collect();
-        let est = quantile(all, q);
+        let est = quantile(&all, q);
         let mut rng = ChaCha8Rng::seed_from_u64(seed);
         let mut reps: Vec<f64> = (0..BOOTSTRAP_REPLICAS)
             .map(|_| {
@@ -147,7 +148,7 @@ impl QuantileBin {
                 for _ in 0..cl.len() {
                     v.extend_from_slice(cl[rng.random_range(0..cl.len())]);
                 }
-                quantile(v, q)
+                quantile(&v, q)
             })
             .collect();
         reps.sort_by(f64::total_cmp);
@@ -159,21 +160,6 @@ impl QuantileBin {
 
 fn all_len(cl: &[&Vec<f64>]) -> usize {
     cl.iter().map(|c| c.len()).sum()
-}
-
-/// The `q` quantile (linear interpolation between order statistics); NaN when empty.
-pub fn quantile(mut v: Vec<f64>, q: f64) -> f64 {
-    if v.is_empty() {
-        return f64::NAN;
-    }
-    v.sort_by(f64::total_cmp);
-    let pos = q.clamp(0.0, 1.0) * (v.len() - 1) as f64;
-    let (i, frac) = (pos.floor() as usize, pos.fract());
-    if i + 1 < v.len() {
-        v[i] * (1.0 - frac) + v[i + 1] * frac
-    } else {
-        v[i]
-    }
 }
 
 /// Which bin of `edges` (ascending) holds `v`: `edges[i] <= v < edges[i + 1]`.
@@ -210,8 +196,8 @@ mod tests {
 
     #[test]
     fn quantiles_and_bins() {
-        assert_eq!(quantile(vec![3.0, 1.0, 2.0], 0.5), 2.0);
-        assert_eq!(quantile(vec![0.0, 10.0], 0.95), 9.5);
+        assert_eq!(quantile(&[3.0, 1.0, 2.0], 0.5), 2.0);
+        assert_eq!(quantile(&[0.0, 10.0], 0.95), 9.5);
         assert_eq!(bin_of(&[1.0, 2.0, f64::INFINITY], 5.0), Some(1));
         assert_eq!(bin_of(&[1.0, 2.0], 0.5), None);
     }
