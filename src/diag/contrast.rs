@@ -61,7 +61,7 @@ use crate::sim::analysis::median;
 use rand::seq::SliceRandom;
 use rand::SeedableRng;
 use serde::Serialize;
-use std::collections::HashMap;
+use std::collections::BTreeMap;
 
 /// Two durations (or integration lengths) differ when their ratio exceeds `1 + this`.
 pub const REL_DIFFERENT: f64 = 0.1;
@@ -306,7 +306,7 @@ pub fn testability(seq: &Sequence, s: &Samples, effects: &[(&str, &str)]) -> Vec
                     }
                 }
                 "position" => {
-                    let mut strata: HashMap<(usize, i64), (usize, Vec<i64>)> = HashMap::new();
+                    let mut strata: BTreeMap<(usize, i64), (usize, Vec<i64>)> = BTreeMap::new();
                     for &(e, px, f) in &blocks {
                         let t = tile(seq, s.pixels[px]);
                         let st = strata.entry((e, f)).or_default();
@@ -392,7 +392,7 @@ pub struct Dependence {
 #[allow(clippy::needless_range_loop)] // i indexes the samples' parallel columns
 fn base_residual(s: &Samples, pred: &[f64], by_event: bool) -> Vec<f64> {
     let np = s.npix();
-    let mut cells: HashMap<(i64, i64, usize), Vec<usize>> = HashMap::new();
+    let mut cells: BTreeMap<(i64, i64, usize), Vec<usize>> = BTreeMap::new();
     for i in 0..s.len() {
         if !(s.measured[i].is_finite() && pred[i].is_finite()) {
             continue;
@@ -435,12 +435,12 @@ fn covariate_bins(
 ) -> Vec<Option<i64>> {
     let np = s.npix();
     // the first row of each event, for the event-level covariates
-    let mut first_row: HashMap<usize, usize> = HashMap::new();
+    let mut first_row: BTreeMap<usize, usize> = BTreeMap::new();
     for (r, &e) in s.event.iter().enumerate() {
         first_row.entry(e).or_insert(r);
     }
     // per event: the fluence map of the illumination before it, for capacity
-    let mut prev: HashMap<usize, Option<ndarray::Array2<f64>>> = HashMap::new();
+    let mut prev: BTreeMap<usize, Option<ndarray::Array2<f64>>> = BTreeMap::new();
     blocks
         .iter()
         .map(|&(e, px, _)| {
@@ -505,7 +505,7 @@ pub fn dependences(
 ) -> Vec<Dependence> {
     let np = s.npix();
     let blocks = blocks(s);
-    let block_of: HashMap<(usize, usize), usize> = blocks
+    let block_of: BTreeMap<(usize, usize), usize> = blocks
         .iter()
         .enumerate()
         .map(|(b, &(e, px, _))| ((e, px), b))
@@ -522,8 +522,9 @@ pub fn dependences(
                 .clone();
             let x = covariate_bins(seq, s, &c.class, &blocks);
             // per block: (cell id, sum, n) of its samples
-            let mut cell_ids: HashMap<(i64, i64, usize), usize> = HashMap::new();
-            let mut per_block: Vec<HashMap<usize, (f64, f64)>> = vec![HashMap::new(); blocks.len()];
+            let mut cell_ids: BTreeMap<(i64, i64, usize), usize> = BTreeMap::new();
+            let mut per_block: Vec<BTreeMap<usize, (f64, f64)>> =
+                vec![BTreeMap::new(); blocks.len()];
             let mut ss = 0.0;
             for (i, &v) in e.iter().enumerate() {
                 if !v.is_finite() {
@@ -557,7 +558,7 @@ pub fn dependences(
                 })
                 .collect();
             let stat = |xs: &[Option<i64>]| -> f64 {
-                let mut g: HashMap<(usize, i64), (f64, f64)> = HashMap::new();
+                let mut g: BTreeMap<(usize, i64), (f64, f64)> = BTreeMap::new();
                 for (b, entries) in per_block.iter().enumerate() {
                     let Some(xb) = xs[b] else { continue };
                     for &(id, a, n) in entries {
@@ -570,7 +571,7 @@ pub fn dependences(
             };
             let t = stat(&x);
             // strata: fluence bin (and event for pixel covariates)
-            let mut strata: HashMap<(i64, usize), Vec<usize>> = HashMap::new();
+            let mut strata: BTreeMap<(i64, usize), Vec<usize>> = BTreeMap::new();
             for (b, &(ev, _, f)) in blocks.iter().enumerate() {
                 if x[b].is_some() {
                     strata
