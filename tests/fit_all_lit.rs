@@ -13,32 +13,6 @@ use persist::calib::{calibrate, CalibConfig};
 use persist::diag::data::Sequence;
 use persist::model::params::PAPER_TABLE1_A_BIN;
 
-fn lab(dir: &std::path::Path, size: &str, extra: &[&str]) {
-    let st = common::persist_cmd()
-        .args(["simulate", "lab", "--size", size, "--seed", "1", "--out"])
-        .arg(dir)
-        .args(extra)
-        .output()
-        .unwrap();
-    assert!(
-        st.status.success(),
-        "{}",
-        String::from_utf8_lossy(&st.stderr)
-    );
-}
-
-/// A_bin interpolated (linearly in fluence) between the bins around `f`.
-fn a_bin_at(bins: &[persist::calib::BinResult], f: f64) -> f64 {
-    let b: Vec<(f64, f64)> = bins
-        .iter()
-        .filter_map(|b| b.a_bin_e.map(|a| (b.fluence_mean_e, a)))
-        .collect();
-    let i = b.iter().position(|p| p.0 >= f).unwrap();
-    let (x0, y0) = b[i - 1];
-    let (x1, y1) = b[i];
-    y0 + (y1 - y0) * (f - x0) / (x1 - x0)
-}
-
 /// Every pixel lit, one illumination, 14 h of darks: the late plateau calibrates, and
 /// Table 1 (below and deep in saturation) comes back within 25 %, as in
 /// tests/fit_paper.rs; with a masked corner the background pixels are used instead.
@@ -46,7 +20,7 @@ fn a_bin_at(bins: &[persist::calib::BinResult], f: f64) -> f64 {
 fn every_pixel_lit_calibrates_from_the_late_plateau() {
     let tmp = tempfile::tempdir().unwrap();
     let dir = tmp.path().join("lab");
-    lab(&dir, "128", &["--spots", "paper"]);
+    common::simulate_lab(&dir, "128", &["--spots", "paper"]);
     let seq = Sequence::load(&dir).unwrap();
     let (params, rep) = calibrate(&seq, &CalibConfig::default()).unwrap();
     assert_eq!(rep.dark_level.source, DarkSource::LatePlateau);
@@ -60,7 +34,7 @@ fn every_pixel_lit_calibrates_from_the_late_plateau() {
     );
     let mut worst: f64 = 0.0;
     for (f, a_paper) in PAPER_TABLE1_A_BIN {
-        let a = a_bin_at(&rep.bins, f);
+        let a = common::a_bin_at(&rep.bins, f);
         let rel = a / a_paper - 1.0;
         println!(
             "Table 1 fluence {f:>9.0} e-: A_bin {a:7.1} e-, paper {a_paper:6.1} e-, {:+.1} %",
@@ -76,14 +50,14 @@ fn every_pixel_lit_calibrates_from_the_late_plateau() {
     assert!(rec.late_plateau_dark);
 
     let dir2 = tmp.path().join("lab_dark");
-    lab(&dir2, "128", &["--spots", "paper", "--dark-pixels"]);
+    common::simulate_lab(&dir2, "128", &["--spots", "paper", "--dark-pixels"]);
     let seq2 = Sequence::load(&dir2).unwrap();
     let (_, rep2) = calibrate(&seq2, &CalibConfig::default()).unwrap();
     assert_eq!(rep2.dark_level.source, DarkSource::BackgroundPixels);
     // the two dark levels give knots within 10 % of each other below saturation
     let (a, b) = (
-        a_bin_at(&rep.bins, 101_000.0),
-        a_bin_at(&rep2.bins, 101_000.0),
+        common::a_bin_at(&rep.bins, 101_000.0),
+        common::a_bin_at(&rep2.bins, 101_000.0),
     );
     assert!((a / b - 1.0).abs() < 0.10, "{a} {b}");
 }
@@ -101,7 +75,7 @@ fn campaigns_with_every_pixel_lit_calibrate() {
         ),
     ] {
         let dir = tmp.path().join(name);
-        lab(&dir, "64", &extra);
+        common::simulate_lab(&dir, "64", &extra);
         let seq = Sequence::load(&dir).unwrap();
         let (_, rep) =
             calibrate(&seq, &CalibConfig::default()).unwrap_or_else(|e| panic!("{name}: {e}"));
@@ -109,7 +83,7 @@ fn campaigns_with_every_pixel_lit_calibrate() {
         let r = rep.dark_level.late_fraction_max.unwrap();
         assert!(r > 0.01 && r < 0.2, "{name}: {r}");
         assert!(!rep.knots.is_empty(), "{name}");
-        let a = a_bin_at(&rep.bins, 101_000.0);
+        let a = common::a_bin_at(&rep.bins, 101_000.0);
         assert!((a / 54.1 - 1.0).abs() < 0.35, "{name}: {a}");
     }
 }
@@ -120,7 +94,7 @@ fn campaigns_with_every_pixel_lit_calibrate() {
 fn missing_data_are_named() {
     let tmp = tempfile::tempdir().unwrap();
     let dir = tmp.path().join("short");
-    lab(&dir, "64", &["--spots", "paper", "--darks", "3"]);
+    common::simulate_lab(&dir, "64", &["--spots", "paper", "--darks", "3"]);
     let seq = Sequence::load(&dir).unwrap();
     let e = calibrate(&seq, &CalibConfig::default())
         .unwrap_err()
@@ -152,4 +126,32 @@ fn missing_data_are_named() {
     .unwrap_err()
     .to_string();
     assert!(e.contains("ramp"), "{e}");
+}
+
+/// The model file that `persist fit` writes from all-lit data (it records where the
+/// dark level came from) is a valid model file: `persist compare` reads it back.
+#[test]
+fn the_all_lit_model_file_is_read_back() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path().join("lab");
+    common::simulate_lab(&dir, "48", &["--spots", "paper"]);
+    let model = tmp.path().join("m.json");
+    common::persist_ok(&[
+        "fit",
+        "--input",
+        dir.to_str().unwrap(),
+        "--out",
+        model.to_str().unwrap(),
+    ]);
+    let m = common::read_json(&model);
+    assert_eq!(m["calibration"]["late_plateau_dark"], true, "{m}");
+    common::persist_ok(&[
+        "compare",
+        "--input",
+        dir.to_str().unwrap(),
+        "--model",
+        model.to_str().unwrap(),
+        "--report",
+        tmp.path().join("report").to_str().unwrap(),
+    ]);
 }

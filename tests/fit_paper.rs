@@ -8,37 +8,11 @@ use persist::calib::{calibrate, CalibConfig};
 use persist::diag::data::Sequence;
 use persist::model::params::PAPER_TABLE1_A_BIN;
 
-fn lab(dir: &std::path::Path, extra: &[&str]) {
-    let st = common::persist_cmd()
-        .args(["simulate", "lab", "--size", "128", "--seed", "1", "--out"])
-        .arg(dir)
-        .args(extra)
-        .output()
-        .unwrap();
-    assert!(
-        st.status.success(),
-        "{}",
-        String::from_utf8_lossy(&st.stderr)
-    );
-}
-
-/// A_bin interpolated (linearly in fluence) between the bins around `f`.
-fn a_bin_at(bins: &[persist::calib::BinResult], f: f64) -> f64 {
-    let b: Vec<(f64, f64)> = bins
-        .iter()
-        .filter_map(|b| b.a_bin_e.map(|a| (b.fluence_mean_e, a)))
-        .collect();
-    let i = b.iter().position(|p| p.0 >= f).unwrap();
-    let (x0, y0) = b[i - 1];
-    let (x1, y1) = b[i];
-    y0 + (y1 - y0) * (f - x0) / (x1 - x0)
-}
-
 #[test]
 fn paper_numbers_from_baseline_lab_data() {
     let tmp = tempfile::tempdir().unwrap();
     let dir = tmp.path().join("lab");
-    lab(&dir, &[]);
+    common::simulate_lab(&dir, "128", &[]);
     let seq = Sequence::load(&dir).unwrap();
     let (params, rep) = calibrate(&seq, &CalibConfig::default()).unwrap();
     // A_bin / A_0 = 1.2 in every bin
@@ -51,7 +25,7 @@ fn paper_numbers_from_baseline_lab_data() {
     // 201,000 e- sits on the saturation step, where 1/20-decade bins mix both sides.)
     let mut worst: f64 = 0.0;
     for (f, a_paper) in PAPER_TABLE1_A_BIN {
-        let a = a_bin_at(&rep.bins, f);
+        let a = common::a_bin_at(&rep.bins, f);
         let rel = a / a_paper - 1.0;
         println!("Table 1 fluence {f:>9.0} e-: A_bin fitted {a:7.1} e-, paper {a_paper:6.1} e-, {:+.1} %", 100.0 * rel);
         if f == 401_000.0 || f == 3_833_000.0 {

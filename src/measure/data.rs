@@ -518,19 +518,15 @@ pub fn background_line(pts: &[(f64, f64)]) -> Option<(f64, f64)> {
 /// Bins of [`background_line`].
 pub const BACKGROUND_LINE_BINS: usize = 8;
 
-/// Extrapolated fluence of an exposure, e- (ICD "Timing"); NaN where unusable.
+/// Extrapolated fluence of an exposure, e- (ICD "Timing"); NaN where unusable: the
+/// stage's own rule ([`crate::model::fluence::fluence_map_e`] with the default flag bits).
 pub fn fluence(e: &Exposure) -> Array2<f64> {
-    let t = e.meta.t_illuminated_s();
-    let mut f = Array2::<f64>::from_elem(e.image.dim(), f64::NAN);
-    ndarray::Zip::from(&mut f)
-        .and(&e.image)
-        .and(&e.flags)
-        .for_each(|o, v, fl| {
-            if *fl & BAD_BITS == 0 && v.is_finite() {
-                *o = f64::from(v.max(0.0)) * t;
-            }
-        });
-    f
+    crate::model::fluence::fluence_map_e(
+        e.image.view(),
+        e.flags.view(),
+        &crate::model::fluence::FlagBits::default(),
+        e.meta.t_illuminated_s(),
+    )
 }
 
 pub use crate::stats::{quantile, quantile_in_place};

@@ -310,3 +310,30 @@ pub fn rates_13_terms() -> String {
         .collect::<Vec<_>>()
         .join(",")
 }
+
+/// `persist simulate lab --size SIZE --seed 1 --out DIR EXTRA...`, which must succeed.
+pub fn simulate_lab(dir: &Path, size: &str, extra: &[&str]) {
+    let st = persist_cmd()
+        .args(["simulate", "lab", "--size", size, "--seed", "1", "--out"])
+        .arg(dir)
+        .args(extra)
+        .output()
+        .unwrap();
+    assert!(
+        st.status.success(),
+        "{}",
+        String::from_utf8_lossy(&st.stderr)
+    );
+}
+
+/// A_bin interpolated (linearly in fluence) between the fitted bins around `f`.
+pub fn a_bin_at(bins: &[persist::calib::BinResult], f: f64) -> f64 {
+    let b: Vec<(f64, f64)> = bins
+        .iter()
+        .filter_map(|b| b.a_bin_e.map(|a| (b.fluence_mean_e, a)))
+        .collect();
+    let i = b.iter().position(|p| p.0 >= f).unwrap();
+    let (x0, y0) = b[i - 1];
+    let (x1, y1) = b[i];
+    y0 + (y1 - y0) * (f - x0) / (x1 - x0)
+}
