@@ -1,0 +1,80 @@
+//! The exact split without Slurm: 2 detectors x 4 tiles of a 64 x 64 simulated sky,
+//! with a model whose neighbour effects (`blooming`, `ipc`) make the halo matter, give
+//! the bytes of one `persist run`; a too-small halo does not (so the check can fail).
+
+mod common;
+mod split_common;
+
+use persist::tile::{self, Placement, Plan, TileOptions};
+use split_common::*;
+
+#[test]
+fn two_detectors_by_four_tiles_give_the_bytes_of_one_run() {
+    let s = sky();
+    let reference = reference(&s, "ref");
+    let o = common::bin()
+        .args(slurm_args(&s, "split", "2x2"))
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let printed = String::from_utf8_lossy(&o.stdout);
+    assert!(printed.contains("8 array task(s), halo 1 px"), "{printed}");
+    let split = s.root.path().join("split");
+    let work = split.join("work");
+    let tiles = std::fs::read_to_string(work.join("tiles.sbatch")).unwrap();
+    assert!(tiles.contains("#SBATCH --array=0-7"), "{tiles}");
+    let submit = std::fs::read_to_string(work.join("submit.sh")).unwrap();
+    assert!(submit.contains("--dependency=afterok:"), "{submit}");
+    // The jobs one after the other (the scripts' own commands).
+    let o = std::process::Command::new("bash")
+        .arg(work.join("run_local.sh"))
+        .env("SOURCE_DATE_EPOCH", common::SOURCE_DATE_EPOCH)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert_same(&reference, &split);
+    // The work files are removed after a successful assembly.
+    assert!(!work.join("det1").exists() && !work.join("det2").exists());
+}
+
+#[test]
+fn a_too_small_halo_gives_other_bytes() {
+    let s = sky();
+    let reference = reference(&s, "ref");
+    let model = persist::model::Model::new(persist::model_file::load(&s.model).unwrap()).unwrap();
+    assert_eq!(tile::placement(&model), Placement::Frame);
+    assert_eq!(tile::halo_px(&model), Some(1));
+    let run = |name: &str, placement: Option<Placement>| {
+        let dir = s.root.path().join(name);
+        let plan = Plan::new(
+            &s.input,
+            &dir.join("out"),
+            &dir.join("ckpt"),
+            &dir.join("work"),
+            &model,
+            "2x2".parse().unwrap(),
+            // the processing time the reference recorded (SOURCE_DATE_EPOCH)
+            "2026-03-02T00:00:00.000000Z".into(),
+            Default::default(),
+            false,
+        )
+        .unwrap();
+        for task in 0..plan.tasks() {
+            tile::run_tile_with(&plan, &model, task, TileOptions { placement }).unwrap();
+        }
+        tile::assemble(&plan, &model, false).unwrap();
+        dir
+    };
+    // The library path with the exact placement gives the reference's bytes ...
+    assert_same(&reference, &run("exact", None));
+    // ... each tile stepped as an array of its own with no halo does not: the tiles'
+    // border pixels miss their neighbours' coupling and blooming.
+    let crop = run("crop0", Some(Placement::Crop { halo_px: 0 }));
+    let (a, b) = (outputs(&reference), outputs(&crop));
+    let differing = a.iter().filter(|(k, v)| b.get(*k) != Some(v)).count();
+    assert!(
+        differing > 0,
+        "a halo of 0 gave the same bytes: the check cannot fail"
+    );
+    assert_ne!(final_checkpoints(&reference), final_checkpoints(&crop));
+}
