@@ -47,7 +47,8 @@
 //! with the stage's writer (validated against the schemas, `.NAME.part`, fsync, rename,
 //! directory fsync; an output already published is left alone, as `persist run`
 //! does), then the final checkpoint with the stage's checkpoint writer, prunes the
-//! checkpoints by the plan's retention, and removes the detector's work files.
+//! checkpoints by the plan's retention, and removes the detector's work files. It holds
+//! the stage's directory lock ([`crate::stage::lock`]) while it writes.
 //!
 //! The split is for reprocessing a clean input: a product the stage would refuse or
 //! quarantine (unreadable, outside the ICD, a duplicate index, not following the
@@ -299,6 +300,14 @@ impl Plan {
                     "`{}` is not a plan this build reads ({PLAN_FORMAT})",
                     plan.format
                 ),
+            )
+            .path(path));
+        }
+        let g = plan.grid;
+        if !(1..=256).contains(&g.rows) || !(1..=256).contains(&g.cols) {
+            return Err(Error::invalid(
+                "grid",
+                format!("{}x{}: rows and columns must be 1..=256", g.rows, g.cols),
             )
             .path(path));
         }
@@ -760,12 +769,24 @@ pub struct Assembled {
 /// Build the whole-array outputs and final checkpoints from the tiles of every detector
 /// of the plan (module docs). With `keep_work`, the work files stay.
 pub fn assemble(plan: &Plan, model: &Model, keep_work: bool) -> Result<Vec<Assembled>> {
-    let mut done = Vec::new();
+    // The stage's lock: never alongside a `persist run` on the same directories.
+    for dir in [&plan.output, &plan.checkpoints] {
+        std::fs::create_dir_all(dir).map_err(|e| Error::io(dir, e))?;
+    }
+    let _lock = crate::stage::lock::DirLock::acquire(&[&plan.output, &plan.checkpoints])?;
+    // Every tile of every detector finished with one history, before anything is
+    // published.
+    let mut loaded = Vec::new();
     for &d in &plan.detectors {
         let det = DetectorId::new(i64::from(d))
             .ok_or_else(|| Error::invalid("detectors", format!("{d}: must be 1..=6")))?;
-        done.push(assemble_detector(plan, model, det)?);
+        loaded.push((det, load_tiles(plan, det)?));
     }
+    let mut done = Vec::new();
+    for (det, tiles) in &loaded {
+        done.push(assemble_detector(plan, model, *det, tiles)?);
+    }
+    drop(loaded);
     if !keep_work {
         for &d in &plan.detectors {
             let dir = plan.work.join(format!("det{d}"));
@@ -775,7 +796,10 @@ pub fn assemble(plan: &Plan, model: &Model, keep_work: bool) -> Result<Vec<Assem
     Ok(done)
 }
 
-fn assemble_detector(plan: &Plan, model: &Model, det: DetectorId) -> Result<Assembled> {
+/// A detector's tiles: (state file, open file, record), all with tile 0's history.
+type Tiles = Vec<(PathBuf, hdf5::File, TileRecord)>;
+
+fn load_tiles(plan: &Plan, det: DetectorId) -> Result<Tiles> {
     let n = plan.grid.count();
     let mut tiles = Vec::with_capacity(n);
     for k in 0..n {
@@ -810,6 +834,16 @@ fn assemble_detector(plan: &Plan, model: &Model, det: DetectorId) -> Result<Asse
             .detector(det));
         }
     }
+    Ok(tiles)
+}
+
+fn assemble_detector(
+    plan: &Plan,
+    model: &Model,
+    det: DetectorId,
+    tiles: &Tiles,
+) -> Result<Assembled> {
+    let first = tiles[0].2.clone();
     let mut out = Assembled {
         detector: det.0,
         ..Default::default()
@@ -843,7 +877,7 @@ fn assemble_detector(plan: &Plan, model: &Model, det: DetectorId) -> Result<Asse
             current_e_per_s: Array2::zeros((ny, nx)),
             flags: Array2::zeros((ny, nx)),
         };
-        for (_, _, t) in &tiles {
+        for (_, _, t) in tiles {
             let part = plan.part_path(det, r.exposure_index, t.tile);
             let f = h5io::open(&part)?;
             let rec: ExposureRecord = read_record(&f, &part)?;
@@ -878,7 +912,7 @@ fn assemble_detector(plan: &Plan, model: &Model, det: DetectorId) -> Result<Asse
         out.written += 1;
     }
     let mut state = model.new_state(ny, nx);
-    for (path, f, t) in &tiles {
+    for (path, f, t) in tiles {
         let rect = t.rect;
         let win = s![rect.y0..rect.y1, rect.x0..rect.x1];
         let a: Array3<f64> = f

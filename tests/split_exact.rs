@@ -78,3 +78,73 @@ fn a_too_small_halo_gives_other_bytes() {
     );
     assert_ne!(final_checkpoints(&reference), final_checkpoints(&crop));
 }
+
+/// The split starts each detector from its newest checkpoint, as `persist run` does:
+/// a run over the first 3 exposures, then the split over all 6, gives the bytes of one
+/// run over all 6 (the first outputs are already published and left alone).
+#[test]
+fn a_split_resumes_from_the_newest_checkpoint() {
+    let s = sky();
+    let reference = reference(&s, "ref");
+    let first = s.root.path().join("first");
+    std::fs::create_dir_all(&first).unwrap();
+    for e in std::fs::read_dir(&s.input).unwrap() {
+        let p = e.unwrap().path();
+        let name = p.file_name().unwrap().to_string_lossy().into_owned();
+        if ["_e000000.h5", "_e000001.h5", "_e000002.h5"]
+            .iter()
+            .any(|x| name.ends_with(x))
+        {
+            std::fs::copy(&p, first.join(&name)).unwrap();
+        }
+    }
+    let split = s.root.path().join("split");
+    let (code, err) = common::run_batch(&first, &split, &["--model", s.model.to_str().unwrap()]);
+    assert_eq!(code, 0, "{err}");
+    assert_eq!(outputs(&split).len(), 6);
+    let o = common::bin()
+        .args(slurm_args(&s, "split", "2x2"))
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let plan = Plan::load(&split.join("work/plan.json")).unwrap();
+    let model = plan.model().unwrap();
+    for task in 0..plan.tasks() {
+        let r = tile::run_tile(&plan, &model, task).unwrap();
+        assert_eq!(r.started_from, Some(2));
+        assert_eq!(r.exposures.len(), 3);
+    }
+    let done = tile::assemble(&plan, &model, false).unwrap();
+    assert!(done.iter().all(|d| d.written == 3), "{done:?}");
+    assert_same(&reference, &split);
+}
+
+/// The assembly refuses to publish anything while a tile is missing, naming it.
+#[test]
+fn the_assembly_names_a_missing_tile_and_publishes_nothing() {
+    let s = sky();
+    let dir = s.root.path().join("split");
+    let o = common::bin()
+        .args(slurm_args(&s, "split", "2x2"))
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let plan = Plan::load(&dir.join("work/plan.json")).unwrap();
+    let model = plan.model().unwrap();
+    for task in (0..plan.tasks()).filter(|&t| t != 2) {
+        tile::run_tile(&plan, &model, task).unwrap();
+    }
+    let e = tile::assemble(&plan, &model, false).unwrap_err();
+    assert!(
+        e.to_string()
+            .contains("tile 2 of detector 1 has not finished")
+            && e.to_string().contains("state_t002.h5"),
+        "{e}"
+    );
+    assert!(outputs(&dir).is_empty(), "nothing published");
+    assert!(common::newest_checkpoint(&dir, 1).is_none());
+    // The missing task run, the assembly completes.
+    tile::run_tile(&plan, &model, 2).unwrap();
+    tile::assemble(&plan, &model, false).unwrap();
+    assert_eq!(outputs(&dir).len(), 12);
+}
