@@ -451,6 +451,53 @@ fn crop_state(s: &State, r: Rect) -> State {
     }
 }
 
+/// Where one tile is computed: the array's shape, the tile, the region stepped, the
+/// tile inside the region, and the active pixels of the region (none: all).
+struct Geometry {
+    full: (usize, usize),
+    rect: Rect,
+    region: Rect,
+    core: Rect,
+    mask: Option<Vec<bool>>,
+}
+
+impl Geometry {
+    fn new(grid: Grid, tile: usize, full: (usize, usize), place: Placement) -> Result<Self> {
+        let (ny, nx) = full;
+        let rect = grid.tile(tile, ny, nx)?;
+        let region = match place {
+            Placement::Frame => Rect {
+                y0: 0,
+                y1: ny,
+                x0: 0,
+                x1: nx,
+            },
+            Placement::Crop { halo_px } => rect.grow(halo_px, ny, nx),
+        };
+        let core = Rect {
+            y0: rect.y0 - region.y0,
+            y1: rect.y1 - region.y0,
+            x0: rect.x0 - region.x0,
+            x1: rect.x1 - region.x0,
+        };
+        let mask = (region.shape() != rect.shape()).then(|| {
+            let (ry, rx) = region.shape();
+            let mut m = vec![false; ry * rx];
+            for y in core.y0..core.y1 {
+                m[y * rx + core.x0..y * rx + core.x1].fill(true);
+            }
+            m
+        });
+        Ok(Geometry {
+            full,
+            rect,
+            region,
+            core,
+            mask,
+        })
+    }
+}
+
 /// Options of [`run_tile_with`] beyond the plan.
 #[derive(Debug, Clone, Copy, Default)]
 pub struct TileOptions {
@@ -486,9 +533,8 @@ pub fn run_tile_with(
             model.params().thresholds.low_e_per_s,
         )
         .unwrap_or(f64::INFINITY);
-    // Fixed by the first exposure: the array's shape, the tile, the region stepped, the
-    // tile inside the region, and the active mask (Frame).
-    let mut geometry: Option<((usize, usize), Rect, Rect, Rect, Option<Vec<bool>>)> = None;
+    // Fixed by the first exposure, with the state of the region it steps.
+    let mut work: Option<(Geometry, State)> = None;
     let mut exposures = Vec::new();
     let mut planes: Option<(Array2<f32>, Array2<u8>)> = None;
     for (&index, (path, queued)) in products.range(started_from.map_or(0, |l| l + 1)..) {
@@ -502,34 +548,10 @@ pub fn run_tile_with(
             )));
         }
         let shape = exposure.image.dim();
-        if geometry.is_none() {
-            let (ny, nx) = shape;
-            let rect = plan.grid.tile(tile, ny, nx)?;
-            let region = match place {
-                Placement::Frame => Rect {
-                    y0: 0,
-                    y1: ny,
-                    x0: 0,
-                    x1: nx,
-                },
-                Placement::Crop { halo_px } => rect.grow(halo_px, ny, nx),
-            };
-            let core = Rect {
-                y0: rect.y0 - region.y0,
-                y1: rect.y1 - region.y0,
-                x0: rect.x0 - region.x0,
-                x1: rect.x1 - region.x0,
-            };
-            let mask = (region.shape() != rect.shape()).then(|| {
-                let (ry, rx) = region.shape();
-                let mut m = vec![false; ry * rx];
-                for y in core.y0..core.y1 {
-                    m[y * rx + core.x0..y * rx + core.x1].fill(true);
-                }
-                m
-            });
-            state = Some(match state.take() {
-                Some(s) if s.shape() == shape => crop_state(&s, region),
+        if work.is_none() {
+            let g = Geometry::new(plan.grid, tile, shape, place)?;
+            let st = match state.take() {
+                Some(s) if s.shape() == shape => crop_state(&s, g.region),
                 Some(s) => {
                     return Err(fail(Error::invalid(
                         "image",
@@ -540,24 +562,22 @@ pub fn run_tile_with(
                     )))
                 }
                 None => {
-                    let (ry, rx) = region.shape();
+                    let (ry, rx) = g.region.shape();
                     model.new_state(ry, rx)
                 }
-            });
-            geometry = Some((shape, rect, region, core, mask));
+            };
+            work = Some((g, st));
         }
-        let Some((full, _, region, core, mask)) = &geometry else {
-            unreachable!("set above")
+        let Some((g, st)) = work.as_mut() else {
+            return Err(fail(Error::new(ErrorKind::Usage, "no geometry")));
         };
-        if shape != *full {
+        let (region, core, mask) = (g.region, g.core, g.mask.as_deref());
+        if shape != g.full {
             return Err(fail(Error::invalid(
                 "image",
-                format!("shape {shape:?} differs from the detector's {full:?}"),
+                format!("shape {shape:?} differs from the detector's {:?}", g.full),
             )));
         }
-        let Some(st) = state.as_mut() else {
-            unreachable!("set with the geometry")
-        };
         let meta = &exposure.meta;
         // The stage's gap rule (crate::stage::run, "History incomplete"): in a batch
         // run every gap is crossed, and outputs are marked until t_start + T after it.
@@ -590,7 +610,7 @@ pub fn run_tile_with(
         };
         let ctx = StepContext {
             focal_plane_temp_k: meta.focal_plane_temp_k,
-            active_pixels: mask.as_deref(),
+            active_pixels: mask,
         };
         let summary = model
             .step_with(
@@ -634,24 +654,15 @@ pub fn run_tile_with(
     }
     let stage_json = serde_json::to_string(&book)
         .map_err(|e| Error::new(ErrorKind::Checkpoint, format!("bookkeeping: {e}")))?;
-    let (shape, rect, core) = match &geometry {
-        Some((shape, rect, _, core, _)) => (*shape, *rect, *core),
-        None => (
-            (0, 0),
-            Rect {
-                y0: 0,
-                y1: 0,
-                x0: 0,
-                x1: 0,
-            },
-            Rect {
-                y0: 0,
-                y1: 0,
-                x0: 0,
-                x1: 0,
-            },
-        ),
+    let empty = Rect {
+        y0: 0,
+        y1: 0,
+        x0: 0,
+        x1: 0,
     };
+    let (shape, rect) = work
+        .as_ref()
+        .map_or(((0, 0), empty), |(g, _)| (g.full, g.rect));
     let record = TileRecord {
         detector: det.0,
         tile,
@@ -660,13 +671,10 @@ pub fn run_tile_with(
         started_from,
         exposures,
         stage_json,
-        t_reset_unix_s: state.as_ref().and_then(|s| s.t_reset_unix_s),
-        last_index: state.as_ref().and_then(|s| s.last_index),
+        t_reset_unix_s: work.as_ref().and_then(|(_, s)| s.t_reset_unix_s),
+        last_index: work.as_ref().and_then(|(_, s)| s.last_index),
     };
-    let kept = state
-        .as_ref()
-        .filter(|_| !record.exposures.is_empty())
-        .map(|s| crop_state(s, core));
+    let kept = work.as_ref().map(|(g, s)| crop_state(s, g.core));
     write_state(&plan.state_path(det, tile), &record, kept.as_ref())?;
     Ok(record)
 }
