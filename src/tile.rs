@@ -207,6 +207,15 @@ impl Plan {
         allow_model_change: bool,
     ) -> Result<Plan> {
         let abs = |p: &Path| std::path::absolute(p).map_err(|e| Error::io(p, e));
+        let (input_abs, work_abs) = (abs(input)?, abs(work)?);
+        if work_abs.starts_with(&input_abs) {
+            return Err(Error::new(
+                ErrorKind::Usage,
+                "the work directory is inside the input directory: its files would be read as products",
+            )
+            .field("work")
+            .path(work));
+        }
         let mut detectors = std::collections::BTreeSet::new();
         for path in crate::stage::queue::candidates(input)? {
             detectors.insert(product::read::read_meta(&path)?.detector.0);
@@ -216,10 +225,10 @@ impl Plan {
         }
         Ok(Plan {
             format: PLAN_FORMAT.into(),
-            input: abs(input)?,
+            input: input_abs,
             output: abs(output)?,
             checkpoints: abs(checkpoints)?,
-            work: abs(work)?,
+            work: work_abs,
             detectors: detectors.into_iter().collect(),
             grid,
             model_json: model.params().canonical_json(),
@@ -699,29 +708,29 @@ fn mkdir_for(path: &Path) -> Result<()> {
     std::fs::create_dir_all(dir).map_err(|e| Error::io(dir, e))
 }
 
-fn write_part(
+/// Publish a work file (module docs): the JSON `record` attribute, then the datasets
+/// `data` writes; validated by reading the record back.
+fn publish_work<R>(
     path: &Path,
-    record: &ExposureRecord,
-    current: ArrayView2<'_, f32>,
-    pflags: ArrayView2<'_, u8>,
-    flags: ArrayView2<'_, u32>,
-) -> Result<()> {
+    record: &R,
+    data: impl FnOnce(&hdf5::File) -> Result<()>,
+) -> Result<()>
+where
+    R: Serialize + serde::de::DeserializeOwned + PartialEq,
+{
     mkdir_for(path)?;
     h5io::publish(
         path,
         |tmp| {
             let f = h5io::create(tmp)?;
             record_attr(&f, record)?;
-            h5io::write_plain(&f, "current", current)
-                .map_err(|e| Error::from(e).field("/current"))?;
-            h5io::write_plain(&f, "pflags", pflags).map_err(|e| Error::from(e).field("/pflags"))?;
-            h5io::write_plain(&f, "flags", flags).map_err(|e| Error::from(e).field("/flags"))?;
+            data(&f)?;
             f.close()?;
             Ok(())
         },
         |tmp| {
             let f = h5io::open_as(tmp, path)?;
-            let r: ExposureRecord = read_record(&f, path)?;
+            let r: R = read_record(&f, path)?;
             (r == *record).then_some(()).ok_or_else(|| {
                 Error::invalid("record", "read back differs from what was written").path(path)
             })
@@ -729,32 +738,38 @@ fn write_part(
     )
 }
 
+/// `write_plain` with the dataset named in the error.
+fn plain<T: hdf5::H5Type + Clone, D: ndarray::Dimension>(
+    f: &hdf5::File,
+    name: &str,
+    data: ndarray::ArrayView<'_, T, D>,
+) -> Result<()> {
+    h5io::write_plain(f, name, data).map_err(|e| Error::from(e).field(format!("/{name}")))
+}
+
+fn write_part(
+    path: &Path,
+    record: &ExposureRecord,
+    current: ArrayView2<'_, f32>,
+    pflags: ArrayView2<'_, u8>,
+    flags: ArrayView2<'_, u32>,
+) -> Result<()> {
+    publish_work(path, record, |f| {
+        plain(f, "current", current)?;
+        plain(f, "pflags", pflags)?;
+        plain(f, "flags", flags)
+    })
+}
+
 fn write_state(path: &Path, record: &TileRecord, state: Option<&State>) -> Result<()> {
-    mkdir_for(path)?;
-    h5io::publish(
-        path,
-        |tmp| {
-            let f = h5io::create(tmp)?;
-            record_attr(&f, record)?;
-            if let Some(s) = state {
-                let field = |n: &'static str| move |e: hdf5::Error| Error::from(e).field(n);
-                h5io::write_plain(&f, "amplitudes_e", s.amplitudes_e.view())
-                    .map_err(field("/amplitudes_e"))?;
-                h5io::write_plain(&f, "release_count", s.release_count.view())
-                    .map_err(field("/release_count"))?;
-                h5io::write_plain(&f, "pending", s.pending.view()).map_err(field("/pending"))?;
-            }
-            f.close()?;
-            Ok(())
-        },
-        |tmp| {
-            let f = h5io::open_as(tmp, path)?;
-            let r: TileRecord = read_record(&f, path)?;
-            (r == *record).then_some(()).ok_or_else(|| {
-                Error::invalid("record", "read back differs from what was written").path(path)
-            })
-        },
-    )
+    publish_work(path, record, |f| match state {
+        Some(s) => {
+            plain(f, "amplitudes_e", s.amplitudes_e.view())?;
+            plain(f, "release_count", s.release_count.view())?;
+            plain(f, "pending", s.pending.view())
+        }
+        None => Ok(()),
+    })
 }
 
 fn read_plane<T: hdf5::H5Type>(file: &hdf5::File, name: &str, path: &Path) -> Result<Array2<T>> {

@@ -148,3 +148,30 @@ fn the_assembly_names_a_missing_tile_and_publishes_nothing() {
     tile::assemble(&plan, &model, false).unwrap();
     assert_eq!(outputs(&dir).len(), 12);
 }
+
+/// Usage errors name what is wrong: a work directory inside the input (its files would
+/// be read as products), a task beyond the plan.
+#[test]
+fn usage_errors_name_the_argument() {
+    let s = sky();
+    let mut args = slurm_args(&s, "split", "2x2");
+    let w = args.iter().position(|a| a == "--work").unwrap();
+    args[w + 1] = s.input.join("work").to_string_lossy().into_owned();
+    let o = common::bin().args(&args).output().unwrap();
+    assert!(!o.status.success());
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(err.contains("inside the input directory"), "{err}");
+    let o = common::bin()
+        .args(slurm_args(&s, "split", "2x2"))
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let plan = s.root.path().join("split/work/plan.json");
+    let o = common::bin()
+        .args(["tile", "--plan", plan.to_str().unwrap(), "--task", "8"])
+        .output()
+        .unwrap();
+    assert!(!o.status.success());
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(err.contains("task 8: the plan has 8 tasks"), "{err}");
+}
