@@ -9,9 +9,10 @@ demo: bootstrap
 	cargo run --release --quiet -- demo
 
 # The tests also open a report in headless Chromium (tests/report_chromium.rs), then
-# build and test the Python package (scripts/python_test.sh).
+# build and test the Python package (scripts/python_test.sh). --slurm: slurm-wlm and
+# munge for the one-node Slurm cluster of tests/slurm_cluster.rs.
 test:
-	@bash scripts/bootstrap.sh --chromium --python
+	@bash scripts/bootstrap.sh --chromium --python --slurm
 	cargo test --no-fail-fast
 	@bash scripts/python_test.sh
 

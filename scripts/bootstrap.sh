@@ -40,3 +40,10 @@ for arg in "$@"; do
     fi
   fi
 done
+# With --slurm (anywhere in the arguments), also Debian's slurm-wlm and munge for the
+# one-node cluster of tests/slurm_cluster.rs (scripts/slurm_cluster.sh install).
+for arg in "$@"; do
+  if [ "$arg" = "--slurm" ]; then
+    bash "$(dirname "$0")/slurm_cluster.sh" install
+  fi
+done

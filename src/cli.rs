@@ -131,6 +131,14 @@ pub enum Command {
     /// fluence and time, set it beside the stage's predictions and flags; writes
     /// REPORT/report.html and REPORT/report.json.
     Verify(VerifyArgs),
+    /// Reprocess on a Slurm cluster: write the plan and batch scripts of an exact split
+    /// (one array task per detector x pixel tile, then an assembly job with afterok),
+    /// and submit them with --submit (docs/slurm.md).
+    Slurm(persist::slurm::SlurmArgs),
+    /// One task of a split run: one pixel tile of one detector's history.
+    Tile(persist::slurm::TileArgs),
+    /// Assemble a split run's tiles into whole-array outputs and final checkpoints.
+    Assemble(persist::slurm::AssembleArgs),
 }
 
 #[derive(Args, Debug)]
@@ -743,7 +751,21 @@ pub fn run(cli: Cli) -> persist::Result<ExitCode> {
             Ok(ExitCode::SUCCESS)
         }
         Command::Verify(a) => verify(&a),
+        Command::Slurm(a) => {
+            let model = load_model(a.model.as_deref())?;
+            lines_out(persist::slurm::slurm_command(&a, &model)?)
+        }
+        Command::Tile(a) => lines_out(persist::slurm::tile_command(&a)?),
+        Command::Assemble(a) => lines_out(persist::slurm::assemble_command(&a)?),
     }
+}
+
+/// Print a command's lines; success.
+fn lines_out(lines: Vec<String>) -> persist::Result<ExitCode> {
+    for l in lines {
+        out!("{l}");
+    }
+    Ok(ExitCode::SUCCESS)
 }
 
 /// `persist verify`: exit code 1 when a check disagrees or a file could not be read.
