@@ -1,0 +1,118 @@
+//! The FITS round trip: simulated exposures in SPHEREx's Level-2 layout through the
+//! stage, read back with astropy and compared with the HDF5 run on the same data
+//! (tests/fits/check_roundtrip.py); a corrupt FITS file is quarantined with its reason.
+//! Needs python3 with astropy, numpy and h5py (scripts/bootstrap.sh installs them).
+
+mod common;
+
+use common::{bin, run_batch};
+use std::path::Path;
+use std::process::Command;
+
+fn ok(args: &[&str]) -> String {
+    let o = bin().args(args).output().unwrap();
+    assert!(
+        o.status.success(),
+        "{args:?}: {}",
+        String::from_utf8_lossy(&o.stderr)
+    );
+    String::from_utf8_lossy(&o.stdout).into_owned()
+}
+
+fn s(p: &Path) -> String {
+    p.display().to_string()
+}
+
+fn files(dir: &Path, ext: &str) -> Vec<String> {
+    let mut v: Vec<String> = std::fs::read_dir(dir)
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .filter(|p| p.extension().is_some_and(|e| e == ext))
+        .map(|p| s(&p))
+        .collect();
+    v.sort();
+    v
+}
+
+#[test]
+fn fits_round_trip_matches_hdf5_and_astropy_reads_everything() {
+    let tmp = tempfile::tempdir().unwrap();
+    let t = tmp.path();
+    let (h5in, fitsin) = (t.join("h5in"), t.join("fitsin"));
+    // 64 x 64, one detector, dense bright stars so that the high threshold is crossed.
+    ok(&[
+        "simulate", "sky", "--out", &s(&h5in), "--size", "64", "--detectors", "1",
+        "--exposures", "8", "--seed", "5", "--n12", "20000",
+    ]);
+    let h5_products = files(&h5in, "h5");
+    assert_eq!(h5_products.len(), 8);
+    // The same exposures as FITS: image in MJy/sr with 0.5 e-/s per MJy/sr in ESCONV.
+    let mut args = vec!["export".to_string(), "--fits".into()];
+    args.extend(h5_products.iter().cloned());
+    args.extend(["--out", &s(&fitsin), "--placeholders", "--fits-gain", "1:0.5"].map(String::from));
+    ok(&args.iter().map(String::as_str).collect::<Vec<_>>());
+    assert_eq!(files(&fitsin, "fits").len(), 8);
+
+    let (code, err) = run_batch(&h5in, &t.join("h5run"), &[]);
+    assert_eq!(code, 0, "{err}");
+    let (code, err) = run_batch(&fitsin, &t.join("fitsrun"), &[]);
+    assert_eq!(code, 0, "{err}");
+    let h5out = t.join("h5run").join("out");
+    let fitsout = t.join("fitsrun").join("out");
+    assert_eq!(files(&fitsout, "fits").len(), 8);
+
+    // Every HDF5 output exported to FITS, for astropy to open.
+    let exported = t.join("exported");
+    let mut args = vec!["export".to_string(), "--fits".into()];
+    args.extend(files(&h5out, "h5"));
+    args.extend(["--out".to_string(), s(&exported)]);
+    ok(&args.iter().map(String::as_str).collect::<Vec<_>>());
+
+    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fits/check_roundtrip.py");
+    let o = Command::new("python3")
+        .arg(&script)
+        .args([&fitsin, &fitsout, &h5out, &exported].map(|p| s(p)))
+        .args([&h5in, &t.join("h5run"), &t.join("fitsrun")].map(|p| s(p)))
+        .output()
+        .unwrap();
+    let out = String::from_utf8_lossy(&o.stdout);
+    assert!(
+        o.status.success(),
+        "{out}\n{}",
+        String::from_utf8_lossy(&o.stderr)
+    );
+    let counts: serde_json::Value = serde_json::from_str(out.trim()).unwrap();
+    assert_eq!(counts["outputs"], 8);
+    assert!(counts["high_pixels"].as_u64().unwrap() > 0, "{counts}");
+    // PRIMARY, IMAGE, VARIANCE, ZODI, PSF, WCS-WAVE of 8 files.
+    assert_eq!(counts["untouched_extensions_identical"], 48);
+    assert!(counts["h5_opened"].as_u64().unwrap() >= 8 + 8 + 2, "{counts}");
+}
+
+#[test]
+fn a_corrupt_fits_file_is_quarantined_and_the_rest_processed() {
+    let tmp = tempfile::tempdir().unwrap();
+    let t = tmp.path();
+    let h5in = t.join("h5in");
+    ok(&[
+        "simulate", "sky", "--out", &s(&h5in), "--size", "16", "--detectors", "1",
+        "--exposures", "2", "--seed", "2", "--format", "fits",
+    ]);
+    let fits = files(&h5in, "fits");
+    assert_eq!(fits.len(), 2);
+    assert!(files(&h5in, "h5").is_empty());
+    // Exposure 1 cut in half, and a file that is not FITS at all.
+    let bytes = std::fs::read(&fits[1]).unwrap();
+    std::fs::write(&fits[1], &bytes[..bytes.len() / 2]).unwrap();
+    std::fs::write(h5in.join("junk.fits"), b"SIMPLE  =  nonsense").unwrap();
+    let (code, err) = run_batch(&h5in, &t.join("run"), &[]);
+    assert_ne!(code, 0, "refusals must show in the exit code: {err}");
+    let q = h5in.join(".quarantine");
+    for name in [Path::new(&fits[1]).file_name().unwrap().to_str().unwrap(), "junk.fits"] {
+        assert!(q.join(name).exists(), "{name} not quarantined: {err}");
+        let reason = std::fs::read_to_string(q.join(format!("{name}.reason.json"))).unwrap();
+        assert!(reason.contains(name), "{reason}");
+        assert!(reason.contains("field"), "{reason}");
+    }
+    assert_eq!(files(&t.join("run").join("out"), "fits").len(), 1);
+}
