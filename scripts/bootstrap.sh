@@ -21,3 +21,20 @@ if [ "${1:-}" = "--chromium" ] && ! command -v chromium >/dev/null 2>&1; then
   $SUDO apt-get install -y -qq chromium >/dev/null
   chromium --version >&2 || true
 fi
+# FITS (the fitsio crate links Debian's cfitsio).
+if ! pkg-config --exists cfitsio 2>/dev/null; then
+  echo "bootstrap: cfitsio not found by pkg-config; installing libcfitsio-dev" >&2
+  if [ "$updated" -eq 0 ]; then $SUDO apt-get update -qq; updated=1; fi
+  $SUDO apt-get install -y -qq libcfitsio-dev pkg-config >/dev/null
+  pkg-config --modversion cfitsio >&2
+fi
+# The FITS round trip reads the products back with astropy, numpy and h5py.
+if ! python3 -c "import astropy, numpy, h5py" 2>/dev/null; then
+  echo "bootstrap: installing astropy numpy h5py with pip" >&2
+  if ! python3 -m pip --version >/dev/null 2>&1; then
+    if [ "$updated" -eq 0 ]; then $SUDO apt-get update -qq; updated=1; fi
+    $SUDO apt-get install -y -qq python3-pip >/dev/null
+  fi
+  python3 -m pip install --quiet astropy numpy h5py \
+    || python3 -m pip install --quiet --break-system-packages astropy numpy h5py
+fi
