@@ -701,7 +701,11 @@ fn export(a: &ExportArgs) -> persist::Result<ExitCode> {
             }
         }
     }
-    Ok(if failed { ExitCode::FAILURE } else { ExitCode::SUCCESS })
+    Ok(if failed {
+        ExitCode::FAILURE
+    } else {
+        ExitCode::SUCCESS
+    })
 }
 
 /// `persist simulate lab|sky`: products and truth written as they are simulated.

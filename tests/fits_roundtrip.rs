@@ -41,15 +41,36 @@ fn fits_round_trip_matches_hdf5_and_astropy_reads_everything() {
     let (h5in, fitsin) = (t.join("h5in"), t.join("fitsin"));
     // 64 x 64, one detector, dense bright stars so that the high threshold is crossed.
     ok(&[
-        "simulate", "sky", "--out", &s(&h5in), "--size", "64", "--detectors", "1",
-        "--exposures", "8", "--seed", "5", "--n12", "20000",
+        "simulate",
+        "sky",
+        "--out",
+        &s(&h5in),
+        "--size",
+        "64",
+        "--detectors",
+        "1",
+        "--exposures",
+        "8",
+        "--seed",
+        "5",
+        "--n12",
+        "20000",
     ]);
     let h5_products = files(&h5in, "h5");
     assert_eq!(h5_products.len(), 8);
     // The same exposures as FITS: image in MJy/sr with 0.5 e-/s per MJy/sr in ESCONV.
     let mut args = vec!["export".to_string(), "--fits".into()];
     args.extend(h5_products.iter().cloned());
-    args.extend(["--out", &s(&fitsin), "--placeholders", "--fits-gain", "1:0.5"].map(String::from));
+    args.extend(
+        [
+            "--out",
+            &s(&fitsin),
+            "--placeholders",
+            "--fits-gain",
+            "1:0.5",
+        ]
+        .map(String::from),
+    );
     ok(&args.iter().map(String::as_str).collect::<Vec<_>>());
     assert_eq!(files(&fitsin, "fits").len(), 8);
 
@@ -86,7 +107,10 @@ fn fits_round_trip_matches_hdf5_and_astropy_reads_everything() {
     assert!(counts["high_pixels"].as_u64().unwrap() > 0, "{counts}");
     // PRIMARY, IMAGE, VARIANCE, ZODI, PSF, WCS-WAVE of 8 files.
     assert_eq!(counts["untouched_extensions_identical"], 48);
-    assert!(counts["h5_opened"].as_u64().unwrap() >= 8 + 8 + 2, "{counts}");
+    assert!(
+        counts["h5_opened"].as_u64().unwrap() >= 8 + 8 + 2,
+        "{counts}"
+    );
 }
 
 #[test]
@@ -95,8 +119,20 @@ fn a_corrupt_fits_file_is_quarantined_and_the_rest_processed() {
     let t = tmp.path();
     let h5in = t.join("h5in");
     ok(&[
-        "simulate", "sky", "--out", &s(&h5in), "--size", "16", "--detectors", "1",
-        "--exposures", "2", "--seed", "2", "--format", "fits",
+        "simulate",
+        "sky",
+        "--out",
+        &s(&h5in),
+        "--size",
+        "16",
+        "--detectors",
+        "1",
+        "--exposures",
+        "2",
+        "--seed",
+        "2",
+        "--format",
+        "fits",
     ]);
     let fits = files(&h5in, "fits");
     assert_eq!(fits.len(), 2);
@@ -108,7 +144,10 @@ fn a_corrupt_fits_file_is_quarantined_and_the_rest_processed() {
     let (code, err) = run_batch(&h5in, &t.join("run"), &[]);
     assert_ne!(code, 0, "refusals must show in the exit code: {err}");
     let q = h5in.join(".quarantine");
-    for name in [Path::new(&fits[1]).file_name().unwrap().to_str().unwrap(), "junk.fits"] {
+    for name in [
+        Path::new(&fits[1]).file_name().unwrap().to_str().unwrap(),
+        "junk.fits",
+    ] {
         assert!(q.join(name).exists(), "{name} not quarantined: {err}");
         let reason = std::fs::read_to_string(q.join(format!("{name}.reason.json"))).unwrap();
         assert!(reason.contains(name), "{reason}");

@@ -110,24 +110,40 @@ pub fn write_exposure(
                 .map_err(fe)?;
             let index = i64::try_from(m.exposure_index)
                 .map_err(|_| Error::invalid("exposure_index", "does not fit an int64"))?;
-            hdu.write_key(&mut f, &k.exposure_index, (index, "exposure sequence number"))
-                .map_err(fe)?;
+            hdu.write_key(
+                &mut f,
+                &k.exposure_index,
+                (index, "exposure sequence number"),
+            )
+            .map_err(fe)?;
             hdu.write_key(&mut f, "TIMESYS", ("UTC", "time scale"))
                 .map_err(fe)?;
-            hdu.write_key(&mut f, &k.date_obs, (date_obs(m.t_start.0).as_str(), "start of exposure"))
-                .map_err(fe)?;
+            hdu.write_key(
+                &mut f,
+                &k.date_obs,
+                (date_obs(m.t_start.0).as_str(), "start of exposure"),
+            )
+            .map_err(fe)?;
             let mjd = m.t_start.0 / 86_400.0 + 40587.0;
             hdu.write_key(&mut f, &k.mjd_obs, (mjd, "[d] start of exposure (MJD)"))
                 .map_err(fe)?;
-            hdu.write_key(&mut f, &k.exposure_time, (m.t_exposure_s, "[s] exposure time"))
-                .map_err(fe)?;
+            hdu.write_key(
+                &mut f,
+                &k.exposure_time,
+                (m.t_exposure_s, "[s] exposure time"),
+            )
+            .map_err(fe)?;
             if let Some(t) = m.t_illuminated_s {
                 hdu.write_key(&mut f, &k.illuminated_time, (t, "[s] illuminated time"))
                     .map_err(fe)?;
             }
             if let Some(t) = m.focal_plane_temp_k {
-                hdu.write_key(&mut f, &k.focal_plane_temp, (t, "[K] focal plane temperature"))
-                    .map_err(fe)?;
+                hdu.write_key(
+                    &mut f,
+                    &k.focal_plane_temp,
+                    (t, "[K] focal plane temperature"),
+                )
+                .map_err(fe)?;
             }
             if opts.placeholders {
                 spatial_wcs(&mut f, &hdu, dim).map_err(fe)?;
@@ -210,7 +226,11 @@ fn spatial_wcs(
 fn placeholders(f: &mut FitsFile, path: &Path, e: &Exposure, factor: f64) -> Result<()> {
     let (ny, nx) = e.image.dim();
     let t = e.meta.t_exposure_s;
-    let unit2 = if factor == 1.0 { "(e-/s)^2" } else { "(MJy/sr)^2" };
+    let unit2 = if factor == 1.0 {
+        "(e-/s)^2"
+    } else {
+        "(MJy/sr)^2"
+    };
     let unit = if factor == 1.0 { "e-/s" } else { "MJy/sr" };
     // Shot noise plus a 20 e- read noise, in image units squared.
     let variance: Vec<f32> = e
@@ -258,11 +278,8 @@ fn placeholders(f: &mut FitsFile, path: &Path, e: &Exposure, factor: f64) -> Res
     let ext = "WCS-WAVE";
     let fe = |err| fits_error(path, ext, err);
     let (lo, hi, r) = BANDS[usize::from(e.meta.detector.0 - 1)];
-    let grid = |n: usize| -> Vec<f64> {
-        (0..7)
-            .map(|i| i as f64 * (n as f64 - 1.0) / 6.0)
-            .collect()
-    };
+    let grid =
+        |n: usize| -> Vec<f64> { (0..7).map(|i| i as f64 * (n as f64 - 1.0) / 6.0).collect() };
     let (xs, ys) = (grid(nx), grid(ny));
     let mut values = Vec::with_capacity(98);
     for yi in 0..7 {

@@ -63,9 +63,17 @@ pub const SPHEREX_FLAG_BITS: &[(&str, u32)] = &[
 pub const PERSIST_FLAG_BITS: &[(&str, u32, &str)] = &[
     ("PF_HIGH", 0, "current above the high threshold: PERSIST"),
     ("PF_LOW", 1, "current above the low threshold"),
-    ("PF_MAXAMP", 2, "previous fluence unknown: maximum amplitude used"),
+    (
+        "PF_MAXAMP",
+        2,
+        "previous fluence unknown: maximum amplitude used",
+    ),
     ("PF_RELEAS", 3, "released early in this exposure"),
-    ("PF_HISTIN", 4, "an earlier exposure is missing or was rejected"),
+    (
+        "PF_HISTIN",
+        4,
+        "an earlier exposure is missing or was rejected",
+    ),
 ];
 
 /// The header keywords read from a FITS exposure, and its extension names. The defaults
@@ -149,9 +157,11 @@ pub struct Conversion {
 
 /// Whether a path names a FITS file (`.fits`, `.fit`, `.fts`, any case).
 pub fn is_fits(path: &Path) -> bool {
-    path.extension()
-        .and_then(|e| e.to_str())
-        .is_some_and(|e| ["fits", "fit", "fts"].iter().any(|x| e.eq_ignore_ascii_case(x)))
+    path.extension().and_then(|e| e.to_str()).is_some_and(|e| {
+        ["fits", "fit", "fts"]
+            .iter()
+            .any(|x| e.eq_ignore_ascii_case(x))
+    })
 }
 
 /// Parse `D:FACTOR` (a `--fits-gain` argument).

@@ -88,13 +88,19 @@ impl<'a> Headers<'a> {
         let k = self.keywords;
         let d: i64 = self.required(&k.detector, "detector number (1..=6)")?;
         let detector = DetectorId::new(d).ok_or_else(|| {
-            Error::invalid(self.field(&k.detector), format!("{d} is not a detector 1..=6"))
-                .path(self.path)
+            Error::invalid(
+                self.field(&k.detector),
+                format!("{d} is not a detector 1..=6"),
+            )
+            .path(self.path)
         })?;
         let index: i64 = self.required(&k.exposure_index, "exposure sequence number")?;
         let exposure_index = u64::try_from(index).map_err(|_| {
-            Error::invalid(self.field(&k.exposure_index), format!("{index} is negative"))
-                .path(self.path)
+            Error::invalid(
+                self.field(&k.exposure_index),
+                format!("{index} is negative"),
+            )
+            .path(self.path)
         })?;
         let t_start = match self.key::<String>(&k.date_obs)? {
             Some(s) => parse_date_obs(&s)
@@ -102,8 +108,9 @@ impl<'a> Headers<'a> {
             None => {
                 let mjd: f64 = self.required(&k.mjd_obs, "start time (or DATE-OBS)")?;
                 if !mjd.is_finite() {
-                    return Err(Error::invalid(self.field(&k.mjd_obs), "not finite")
-                        .path(self.path));
+                    return Err(
+                        Error::invalid(self.field(&k.mjd_obs), "not finite").path(self.path)
+                    );
                 }
                 UtcSeconds((mjd - MJD_UNIX_EPOCH) * 86_400.0)
             }
@@ -213,11 +220,9 @@ pub(crate) fn plane_shape(path: &Path, ext: &str, hdu: &FitsHdu) -> Result<(usiz
             crate::h5io::check_axes(ext, shape).map_err(|e| e.path(path))?;
             Ok((shape[0], shape[1]))
         }
-        HduInfo::ImageInfo { shape, .. } => Err(Error::invalid(
-            ext,
-            format!("must be a 2-D image, has shape {shape:?}"),
-        )
-        .path(path)),
+        HduInfo::ImageInfo { shape, .. } => {
+            Err(Error::invalid(ext, format!("must be a 2-D image, has shape {shape:?}")).path(path))
+        }
         _ => Err(Error::invalid(ext, "must be an image extension, is a table").path(path)),
     }
 }
@@ -260,9 +265,12 @@ pub fn read_exposure(path: &Path, cfg: &FitsConfig) -> Result<(Exposure, Convers
         if n == dim.0 * dim.1 {
             Ok(())
         } else {
-            Err(Error::new(ErrorKind::Invalid, format!("read {n} pixels, expected {dim:?}"))
-                .field(ext)
-                .path(path))
+            Err(Error::new(
+                ErrorKind::Invalid,
+                format!("read {n} pixels, expected {dim:?}"),
+            )
+            .field(ext)
+            .path(path))
         }
     };
     plane(pixels.len(), &k.image_ext)?;
@@ -272,7 +280,13 @@ pub fn read_exposure(path: &Path, cfg: &FitsConfig) -> Result<(Exposure, Convers
         dim,
         pixels
             .into_iter()
-            .map(|v| if factor == 1.0 { v } else { (f64::from(v) * factor) as f32 })
+            .map(|v| {
+                if factor == 1.0 {
+                    v
+                } else {
+                    (f64::from(v) * factor) as f32
+                }
+            })
             .collect(),
     )
     .map_err(|e| Error::invalid(k.image_ext.as_str(), e.to_string()).path(path))?;

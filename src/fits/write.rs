@@ -40,7 +40,9 @@ pub fn write_output(
         (keywords.flags_ext.as_str(), e.flags.dim()),
     ] {
         if d != dim {
-            return Err(Error::invalid(field, format!("shape {d:?} differs from {dim:?}")).path(path));
+            return Err(
+                Error::invalid(field, format!("shape {d:?} differs from {dim:?}")).path(path),
+            );
         }
     }
     let errors: Vec<Error> =
@@ -69,8 +71,12 @@ pub fn write_output(
             match hdu.read_key::<i64>(&mut f, "MP_PERSIST") {
                 Ok(_) => {}
                 Err(fitsio::errors::Error::Fits(s)) if s.status == KEY_NO_EXIST => {
-                    hdu.write_key(&mut f, "MP_PERSIST", (17i64, "persistence flagged by persist"))
-                        .map_err(fe)?;
+                    hdu.write_key(
+                        &mut f,
+                        "MP_PERSIST",
+                        (17i64, "persistence flagged by persist"),
+                    )
+                    .map_err(fe)?;
                 }
                 Err(err) => return Err(fe(err)),
             }
@@ -80,8 +86,11 @@ pub fn write_output(
                 // SAFETY: the pointer is the open file's, used only for this call.
                 unsafe { fitsio::sys::ffpcks(f.as_raw(), &mut status) };
                 if status != 0 {
-                    return Err(Error::invalid(ext, format!("cfitsio error {status} updating CHECKSUM"))
-                        .path(path));
+                    return Err(Error::invalid(
+                        ext,
+                        format!("cfitsio error {status} updating CHECKSUM"),
+                    )
+                    .path(path));
                 }
             }
             append_persistence(&mut f, path, planes, attrs, conv)?;
@@ -115,8 +124,10 @@ pub(crate) fn check_written(
         let hdu = f.hdu(ext).map_err(|e| fits_error(path, ext, e))?;
         let d = super::read::plane_shape(path, ext, &hdu)?;
         if d != dim {
-            return Err(Error::invalid(ext, format!("written with shape {d:?}, expected {dim:?}"))
-                .path(path));
+            return Err(
+                Error::invalid(ext, format!("written with shape {d:?}, expected {dim:?}"))
+                    .path(path),
+            );
         }
     }
     Ok(())
@@ -149,10 +160,18 @@ pub(crate) fn append_persistence(
     attr_cards(f, &hdu, attrs).map_err(fe)?;
     hdu.write_key(f, "ESCONV", (conv.factor, "e-/s per input image unit used"))
         .map_err(fe)?;
-    hdu.write_key(f, "ESCONVSR", (conv.source.as_str(), "where ESCONV came from"))
-        .map_err(fe)?;
-    hdu.write_key(f, "IMGUNIT", (conv.image_unit.as_str(), "unit of the input image"))
-        .map_err(fe)?;
+    hdu.write_key(
+        f,
+        "ESCONVSR",
+        (conv.source.as_str(), "where ESCONV came from"),
+    )
+    .map_err(fe)?;
+    hdu.write_key(
+        f,
+        "IMGUNIT",
+        (conv.image_unit.as_str(), "unit of the input image"),
+    )
+    .map_err(fe)?;
 
     let ext = EXT_PERSIST_FLAGS;
     let fe = |err| fits_error(path, ext, err);
@@ -168,7 +187,8 @@ pub(crate) fn append_persistence(
     let pflags: Vec<u8> = planes.flags.iter().copied().collect();
     hdu.write_image(f, &pflags).map_err(fe)?;
     for (name, bit, what) in PERSIST_FLAG_BITS {
-        hdu.write_key(f, name, (i64::from(*bit), *what)).map_err(fe)?;
+        hdu.write_key(f, name, (i64::from(*bit), *what))
+            .map_err(fe)?;
     }
     attr_cards(f, &hdu, attrs).map_err(fe)?;
     Ok(())
@@ -181,21 +201,48 @@ fn attr_cards(
     hdu: &fitsio::hdu::FitsHdu,
     a: &PersistenceAttrs,
 ) -> fitsio::errors::Result<()> {
-    hdu.write_key(f, "MODEL_ID", (a.model_id.as_str(), "SHA-256 of the model file"))?;
+    hdu.write_key(
+        f,
+        "MODEL_ID",
+        (a.model_id.as_str(), "SHA-256 of the model file"),
+    )?;
     hdu.write_key(f, "MODELNAM", (a.model_name.as_str(), "model name"))?;
-    hdu.write_key(f, "THR_HIGH", (a.threshold_high_e_per_s, "[e-/s] high threshold (PERSIST)"))?;
-    hdu.write_key(f, "THR_LOW", (a.threshold_low_e_per_s, "[e-/s] low threshold"))?;
+    hdu.write_key(
+        f,
+        "THR_HIGH",
+        (a.threshold_high_e_per_s, "[e-/s] high threshold (PERSIST)"),
+    )?;
+    hdu.write_key(
+        f,
+        "THR_LOW",
+        (a.threshold_low_e_per_s, "[e-/s] low threshold"),
+    )?;
     if a.t_meas_s.is_finite() {
         hdu.write_key(f, "T_MEAS", (a.t_meas_s, "[s] after the previous reset"))?;
     }
-    hdu.write_key(f, "PREV_EXP", (a.previous_exposure_index, "previous exposure used, -1 none"))?;
-    hdu.write_key(f, "SW_VERS", (a.software_version.as_str(), "persist version"))?;
-    hdu.write_key(f, "PROCUTC", (a.processed_utc.as_str(), "processing time (UTC)"))?;
+    hdu.write_key(
+        f,
+        "PREV_EXP",
+        (a.previous_exposure_index, "previous exposure used, -1 none"),
+    )?;
+    hdu.write_key(
+        f,
+        "SW_VERS",
+        (a.software_version.as_str(), "persist version"),
+    )?;
+    hdu.write_key(
+        f,
+        "PROCUTC",
+        (a.processed_utc.as_str(), "processing time (UTC)"),
+    )?;
     Ok(())
 }
 
 /// The `MP_<NAME>` cards of a `FLAGS` header written from scratch.
-pub(crate) fn flag_cards(f: &mut FitsFile, hdu: &fitsio::hdu::FitsHdu) -> fitsio::errors::Result<()> {
+pub(crate) fn flag_cards(
+    f: &mut FitsFile,
+    hdu: &fitsio::hdu::FitsHdu,
+) -> fitsio::errors::Result<()> {
     for (name, bit) in SPHEREX_FLAG_BITS {
         hdu.write_key(f, name, (i64::from(*bit), "bit number"))?;
     }

@@ -14,7 +14,9 @@ pub fn is_candidate(path: &Path) -> bool {
     let Some(name) = path.file_name().and_then(|n| n.to_str()) else {
         return false;
     };
-    (name.ends_with(".h5") || crate::fits::is_fits(path)) && !name.starts_with('.') && !name.ends_with(".part")
+    (name.ends_with(".h5") || crate::fits::is_fits(path))
+        && !name.starts_with('.')
+        && !name.ends_with(".part")
 }
 
 /// All candidate files under `dir`, sorted by path (deterministic).
