@@ -8,15 +8,15 @@
 //! Prints, per cell: n, sigma (the samples' exposure noise, RMS), median(d), the MAD
 //! spread of d, P95(d), the paired reference (`ref0`), the reference with the spread
 //! `s = max(0, -median(d)) / 1.645` (`ref_s`), `z` as the library computes it and `z_s`
-//! against `ref_s`; then the RMS of both over the illumination's cells.
-//! docs/diagnose_matrix.md, nineteenth session, "Where the floor comes from".
+//! against `ref_s`; then the RMS of both over the illumination's cells. This is what
+//! tells how much of the residual floor is the population's own spread `s`.
 //!
 //! ```sh
 //! target/release/examples/cell_parts LAB_DIR MODEL.json ILLUMINATION_EXPOSURE
 //! ```
 use persist::diag::data::Sequence;
 use persist::diag::eval::{self, Samples};
-use persist::sim::analysis::median;
+use persist::stats::median;
 use std::collections::BTreeMap;
 use std::path::Path;
 

@@ -1,4 +1,4 @@
-//! The proof matrix of issue 4 for `persist diagnose`: hidden effects in simulated
+//! The proof matrix for `persist diagnose`: hidden effects in simulated
 //! laboratory campaigns (`persist simulate lab --campaign`), each diagnosed, refitted
 //! and compared. Writes a Markdown table (and JSON lines beside it).
 //!
@@ -9,7 +9,7 @@
 //! `--effects a,b,...` (default: every simulator effect; each `NAME` or
 //! `NAME:param=value`, a truth effect with a non-default parameter), `--pair a,b` (two hidden
 //! effects, default `short_tau_boost,soak`: found one per round at 3 of 3 seeds at 64 x 64,
-//! docs/diagnose_matrix.md, "Twelfth session"; `soak,temperature` is not), `--pixels N`, `--bootstrap B`,
+//! docs/diagnose_matrix.md, "round 12"; `soak,temperature` is not), `--pixels N`, `--bootstrap B`,
 //! `--statistic within|pooled`, `--preset paper|readout` (`persist fit --preset`: the
 //! reference's starting point; `readout` is R14), `--reference a,b` (default none: the
 //! paper's model; with `--preset`, added to its effects as `persist fit --with` is),
@@ -19,7 +19,7 @@
 //! `--t-min-s T`, `--decay-offset-s T0`, `--cells pooled|illumination|neighbours`, `--cell-statistic levels|paired|population`, `--background median|line` (the
 //! reference's `persist fit` options, also used by every fit and diagnosis of the
 //! matrix; a reference effect `NAME:param=value,...` pins those parameters, as `persist
-//! fit --with` does), `--refit candidate|full` (`persist diagnose --refit`),
+//! fit --with` does), `--refit candidate|full` (`persist diagnose --refit`), `--decide contrast|score`,
 //! `--spots centred|shifted|pinholes` (the campaign, `persist simulate lab --campaign --spots`),
 //! `--dark-lengths uniform|varied` (`persist simulate lab --campaign --dark-lengths`),
 //! `--temperatures mixed|apart` (`persist simulate lab --campaign --temperatures`),
@@ -43,7 +43,7 @@
 //! differ most where the 0.01 e-/s floor binds: below 0.1 e-/s a sample is touched only
 //! if its current is high enough for the effect's relative change to pass the floor, so
 //! the per-sample set leans to the pixels above the predicted 95th percentile
-//! (docs/diagnose_matrix.md, "Twenty-fourth session").
+//! (docs/diagnose_matrix.md, "round 24").
 
 use persist::calib::{self, effects as ceffects, CalibConfig};
 use persist::diag::data::{Background, Sequence};
@@ -295,6 +295,7 @@ const VALUE_OPTIONS: &[&str] = &[
     "--bootstrap",
     "--statistic",
     "--refit",
+    "--decide",
 ];
 const FLAGS: &[&str] = &[
     "--reference-fit-cn",
@@ -314,7 +315,7 @@ fn check_args(args: &[String]) {
         let a = args[i].as_str();
         if a == "--help" || a == "-h" {
             println!(
-                "diagnose_matrix: the proof matrix of issue 4 (examples/diagnose_matrix.rs, \
+                "diagnose_matrix: the proof matrix (examples/diagnose_matrix.rs, \
                  module docs)\noptions with a value: {}\nflags: {}",
                 VALUE_OPTIONS.join(" "),
                 FLAGS.join(" ")
@@ -462,6 +463,9 @@ fn main() {
         cfg.refit = v.parse().unwrap();
     }
     cfg.joint = args.iter().any(|a| a == "--joint");
+    if let Some(v) = arg(&args, "--decide") {
+        cfg.decide = v.parse().unwrap();
+    }
     let skip = |f: &str| args.iter().any(|a| a == f);
     let mut md = String::new();
     let mut jl = String::new();

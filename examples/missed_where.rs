@@ -3,8 +3,7 @@
 //! on the truths of two `persist simulate lab` runs of one seed, with and without the
 //! effect), per illumination x time bin x fluence bin; and the missed fraction under two
 //! other definitions of touched: a relative change of 10 % alone, and every sample of a
-//! pixel touched at any sample (`compare --touched-baseline`). docs/diagnose_matrix.md,
-//! "Twenty-fourth session".
+//! pixel touched at any sample (`compare --touched-baseline`).
 //!
 //! ```sh
 //! target/release/examples/missed_where WITH_DIR WITHOUT_DIR MODEL.json [line|median]

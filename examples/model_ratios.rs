@@ -5,8 +5,7 @@
 //! current over every pixel of chosen dark integrations after each illumination, as the
 //! ratio with the set to without. Set beside `truth_ratios` on the same campaign, a
 //! ratio the model does not reproduce is an interaction between effects that the model
-//! states differently from the truth (docs/diagnose_matrix.md, "Twenty-seventh
-//! session": `soak` and `temperature` at 82 K).
+//! states differently from the truth (for example `soak` and `temperature` at 82 K).
 //!
 //! ```sh
 //! target/release/examples/model_ratios LAB_DIR MODEL.json [--fluence LO,HI] SET [SET ...]

@@ -7,9 +7,8 @@
 //! own shot noise in an unweighted line fit of evenly spaced reads (`6 / (5 T)` per e-/s
 //! for many reads; `persist::sim::detector`), and against the same with the current at
 //! the line fit's level (the truth plus the cell's median of `measured - truth`).
-//! docs/diagnose_matrix.md, "Twenty-first session". In the first dark the truth is the
-//! mean over the integration, not the line fit's value, so its median differs by
-//! definition.
+//! In the first dark the truth is the mean over the integration, not the line fit's
+//! value, so its median differs by definition.
 //!
 //! ```sh
 //! target/release/examples/noise_check LAB_DIR ILLUMINATION   # 0, 1, ...

@@ -4,8 +4,7 @@
 //! them per pair, then applies the mean map of all events to the predictions as a scale
 //! `exp(strength * (M - mean M))` with the knots' level refitted on a grid, and prints
 //! the cell RMS (the per-illumination fluence x time cells of `persist fit`, or those
-//! also split by position tiles of `TILE_PX` on a side). Numbers: docs/diagnose_matrix.md,
-//! fifteenth session.
+//! also split by position tiles of `TILE_PX` on a side).
 //!
 //! ```sh
 //! target/release/examples/populations_map LAB_DIR MODEL.json [L_PX [TILE_PX]]

@@ -1,5 +1,6 @@
-//! Where the `populations` row's residual comes from (docs/diagnose_matrix.md,
-//! "Twenty-fifth session"). Under `--cell-statistic population --background line`:
+//! Where the residual of a campaign with hidden `populations` comes from (the
+//! `populations` row of `examples/diagnose_matrix`). Under `--cell-statistic population
+//! --background line`:
 //!
 //! 1. the cell RMS with the pixels sampled every 2, 4 and 8 pixels (two offsets each):
 //!    if the residual is the cells' 95th percentiles moving together because

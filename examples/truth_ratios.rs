@@ -3,8 +3,8 @@
 //! seed), the array-mean true persistence current of chosen dark integrations after each
 //! illumination, as the ratio with the effect to without. Two effects whose ratios move
 //! together across the illuminations are hard to tell apart on this campaign; two that
-//! move in opposite directions in one illumination cancel there
-//! (docs/diagnose_matrix.md, "Twelfth session", the pair soak + temperature).
+//! move in opposite directions in one illumination cancel there (as `soak` and
+//! `temperature` do).
 //!
 //! ```sh
 //! target/release/examples/truth_ratios [--size 64] [--seed 1] [--spots centred] [--temperatures mixed] EFFECT[+EFFECT] ...

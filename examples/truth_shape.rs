@@ -11,9 +11,10 @@
 //! differs by definition (the truth's mean over the integration against the model's
 //! observed current).
 //!
-//! This is how the capacity effect's compounding was found (2026-11-22): on a single
-//! 14 h illumination the truth's `t * i(t)` is flat at every fluence, but the reference
-//! with `capacity` fell fourfold over 14 h above saturation and nowhere else.
+//! This is how a model form that compounds over exposures shows: on a single 14 h
+//! illumination the truth's `t * i(t)` is flat at every fluence, while a `capacity`
+//! applied to the whole amplitude at every exposure falls fourfold over 14 h above
+//! saturation and nowhere else.
 //!
 //! ```sh
 //! target/release/examples/truth_shape LAB_DIR MODEL.json [EVENT]

@@ -34,6 +34,7 @@ use crate::h5io;
 use crate::model::{Input, Model, ModelParams, Output, State};
 use crate::product::{self, Exposure, ExposureMeta};
 use crate::stage::{self, RunConfig};
+use crate::stats::median;
 use crate::units::{DetectorId, UtcSeconds};
 use ndarray::Array2;
 use rayon::prelude::*;
@@ -202,20 +203,6 @@ pub fn peak_rss_bytes() -> u64 {
                 .and_then(|kb| kb.parse::<u64>().ok())
         })
         .map_or(0, |kb| kb * 1024)
-}
-
-pub fn median(v: &[f64]) -> f64 {
-    if v.is_empty() {
-        return f64::NAN;
-    }
-    let mut s = v.to_vec();
-    s.sort_by(f64::total_cmp);
-    let m = s.len() / 2;
-    if s.len() % 2 == 1 {
-        s[m]
-    } else {
-        0.5 * (s[m - 1] + s[m])
-    }
 }
 
 /// SplitMix64: a cheap deterministic per-pixel hash (no RNG state to thread through).

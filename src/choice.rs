@@ -1,8 +1,8 @@
 //! Command-line choices: fieldless enums whose variants an option names by one word.
 //!
-//! [`choices!`] gives such an enum `FromStr` and `Display` from one list of `Variant =>
-//! "word"` pairs, so the words parsed and the words written back (in `--help` defaults
-//! and in the JSON outputs that record them) cannot drift apart. An unknown word is an
+//! The macro `choices!` (below) gives such an enum `FromStr` and `Display` from one list
+//! of `Variant => "word"` pairs, so the words parsed and the words written back (in
+//! `--help` defaults and in the JSON outputs that record them) cannot drift apart. An unknown word is an
 //! [`crate::ErrorKind::Invalid`] error naming the option, the word and every word the
 //! option takes.
 

@@ -64,7 +64,13 @@ fn stdout_failed(e: std::io::Error) {
 #[command(
     name = "persist",
     version,
-    about = "Predict and flag image persistence in HAWAII-2RG arrays (SPHEREx)"
+    about = "Predict and flag image persistence in HAWAII-2RG arrays (SPHEREx)",
+    after_help = "Exit codes: 0 done, or stopped by SIGINT/SIGTERM after the exposure in hand \
+                  and its checkpoint; 1 some input or output failed (the rest was processed, \
+                  every failure reported, bad inputs quarantined); 2 the command could not \
+                  run (usage, model file, directories locked by another stage).\n\
+                  Environment: PERSIST_LOG (a log filter, overrides --log-level), \
+                  SOURCE_DATE_EPOCH (pins the processing time recorded in outputs)."
 )]
 pub struct Cli {
     #[command(subcommand)]
@@ -120,6 +126,14 @@ pub enum Command {
     /// Export HDF5 products (inputs or outputs) as FITS files in SPHEREx's Level-2
     /// layout (docs/fits.md).
     Export(ExportArgs),
+    /// Print the command-line reference (docs/cli.md) as markdown.
+    #[command(hide = true)]
+    HelpMarkdown,
+    /// Persistence measured in flight (no shutter): follow pixels after bright events
+    /// through later sky exposures, stack their excess over the surrounding sky by
+    /// fluence and time, set it beside the stage's predictions and flags; writes
+    /// REPORT/report.html and REPORT/report.json.
+    Verify(VerifyArgs),
 }
 
 #[derive(Args, Debug)]
@@ -140,6 +154,33 @@ pub struct ExportArgs {
     pub placeholders: bool,
 }
 
+#[derive(Args, Debug)]
+pub struct VerifyArgs {
+    /// The stage's input directory (sky exposures; a simulator's `truth/` in it is used).
+    #[arg(long)]
+    pub input: PathBuf,
+    /// The stage's output directory (its products carry the input image and flags).
+    #[arg(long)]
+    pub output: PathBuf,
+    /// Where to write report.html and report.json.
+    #[arg(long)]
+    pub report: PathBuf,
+    /// Extrapolated fluence from which a pixel's exposure is an event, e- [default: 2e5,
+    /// the paper's saturation level; OVERFLOW pixels always are].
+    #[arg(long)]
+    pub event_fluence_e: Option<f64>,
+    /// Reject a track's sample that rises more than this many noise standard deviations
+    /// above its last accepted one (a source in the pixel).
+    #[arg(long, default_value_t = 3.0)]
+    pub spike_nsigma: f64,
+    /// Inner and outer Chebyshev radii of the sky annulus, pixels.
+    #[arg(long, value_delimiter = ',', default_values_t = [3, 6])]
+    pub annulus_px: Vec<usize>,
+    /// Seed of the bootstrap over events.
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+}
+
 #[derive(Subcommand, Debug)]
 pub enum SimScenario {
     /// The paper's laboratory test: a 613 s integration lit for 481 s through a pinhole,
@@ -147,6 +188,47 @@ pub enum SimScenario {
     Lab(LabArgs),
     /// A SPHEREx-like survey: 112 s integrations, slews, zodiacal light, stars.
     Sky(SkyArgs),
+    /// A laboratory sequence from the second, independent truth generator
+    /// (`persist::trapgen`: continuous emission-time densities, finite capture, each
+    /// seed its own detector), optionally with hidden effects.
+    Family(FamilyArgs),
+}
+
+#[derive(Args, Debug)]
+pub struct FamilyArgs {
+    /// Output directory (products; truth in OUT/truth).
+    #[arg(long)]
+    pub out: PathBuf,
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+    /// Array size N (N x N pixels).
+    #[arg(long, default_value_t = 64)]
+    pub size: usize,
+    /// `single` (the paper's: one 481 s illumination, then darks) or `campaign` (six
+    /// illuminations: durations, a repeat, temperatures; `persist::trapgen`).
+    #[arg(long, default_value_t = persist::trapgen::scene::SequenceKind::Single,
+          value_parser = parse_flag::<persist::trapgen::scene::SequenceKind>)]
+    pub sequence: persist::trapgen::scene::SequenceKind,
+    /// Dark integrations after a single illumination (180 s each).
+    #[arg(long, default_value_t = persist::trapgen::DEFAULT_DARKS)]
+    pub darks: usize,
+    /// Leave the right-hand quarter unlit (otherwise every pixel is lit).
+    #[arg(long)]
+    pub dark_pixels: bool,
+    /// Add the grid of one-pixel pinholes: `on`, `off` [default: drawn by the seed].
+    #[arg(long)]
+    pub pinholes: Option<OnOff>,
+    /// A hidden effect CLASS:FORM (repeatable), e.g. `soak:capture`; see
+    /// `persist::trapgen` for the forms and their physics.
+    #[arg(long = "hidden", value_parser = parse_flag::<persist::trapgen::hidden::Hidden>)]
+    pub hidden: Vec<persist::trapgen::hidden::Hidden>,
+}
+
+/// `on` or `off`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum OnOff {
+    On,
+    Off,
 }
 
 #[derive(Args, Debug)]
@@ -171,10 +253,16 @@ pub struct LabArgs {
     /// scaled), `shifted` (the spot moved for illuminations 2-5, so that radius and
     /// fluence do not go together; `persist::sim::lab`, "Shifted spots") or `pinholes`
     /// (the centred campaign plus a grid of one-pixel pinholes, for effects that couple
-    /// neighbours; "Sharp pinholes").
+    /// neighbours; "Sharp pinholes"), or `paper` (the centred spots with every pixel
+    /// lit at 30 e-/s or more, like the paper's laboratory data, so that no pixel stays
+    /// below 3000 e-; also without --campaign; "The paper's pattern").
     #[arg(long, default_value_t = persist::sim::lab::Spots::default(),
-          value_parser = parse_flag::<persist::sim::lab::Spots>, requires = "campaign")]
+          value_parser = parse_flag::<persist::sim::lab::Spots>)]
     pub spots: persist::sim::lab::Spots,
+    /// With `--spots paper`: keep a corner of size/8 x size/8 pixels unlit, so that the
+    /// sequence has pixels that were never lit.
+    #[arg(long)]
+    pub dark_pixels: bool,
     /// How long the campaign's dark integrations are: `uniform` (180 s) or `varied`
     /// (illumination 2's darks 60 s; its repeat's 540 s, after a reset 12 s after the
     /// shutter, so that the on-board line fit's bias, which grows with the
@@ -608,8 +696,9 @@ pub struct DiagnoseArgs {
     /// Pixels in the random subsample.
     #[arg(long, default_value_t = persist::diag::diagnose::DEFAULT_PIXELS)]
     pub pixels: usize,
-    /// Residuals of the score test: `within` (illumination contrasts) or `pooled`.
-    #[arg(long, default_value_t = Statistic::Within, value_parser = parse_flag::<Statistic>)]
+    /// Residuals of the score test: `auto` (`within` with two illumination events or
+    /// more, else `pooled`), `within` (illumination contrasts) or `pooled`.
+    #[arg(long, default_value_t = Statistic::Auto, value_parser = parse_flag::<Statistic>)]
     pub statistic: Statistic,
     // the score test's groups are the `--statistic`'s; `--cells` keys the refits, the
     // held-out check and the reported RMS
@@ -626,6 +715,11 @@ pub struct DiagnoseArgs {
     /// `persist::diag::diagnose`, "Joint check"). Adds up to seven refits.
     #[arg(long)]
     pub joint: bool,
+    /// What chooses the candidates refitted: `contrast` (what the data can test and what
+    /// a flexible base's residual depends on) or `score` (the score test alone, as the
+    /// matrix of docs/diagnose_matrix.md measured).
+    #[arg(long, default_value_t = persist::diag::diagnose::Decide::default(), value_parser = parse_flag::<persist::diag::diagnose::Decide>)]
+    pub decide: persist::diag::diagnose::Decide,
 }
 
 #[derive(Subcommand, Debug)]
@@ -681,7 +775,65 @@ pub fn run(cli: Cli) -> persist::Result<ExitCode> {
         Command::Diagnose(a) => diagnose(&a),
         Command::Bench(args) => bench(&args),
         Command::Export(a) => export(&a),
+        Command::HelpMarkdown => {
+            use clap::CommandFactory;
+            out_nonl!("{}", crate::cli_reference::markdown(Cli::command()));
+            Ok(ExitCode::SUCCESS)
+        }
+        Command::Verify(a) => verify(&a),
     }
+}
+
+/// `persist verify`: exit code 1 when a check disagrees or a file could not be read.
+fn verify(a: &VerifyArgs) -> persist::Result<ExitCode> {
+    let mut p = persist::verify::VerifyParams {
+        seed: a.seed,
+        ..Default::default()
+    };
+    if let Some(f) = a.event_fluence_e {
+        p.track.event_fluence_e = f;
+    }
+    p.track.spike_nsigma = a.spike_nsigma;
+    if let [inner, outer] = a.annulus_px[..] {
+        if inner == 0 || outer < inner {
+            return Err(Error::new(
+                ErrorKind::Usage,
+                format!("--annulus-px {inner},{outer}: need 0 < inner <= outer"),
+            ));
+        }
+        p.track.annulus_inner_px = inner;
+        p.track.annulus_outer_px = outer;
+    }
+    let r = persist::verify::run(&a.input, &a.output, &p)?;
+    persist::verify::write_report(&r, &a.report)?;
+    let c = &r.checks;
+    out!(
+        "{} exposures, {} events, {} samples; decay {} (slope predicted - measured {:.3} +- {:.3}); \
+         margin {:.2} ({:.2}-{:.2}): {}",
+        r.exposures,
+        r.events,
+        r.samples,
+        if c.decay_agrees { "agrees" } else { "disagrees" },
+        c.slope_difference.mean,
+        c.slope_difference.se,
+        c.margin.0,
+        c.margin.1,
+        c.margin.2,
+        c.margin_verdict
+    );
+    if let Some((inside, n)) = c.truth_inside {
+        out!("truth inside the measured 95 % interval in {inside} of {n} bins");
+    }
+    for e in &r.errors {
+        eprintln!("unreadable: {}: {}", e.file.display(), e.reason);
+    }
+    out!("report: {}", a.report.join("report.html").display());
+    let ok = c.decay_agrees && c.margin_verdict == "ok" && r.errors.is_empty();
+    Ok(if ok {
+        ExitCode::SUCCESS
+    } else {
+        ExitCode::from(1)
+    })
 }
 
 /// `persist export --fits FILE... --out DIR`.
@@ -716,7 +868,23 @@ fn simulate(scenario: SimScenario) -> persist::Result<ExitCode> {
     };
     let (out, n) = match scenario {
         SimScenario::Lab(a) => {
+            let paper = a.spots == lab::Spots::Paper;
+            if !a.campaign && !matches!(a.spots, lab::Spots::Centred | lab::Spots::Paper) {
+                return Err(persist::Error::invalid(
+                    "--spots",
+                    format!("`{}` needs --campaign", a.spots),
+                ));
+            }
+            if a.dark_pixels && !paper {
+                return Err(persist::Error::invalid(
+                    "--dark-pixels",
+                    "needs --spots paper",
+                ));
+            }
             let cfg = lab::LabConfig {
+                paper_pattern: paper.then_some(lab::PaperPattern {
+                    dark_pixels: a.dark_pixels,
+                }),
                 size: a.size,
                 seed: a.seed,
                 darks: a.darks,
@@ -760,6 +928,21 @@ fn simulate(scenario: SimScenario) -> persist::Result<ExitCode> {
             }
             (a.out, n)
         }
+        SimScenario::Family(a) => {
+            let cfg = persist::trapgen::FamilyConfig {
+                size: a.size,
+                seed: a.seed,
+                sequence: a.sequence,
+                darks: a.darks,
+                dark_pixels: a.dark_pixels,
+                pinholes: a.pinholes.map(|p| p == OnOff::On),
+                hidden: a.hidden,
+            };
+            persist::trapgen::validate(&cfg)?;
+            let mut w = Writer::new(&a.out)?;
+            let desc = persist::trapgen::run(&cfg, |e| w.write(&e))?;
+            (a.out, w.finish(desc)?)
+        }
     };
     out!(
         "persist simulate: {n} products in {}, truth in {}",
@@ -773,7 +956,7 @@ fn simulate(scenario: SimScenario) -> persist::Result<ExitCode> {
 fn validate(files: &[PathBuf]) -> ExitCode {
     let mut failed = false;
     for path in files {
-        match persist::product::validate_path(path) {
+        match persist::validate::validate_path(path) {
             Ok(kind) => out!("ok {kind} {}", path.display()),
             Err(errors) => {
                 failed = true;
@@ -1100,6 +1283,7 @@ fn diagnose(a: &DiagnoseArgs) -> persist::Result<ExitCode> {
         background: a.cells.background,
         refit: a.refit,
         joint: a.joint,
+        decide: a.decide,
     };
     let s = persist::diag::diagnose::run(&a.input, &a.model, a.json.as_deref(), &cfg)?;
     out!("{s}");

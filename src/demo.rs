@@ -14,6 +14,7 @@ use crate::model::{Model, ModelParams};
 use crate::plot::{line_chart_png, Chart, Series};
 use crate::sim::{output::Writer, sky};
 use crate::stage::{self, ExposureReport, RunConfig};
+use crate::stats::median;
 use std::path::{Path, PathBuf};
 
 #[derive(Debug, Clone)]
@@ -93,19 +94,6 @@ pub struct DemoReport {
     pub errors: usize,
 }
 
-fn median(mut v: Vec<f64>) -> f64 {
-    if v.is_empty() {
-        return f64::NAN;
-    }
-    v.sort_by(|a, b| a.total_cmp(b));
-    let n = v.len();
-    if n % 2 == 1 {
-        v[n / 2]
-    } else {
-        0.5 * (v[n / 2 - 1] + v[n / 2])
-    }
-}
-
 fn read_plane(path: &Path, dataset: &str) -> Result<ndarray::Array2<f32>> {
     let f = crate::h5io::open(path)?;
     f.dataset(dataset)
@@ -115,12 +103,8 @@ fn read_plane(path: &Path, dataset: &str) -> Result<ndarray::Array2<f32>> {
 
 /// Median of a plane's finite values, e-/s.
 fn plane_median(a: &ndarray::Array2<f32>) -> f64 {
-    median(
-        a.iter()
-            .filter(|v| v.is_finite())
-            .map(|v| f64::from(*v))
-            .collect(),
-    )
+    let v: Vec<f64> = a.iter().map(|v| f64::from(*v)).collect();
+    median(&v)
 }
 
 /// Draw a chart, on a linear axis if a log axis would have nothing to show (a sky with
@@ -244,8 +228,10 @@ pub fn run(cfg: &DemoConfig, progress: &dyn Fn(&str)) -> Result<DemoReport> {
             f64::from(read_plane(&truth, "true_persistence")?[event.2]),
         ));
     }
-    let steady =
-        |f: fn(&Row) -> f64| median(rows.iter().filter(|r| r.t_hours > 6.0).map(f).collect());
+    let steady = |f: fn(&Row) -> f64| {
+        let v: Vec<f64> = rows.iter().filter(|r| r.t_hours > 6.0).map(f).collect();
+        median(&v)
+    };
     let steady_frac_high = steady(|r| r.frac_high);
     let steady_frac_low = steady(|r| r.frac_low);
     let steady_true_frac_high = steady(|r| r.true_frac_high);

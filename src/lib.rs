@@ -3,18 +3,23 @@
 //! The data take one straight path, each step one module:
 //!
 //! ```text
-//! product::read -> fluence -> model::Model::step -> product::write -> checkpoint
-//!                               (predict, flag, early release, decay, respond)
+//! product::read -> model::fluence -> model::Model::step -> product::write -> checkpoint
+//!                                      (predict, flag, early release, decay, respond)
 //! ```
 //!
 //! - [`model`] is the pure core (no files, no clock, no HDF5); everything else reuses it.
 //! - [`product`] is the only code that knows the HDF5 layout of the ICD
-//!   (`../shared/ICD.md`) and checks files against the JSON Schemas in `schemas/`.
+//!   (`docs/contract.md`) and checks files against the JSON Schemas in `schemas/`.
 //! - [`checkpoint`] keeps each detector's state, keyed by (detector, exposure index).
 //! - [`model_file`] reads model files (JSON, `schemas/model.schema.json`).
 //! - [`h5io`] holds what products and checkpoints share: deterministic HDF5 creation
 //!   (no object times) and atomic publication (`.NAME.part`, validate, sync, rename).
 //! - [`stage`] runs detectors' histories through the model.
+//! - [`validate`] recognises any file (product, checkpoint, model file) and checks it;
+//!   it sits above [`product`] and [`checkpoint`]: [`checkpoint`] reuses
+//!   [`product::schema`], and [`product`] imports neither.
+//! - [`stats`] holds the robust statistics (medians, clipped medians, quantiles) that
+//!   the simulator's checks, the fitter, the diagnostics and the benchmarks share.
 //!
 //! Invariants: NaN or Inf never enters the model state; an output is published (renamed
 //! into place) only after it validates, and before the checkpoint that includes it; the
@@ -33,13 +38,18 @@ pub mod error;
 pub mod fits;
 pub mod flags;
 pub mod h5io;
+pub mod measure;
 pub mod model;
 pub mod model_file;
 pub mod plot;
 pub mod product;
 pub mod sim;
 pub mod stage;
+pub mod stats;
+pub mod trapgen;
 pub mod units;
+pub mod validate;
+pub mod verify;
 
 pub use error::{Error, ErrorKind, Result};
 

@@ -2,6 +2,7 @@ use clap::Parser;
 use std::process::ExitCode;
 
 mod cli;
+mod cli_reference;
 
 fn main() -> ExitCode {
     let args = cli::Cli::parse();

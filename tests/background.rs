@@ -4,9 +4,8 @@
 //! The background pixels (never lit above 3000 e-) carry their own persistence: in the
 //! first dark after an illumination their median stands above the dark current by an
 //! amount that follows how brightly they were lit, so `image - median` removes more
-//! persistence after a bright illumination than after a faint one
-//! (docs/diagnose_matrix.md, "Twenty-second session"). `--background line` takes the
-//! intercept at zero fluence instead.
+//! persistence after a bright illumination than after a faint one. `--background line`
+//! takes the intercept at zero fluence instead.
 
 use persist::diag::data::{Background, Sequence};
 use persist::sim::detector::DetectorParams;

@@ -1,4 +1,4 @@
-//! Regression for the saturation-step cells (docs/diagnose_matrix.md, ninth session):
+//! Regression for the saturation-step cells:
 //! on the 64 x 64 baseline laboratory campaign (seed 1, nothing hidden), the reference
 //! model (refill + chord, the knots' level at amplification 1.0, thirteen terms from
 //! 1 s, per-illumination cells) leaves a residual RMS well above 1 with the `levels`

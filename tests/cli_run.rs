@@ -66,8 +66,8 @@ fn run_prints_a_summary_and_refuses_a_model_change_unless_asked() {
         let p = e.unwrap().path();
         if p.extension().is_some_and(|x| x == "h5") {
             assert_eq!(
-                persist::product::validate_path(&p).unwrap(),
-                persist::product::ProductKind::L2Persistence
+                persist::validate::validate_path(&p).unwrap(),
+                persist::validate::ProductKind::L2Persistence
             );
         }
     }

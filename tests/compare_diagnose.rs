@@ -31,8 +31,8 @@ fn compare_summary_is_consistent_and_report_self_contained() {
         a.extend(extra);
         persist(&a)
     };
-    // the cells that were the defaults when this was written (pooled, levels)
-    let printed = compare("cmp", &common::OLD_CELLS);
+    // pooled cells with the levels statistic, which the figures below were measured on
+    let printed = compare("cmp", &common::POOLED_LEVELS_CELLS);
     let s: serde_json::Value = serde_json::from_str(
         &std::fs::read_to_string(tmp.path().join("cmp/summary.json")).unwrap(),
     )
@@ -96,14 +96,61 @@ fn compare_summary_is_consistent_and_report_self_contained() {
     assert!(!html.contains("<script"));
     assert!(html.contains("Where the flags at 0.1 e-/s fail") && html.contains("most missed: "));
 
-    // Regression: on a single illumination (the paper's laboratory sequence) the default
-    // within statistic has nothing to compare; the refusal says what to use instead.
-    let (code, err) =
-        common::persist_status(&["diagnose", "--input", &d("lab"), "--model", &d("m.json")]);
-    assert_eq!(code, Some(2), "{err}");
+    // On a single illumination (the paper's laboratory sequence) `diagnose` with no
+    // other option chooses the pooled statistic and says why, lists the classes the data
+    // hold no contrast for with the measurement that would test them, and declares
+    // nothing (nothing is hidden).
+    let dj = d("single.json");
+    let out = persist(&[
+        "diagnose",
+        "--input",
+        &d("lab"),
+        "--model",
+        &d("m.json"),
+        "--json",
+        &dj,
+    ]);
+    let dg: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&dj).unwrap()).unwrap();
+    assert_eq!(dg["statistic"], "pooled", "{out}");
+    assert!(dg["statistic_reason"]
+        .as_str()
+        .unwrap()
+        .contains("one illumination"));
+    let needs = |class: &str| -> Option<String> {
+        let c = dg["contrasts"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .find(|c| c["class"] == class)
+            .unwrap_or_else(|| panic!("{class} missing: {out}"));
+        (!c["testable"].as_bool().unwrap()).then(|| c["needs"].as_str().unwrap().to_string())
+    };
+    assert!(needs("illumination_time")
+        .unwrap()
+        .contains("120 s and 481 s"));
+    assert!(needs("temperature").unwrap().contains("2 K apart"));
+    assert!(needs("earlier_illuminations")
+        .unwrap()
+        .contains("second illumination"));
+    assert!(out.contains("soak             untestable, needs illuminations of two durations"));
+    // untestable effects are not scored
+    let ranked: Vec<&str> = dg["ranking"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|c| c["effect"].as_str().unwrap())
+        .collect();
+    for e in ["soak", "temperature", "capacity", "refill"] {
+        assert!(!ranked.contains(&e), "{e} scored: {out}");
+    }
     assert!(
-        err.contains("lab") && err.contains("--statistic pooled"),
-        "{err}"
+        !dg["ranking"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .any(|c| c["significant"].as_bool().unwrap()),
+        "{out}"
     );
 
     // `--cells illumination` on one illumination: the same cells as pooled, each
@@ -179,11 +226,10 @@ fn compare_summary_is_consistent_and_report_self_contained() {
 
 /// Hidden soak in laboratory data: `diagnose` declares it significant; `fit --with soak`
 /// halves the normalised residual RMS. Minutes in the test profile; run with
-/// `cargo test --release --test compare_diagnose -- --ignored`. Written for the
-/// defaults of then, passed here: `diagnose --statistic pooled` (since `within` became
-/// the default, a single illumination is refused without it), pooled cells, the levels
-/// statistic, the candidate-only refit. Run on commit fdbe6c7 it fails: `short_tau_boost`
-/// is declared besides `soak` (`["soak", "short_tau_boost"]`); not investigated.
+/// `cargo test --release --test compare_diagnose -- --ignored`. With
+/// `diagnose --statistic pooled`, pooled cells, the levels statistic and the candidate-only refit. Known to fail, not
+/// investigated: `short_tau_boost` is declared besides `soak`
+/// (`["soak", "short_tau_boost"]`).
 #[test]
 #[ignore]
 fn hidden_soak_is_found_and_fitted() {
@@ -203,13 +249,13 @@ fn hidden_soak_is_found_and_fitted() {
     ]);
     let (lab, m0) = (d("lab"), d("m0.json"));
     let mut a = vec!["fit", "--input", &lab, "--out", &m0];
-    a.extend(common::OLD_CELLS);
+    a.extend(common::POOLED_LEVELS_CELLS);
     persist(&a);
     let dj = d("d.json");
     let mut a = vec!["diagnose", "--input", &lab, "--model", &m0, "--json", &dj];
     a.extend(["--statistic", "pooled"]);
-    a.extend(common::OLD_CELLS);
-    a.extend(common::OLD_REFIT);
+    a.extend(common::POOLED_LEVELS_CELLS);
+    a.extend(common::CANDIDATE_REFIT);
     persist(&a);
     let dj: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(d("d.json")).unwrap()).unwrap();
@@ -223,7 +269,7 @@ fn hidden_soak_is_found_and_fitted() {
     assert_eq!(sig, vec!["soak"]);
     let m1 = d("m1.json");
     let mut a = vec!["fit", "--input", &lab, "--out", &m1, "--with", "soak"];
-    a.extend(common::OLD_CELLS);
+    a.extend(common::POOLED_LEVELS_CELLS);
     persist(&a);
     let r = |f: &str| {
         let v: serde_json::Value =
@@ -232,4 +278,56 @@ fn hidden_soak_is_found_and_fitted() {
     };
     let (before, after) = (r("m0.fit.json"), r("m1.fit.json"));
     assert!(after < 0.55 * before, "{before} -> {after}");
+}
+
+/// A hidden `soak` on the simulator's campaign (illuminations of 481, 240 and 120 s),
+/// default commands but for the model's `refill` (a trap that is still full cannot be
+/// filled again, which the simulator's trap physics always does): `diagnose` names
+/// `soak` first, significant; with nothing hidden it declares nothing. Measured when
+/// written (release build, 64 x 64, seeds 1, 3 and 4): soak first and significant at
+/// every seed with it hidden, nothing declared at every seed without. Slow in the dev
+/// profile (two simulations, two fits, two diagnoses): run with `--ignored`.
+#[test]
+#[ignore]
+fn campaign_hidden_soak_named_first_and_nothing_without() {
+    let tmp = tempfile::tempdir().unwrap();
+    let d = |n: &str| tmp.path().join(n).display().to_string();
+    let significant = |hidden: Option<&str>, name: &str| -> Vec<String> {
+        let lab = d(name);
+        let mut a = vec![
+            "simulate",
+            "lab",
+            "--size",
+            "64",
+            "--campaign",
+            "--seed",
+            "3",
+        ];
+        if let Some(e) = hidden {
+            a.extend(["--effect", e]);
+        }
+        a.extend(["--out", &lab]);
+        persist(&a);
+        let m = d(&format!("{name}.json"));
+        persist(&["fit", "--input", &lab, "--out", &m, "--with", "refill"]);
+        let dj = d(&format!("{name}.d.json"));
+        persist(&["diagnose", "--input", &lab, "--model", &m, "--json", &dj]);
+        let v: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(&dj).unwrap()).unwrap();
+        assert_eq!(v["statistic"], "within");
+        v["ranking"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .filter(|c| c["significant"].as_bool().unwrap())
+            .map(|c| c["effect"].as_str().unwrap().to_string())
+            .collect()
+    };
+    assert_eq!(
+        significant(Some("soak"), "soak")
+            .first()
+            .map(String::as_str),
+        Some("soak")
+    );
+    assert!(significant(None, "none").is_empty());
 }

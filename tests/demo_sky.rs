@@ -1,4 +1,4 @@
-//! Issue 3: a two-day sky run at reduced size, processed by the stage with the default
+//! A two-day sky run at reduced size, processed by the stage with the default
 //! model. The paper's simulation reports "a minimum of 2%" of pixels above 0.1 e-/s at
 //! all times and a floor above 0.01 e-/s for every pixel; this checks the first (order of
 //! magnitude) and that the second is *not* reproduced, neither by the prediction nor by

@@ -7,7 +7,7 @@
 //! is declared only where the field is (regression: it was declared on the 32 x 32
 //! campaign without the hidden effect).
 //! 32 x 32 laboratory campaigns, seed 1, `persist fit`'s default calibration. Measured
-//! at this size (fifteenth session): best R^2 0.06 without, 0.46 with the effect.
+//! at this size: best R^2 0.06 without, 0.46 with the effect.
 
 mod common;
 
@@ -90,10 +90,9 @@ fn hidden_populations_are_a_field_shared_by_neighbours_and_only_then_declared() 
     assert!(text.contains("none shared by neighbours"), "{text}");
     // without the field, populations is not declared. Its score is the spread score
     // (neighbouring pixels' spread correlated; src/diag/spread.rs), about N(0, 1)
-    // squared where positive without the field: under the threshold here. (Before the
-    // twenty-sixth session it was the quadratic surface's LM, which passed the other
-    // gates against `fit`'s paper calibration and was held back by the spatial gate
-    // alone; it had been declared before that gate.)
+    // squared where positive without the field: under the threshold here. (A score
+    // from the LM test of a quadratic surface instead passes the other gates against
+    // `fit`'s paper calibration and is held back by the spatial gate alone.)
     let p0 = pop(&without);
     assert_eq!(p0["significant"], false, "{p0}");
     assert_eq!(p0["passes_score"], false, "{p0}");
@@ -107,7 +106,7 @@ fn hidden_populations_are_a_field_shared_by_neighbours_and_only_then_declared() 
 /// neighbours on the fitted model's residuals (src/diag/spread.rs; a noise statement,
 /// the predictions unchanged by it): a positive correlation over a few pixels with the
 /// hidden field, none without it, and the cells widened by it lower the RMS. 32 x 32
-/// campaigns, seed 1, `fit`'s defaults; measured (twenty-sixth session): 0.071 +- 0.031
+/// campaigns, seed 1, `fit`'s defaults; measured: 0.071 +- 0.031
 /// over 3.0 px with the field (RMS 8.34 -> 4.82), 0 without (7.48 -> 7.42).
 #[test]
 fn fit_with_populations_measures_the_spread_correlation_only_where_the_field_is() {

@@ -1,4 +1,4 @@
-//! Regression for the pooled residual cells (docs/diagnose_matrix.md, eighth session):
+//! Regression for the pooled residual cells:
 //! on a 64 x 64 laboratory campaign (seed 1) with the simulator's `temperature` hidden
 //! (activation 0.25 eV; illuminations at 80, 78 and 82 K), `persist fit --with
 //! temperature` against a reference with the knots' level at 0.85 and thirteen terms
@@ -66,7 +66,7 @@ fn illumination_cells_recover_the_hidden_activation_energy() {
     assert!(pooled < 0.15, "{pooled}");
 }
 
-/// Regression (twenty-fourth session, docs/diagnose_matrix.md): `persist fit --with
+/// Regression: `persist fit --with
 /// temperature` under the paper's preset fits the effect against knots at 1.2 times the
 /// measured level, and the activation energy takes that flagging margin in: 1.25 eV on
 /// this campaign (1.20 eV at 128 x 128, where the flags it gives miss 1.1 % of all

@@ -11,8 +11,8 @@
 //! amplification of 0.90, with refill and chord), every knot the calibration's times
 //! that factor, a lower residual than the reference's; refused with `--fit-cn`.
 //!
-//! Measured on the pooled cells with the levels statistic, then the defaults (passed
-//! here, [`common::OLD_CELLS`]).
+//! Measured on the pooled cells with the levels statistic (passed here,
+//! [`common::POOLED_LEVELS_CELLS`]).
 
 mod common;
 
@@ -28,11 +28,11 @@ fn fit_cn_lowers_the_residual_with_positive_finite_cn() {
     let with = ["--with", "refill", "--with", "capacity", "--with", "chord"];
     let mut a = vec!["fit", "--input", &lab, "--out", &ref_json];
     a.extend(with);
-    a.extend(common::OLD_CELLS);
+    a.extend(common::POOLED_LEVELS_CELLS);
     persist_ok(&a);
     let mut a = vec!["fit", "--input", &lab, "--out", &cn_json, "--fit-cn"];
     a.extend(with);
-    a.extend(common::OLD_CELLS);
+    a.extend(common::POOLED_LEVELS_CELLS);
     let text = persist_ok(&a);
     println!("{text}");
 
@@ -95,7 +95,7 @@ fn fit_cn_lowers_the_residual_with_positive_finite_cn() {
         "chord",
         "--fit-amplification",
     ];
-    a.extend(common::OLD_CELLS);
+    a.extend(common::POOLED_LEVELS_CELLS);
     let text = persist_ok(&a);
     println!("{text}");
     let (ma, ra) = (

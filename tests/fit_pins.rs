@@ -204,8 +204,10 @@ fn bad_pins_are_refused_with_the_argument_and_the_reason() {
     );
 }
 
-/// `persist fit --preset readout` is the long form of the matrix's reference (R14,
-/// docs/diagnose_matrix.md, "Fourteenth session"): the same model file, byte for byte.
+/// `persist fit --preset readout` (the reference model for comparisons with
+/// measurements: knots at the measured level, thirteen rates from 1/s, `refill` fitted
+/// and `chord` held at the readout's `strength=1,first_read_s=1.5`) is the long form of
+/// those options: the same model file, byte for byte.
 /// `diagnose` names the preset in the command it suggests, and following that command
 /// calibrates the same; options given with the preset override its values; an unknown
 /// preset is refused, naming the flag.
@@ -277,10 +279,13 @@ fn the_readout_preset_is_the_long_form_and_is_suggested_back() {
         "--out",
         &path("x.json"),
         "--preset",
-        "r14",
+        "fastest",
     ]);
     assert_eq!(code, Some(2), "{text}");
-    assert!(text.contains("--preset") && text.contains("r14"), "{text}");
+    assert!(
+        text.contains("--preset") && text.contains("fastest"),
+        "{text}"
+    );
 
     // negative values reach the validator, which names the option (clap read `-1` as
     // a flag and answered "unexpected argument")

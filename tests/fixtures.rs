@@ -32,8 +32,8 @@ fn committed_fixtures_validate() {
         let p = e.unwrap().path();
         if p.extension().is_some_and(|x| x == "h5") {
             assert_eq!(
-                persist::product::validate_path(&p).unwrap(),
-                persist::product::ProductKind::L1Exposure
+                persist::validate::validate_path(&p).unwrap(),
+                persist::validate::ProductKind::L1Exposure
             );
             n += 1;
         }

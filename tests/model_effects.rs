@@ -429,9 +429,8 @@ fn soak_with_refill_relaxes_toward_capacity() {
 /// `no_slope_flux_e_per_s * t_illuminated` (22,222 e-/s * 481 s = 1.07e7 e-), and a
 /// transient (also no fluence) at 0: the centre of a 5x5 array of 10 e-/s pixels has no
 /// fluence in the lit exposure; its edge neighbours' first-dark current rises with the
-/// first flag only. (Before the seventeenth session neither counted, and the neighbours
-/// of the brightest pinholes of a x4 illumination were predicted without blooming:
-/// docs/diagnose_matrix.md.)
+/// first flag only. (Counting neither, the neighbours of the brightest pinholes of a x4
+/// illumination would be predicted without blooming.)
 #[test]
 fn blooming_counts_a_neighbour_with_no_slope_not_a_transient() {
     use persist::flags::bits;
@@ -511,11 +510,10 @@ fn soak_fills_less_when_the_exposure_is_warmer() {
 }
 
 /// A pixel with no slope (`SUR_ERROR`) is brighter than any measured one: `soak` fills
-/// its slow terms level-blind (src/model/effects/soak.rs), where the step used to keep
-/// the full amplitude; a transient still keeps the maximum whatever the hooks do.
-/// Regression: after the campaign's x4 illumination its brightest pixels carried
-/// unsoaked slow terms into the next illumination (docs/diagnose_matrix.md, eighteenth
-/// session).
+/// its slow terms level-blind (src/model/effects/soak.rs) rather than keeping the full
+/// amplitude; a transient still keeps the maximum whatever the hooks do. Regression:
+/// kept at the full amplitude, the brightest pixels of the campaign's x4 illumination
+/// carried unsoaked slow terms into the next illumination.
 #[test]
 fn soak_fills_a_pixel_with_no_slope_but_not_a_transient() {
     use persist::flags::bits;

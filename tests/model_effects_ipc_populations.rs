@@ -163,9 +163,8 @@ fn ipc_gives_neighbours_alpha_of_the_star_instead_of_their_measured_fluence() {
 /// star too bright for the on-board fit (fewer than three samples below half the full
 /// well, so no slope and no fluence) is given the largest amplitude, and in the darks
 /// after it the readout couples its persistence into its neighbours as it couples any
-/// pixel's: the simulator's one-pixel pinholes brighter than ~22,000 e-/s
-/// (docs/diagnose_matrix.md, "Twelfth session") left the neighbours' first darks
-/// under-predicted by half.
+/// pixel's: the simulator's one-pixel pinholes brighter than ~22,000 e-/s left the
+/// neighbours' first darks under-predicted by half.
 #[test]
 fn a_star_without_a_slope_still_leaks_its_persistence_into_its_neighbours() {
     // the star has no slope (NaN); its neighbours read what the readout adds of the

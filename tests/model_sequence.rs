@@ -464,7 +464,7 @@ fn sky_level_is_the_median_of_finite_pixels() {
     );
 }
 
-/// Regression (docs/diagnose_matrix.md, tenth session): where most of the array carries
+/// Regression: where most of the array carries
 /// persistence (a laboratory spot), the image median does too, and subtracting it as
 /// the background released pixels still above the flag threshold. An 8 x 8 array, 48
 /// pixels lit at 1e6 e- (predicted ~2 e-/s over the darks that follow, the default

@@ -9,10 +9,11 @@ use persist::flags::{bits, pbits};
 use persist::model::{ModelParams, State};
 use persist::product::synthetic::tiny_exposure;
 use persist::product::{
-    read_exposure, read_output, validate_path, write_exposure, write_output, Exposure,
-    PersistenceAttrs, PersistencePlanes, ProductKind,
+    read_exposure, read_output, write_exposure, write_output, Exposure, PersistenceAttrs,
+    PersistencePlanes,
 };
 use persist::units::DetectorId;
+use persist::validate::{validate_path, ProductKind};
 use persist::{Error, ErrorKind};
 use std::path::{Path, PathBuf};
 
@@ -278,7 +279,7 @@ fn writer_refuses_invalid_and_leaves_nothing() {
 // Malformed inputs
 
 #[test]
-fn missing_attribute() {
+fn a_missing_attribute_is_refused_naming_it() {
     let dir = tempfile::tempdir().unwrap();
     let p = modified(dir.path(), "a.h5", &exposure(), |f| {
         f.delete_attr("t_exposure_s").unwrap();
@@ -289,7 +290,7 @@ fn missing_attribute() {
 }
 
 #[test]
-fn detector_as_string() {
+fn a_detector_written_as_a_string_is_refused() {
     let dir = tempfile::tempdir().unwrap();
     let p = modified(dir.path(), "a.h5", &exposure(), |f| {
         f.delete_attr("detector").unwrap();
@@ -324,7 +325,7 @@ fn detector_out_of_range_and_bad_time() {
 }
 
 #[test]
-fn image_float64() {
+fn a_float64_image_is_refused() {
     let dir = tempfile::tempdir().unwrap();
     let p = modified(dir.path(), "a.h5", &exposure(), |f| {
         f.unlink("image").unwrap();
@@ -352,7 +353,7 @@ fn image_flags_shape_mismatch() {
 }
 
 #[test]
-fn absurd_dimensions() {
+fn absurd_or_empty_dimensions_are_refused() {
     let dir = tempfile::tempdir().unwrap();
     for (name, shape) in [("big.h5", (9000, 2)), ("empty.h5", (0, 12))] {
         let p = modified(dir.path(), name, &exposure(), |f| {
@@ -374,7 +375,7 @@ fn absurd_dimensions() {
 }
 
 #[test]
-fn truncated_file() {
+fn a_truncated_file_is_refused_naming_the_file() {
     let dir = tempfile::tempdir().unwrap();
     let p = dir.path().join("a.h5");
     write_exposure(&p, &lab_exposure()).unwrap();
@@ -388,7 +389,7 @@ fn truncated_file() {
 }
 
 #[test]
-fn random_bytes() {
+fn random_bytes_are_an_hdf5_error_naming_the_file() {
     use rand::{RngCore, SeedableRng};
     let dir = tempfile::tempdir().unwrap();
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(7);
@@ -412,7 +413,7 @@ fn random_bytes() {
 }
 
 #[test]
-fn inf_in_image() {
+fn inf_in_the_image_is_refused_naming_the_pixel() {
     let dir = tempfile::tempdir().unwrap();
     let p = modified(dir.path(), "a.h5", &exposure(), |f| {
         let mut img = exposure().image;
@@ -427,7 +428,7 @@ fn inf_in_image() {
 }
 
 #[test]
-fn all_nan_image() {
+fn an_all_nan_image_is_refused() {
     let dir = tempfile::tempdir().unwrap();
     let p = modified(dir.path(), "a.h5", &exposure(), |f| {
         let img = Array2::<f32>::from_elem((16, 12), f32::NAN);
@@ -438,7 +439,7 @@ fn all_nan_image() {
 }
 
 #[test]
-fn persist_bit_in_input() {
+fn a_persist_bit_in_the_input_is_refused() {
     let dir = tempfile::tempdir().unwrap();
     let p = modified(dir.path(), "a.h5", &exposure(), |f| {
         let mut flags = exposure().flags;

@@ -74,8 +74,8 @@ fn a_closed_stdout_pipe_is_not_a_panic() {
 /// neighbours of 3 and 7 e-; the model over-predicted the lowest fluences 50-fold
 /// (residual RMS 83.7 with refill + capacity + chord). Such a bin gives no knot now: no
 /// knot below 1e4 e- is above 50 e-, and the paper's calibration alone scores below 60
-/// (measured 54.3; 106.5 with the bad knot), on the pooled cells and levels statistic
-/// that were the defaults then ([`common::OLD_CELLS`]).
+/// (measured 54.3; 106.5 with the bad knot), on the pooled cells with the levels
+/// statistic ([`common::POOLED_LEVELS_CELLS`]).
 #[test]
 fn a_straight_first_dark_ramp_does_not_become_a_knot() {
     let tmp = tempfile::tempdir().unwrap();
@@ -84,7 +84,7 @@ fn a_straight_first_dark_ramp_does_not_become_a_knot() {
     common::lab_campaign(&lab, 64, 7, &[]);
     let m = path("m.json");
     let mut a = vec!["fit", "--input", &lab, "--out", &m];
-    a.extend(common::OLD_CELLS);
+    a.extend(common::POOLED_LEVELS_CELLS);
     common::persist_ok(&a);
     let model: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(&m).unwrap()).unwrap();
@@ -104,8 +104,8 @@ fn a_straight_first_dark_ramp_does_not_become_a_knot() {
 /// A laboratory sequence in which every pixel was lit above 3,000 e- leaves `compare` no
 /// background pixel to measure the dark level on (`diag::data`, "Background"): it then
 /// took 0 e-/s and a noise of 0.1 e-/s without a word, and a first layout of the
-/// moved-spot campaign scored z of -15 to -24 from it (docs/diagnose_matrix.md, tenth
-/// session). At 8 x 8 the edge leak lights every column.
+/// moved-spot campaign scored z of -15 to -24 from it. At 8 x 8 the edge leak lights
+/// every column.
 #[test]
 fn a_sequence_without_background_pixels_is_reported() {
     let t = tempfile::tempdir().unwrap();

@@ -2,13 +2,13 @@
 //! (direction and rough size); neutral settings leave the bytes unchanged.
 
 use ndarray::Array2;
-use persist::sim::analysis::median;
 use persist::sim::detector::DetectorParams;
 use persist::sim::effect::{EffectSet, EffectSpec};
 use persist::sim::engine::{ExposureSpec, SimDetector};
 use persist::sim::lab::{self, LabConfig};
 use persist::sim::traps::TrapParams;
 use persist::sim::SimExposure;
+use persist::stats::median;
 use std::collections::HashMap;
 use std::sync::{Arc, Mutex, OnceLock};
 

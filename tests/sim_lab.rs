@@ -1,9 +1,10 @@
 //! The laboratory scenario analysed as in the paper (section 2.2, Table 1, Fig. 4, 5).
 
 use persist::flags::bits;
-use persist::sim::analysis::{clipped_median, density_peaks, loglog_slope, median};
+use persist::sim::analysis::density_peaks;
 use persist::sim::lab::{self, LabConfig};
 use persist::sim::SimExposure;
+use persist::stats::{clipped_median, loglog_slope, median};
 use std::sync::OnceLock;
 
 const DARK: f64 = 0.01;

@@ -2,9 +2,9 @@
 //! exposure, deep-field repeats, the zodiacal persistence floor (paper section 5).
 
 use persist::flags::bits;
-use persist::sim::analysis::median;
 use persist::sim::sky::{self, FieldKind, SkyConfig};
 use persist::sim::SimExposure;
+use persist::stats::median;
 
 fn run() -> (SkyConfig, Vec<SimExposure>) {
     let cfg = SkyConfig {

@@ -1,6 +1,6 @@
 //! `fit --with NAME`: the fitted parameters of effects, by Levenberg-Marquardt
 //! (`levenberg-marquardt` 0.15, forward-difference Jacobian) on the normalised cell
-//! residuals `z` of [`crate::diag::eval`] (fluence bin x time since illumination, per
+//! residuals `z` of [`crate::measure::eval`] (fluence bin x time since illumination, per
 //! illumination with `--cells illumination`, the default), the
 //! paper's calibration held fixed except that each trial model's knots carry its
 //! per-pixel response effects ([`super::knots`]: a `short_tau_boost` lowers the knots in
@@ -29,11 +29,11 @@
 //! # The pixels' spread correlation (`populations`)
 //! A model that states how its pixels' spread is correlated between neighbours
 //! (`populations`' `spread_corr`, `spread_length_px`) has its cells widened by their
-//! design effects ([`crate::diag::spread::model_cell_z`]); the fit keeps that
+//! design effects ([`crate::measure::spread::model_cell_z`]); the fit keeps that
 //! correlation fixed while it fits the predictions (the design effects computed once,
 //! from the start model's predictions; they depend on the cells' pixels alone). With
 //! `--with populations` (its spread parameters not pinned) the correlation is then
-//! measured on the fitted model's residuals ([`crate::diag::spread::fit_kernel`], a
+//! measured on the fitted model's residuals ([`crate::measure::spread::fit_kernel`], a
 //! moment estimator), set in the model and reported with its uncertainty, and the
 //! residual RMS after is that of the widened cells. Not by least squares on the cells:
 //! any widening lowers their sum of squares. The predictions are not refitted under
@@ -50,8 +50,7 @@
 //! cells. Why: the simulator's decay after a first illumination is not
 //! `1/(t+1)` (256 x 256, 3e4-1e5 e-: predicted over measured medians 1.14 at 90 s, ~1.4
 //! from 270 s to 3,500 s), and that shape error, the same in every illumination,
-//! dominated the residual of every reference model. Measured (docs/diagnose_matrix.md,
-//! fourth session): with `chord`, the residual RMS falls 37-38 % at 64 x 64 and 23 % at
+//! dominated the residual of every reference model. Measured (docs/diagnose_matrix.md): with `chord`, the residual RMS falls 37-38 % at 64 x 64 and 23 % at
 //! 256 x 256, but the fitted slow terms differ between the two sizes (the truth's shape
 //! depends on fluence; one set of `C_n` is a compromise whose weights follow the cells'
 //! significance), so the fitted `C_n` describe the campaign they were fitted to.
@@ -91,14 +90,14 @@
 //! refilling after their first illumination (`examples/pixel_track.rs`: decays after a
 //! second illumination 1.5-2.3 times too fast at 25 min) while lowering the level
 //! elsewhere; at amplification 0.85 `capacity` fits to its null and the residual RMS of
-//! refill + chord is 5.62 against 7.57 (docs/diagnose_matrix.md, eighth session). Not
+//! refill + chord is 5.62 against 7.57 (docs/diagnose_matrix.md). Not
 //! with `--fit-cn`: a common factor of the `C_n` is nearly the same freedom (exactly
 //! in the paper's linear model; `capacity` and `refill` act in the knots' units).
 
-use crate::diag::data::Sequence;
-use crate::diag::eval::{self, Samples};
-use crate::diag::spread;
 use crate::error::{Error, Result};
+use crate::measure::data::Sequence;
+use crate::measure::eval::{self, Samples};
+use crate::measure::spread;
 use crate::model::effects;
 use crate::model::params::{EffectSpec, ModelParams};
 use levenberg_marquardt::{LeastSquaresProblem, LevenbergMarquardt};
@@ -449,7 +448,7 @@ fn minimize(problem: Problem<'_>) -> (Problem<'_>, String) {
 /// ended with `capture_ratio` at 0 at three of eight fits, because `refill`'s `beta` was
 /// still at its start of 0.5 when `soak` was scanned (seed 1 without a hidden effect:
 /// RMS 1.76; rescanned and refitted, `capture_ratio` 0.0079 and RMS 1.16;
-/// docs/diagnose_matrix.md, "Twenty-third session").
+/// docs/diagnose_matrix.md).
 fn rescan_nulls(problem: &mut Problem<'_>, initial: &[f64]) -> Vec<String> {
     let mut moved = Vec::new();
     for i in 0..problem.slots.len() {

@@ -31,8 +31,8 @@
 //! left to the knots as the paper calibrates them.
 
 use super::logfit;
-use crate::diag::data::Sequence;
 use crate::error::{Error, Result};
+use crate::measure::data::Sequence;
 use crate::model::effect::ResponseCtx;
 use crate::model::effects;
 use crate::model::params::ModelParams;

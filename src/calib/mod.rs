@@ -4,24 +4,28 @@
 //! 1. Extrapolated fluence of the (first) illuminated exposure, `image * t_illuminated`,
 //!    in log-spaced bins (`bins_per_decade`, default 20; bins with fewer than
 //!    `min_pixels` usable pixels are skipped). Pixels dominated by a far brighter
-//!    neighbour ([`crate::diag::data::neighbour_dominated`]: below saturation, next to
+//!    neighbour ([`crate::measure::data::neighbour_dominated`]: below saturation, next to
 //!    neighbours whose mean fluence above saturation exceeds their own) are left out
 //!    (the report's `neighbour_dominated_left_out`): the paper's `A_k` is a pixel's
 //!    response to its own fluence, and what couples neighbours (blooming, inter-pixel
 //!    capacitance) would otherwise raise the 95th percentile of the dim bins, which the
-//!    model's spatial effects then cannot take back (docs/diagnose_matrix.md, seventeenth
-//!    session). A smooth illumination has no such pixel; one-pixel pinholes have four
+//!    model's spatial effects then cannot take back (docs/diagnose_matrix.md). A smooth illumination has no such pixel; one-pixel pinholes have four
 //!    each.
 //! 2. Per bin, the measured current of the first dark integration (image minus the
-//!    background, [`crate::diag::data`]): its 3-sigma-clipped median and its 95th
-//!    percentile ([`crate::diag::data::signal_p95`], read noise removed in quadrature;
+//!    dark level, [`dark`]: the background pixels' ([`crate::measure::data`]) when at
+//!    least `min_pixels` pixels stayed below 3000 e-, else, when every pixel was lit as
+//!    in the paper's laboratory data, each pixel's own late darks with its predicted
+//!    persistence there removed; the report's `dark_level` and the model file's
+//!    `calibration.late_plateau_dark` say which): its 3-sigma-clipped median and its 95th
+//!    percentile ([`crate::measure::data::signal_p95`], read noise removed in quadrature;
 //!    with `--cell-statistic population` also the shot noise of the bin's median
-//!    current, [`crate::diag::data::shot_noise_added`]: that statistic's reference adds
+//!    current, [`crate::measure::data::shot_noise_added`]: that statistic's reference adds
 //!    each sample's shot noise to the prediction, which must then be the noise-free 95th
 //!    percentile; the model file records it, `calibration.knots_shot_noise_removed`).
-//! 3. Per bin, the clipped median of the first dark ramp (background ramp subtracted:
+//! 3. Per bin, the clipped median of the first dark ramp (dark ramp subtracted:
 //!    per read, the background pixels' median, or with `--background line` their
-//!    line's intercept at zero fluence, [`crate::diag::data`] "Background")
+//!    line's intercept at zero fluence, [`crate::measure::data`] "Background"; with the
+//!    late plateau each pixel's dark level times the read's time since the reset)
 //!    fitted with Eq. (logfit) `q(t) = A_0 ln(t + tau) + q_0` ([`logfit`]).
 //! 4. `A_bin = amplification * A_0` (paper: 1.2) and, through the 95th percentile,
 //!    `A_95 = A_bin * p95 / median`; the piecewise-linear `A_k` has one knot per bin
@@ -43,17 +47,18 @@
 //! the model's current over the first dark's reads (1.5 s to 180 s after the reset) is
 //! 11 % below a `1/t` decay's, which a readout effect measured over those reads
 //! ([`crate::model::effects::chord`], `first_read_s`) then shows as a first-dark
-//! deficit (docs/diagnose_matrix.md, "Fourteenth session").
+//! deficit (docs/diagnose_matrix.md).
 
+pub mod dark;
 pub mod effects;
 pub mod knots;
 pub mod logfit;
 
-use crate::diag::data::{
+use crate::error::{Error, Result};
+use crate::measure::data::{
     fluence, neighbour_dominated, quantile, shot_noise_added, signal_p95, Sequence,
     BACKGROUND_FLUENCE_E,
 };
-use crate::error::{Error, Result};
 use crate::model::params::{Calibration, Knot, ModelParams, Term, PAPER_TERMS};
 use crate::sim::analysis::clipped_median;
 use logfit::LogFit;
@@ -71,13 +76,13 @@ pub struct CalibConfig {
     pub decay_offset_s: f64,
     /// Decay rates `1/tau_n` of the terms, 1/s.
     pub rates_per_s: Vec<f64>,
-    /// Residual cells of the effect fit and of the report ([`crate::diag::eval::Cells`]).
-    pub cells: crate::diag::eval::Cells,
-    /// What those cells compare ([`crate::diag::eval::CellStatistic`]).
-    pub cell_statistic: crate::diag::eval::CellStatistic,
+    /// Residual cells of the effect fit and of the report ([`crate::measure::eval::Cells`]).
+    pub cells: crate::measure::eval::Cells,
+    /// What those cells compare ([`crate::measure::eval::CellStatistic`]).
+    pub cell_statistic: crate::measure::eval::CellStatistic,
     /// How each exposure's background is measured, in the calibration too
-    /// ([`crate::diag::data::Background`]).
-    pub background: crate::diag::data::Background,
+    /// ([`crate::measure::data::Background`]).
+    pub background: crate::measure::data::Background,
 }
 
 impl CalibConfig {
@@ -91,6 +96,7 @@ impl CalibConfig {
             fit_cn: false,
             fit_amplification: false,
             knots_shot_noise_removed: self.knots_shot_noise_removed(),
+            late_plateau_dark: false,
         }
     }
 
@@ -98,13 +104,13 @@ impl CalibConfig {
     /// `population` cell statistic, whose reference adds each sample's shot noise to a
     /// noise-free predicted 95th percentile (module docs, step 2).
     pub fn knots_shot_noise_removed(&self) -> bool {
-        self.cell_statistic == crate::diag::eval::CellStatistic::Population
+        self.cell_statistic == crate::measure::eval::CellStatistic::Population
     }
 
     /// The samples of the effect fit and of the report: every second pixel, grouped and
     /// compared as this configuration says.
-    pub fn samples(&self, seq: &Sequence) -> crate::diag::eval::Samples {
-        crate::diag::eval::Samples::new(seq, 2)
+    pub fn samples(&self, seq: &Sequence) -> crate::measure::eval::Samples {
+        crate::measure::eval::Samples::new(seq, 2)
             .with_cells(self.cells)
             .with_statistic(self.cell_statistic)
     }
@@ -119,9 +125,9 @@ impl Default for CalibConfig {
             t_min_s: 10.0,
             decay_offset_s: 1.0,
             rates_per_s: PAPER_TERMS.iter().map(|t| t.1).collect(),
-            cells: crate::diag::eval::Cells::default(),
-            cell_statistic: crate::diag::eval::CellStatistic::default(),
-            background: crate::diag::data::Background::default(),
+            cells: crate::measure::eval::Cells::default(),
+            cell_statistic: crate::measure::eval::CellStatistic::default(),
+            background: crate::measure::data::Background::default(),
         }
     }
 }
@@ -129,11 +135,11 @@ impl Default for CalibConfig {
 /// A named starting point of `persist fit` (`--preset`): a calibration configuration
 /// and the effects fitted with it.
 ///
-/// - [`Preset::Paper`] (the default): the paper's calibration as the issue states it
+/// - [`Preset::Paper`] (the default): the paper's calibration
 ///   (amplification 1.2, the six rates of Eq. (bbdetexpsum), `C_n` to `1/(t + 1)` from
 ///   10 s), for flagging: the 1.2 is a margin.
 /// - [`Preset::Readout`]: the reference against which the hidden-effect matrix is
-///   measured (docs/diagnose_matrix.md, "Fourteenth session", R14), for comparing a model
+///   measured (docs/diagnose_matrix.md, R14), for comparing a model
 ///   with measurements: the knots at the measured level (amplification 1.0; the paper's
 ///   margin would otherwise be a residual that an effect takes in), thirteen rates 0.4
 ///   decade apart from 1/s (`10^(-0.4 k)`, k = 0..12), the `C_n` fitted to
@@ -205,6 +211,7 @@ impl Preset {
             fit_cn: false,
             fit_amplification: false,
             knots_shot_noise_removed: false,
+            late_plateau_dark: false,
             ..c.clone()
         };
         before_freeing == self.config().record()
@@ -266,8 +273,12 @@ pub struct CalibReport {
     pub config: CalibConfig,
     pub illumination_exposure_index: u64,
     pub first_dark_exposure_index: u64,
+    /// The first dark's dark level (with the late plateau, the median of the pixels'),
+    /// e-/s, and its noise, e-/s.
     pub background_e_per_s: f64,
     pub noise_e_per_s: f64,
+    /// Where the dark level came from ([`dark`]).
+    pub dark_level: dark::DarkReport,
     /// Pixels left out of the fluence bins as neighbour-dominated (module docs, step 1).
     pub neighbour_dominated_left_out: usize,
     pub bins: Vec<BinResult>,
@@ -282,32 +293,34 @@ pub fn calibrate(seq: &Sequence, cfg: &CalibConfig) -> Result<(ModelParams, Cali
     }
     let cr = knots::CalibRamp::of(seq)?;
     let (i0, d) = (cr.illumination, cr.dark);
-    let ramp = seq.exposures[d]
-        .ramp
-        .as_ref()
-        .expect("checked by CalibRamp::of");
-    let t = &cr.t_s;
     let f = fluence(&seq.exposures[i0]);
+    if !f
+        .iter()
+        .any(|v| v.is_finite() && *v >= BACKGROUND_FLUENCE_E)
+    {
+        return Err(Error::invalid(
+            "image",
+            format!(
+                "exposure {}: no pixel has an extrapolated fluence of {BACKGROUND_FLUENCE_E} e- \
+                 or more (image times t_illuminated_s = {} s): nothing was lit, so there is no \
+                 persistence to calibrate; an illumination reaching at least 1e4 e- over a few \
+                 hundred pixels is needed",
+                seq.exposures[i0].meta.exposure_index, cr.t_illuminated_s
+            ),
+        ));
+    }
     let meas = seq.measured(d);
-    let noise = seq.noise_e_per_s[d];
-    let nsamp = ramp.shape()[0];
-    // background ramp
+    // the background pixels of the first dark
     let bg_px: Vec<(usize, usize)> = f
         .indexed_iter()
         .filter(|(p, v)| **v < BACKGROUND_FLUENCE_E && meas[*p].is_finite())
         .map(|(p, _)| p)
         .collect();
-    // by the sequence's background (its median, or its line's intercept at zero
-    // fluence, crate::diag::data "Background")
-    let bg_ramp: Vec<f64> = (0..nsamp)
-        .map(|s| {
-            let v: Vec<(f64, f64)> = bg_px
-                .iter()
-                .map(|&(y, x)| (f[[y, x]], f64::from(ramp[[s, y, x]])))
-                .collect();
-            seq.background_of(&v)
-        })
-        .collect();
+    let late = if bg_px.len() >= cfg.min_pixels.max(1) {
+        None
+    } else {
+        Some(dark::LatePlateau::of(seq, i0, d)?)
+    };
     // bins
     let fmax = f
         .iter()
@@ -318,9 +331,13 @@ pub fn calibrate(seq: &Sequence, cfg: &CalibConfig) -> Result<(ModelParams, Cali
     let n_bins = (((fmax.max(1e4)).log10() - lo_exp) * cfg.bins_per_decade).ceil() as usize + 1;
     let mut members: Vec<Vec<(usize, usize)>> = vec![Vec::new(); n_bins];
     let dominated = neighbour_dominated(&f);
+    let usable = |p: (usize, usize)| match &late {
+        None => meas[p].is_finite(),
+        Some(l) => l.first[p].is_finite() && l.plateau[p].is_finite(),
+    };
     let mut left_out = 0;
     for ((y, x), v) in f.indexed_iter() {
-        if !(v.is_finite() && *v > 0.0 && meas[(y, x)].is_finite()) {
+        if !(v.is_finite() && *v > 0.0 && usable((y, x))) {
             continue;
         }
         if dominated[(y, x)] {
@@ -332,58 +349,105 @@ pub fn calibrate(seq: &Sequence, cfg: &CalibConfig) -> Result<(ModelParams, Cali
             members[b as usize].push((y, x));
         }
     }
-    // the first dark's shot-noise variance per e-/s, when the knots leave it out
-    let knot_shot_var = cfg
-        .knots_shot_noise_removed()
-        .then(|| seq.shot_var_per_e_per_s(d));
-    let mut bins = Vec::new();
-    for (b, px) in members.iter().enumerate() {
-        if px.len() < cfg.min_pixels {
-            continue;
+    let (bins, dark_report) = match &late {
+        None => {
+            let noise = seq.noise_e_per_s[d];
+            let bins: Vec<BinResult> = bin_results(
+                seq,
+                cfg,
+                &cr,
+                &f,
+                &members,
+                &BinDark::Background(&bg_px),
+                noise,
+            )
+            .into_iter()
+            .map(|b| b.1)
+            .collect();
+            let rep = dark::DarkReport {
+                source: dark::DarkSource::BackgroundPixels,
+                late_exposures: Vec::new(),
+                late_t_s: None,
+                late_fraction_max: None,
+                median_e_per_s: seq.background_e_per_s[d],
+                noise_e_per_s: noise,
+            };
+            (bins, rep)
         }
-        let edge = |i: f64| 10f64.powf(lo_exp + i / cfg.bins_per_decade);
-        let cur: Vec<f64> = px.iter().map(|p| meas[*p]).collect();
-        let (med, sd) = clipped_median(&cur, 3.0);
-        let p95 = match knot_shot_var {
-            Some(g) => signal_p95(&cur, med, shot_noise_added(noise, g, med)),
-            None => signal_p95(&cur, med, noise),
-        };
-        let q: Vec<f64> = (0..nsamp)
-            .map(|s| {
-                let v: Vec<f64> = px
-                    .iter()
-                    .map(|&(y, x)| f64::from(ramp[[s, y, x]]))
-                    .collect();
-                clipped_median(&v, 3.0).0 - bg_ramp[s]
-            })
-            .collect();
-        let ok: Vec<usize> = (0..nsamp)
-            .filter(|&s| q[s].is_finite() && t[s] > 0.0)
-            .collect();
-        let ts: Vec<f64> = ok.iter().map(|&s| t[s]).collect();
-        let qs: Vec<f64> = ok.iter().map(|&s| q[s]).collect();
-        let lf = logfit::fit(&ts, &qs);
-        let significant = med > 3.0 * sd / (px.len() as f64).sqrt() && med > 0.0;
-        let a_bin = lf
-            .filter(|l| l.a0_e > 0.0 && !l.undetermined)
-            .map(|l| cfg.amplification * l.a0_e);
-        let a_95 = a_bin
-            .map(|a| a * p95 / med)
-            .filter(|a| a.is_finite() && *a >= 0.0);
-        bins.push(BinResult {
-            fluence_lo_e: edge(b as f64),
-            fluence_hi_e: edge(b as f64 + 1.0),
-            fluence_mean_e: px.iter().map(|p| f[*p]).sum::<f64>() / px.len() as f64,
-            pixels: px.len(),
-            median_e_per_s: med,
-            sd_e_per_s: sd,
-            p95_e_per_s: p95,
-            logfit: lf,
-            a_bin_e: a_bin,
-            a_95_e: a_95,
-            knot: significant && a_95.is_some(),
-        });
-    }
+        Some(l) => {
+            // module docs of `dark`, "Bias": a first pass with r = 0, then each bin's r
+            // from its fitted tau
+            let mut r = vec![0.0; n_bins];
+            let mut bins = Vec::new();
+            for _ in 0..dark::PLATEAU_PASSES {
+                bins = bin_results(
+                    seq,
+                    cfg,
+                    &cr,
+                    &f,
+                    &members,
+                    &BinDark::Late(l, &r),
+                    l.noise_e_per_s,
+                );
+                r.iter_mut().for_each(|v| *v = 0.0);
+                for (b, res) in &bins {
+                    // a bin whose ramp has no fitted decay keeps the plain plateau
+                    if let Some(lf) = res
+                        .logfit
+                        .filter(|lf| !lf.undetermined && lf.a0_e > 0.0 && lf.tau_s.is_finite())
+                    {
+                        // a tau beyond the first read is not a decay the ramp measured; one
+                        // at or below zero (the fit's lower bound) is not measured either:
+                        // the calibration's own decay offset (the paper's 1 s) stands in
+                        let tau = if lf.tau_s > 0.0 {
+                            lf.tau_s.min(cr.t_reset_s)
+                        } else {
+                            cfg.decay_offset_s
+                        };
+                        r[*b] = l.late_fraction(tau);
+                    }
+                }
+            }
+            let bins: Vec<BinResult> = bins.into_iter().map(|b| b.1).collect();
+            let r_max = r.iter().copied().fold(0.0, f64::max);
+            let fitted: Vec<f64> = r.iter().copied().filter(|v| *v > 0.0).collect();
+            let r_typical = crate::sim::analysis::median(&fitted);
+            if r_typical > dark::MAX_LATE_FRACTION {
+                let t_end = l.spans_s.last().map_or(0.0, |s| s.1);
+                return Err(Error::invalid(
+                    "image",
+                    format!(
+                        "no background pixel, and the darks after exposure {} end {t_end:.0} s \
+                         after the illumination, where persistence is still {:.0} % of the first \
+                         dark's (at most {:.0} % for the dark level to come from the pixels' late \
+                         darks; `persist::calib::dark`): add darks up to about {:.0} s after the \
+                         illumination, or pixels masked from the source",
+                        seq.exposures[d].meta.exposure_index,
+                        100.0 * r_typical,
+                        100.0 * dark::MAX_LATE_FRACTION,
+                        t_end * r_typical / dark::MAX_LATE_FRACTION * 1.5,
+                    ),
+                ));
+            }
+            let levels: Vec<f64> = members
+                .iter()
+                .zip(&r)
+                .flat_map(|(px, &rb)| px.iter().map(move |&p| l.dark_at(p, rb)))
+                .collect();
+            let rep = dark::DarkReport {
+                source: dark::DarkSource::LatePlateau,
+                late_exposures: l.exposure_indices(seq),
+                late_t_s: Some([
+                    l.spans_s.first().map_or(f64::NAN, |s| 0.5 * (s.0 + s.1)),
+                    l.spans_s.last().map_or(f64::NAN, |s| 0.5 * (s.0 + s.1)),
+                ]),
+                late_fraction_max: Some(r_max),
+                median_e_per_s: crate::sim::analysis::median(&levels),
+                noise_e_per_s: l.noise_e_per_s,
+            };
+            (bins, rep)
+        }
+    };
     let knots: Vec<Knot> = bins
         .iter()
         .filter(|b| b.knot)
@@ -395,7 +459,18 @@ pub fn calibrate(seq: &Sequence, cfg: &CalibConfig) -> Result<(ModelParams, Cali
     if knots.is_empty() {
         return Err(Error::invalid(
             "image",
-            "no fluence bin has a significant first-dark current: nothing to calibrate",
+            format!(
+                "exposure {}: no fluence bin has a significant first-dark current (median \
+                 above 3 standard errors and a rising ramp) after the dark level ({}) is \
+                 removed: nothing to calibrate; {} bins of at least {} pixels were tried",
+                seq.exposures[d].meta.exposure_index,
+                match dark_report.source {
+                    dark::DarkSource::BackgroundPixels => "background pixels",
+                    dark::DarkSource::LatePlateau => "the pixels' late darks",
+                },
+                bins.len(),
+                cfg.min_pixels
+            ),
         ));
     }
     let base = ModelParams::default();
@@ -421,7 +496,10 @@ pub fn calibrate(seq: &Sequence, cfg: &CalibConfig) -> Result<(ModelParams, Cali
         ),
         terms: c_n.terms.clone(),
         amplitude_knots: knots.clone(),
-        calibration: Some(cfg.record()),
+        calibration: Some(Calibration {
+            late_plateau_dark: !dark_report.source.is_background_pixels(),
+            ..cfg.record()
+        }),
         ..base
     };
     params.validate().map_err(|m| Error::invalid("model", m))?;
@@ -431,14 +509,124 @@ pub fn calibrate(seq: &Sequence, cfg: &CalibConfig) -> Result<(ModelParams, Cali
             config: cfg.clone(),
             illumination_exposure_index: seq.exposures[i0].meta.exposure_index,
             first_dark_exposure_index: seq.exposures[d].meta.exposure_index,
-            background_e_per_s: seq.background_e_per_s[d],
-            noise_e_per_s: noise,
+            background_e_per_s: dark_report.median_e_per_s,
+            noise_e_per_s: dark_report.noise_e_per_s,
+            dark_level: dark_report,
             neighbour_dominated_left_out: left_out,
             bins,
             knots,
             c_n,
         },
     ))
+}
+
+/// The dark level under the first dark ([`dark`]): the background pixels, or each
+/// pixel's late plateau with each bin's late fraction `r`.
+enum BinDark<'a> {
+    Background(&'a [(usize, usize)]),
+    Late(&'a dark::LatePlateau, &'a [f64]),
+}
+
+/// Steps 2-4 of the module docs for every bin of at least `min_pixels` pixels, with its
+/// index in `members`.
+fn bin_results(
+    seq: &Sequence,
+    cfg: &CalibConfig,
+    cr: &knots::CalibRamp,
+    f: &ndarray::Array2<f64>,
+    members: &[Vec<(usize, usize)>],
+    dark: &BinDark,
+    noise: f64,
+) -> Vec<(usize, BinResult)> {
+    let d = cr.dark;
+    let ramp = seq.exposures[d]
+        .ramp
+        .as_ref()
+        .expect("checked by CalibRamp::of");
+    let t = &cr.t_s;
+    let nsamp = ramp.shape()[0];
+    // the read times since the first dark's reset (the dark current's charge)
+    let t_since_reset: Vec<f64> = t.iter().map(|x| x - cr.t_reset_s).collect();
+    let meas = seq.measured(d);
+    // the background ramp, by the sequence's background (its median, or its line's
+    // intercept at zero fluence, crate::measure::data "Background")
+    let bg_ramp: Vec<f64> = match dark {
+        BinDark::Background(bg_px) => (0..nsamp)
+            .map(|s| {
+                let v: Vec<(f64, f64)> = bg_px
+                    .iter()
+                    .map(|&(y, x)| (f[[y, x]], f64::from(ramp[[s, y, x]])))
+                    .collect();
+                seq.background_of(&v)
+            })
+            .collect(),
+        BinDark::Late(..) => vec![0.0; nsamp],
+    };
+    // the first dark's shot-noise variance per e-/s, when the knots leave it out
+    let knot_shot_var = cfg
+        .knots_shot_noise_removed()
+        .then(|| seq.shot_var_per_e_per_s(d));
+    let lo_exp = 3.0;
+    let mut bins = Vec::new();
+    for (b, px) in members.iter().enumerate() {
+        if px.len() < cfg.min_pixels {
+            continue;
+        }
+        // each pixel's dark level, e-/s (0 with background pixels: removed as a whole)
+        let dark_of = |p: (usize, usize)| match dark {
+            BinDark::Background(_) => 0.0,
+            BinDark::Late(l, r) => l.dark_at(p, r[b]),
+        };
+        let edge = |i: f64| 10f64.powf(lo_exp + i / cfg.bins_per_decade);
+        let cur: Vec<f64> = match dark {
+            BinDark::Background(_) => px.iter().map(|p| meas[*p]).collect(),
+            BinDark::Late(l, _) => px.iter().map(|&p| l.first[p] - dark_of(p)).collect(),
+        };
+        let (med, sd) = clipped_median(&cur, 3.0);
+        let p95 = match knot_shot_var {
+            Some(g) => signal_p95(&cur, med, shot_noise_added(noise, g, med)),
+            None => signal_p95(&cur, med, noise),
+        };
+        let q: Vec<f64> = (0..nsamp)
+            .map(|s| {
+                let v: Vec<f64> = px
+                    .iter()
+                    .map(|&(y, x)| f64::from(ramp[[s, y, x]]) - dark_of((y, x)) * t_since_reset[s])
+                    .collect();
+                clipped_median(&v, 3.0).0 - bg_ramp[s]
+            })
+            .collect();
+        let ok: Vec<usize> = (0..nsamp)
+            .filter(|&s| q[s].is_finite() && t[s] > 0.0)
+            .collect();
+        let ts: Vec<f64> = ok.iter().map(|&s| t[s]).collect();
+        let qs: Vec<f64> = ok.iter().map(|&s| q[s]).collect();
+        let lf = logfit::fit(&ts, &qs);
+        let significant = med > 3.0 * sd / (px.len() as f64).sqrt() && med > 0.0;
+        let a_bin = lf
+            .filter(|l| l.a0_e > 0.0 && !l.undetermined)
+            .map(|l| cfg.amplification * l.a0_e);
+        let a_95 = a_bin
+            .map(|a| a * p95 / med)
+            .filter(|a| a.is_finite() && *a >= 0.0);
+        bins.push((
+            b,
+            BinResult {
+                fluence_lo_e: edge(b as f64),
+                fluence_hi_e: edge(b as f64 + 1.0),
+                fluence_mean_e: px.iter().map(|p| f[*p]).sum::<f64>() / px.len() as f64,
+                pixels: px.len(),
+                median_e_per_s: med,
+                sd_e_per_s: sd,
+                p95_e_per_s: p95,
+                logfit: lf,
+                a_bin_e: a_bin,
+                a_95_e: a_95,
+                knot: significant && a_95.is_some(),
+            },
+        ));
+    }
+    bins
 }
 
 /// Step 5 of the module docs.
@@ -539,8 +727,7 @@ pub fn p95(v: &[f64]) -> f64 {
 mod tests {
     use super::*;
 
-    /// The presets: `paper` is `fit`'s defaults; `readout` is R14 (docs/diagnose_matrix.md,
-    /// "Fourteenth session"); a `--with` replaces the preset's entry of the same effect.
+    /// The presets: `paper` is `fit`'s defaults; `readout` is R14 (docs/diagnose_matrix.md); a `--with` replaces the preset's entry of the same effect.
     #[test]
     fn presets_give_their_options_and_effects() {
         assert_eq!(
@@ -571,7 +758,7 @@ mod tests {
     #[test]
     fn population_statistic_calibrates_noise_free_knots_and_records_it() {
         let pop = CalibConfig {
-            cell_statistic: crate::diag::eval::CellStatistic::Population,
+            cell_statistic: crate::measure::eval::CellStatistic::Population,
             ..Preset::Readout.config()
         };
         assert!(pop.knots_shot_noise_removed() && pop.record().knots_shot_noise_removed);
@@ -673,9 +860,9 @@ pub struct FitReport {
     pub residual_rms_normalised: f64,
     pub cells: usize,
     /// What the cells compare.
-    pub cell_statistic: crate::diag::eval::CellStatistic,
+    pub cell_statistic: crate::measure::eval::CellStatistic,
     /// How each exposure's background was measured.
-    pub background: crate::diag::data::Background,
+    pub background: crate::measure::data::Background,
     pub model_identity: String,
 }
 
@@ -685,8 +872,7 @@ pub const FIT_CN_NOTE: &str = "; C_n then fitted to this campaign (--fit-cn)";
 
 /// Whether `params`' `C_n` were fitted to a campaign (`--fit-cn`: its calibration
 /// record, or its description for a model without one): such a model has already taken the decay-shape part of any effect in
-/// that campaign, which `diagnose` then cannot see (docs/diagnose_matrix.md, sixth
-/// session).
+/// that campaign, which `diagnose` then cannot see (docs/diagnose_matrix.md).
 pub fn cn_fitted_to_campaign(params: &ModelParams) -> bool {
     params
         .calibration
@@ -703,7 +889,7 @@ pub const FIT_AMPLIFICATION_NOTE: &str = "; knots then scaled by ";
 /// calibration record, or its description for a model without one): such a
 /// model has taken in the level part of any effect in that campaign (a hidden
 /// `short_tau_boost` was declared at 1 of 3 seeds against such a reference, 3 of 3
-/// against the level fixed at 0.85; docs/diagnose_matrix.md, eighth session).
+/// against the level fixed at 0.85; docs/diagnose_matrix.md).
 pub fn level_fitted_to_campaign(params: &ModelParams) -> bool {
     params.calibration.as_ref().map_or_else(
         || params.description.contains(FIT_AMPLIFICATION_NOTE),
@@ -756,13 +942,13 @@ pub fn run(
         }
         ef = Some(f);
     }
-    let pr = crate::diag::eval::predict(&params, &seq, &samples, false)?;
-    let cells = crate::diag::spread::model_cell_z(&params, &samples, &pr.current);
+    let pr = crate::measure::eval::predict(&params, &seq, &samples, false)?;
+    let cells = crate::measure::spread::model_cell_z(&params, &samples, &pr.current);
     let rep = FitReport {
         input: input.display().to_string(),
         calibration: cal,
         effects: ef,
-        residual_rms_normalised: crate::diag::eval::rms(&cells),
+        residual_rms_normalised: crate::measure::eval::rms(&cells),
         cells: cells.len(),
         cell_statistic: cfg.cell_statistic,
         background: cfg.background,
@@ -811,7 +997,7 @@ pub fn run(
 /// True when a fit `--with` an effect on top of this calibration would fit it against
 /// knots held at `amplification` times the measured level with nothing else free to
 /// carry the level (neither `--fit-cn` nor `--fit-amplification`): the effect's
-/// parameters would take the margin in ([`margin_taken_in`]; `persist diagnose` then
+/// parameters would take the margin in (`margin_taken_in`; `persist diagnose` then
 /// also names the `--preset readout` fit that measures them).
 pub fn knots_held_off_level(amplification: f64, fit_cn: bool, fit_amplification: bool) -> bool {
     amplification != 1.0 && !fit_cn && !fit_amplification

@@ -1,5 +1,30 @@
 //! `persist diagnose`: which library effect is missing from a fitted model.
 //!
+//! # Decision
+//! 1. **Statistic** (`--statistic auto`, the default): `within` with two illumination
+//!    events or more, `pooled` with one; the output says which and why.
+//! 2. **Untestable is an answer**: classes whose covariate has no contrast in the data
+//!    are listed with the measurement that would test them and are not scored
+//!    ([`super::contrast::testability`]).
+//! 3. **A flexible base** ([`super::base`]): the model plus a free response per fluence
+//!    knot and free weights over a fixed grid of decay rates, superposed over every
+//!    illumination, fitted once; its residual, standardised inside fluence x time
+//!    cells, is what an effect must explain.
+//! 4. **What the residual depends on** ([`super::contrast::dependences`]): the share of
+//!    it each testable covariate explains inside the cells, calibrated by permuting the
+//!    covariate among whole pixel-events of one fluence bin; ranked by `z`.
+//! 5. **Identify**: the library effects acting on every covariate above all its
+//!    permutations are refitted (at most [`REFIT`]); an effect is significant when its
+//!    refit passes the change in BIC and the held-out check (below); among significant
+//!    ones the best held-out prediction comes first. When the residual depends on a
+//!    covariate but no effect on it passes, the verdict says so and prints the
+//!    residual by that covariate's bins.
+//!
+//! The score test and its bootstrap threshold (below) are still computed and printed:
+//! they rank the testable effects, they no longer choose which are refitted (a score
+//! along one parametric form, calibrated from the fitted model alone, rises with any
+//! misfit of the base).
+//!
 //! # Sample
 //! A random subsample of `pixels` (default [`DEFAULT_PIXELS`]) of the pixels lit above
 //! the background fluence in some illumination, drawn with ChaCha8 from `--seed`
@@ -40,7 +65,7 @@
 //! two-sided score ranked `temperature` at 33-97 on baseline campaigns whose refits ended
 //! at the null, delta BIC +5.1). An effect whose null lies inside its bounds keeps the
 //! two-sided score (`populations` did, with the surface's `gx` as its switch, until the
-//! twenty-sixth session). The bootstrap uses the same statistic.
+//! round 26). The bootstrap uses the same statistic.
 //!
 //! - `pooled`: `r` = the fluence x time cells, `dof = m`.
 //! - `within` (default): cells split by illumination event; `r` and `j` are demeaned
@@ -68,7 +93,7 @@
 //! The bootstrap below does not recompute it on each replica (the pair loop is too slow
 //! for ~200 replicas); its replicas, independent samples, give it 0, so the family-wise
 //! threshold leaves out its null. Measured on 20 replicas per campaign at 128 and 256
-//! (docs/diagnose_matrix.md, "Twenty-sixth session"): `T` mean -0.2 to 0.3, sd 0.64-1.18,
+//! (docs/diagnose_matrix.md, "round 26"): `T` mean -0.2 to 0.3, sd 0.64-1.18,
 //! largest 2.4, against thresholds of 4 and more. Its refit measures the correlation
 //! ([`crate::calib::effects`], "The pixels' spread correlation") and the refitted model's
 //! cells are widened by it, in the change in BIC and the held-out check alike.
@@ -97,7 +122,7 @@
 //! partly stood in for (the fitted `refill` leans on temperature's signature: `beta`
 //! 0.90 without it, at its bound 1 with it) is judged with that help undone in
 //! neither direction. `--refit full` (the default since the baseline declared nothing
-//! with it at 10 of 10 seeds, docs/diagnose_matrix.md, ninth session, where every
+//! with it at 10 of 10 seeds, docs/diagnose_matrix.md, round 9, where every
 //! earlier configuration gave 9 of 10) frees the candidate's parameters and those of the
 //! model's own effects jointly, and `RSS_0` is then the model's own effects refitted
 //! alone on the same samples (nested, so only the candidate's parameters count in
@@ -116,7 +141,7 @@
 //! not gated: an effect confined to a few cells (the boost of the fast terms lives in
 //! the first-dark cells of three fluence bins out of ~170) gains little over all cells
 //! although it removes much of the residual where it acts. Gating on the moved cells
-//! was measured (sixth session, docs/diagnose_matrix.md) and rejected: it declared
+//! was measured (round 6, docs/diagnose_matrix.md) and rejected: it declared
 //! `short_tau_boost` hidden at one seed of three, but `blooming` in its place at the two
 //! others, and `populations` on a baseline campaign (8 of 10 clean instead of 9).
 //! Significant = `LM > threshold`, `delta_BIC <` [`DBIC_MAX`] and held-out
@@ -155,6 +180,7 @@
 //! shared by neighbours is standing in for something else (radius and fluence go
 //! together when the spot is centred).
 
+use super::contrast;
 use super::data::{noisy_quantile, quantile, quantile_in_place, Sequence};
 use super::eval::{self, Samples};
 use super::spread;
@@ -193,8 +219,9 @@ pub const DEFAULT_PIXELS: usize = 2048;
 pub const DEFAULT_BOOTSTRAP: usize = 199;
 /// Family-wise false-alarm level of the score threshold.
 pub const ALPHA: f64 = 0.05;
-/// Candidates (above the score threshold, by score) that are refitted.
-pub const REFIT: usize = 3;
+/// Candidates refitted at most: the library effects acting on the covariates the base's
+/// residual depends on, in the order of that dependence.
+pub const REFIT: usize = 4;
 
 /// Bootstrap replicas drawn before they are scored in parallel (memory: this many
 /// copies of the samples).
@@ -219,11 +246,55 @@ pub const MOVED_Z: f64 = 1.0;
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
 #[serde(rename_all = "snake_case")]
 pub enum Statistic {
+    /// `within` with two illumination events or more, else `pooled` (the output says
+    /// which and why).
+    Auto,
     Pooled,
     Within,
 }
 
-choices!(Statistic, "--statistic", Pooled => "pooled", Within => "within");
+choices!(Statistic, "--statistic", Auto => "auto", Pooled => "pooled", Within => "within");
+
+impl Statistic {
+    /// The statistic used on samples from `events` illumination events, and why.
+    pub fn resolve(self, events: usize) -> (Statistic, String) {
+        match self {
+            Statistic::Auto if events >= 2 => (
+                Statistic::Within,
+                format!(
+                    "within (auto: {events} illumination events, compared at equal fluence \
+                     and time)"
+                ),
+            ),
+            Statistic::Auto => (
+                Statistic::Pooled,
+                "pooled (auto: one illumination event, nothing to compare it with; the \
+                 within statistic needs two)"
+                    .into(),
+            ),
+            s => (s, format!("{s} (--statistic)")),
+        }
+    }
+}
+
+/// What chooses the candidates that are refitted (module docs, "Decision").
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Decide {
+    /// The contrasts: untestable classes are not scored; the effects acting on the
+    /// covariates the flexible base's residual depends on are refitted.
+    #[default]
+    Contrast,
+    /// The score test alone, as before the contrasts: every library effect is scored
+    /// and the [`REFIT_BY_SCORE`] leading candidates above the bootstrap threshold are
+    /// refitted (what the matrix of docs/diagnose_matrix.md measured).
+    Score,
+}
+
+choices!(Decide, "--decide", Contrast => "contrast", Score => "score");
+
+/// Candidates refitted with [`Decide::Score`] (by score, above the threshold).
+pub const REFIT_BY_SCORE: usize = 3;
 
 /// What a candidate's refit frees (module docs, "Refit"). The default, [`Refit::Full`],
 /// is that of `persist diagnose` (`--refit`, whose default is this one).
@@ -258,6 +329,8 @@ pub struct Config {
     /// Run the joint check when no candidate is significant alone (module docs,
     /// "Joint check"; `persist diagnose --joint`).
     pub joint: bool,
+    /// What chooses the candidates refitted (`persist diagnose --decide`).
+    pub decide: Decide,
 }
 
 impl Default for Config {
@@ -266,12 +339,13 @@ impl Default for Config {
             pixels: DEFAULT_PIXELS,
             bootstrap: DEFAULT_BOOTSTRAP,
             seed: 1,
-            statistic: Statistic::Within,
+            statistic: Statistic::Auto,
             cells: eval::Cells::default(),
             cell_statistic: eval::CellStatistic::default(),
             background: super::data::Background::default(),
             refit: Refit::default(),
             joint: false,
+            decide: Decide::default(),
         }
     }
 }
@@ -395,7 +469,7 @@ fn fit_command(
 /// carry it ([`crate::calib::knots_held_off_level`]; a model without a calibration
 /// record has `fit`'s defaults, the paper's 1.2), [`fit_command`] would fit the
 /// candidates against that margin, and their parameters would take it in (`persist
-/// fit` warns; twenty-fourth session: `temperature` fitted 1.20 eV for the truth's
+/// fit` warns; round 24: `temperature` fitted 1.20 eV for the truth's
 /// 0.25 under the paper's preset, 0.250 under `--preset readout`). Then: the same
 /// effects and cells calibrated with `--preset readout`, which measures them, written
 /// beside the model as `MODEL.readout+NAMES.json`. `None` otherwise.
@@ -483,7 +557,7 @@ fn calibration_args(c: Option<&crate::model::params::Calibration>) -> String {
 /// residuals' spatial coherence (module docs, "Spatial coherence"): an effect of
 /// position only where the residuals carry a field shared by neighbouring pixels, or
 /// where that cannot be measured (one illumination). Measured (docs/diagnose_matrix.md,
-/// fifteenth session): with the spot centred, radius and fluence go together and the
+/// round 15): with the spot centred, radius and fluence go together and the
 /// model's `populations` (a quadratic surface, `u^2 + v^2` the radius) was declared for
 /// a hidden linefit_bias + temperature at 128 x 128 (seeds 2 and 3) on residuals with
 /// no field (R^2 0.04); the field it then put into the residuals had R^2 0.55-0.66.
@@ -542,7 +616,7 @@ pub struct Candidate {
     pub command: String,
     /// When `command` would fit the candidate against knots held at the paper's
     /// flagging margin ([`crate::calib::knots_held_off_level`]): the `--preset readout`
-    /// fit that measures its parameters instead ([`measure_command`]).
+    /// fit that measures its parameters instead (`measure_command`).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub measure_command: Option<String>,
 }
@@ -570,7 +644,14 @@ pub struct Joint {
 
 #[derive(Debug, Clone, Serialize)]
 pub struct Diagnosis {
+    /// The statistic used (never `auto`) and why.
     pub statistic: Statistic,
+    pub statistic_reason: String,
+    /// Per contrast class: whether the data can test it, else the measurement that
+    /// would ([`contrast::testability`]). Untestable classes' effects are not scored.
+    pub contrasts: Vec<contrast::Testability>,
+    /// What the flexible base's residual depends on, ranked ([`contrast::dependences`]).
+    pub dependences: Vec<contrast::Dependence>,
     pub pixels_sampled: usize,
     pub samples: usize,
     pub cells: usize,
@@ -626,7 +707,8 @@ struct Cells {
 
 fn make_cells(s: &Samples, pred: &[f64], st: Statistic) -> Cells {
     let keys: &[&str] = match st {
-        Statistic::Pooled => &["fluence", "time"],
+        // `auto` is resolved before the cells are made
+        Statistic::Pooled | Statistic::Auto => &["fluence", "time"],
         Statistic::Within => &["fluence", "time", "event"],
     };
     let mut g: BTreeMap<Vec<i64>, Vec<usize>> = BTreeMap::new();
@@ -844,7 +926,7 @@ impl<'a> Steps<'a> {
 
 /// Demean within groups (the `within` statistic); identity for `pooled`.
 fn project(c: &Cells, v: &[f64], st: Statistic) -> Vec<f64> {
-    if st == Statistic::Pooled {
+    if st != Statistic::Within {
         return v.to_vec();
     }
     let mut sum = vec![0.0; c.n_groups];
@@ -861,7 +943,7 @@ fn project(c: &Cells, v: &[f64], st: Statistic) -> Vec<f64> {
 
 fn dof(c: &Cells, st: Statistic) -> f64 {
     match st {
-        Statistic::Pooled => c.members.len() as f64,
+        Statistic::Pooled | Statistic::Auto => c.members.len() as f64,
         Statistic::Within => (c.members.len() as f64 - c.n_groups as f64).max(1.0),
     }
 }
@@ -1150,16 +1232,23 @@ pub fn diagnose(
         .with_cells(cfg.cells)
         .with_statistic(cfg.cell_statistic);
     let base = eval::predict(params, seq, &samples, false)?;
-    let cells = make_cells(&samples, &base.current, cfg.statistic);
+    let n_events = {
+        let mut e = samples.event.clone();
+        e.sort_unstable();
+        e.dedup();
+        e.len()
+    };
+    let (statistic, statistic_reason) = cfg.statistic.resolve(n_events);
+    let cells = make_cells(&samples, &base.current, statistic);
     let m = cells.members.len();
-    if (m as f64) < 3.0 + (m as f64 - dof(&cells, cfg.statistic)) {
+    if (m as f64) < 3.0 + (m as f64 - dof(&cells, statistic)) {
         return Err(Error::new(
             ErrorKind::Usage,
             format!(
                 "{m} residual cells in {} groups: too few to test (statistic {:?}){}",
                 cells.n_groups,
-                cfg.statistic,
-                if cfg.statistic == Statistic::Within && seq.illuminations.len() < 2 {
+                statistic,
+                if statistic == Statistic::Within && n_events < 2 {
                     "; the within statistic compares illumination events and this input \
                      has one: use --statistic pooled"
                 } else {
@@ -1173,7 +1262,7 @@ pub fn diagnose(
     let calib_ramp = crate::calib::knots::scale_of(params, seq)?;
     // the library effects to test, each predicted at its score step (in parallel;
     // collected in registry order)
-    let tests: Vec<_> = REGISTRY
+    let library: Vec<_> = REGISTRY
         .iter()
         .filter(|def| !params.effects.iter().any(|e| e.name == def.name))
         .filter_map(|def| {
@@ -1181,6 +1270,28 @@ pub fn diagnose(
                 .map(|(p, null)| (def, p, null, score_step(p, null)))
         })
         .collect();
+    // which classes the data hold contrast for; the untestable ones are listed, not
+    // scored ([`super::contrast`])
+    let contrasts = contrast::testability(
+        seq,
+        &samples,
+        &library
+            .iter()
+            .map(|(def, ..)| (def.name, def.covariate))
+            .collect::<Vec<_>>(),
+    );
+    let testable = |def: &crate::model::effect::EffectDef| {
+        let class = contrast::class_of(def.name, def.covariate);
+        contrasts.iter().any(|c| c.class == class && c.testable)
+    };
+    let tests: Vec<_> = library
+        .into_iter()
+        .filter(|t| cfg.decide == Decide::Score || testable(t.0))
+        .collect();
+    // what the flexible base's residual depends on, by permutation
+    let flexible = super::base::predict(seq, &samples, &base.current);
+    let dependences = contrast::dependences(seq, &samples, &flexible, &contrasts, cfg.seed);
+    let winner = dependences.iter().find(|d| d.depends);
     let at_step: Vec<(f64, Vec<f64>)> = tests
         .par_iter()
         .map(|&(def, p, null, h)| {
@@ -1222,7 +1333,7 @@ pub fn diagnose(
         .iter()
         .map(|&(_, p, null, h)| one_sided(p, null, h))
         .collect();
-    let mut lm = scores(&cells, &samples.measured, &steps, &dirs, cfg.statistic);
+    let mut lm = scores(&cells, &samples.measured, &steps, &dirs, statistic);
     // an effect whose switch states the pixels' spread correlation changes no
     // prediction: its score is the spread score (module docs, "Spread correlation")
     for (i, &(def, p, null, h)) in tests.iter().enumerate() {
@@ -1239,7 +1350,7 @@ pub fn diagnose(
         &base.current,
         &steps,
         &dirs,
-        cfg.statistic,
+        statistic,
         b,
         &mut rng,
         BOOT_BATCH,
@@ -1273,14 +1384,25 @@ pub fn diagnose(
             }
         })
         .collect();
-    // the leading candidates refitted in parallel (each fit is its own computation)
-    let refit: Vec<usize> = ranking
-        .iter()
-        .enumerate()
-        .filter(|(_, c)| c.passes_score)
-        .map(|(i, _)| i)
-        .take(REFIT)
-        .collect();
+    // the library effects acting on the covariate the base's residual depends on most
+    // are refitted, in parallel (each fit is its own computation); the score test no
+    // longer chooses them (module docs, "Decision")
+    let refit: Vec<usize> = match cfg.decide {
+        Decide::Contrast => dependences
+            .iter()
+            .filter(|d| d.above_permutations)
+            .flat_map(|d| &d.effects)
+            .filter_map(|name| ranking.iter().position(|c| &c.effect == name))
+            .take(REFIT)
+            .collect(),
+        Decide::Score => ranking
+            .iter()
+            .enumerate()
+            .filter(|(_, c)| c.passes_score)
+            .map(|(i, _)| i)
+            .take(REFIT_BY_SCORE)
+            .collect(),
+    };
     // with a full refit, the model's own effects refitted alone on these samples are
     // what each candidate is compared with
     let own = own_effects(params, cfg.refit);
@@ -1321,7 +1443,8 @@ pub fn diagnose(
             })
         })
         .collect::<Result<_>>()?;
-    // the leader: the first refitted (`refit` is in score order, `results` in its order)
+    // the leader: the first refitted (`refit` in the order of the dependence, `results`
+    // in its order)
     let leader = results.first().map(|r| (r.rank, r.rss_after));
     let spatial = super::spatial::coherence(seq, params)?;
     for r in results {
@@ -1357,11 +1480,16 @@ pub fn diagnose(
         }
         _ => Vec::new(),
     };
+    // significant ones first: the best held-out prediction (the lowest dBIC with the
+    // score decision, or without a held-out check)
     ranking.sort_by(|a, b| match (a.significant, b.significant) {
-        (true, true) => a
-            .delta_bic
-            .unwrap_or(0.0)
-            .total_cmp(&b.delta_bic.unwrap_or(0.0)),
+        (true, true) => match (&a.held_out, &b.held_out) {
+            (Some(x), Some(y)) if cfg.decide == Decide::Contrast => y.gain.total_cmp(&x.gain),
+            _ => a
+                .delta_bic
+                .unwrap_or(0.0)
+                .total_cmp(&b.delta_bic.unwrap_or(0.0)),
+        },
         (true, false) => std::cmp::Ordering::Less,
         (false, true) => std::cmp::Ordering::Greater,
         (false, false) => b.score.total_cmp(&a.score),
@@ -1439,6 +1567,28 @@ pub fn diagnose(
             c.command,
             margin_note(c.measure_command.as_deref(), params)
         ),
+        None if winner.is_some() && cfg.decide == Decide::Contrast => {
+            let w = winner.expect("checked");
+            format!(
+                "the base's residual depends on {} (it explains {:.1} % of the residual's sum \
+                 of squares inside the fluence x time cells, {:.1} % at most over {} \
+                 permutations; z {:.1}), but no library effect acting on it ({}) predicts \
+                 held-out data: the missing physics is of this kind in another form. The \
+                 residual by {}: {}",
+                w.class,
+                100.0 * w.r2,
+                100.0 * w.r2_null_max,
+                w.permutations,
+                w.z,
+                w.effects.join(", "),
+                w.class,
+                w.by_bin
+                    .iter()
+                    .map(|(b, n, e)| format!("{b}: {e:+.2} ({n} pixel-events)"))
+                    .collect::<Vec<_>>()
+                    .join("; ")
+            )
+        }
         None => {
             let w: Vec<String> = largest
                 .iter()
@@ -1463,7 +1613,10 @@ pub fn diagnose(
         }
     };
     Ok(Diagnosis {
-        statistic: cfg.statistic,
+        statistic,
+        statistic_reason,
+        contrasts,
+        dependences,
         pixels_sampled: samples.npix(),
         samples: samples.len(),
         cells: m,
@@ -1593,7 +1746,7 @@ fn cautions(params: &ModelParams) -> Vec<String> {
             "the model's knot level was fitted to this campaign (persist fit \
              --fit-amplification): it has taken in the level part of any missing effect (a \
              hidden short_tau_boost was declared at 1 of 3 seeds against such a model, at 3 \
-             of 3 with the level fixed; docs/diagnose_matrix.md, eighth session); diagnose \
+             of 3 with the level fixed; docs/diagnose_matrix.md, round 8); diagnose \
              against a model with a fixed --amplification too"
                 .to_string(),
         );
@@ -1617,11 +1770,11 @@ pub fn run(input: &Path, model: &Path, json: Option<&Path>, cfg: &Config) -> Res
 /// The printed ranking.
 pub fn render(d: &Diagnosis) -> String {
     let mut s = format!(
-        "persist diagnose: statistic {:?}, {} pixels, {} cells in {} groups, {} illumination events, \
+        "persist diagnose: statistic {}, {} pixels, {} cells in {} groups, {} illumination events, \
          residual RMS {:.2} ({} cells{}{})\nthreshold {:.2} (95 % of the largest score over {} bootstrap replicas \
-         from the fitted model; median {:.2})\n\
+         from the fitted model; median {:.2}; the score ranks, it does not decide)\n\
          {:<16} {:>10} {:>6} {:>9} {:>15} {:>9} {:>15}  covariate\n",
-        d.statistic,
+        d.statistic_reason,
         d.pixels_sampled,
         d.cells,
         d.groups,
@@ -1672,6 +1825,29 @@ pub fn render(d: &Diagnosis) -> String {
                 ""
             }
         );
+    }
+    for c in d.contrasts.iter().filter(|c| !c.testable) {
+        s += &format!(
+            "{:<16} untestable, needs {} ({})\n",
+            c.effects.join(", "),
+            c.needs.as_deref().unwrap_or("-"),
+            c.why
+        );
+    }
+    if !d.dependences.is_empty() {
+        s += "what the base's residual depends on (share of its sum of squares inside the \
+              fluence x time cells; permutations' largest; z):\n";
+        for x in &d.dependences {
+            s += &format!(
+                "  {:<26} {:>6.2} % {:>6.2} % {:>7.1}  {}{}\n",
+                x.class,
+                100.0 * x.r2,
+                100.0 * x.r2_null_max,
+                x.z,
+                x.effects.join(", "),
+                if x.depends { "  DEPENDS" } else { "" }
+            );
+        }
     }
     if !d.joint.is_empty() {
         s += "joint check (no effect significant alone; the leader refitted with each other):\n";
@@ -1835,7 +2011,7 @@ mod tests {
         assert!(neg[1] > 1.0);
         // which effects are one-sided
         // (populations: its switch is `spread_corr`, null 0 at its lower bound, since the
-        // twenty-sixth session; it was the surface's `gx`, null inside its bounds)
+        // round 26; it was the surface's `gx`, null inside its bounds)
         for (name, want) in [("capacity", true), ("soak", true), ("populations", true)] {
             let def = crate::model::effects::lookup(name).expect("registered");
             let (p, null) = def.switch().expect("has a switch");

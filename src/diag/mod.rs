@@ -1,11 +1,15 @@
-//! Comparing the model with measurements: the data ([`data`]), residuals by covariate
-//! and flag quality ([`compare`]), the search for missing effects ([`diagnose`]), and
-//! the HTML report ([`report`]).
+//! Comparing the model with measurements: residuals by covariate and flag quality
+//! ([`compare`]), the search for missing effects ([`diagnose`]: what the data can test
+//! and what a flexible base's residual depends on, [`contrast`] and [`base`]), the
+//! spatial check ([`spatial`]) and the HTML report ([`report`]). The measurements
+//! themselves ([`data`], [`eval`], [`spread`]) live in [`crate::measure`], which the
+//! calibration shares; they are re-exported here under their former paths.
 
+pub use crate::measure::{data, eval, spread};
+
+pub mod base;
 pub mod compare;
-pub mod data;
+pub mod contrast;
 pub mod diagnose;
-pub mod eval;
 pub mod report;
 pub mod spatial;
-pub mod spread;

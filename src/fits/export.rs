@@ -13,7 +13,8 @@
 use super::write::{append_persistence, check_written, flag_cards, flush};
 use super::{fits_error, Conversion, Keywords};
 use crate::error::{Error, ErrorKind, Result};
-use crate::product::{self, Exposure, PersistenceAttrs, PersistencePlanes, ProductKind};
+use crate::product::{self, Exposure, PersistenceAttrs, PersistencePlanes};
+use crate::validate::{validate_path, ProductKind};
 use fitsio::images::{ImageDescription, ImageType};
 use fitsio::tables::{ColumnDataType, ColumnDescription};
 use fitsio::FitsFile;
@@ -44,7 +45,7 @@ pub struct ExportOptions {
 
 /// Export one HDF5 product (input or output) to `out_dir/NAME.fits`; returns the path.
 pub fn export_file(h5: &Path, out_dir: &Path, opts: &ExportOptions) -> Result<PathBuf> {
-    let kind = product::validate_path(h5).map_err(product::schema::combine)?;
+    let kind = validate_path(h5).map_err(product::schema::combine)?;
     let stem = h5.file_stem().unwrap_or_default().to_string_lossy();
     let path = out_dir.join(format!("{stem}.fits"));
     match kind {

@@ -39,6 +39,7 @@ pub(crate) struct Headers<'a> {
 impl<'a> Headers<'a> {
     pub(crate) fn open(path: &'a Path, keywords: &'a Keywords) -> Result<Self> {
         let mut file = FitsFile::open(path).map_err(|e| fits_error(path, "file", e))?;
+        check_complete(path, &mut file)?;
         let primary = file
             .primary_hdu()
             .map_err(|e| fits_error(path, "PRIMARY", e))?;
@@ -202,6 +203,61 @@ impl<'a> Headers<'a> {
         )
         .path(self.path))
     }
+}
+
+/// Refuse a file that does not end where its last HDU does: truncated (the last data
+/// unit, or a header after it, cut short), or followed by bytes that are no HDU. cfitsio
+/// reads what it is asked for and would otherwise fail only when an extension past the
+/// cut is touched, which for an output starting from a copy of the input is after the
+/// step.
+fn check_complete(path: &Path, file: &mut FitsFile) -> Result<()> {
+    let n = file.num_hdus().map_err(|e| fits_error(path, "file", e))?;
+    let last = n.checked_sub(1).ok_or_else(|| {
+        Error::invalid("file", "has no header data unit").path(path)
+    })?;
+    file.hdu(last)
+        .map_err(|e| fits_error(path, &format!("HDU {n}"), e))?;
+    let (mut header_start, mut data_start, mut data_end) = (0i64, 0i64, 0i64);
+    let mut status = 0;
+    // SAFETY: the pointer is the open file's, used only for this call; the outputs are
+    // plain integers.
+    unsafe {
+        fitsio::sys::ffghadll(
+            file.as_raw(),
+            &mut header_start,
+            &mut data_start,
+            &mut data_end,
+            &mut status,
+        )
+    };
+    if status != 0 {
+        return Err(Error::invalid(
+            format!("HDU {n}"),
+            format!("cfitsio error {status} locating the data unit"),
+        )
+        .path(path));
+    }
+    let len = std::fs::metadata(path).map_err(|e| Error::io(path, e))?.len();
+    let end = u64::try_from(data_end).unwrap_or(0);
+    if end > len {
+        return Err(Error::invalid(
+            format!("HDU {n}"),
+            format!("truncated: its data end at byte {end}, the file has {len} bytes"),
+        )
+        .path(path));
+    }
+    if end < len {
+        return Err(Error::invalid(
+            "file",
+            format!(
+                "{} bytes after the last complete HDU ({n}, ending at byte {end}) are not a \
+                 FITS extension (truncated?)",
+                len - end
+            ),
+        )
+        .path(path));
+    }
+    Ok(())
 }
 
 /// `DATE-OBS` as FITS writes it (`YYYY-MM-DDThh:mm:ss[.s...]`, UTC, no zone), or with

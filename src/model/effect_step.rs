@@ -12,7 +12,8 @@
 //! except pixels with no slope (`SUR_ERROR`, not a transient): brighter than any
 //! measured pixel, they take the hooks' amplitudes capped at the maximum, so that a
 //! hook that fills less than the whole capacity (`soak`'s level-blind fill) applies to
-//! them too (docs/diagnose_matrix.md, eighteenth session).
+//! them too (otherwise the brightest pixels of an illumination would carry unsoaked
+//! slow terms into the next one).
 //! The per-pixel prediction, flags, early release and outputs are the fused kernel's
 //! own code (`Kernel::predict_flag_release`, `Kernel::write_pixel`); only the decay and
 //! the per-term response differ. With [`StepContext::active_pixels`] the pixel pass
@@ -22,6 +23,7 @@
 //! ([`ResponseCtx::needed`]: those, widened by the hooks' reach to their neighbours).
 
 use super::effect::{AccumulateRole, Effect, IntervalCtx, ResponseCtx};
+use super::fluence::{pixel_fluence, PixelFluence};
 use super::state::State;
 use super::step::{Input, Model, Output, StepSummary};
 use crate::error::Error;
@@ -151,19 +153,18 @@ pub(crate) fn step(
         .enumerate()
         .for_each(|(y, (b, kd, fl, img, f))| {
             for x in 0..img.len() {
-                let (a, max_used) = if is_needed(y * nx + x) {
-                    k.response_of(img[x], f[x])
+                b[x] = if is_needed(y * nx + x) {
+                    k.response_of(img[x], f[x]).0
                 } else {
-                    (0.0, k.max_used(img[x], f[x]))
+                    0.0
                 };
-                b[x] = a;
-                if f[x] & k.bits.nonfunc != 0 {
-                    kd[x] = NONFUNC;
-                } else if max_used {
-                    kd[x] = UNKNOWN;
-                    fl[x] = f64::NAN;
-                } else {
-                    fl[x] = f64::from(img[x].max(0.0)) * k.t_illuminated_s;
+                match pixel_fluence(img[x], f[x], &k.bits, k.t_illuminated_s) {
+                    PixelFluence::NonFunctional => kd[x] = NONFUNC,
+                    PixelFluence::Unknown => {
+                        kd[x] = UNKNOWN;
+                        fl[x] = f64::NAN;
+                    }
+                    PixelFluence::Known(e) => fl[x] = e,
                 }
             }
         });

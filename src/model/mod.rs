@@ -8,6 +8,7 @@ pub mod decay;
 pub mod effect;
 pub mod effect_step;
 pub mod effects;
+pub mod fluence;
 pub mod grid;
 pub mod params;
 pub mod reference;

@@ -122,7 +122,7 @@ pub struct EarlyRelease {
 /// Why not the image median: where a large part of the array carries persistence, the
 /// median pixel does too, and subtracting it releases pixels whose persistence is still
 /// above the flag threshold. Measured on the 64 x 64 laboratory campaign (seed 1,
-/// reference refill + chord, docs/diagnose_matrix.md, tenth session): after the
+/// reference refill + chord): after the
 /// 4x-flux illumination the image median holds 0.12 e-/s of persistence (0.27 e-/s when
 /// the spot moves between illuminations, `persist simulate lab --spots shifted`), and
 /// the missed-flag fraction at 0.1 e-/s was 3.6 % of all samples with the spot moved;
@@ -130,8 +130,7 @@ pub struct EarlyRelease {
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum BackgroundEstimate {
-    /// The median of the image (the paper's setting gives none; the default before the
-    /// tenth session).
+    /// The median of the image (the paper gives no setting).
     ImageMedian,
     /// The median of the image over the pixels whose predicted persistence current (the
     /// plain sum `sum_n A_n C_n exp(-t_meas/tau_n)` of the state, before this exposure's
@@ -171,8 +170,8 @@ pub struct EffectSpec {
     pub params: serde_json::Map<String, serde_json::Value>,
     /// Parameters held at their value by `persist fit` and by `diagnose`'s refits,
     /// whatever their [`crate::model::effect::ParamSpec::fitted`] (a value known from
-    /// elsewhere: `persist fit --with NAME:param=value`). Not written when empty, so the
-    /// identity of a model without pinned parameters is as before.
+    /// elsewhere: `persist fit --with NAME:param=value`). Not written when empty, so a
+    /// model without pinned parameters has the same identity as one without the field.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub fixed: Vec<String>,
 }
@@ -211,8 +210,8 @@ pub struct ModelParams {
     #[serde(default)]
     pub effects: Vec<EffectSpec>,
     /// How `persist fit` made this model ([`Calibration`]); absent from a model written
-    /// by hand or before 2026-11-24 (not written when absent, so such a model's identity
-    /// is as before).
+    /// by hand or by a version of `fit` that did not record it (not written when absent,
+    /// so such a model keeps its identity).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub calibration: Option<Calibration>,
 }
@@ -245,6 +244,12 @@ pub struct Calibration {
     /// identity.
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub knots_shot_noise_removed: bool,
+    /// The first dark's dark level came from each pixel's own late darks, its predicted
+    /// persistence there removed, because no pixel stayed unlit (`persist::calib::dark`).
+    /// Absent (false) when it came from the background pixels, so older files keep their
+    /// identity.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub late_plateau_dark: bool,
 }
 
 /// Eq. (bbdetexpsum): `(C_n, 1/tau_n)` for detector BBDet.

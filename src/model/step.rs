@@ -16,6 +16,7 @@
 //! 5. **respond**: add this exposure's `A_k` to every term.
 //!
 //! What enters the state (so that NaN, Inf or negative currents never do):
+//! each pixel's fluence follows [`super::fluence::pixel_fluence`]:
 //! - `NONFUNC` pixels add nothing (a dead pixel collects no charge);
 //! - `TRANSIENT` or `SUR_ERROR` pixels, and pixels whose current is NaN or infinite, have
 //!   an unknown fluence: they add the maximum amplitude of the knot table (conservative,
@@ -28,33 +29,15 @@
 //! [`crate::model::reference`] implementation, so the two agree bit for bit.
 
 use super::decay::ExpSum;
+pub use super::fluence::FlagBits;
+use super::fluence::{pixel_fluence, PixelFluence};
 use super::params::{BackgroundEstimate, ModelParams};
 use super::response::Response;
 use super::state::{State, PENDING_MAX_AMPLITUDE};
 use crate::error::{Error, ErrorKind};
-use crate::flags::{bits, pbits};
+use crate::flags::pbits;
 use ndarray::{Array2, ArrayView2};
 use rayon::prelude::*;
-
-/// The on-board flag values the model acts on (the ICD's by default).
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub struct FlagBits {
-    pub transient: u32,
-    pub sur_error: u32,
-    pub nonfunc: u32,
-    pub persist: u32,
-}
-
-impl Default for FlagBits {
-    fn default() -> Self {
-        FlagBits {
-            transient: bits::TRANSIENT,
-            sur_error: bits::SUR_ERROR,
-            nonfunc: bits::NONFUNC,
-            persist: bits::PERSIST,
-        }
-    }
-}
 
 /// A validated model, ready to step.
 #[derive(Debug, Clone)]
@@ -517,30 +500,21 @@ pub(crate) struct Kernel<'m> {
 }
 
 impl Kernel<'_> {
-    /// Whether [`Kernel::response_of`] gives a pixel the maximum for an unknown
-    /// fluence, without its amplitude.
-    #[inline(always)]
-    pub fn max_used(&self, current: f32, flags: u32) -> bool {
-        flags & self.bits.nonfunc == 0
-            && (flags & (self.bits.transient | self.bits.sur_error) != 0 || !current.is_finite())
-    }
-
     /// `A_k` for one pixel and whether it was the maximum for an unknown fluence.
     #[inline(always)]
     pub fn response_of(&self, current: f32, flags: u32) -> (f64, bool) {
-        if self.max_used(current, flags) {
-            (self.a_max, true)
-        } else if flags & self.bits.nonfunc != 0 {
-            (0.0, false)
-        } else {
-            let fluence_e = f64::from(current.max(0.0)) * self.t_illuminated_s;
-            // The first segment, where faint pixels fall, without a table look-up: the
-            // same operations as `Response::amplitude_e` there.
-            let (x1, y0, slope0, x0) = self.first;
-            if fluence_e > 0.0 && fluence_e < x1 {
-                (y0 + slope0 * (fluence_e - x0), false)
-            } else {
-                (self.response.amplitude_e(fluence_e), false)
+        match pixel_fluence(current, flags, &self.bits, self.t_illuminated_s) {
+            PixelFluence::Unknown => (self.a_max, true),
+            PixelFluence::NonFunctional => (0.0, false),
+            PixelFluence::Known(fluence_e) => {
+                // The first segment, where faint pixels fall, without a table look-up:
+                // the same operations as `Response::amplitude_e` there.
+                let (x1, y0, slope0, x0) = self.first;
+                if fluence_e > 0.0 && fluence_e < x1 {
+                    (y0 + slope0 * (fluence_e - x0), false)
+                } else {
+                    (self.response.amplitude_e(fluence_e), false)
+                }
             }
         }
     }

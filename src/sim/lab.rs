@@ -37,8 +37,7 @@
 //! In the default campaign every illumination is the same pattern, scaled, so a pixel's
 //! fluence is a function of its radius from the array centre in every illumination:
 //! an effect that differs between illuminations can then be mimicked by a smooth
-//! surface over the array (the model's `populations`; docs/diagnose_matrix.md, ninth
-//! session, the pair). The shifted campaign is the same five illuminations with the
+//! surface over the array (the model's `populations`). The shifted campaign is the same five illuminations with the
 //! spot's centre moved for illuminations 2-5, as a laboratory would move the
 //! pinhole, so that radius and fluence no longer go together across illuminations:
 //!
@@ -79,12 +78,12 @@
 //!
 //! | # | reset after the shutter | darks after |
 //! |---|---|---|
-//! | 2 | 132 s | 30 of 60 s (30 min, as before) |
+//! | 2 | 132 s | 30 of 60 s (30 min, as in the default campaign) |
 //! | 3 | 12 s | 10 of 540 s (90 min) |
 //!
 //! Illumination 3's reset comes 12 s after its shutter, so its first dark starts on the
-//! steep part of the decay, where the bias is largest (about 32 % for a `1/t` decay;
-//! docs/diagnose_matrix.md, thirteenth session). The others, illumination 1 (the
+//! steep part of the decay, where the bias is largest (about 32 % for a `1/t` decay).
+//! The others, illumination 1 (the
 //! calibration's) included, keep 180 s darks and the 132 s wait.
 //!
 //! # Temperatures apart (`--temperatures apart`, [`Temperatures::apply`])
@@ -94,7 +93,7 @@
 //! or of the hours-long tail (the simulator's `soak`) and one of the temperature (its
 //! `temperature`) then show in the same illumination, and where they interact (soak's
 //! capture time follows the emission time, which the temperature changes) they nearly
-//! cancel (docs/diagnose_matrix.md, thirteenth session). The apart campaign moves
+//! cancel. The apart campaign moves
 //! illumination 4 to 80 K and follows it with 3 h of darks, and adds a sixth
 //! illumination, the fifth's twin at 78 K:
 //!
@@ -107,6 +106,20 @@
 //! The illuminations away from 80 K are then alike but for the temperature, and the
 //! length and the tail show at 80 K on their own. With `--spots shifted` or `pinholes`
 //! the sixth illumination takes the fifth's spot.
+//!
+//! # The paper's pattern (`--spots paper`, [`PaperPattern`])
+//! The pinhole pattern leaves most of the array below 3,000 e- (its floor is 0.05
+//! e-/s), so `fit`, `compare` and `diagnose` find "background pixels" that were never
+//! lit and measure each exposure's dark level on them. The paper's laboratory data have
+//! none: "flux ranging from tens to hundreds of thousands of electrons per second", a
+//! bright pinhole spot, a leak along one edge and tens of e-/s on every other pixel while
+//! the source is on. `--spots paper` (with or without `--campaign`) adds
+//! [`PAPER_FLOOR_E_PER_S`] = 30 e-/s to every pixel of every illumination (14,430 e- in
+//! the 481 s illumination; 3,600 e- in the campaign's dimmest, 481 s at a quarter of the
+//! flux), so that no pixel gets less than 3,000 e- in any illumination. With
+//! `--dark-pixels` a corner block of `size / 8` x `size / 8` pixels at the top right is
+//! masked instead (no floor, no leak; the spot's own tail there is below 1 e-/s), so the
+//! same pattern can be measured with and without pixels that were never lit.
 //!
 //! # Repeated illuminations (`--repeats N`, [`repeat`])
 //! In the default campaign the repeated 240 s illuminations (2 and 3) come 1 h and 30
@@ -204,11 +217,20 @@ impl Illumination {
     /// ([`pinhole_at`]), the sharp pinholes if asked ([`point_sources`]), times the flux
     /// scale.
     pub fn flux(&self, n: usize) -> Array2<f32> {
+        self.flux_in(n, None)
+    }
+
+    /// [`Illumination::flux`] with the paper's pattern applied before the flux scale
+    /// (the floor scales with the source, as the rest of the pattern does).
+    pub fn flux_in(&self, n: usize, paper: Option<PaperPattern>) -> Array2<f32> {
         let mut flux = pinhole_at(n, self.spot_offset);
         if self.points {
             for (y, x, f) in point_sources(n) {
                 flux[[y, x]] += f;
             }
+        }
+        if let Some(p) = paper {
+            flux = p.apply(flux);
         }
         flux.mapv(|v| v * self.flux_scale as f32)
     }
@@ -234,20 +256,62 @@ pub enum Spots {
     /// The default campaign plus a grid of sharp pinholes
     /// ([`Illumination::pinholes_campaign`]).
     Pinholes,
+    /// The centred spots with every pixel lit at tens of e-/s (module docs, "The paper's
+    /// pattern"; [`PaperPattern`]).
+    Paper,
 }
 
 impl Spots {
-    /// The campaign's illuminations.
+    /// The campaign's illuminations (the paper's pattern is the centred campaign's
+    /// spots; [`LabConfig::paper_pattern`] adds its floor).
     pub fn campaign(self) -> Vec<Illumination> {
         match self {
-            Spots::Centred => Illumination::default_campaign(),
+            Spots::Centred | Spots::Paper => Illumination::default_campaign(),
             Spots::Shifted => Illumination::shifted_campaign(),
             Spots::Pinholes => Illumination::pinholes_campaign(),
         }
     }
 }
 
-choices!(Spots, "--spots", Centred => "centred", Shifted => "shifted", Pinholes => "pinholes");
+choices!(Spots, "--spots", Centred => "centred", Shifted => "shifted", Pinholes => "pinholes", Paper => "paper");
+
+/// The flux added to every pixel by the paper's pattern while the source is on, e-/s
+/// (module docs, "The paper's pattern").
+pub const PAPER_FLOOR_E_PER_S: f32 = 30.0;
+
+/// The paper's illumination pattern (module docs, "The paper's pattern"): every pixel
+/// lit at [`PAPER_FLOOR_E_PER_S`] or more, except, with `dark_pixels`, a masked corner.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize)]
+pub struct PaperPattern {
+    /// Keep a `size / 8` square at the top right unlit (masked: no floor, no leak).
+    pub dark_pixels: bool,
+}
+
+impl PaperPattern {
+    /// `flux` (e-/s, an illumination's pattern before its flux scale) with the floor
+    /// added, and the corner masked if asked.
+    pub fn apply(self, mut flux: Array2<f32>) -> Array2<f32> {
+        let n = flux.nrows().min(flux.ncols());
+        let corner = (n / 8).max(1);
+        let nx = flux.ncols();
+        for ((y, x), v) in flux.indexed_iter_mut() {
+            if self.dark_pixels && y < corner && x >= nx - corner {
+                let spot = pinhole_spot_only(*v, x);
+                *v = spot;
+            } else {
+                *v += PAPER_FLOOR_E_PER_S;
+            }
+        }
+        flux
+    }
+}
+
+/// What is left of the pinhole pattern's value `v` at column `x` once its leak and
+/// floor are masked ([`pinhole_at`]).
+fn pinhole_spot_only(v: f32, x: usize) -> f32 {
+    let leak = 300.0 * 10f64.powf(-(x as f64) / 6.0);
+    (f64::from(v) - leak - 0.05).max(0.0) as f32
+}
 
 /// How long the campaign's dark integrations are (`persist simulate lab --dark-lengths`;
 /// module docs, "Dark lengths").
@@ -443,6 +507,11 @@ pub struct LabConfig {
     pub t_illuminated_s: f64,
     pub temp_k: f64,
     pub campaign: Option<Vec<Illumination>>,
+    /// The paper's pattern on every illumination (`--spots paper`; module docs, "The
+    /// paper's pattern"); `None`, the pinhole pattern alone, is not written to
+    /// `truth.json`.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub paper_pattern: Option<PaperPattern>,
     #[serde(skip)]
     pub effects: Vec<EffectSpec>,
     pub traps: TrapParams,
@@ -460,6 +529,7 @@ impl Default for LabConfig {
             t_illuminated_s: 481.0,
             temp_k: 80.0,
             campaign: None,
+            paper_pattern: None,
             effects: Vec::new(),
             traps: TrapParams::default(),
             detector: DetectorParams {
@@ -610,7 +680,7 @@ pub fn run(
     let mut index = 0u64;
     let mut first_dark = true;
     for s in &steps {
-        let flux = s.flux(n);
+        let flux = s.flux_in(n, cfg.paper_pattern);
         let t_exp = s.t_illuminated_s + s.after_shutter_s.unwrap_or(cfg.after_shutter_s);
         let temp = temp_at(s.temp_k, t);
         let out = sim.expose(&ExposureSpec {

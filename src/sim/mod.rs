@@ -1,5 +1,6 @@
 //! `persist simulate`: Level-1 products from a physical truth built independently of the
-//! flagging model (issue 3).
+//! flagging model, so that the model can be tested against something it was not built
+//! from.
 //!
 //! The truth is trap bins ([`traps`]), not the paper's exponential sum: per pixel, 49
 //! bins of emission time constants from 1 s to 1e6 s, each with a capture time constant

@@ -15,8 +15,8 @@
 //!
 //! # Sky
 //! - Zodiacal light: uniform in 0.5 to 2 e-/s per field (0.5 to 0.7 at the deep fields,
-//!   1 to 2 in the plane), with a 5 % gradient across the array (issue 3; paper section
-//!   5: zodiacal light is always present).
+//!   1 to 2 in the plane), with a 5 % gradient across the array (paper section 5:
+//!   zodiacal light is always present).
 //! - Stars: cumulative counts `N(<m) = n12 10^(0.35 (m - 12))` per array, `n12` = 30
 //!   stars brighter than m = 12 at high latitude (2.5 per deg^2 over the 12.2 deg^2 of
 //!   an array), from m = 3 to m = 18. The scale is anchored at saturation (below), so

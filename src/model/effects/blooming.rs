@@ -21,12 +21,12 @@
 //! three 1.5 s reads, so the on-board fit has fewer than three reads below half full
 //! well, ICD `SUR_ERROR`; not fitted). A source too bright for a slope is common next to
 //! the sharpest, brightest sources, where blooming matters most; counting it at 0 would
-//! miss exactly those (measured: seventeenth session).
+//! miss exactly those.
 //! Invariants: the added amplitude is finite, >= 0, and 0 at `fraction = 0`, for a
 //! pixel at or above `F_c`, and for a pixel with no saturated neighbour.
 //! Covariate: neighbour excess fluence.
-//! (Until the seventeenth session the effect added `gain_per_e * E_nb` to every pixel,
-//! saturated or not; files naming `gain_per_e` are refused with the parameter named.)
+//! Model files naming `gain_per_e` (an additive `gain_per_e * E_nb` on every pixel,
+//! saturated or not, which this form replaces) are refused with the parameter named.
 
 use super::get;
 use crate::model::effect::{Effect, EffectDef, ParamSpec, ResponseCtx};

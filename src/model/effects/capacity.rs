@@ -24,18 +24,15 @@
 //! `D + f max(0, k Cap - D)` (`f` the fraction filled), as the truth's bins do: a term
 //! that still holds more than `k Cap` gains nothing. A first illumination (`H` = 0)
 //! gives the paper's `A_k,n`; an exposure that adds nothing leaves `D`.
-//! (History: until 2026-11-22 the map `T / (1 + T * inv)` was applied to the whole
-//! amplitude at every exposure and compounded, found with `examples/truth_shape`; until
-//! 2026-11-24 the limit was per term, `D_n + (T_n - D_n)(1 - D_n * inv_a_max_per_e)`,
-//! so a term's fill saw only that term's held charge: the short terms, empty 30 minutes
-//! after an illumination, were never limited, where the held charge is in the long ones.
-//! Until 2026-11-25 the cut applied to what the combination added,
-//! `D_n + (T_n - D_n) / (1 + H * inv_q_max_per_e)`, not to the capacity before it: a
-//! term holding half its capacity then gained `k` of the other half where the truth
-//! gains `k Cap - D`, and `C` was left out; on the 8-repeat campaign at 128 x 128 the
-//! fit's RMS was 1.61 where this form gives 1.33, docs/diagnose_matrix.md,
-//! "Twenty-second session". Model files naming `inv_a_max_per_e` are refused, naming
-//! the parameter.)
+//! Why the limit is on the capacity, from the pixel's whole held charge: a per-term
+//! limit (`D_n + (T_n - D_n)(1 - D_n * inv_a_max_per_e)`) sees only that term's held
+//! charge, so the short terms, empty 30 minutes after an illumination, are never
+//! limited, while the held charge is in the long ones; a cut on what the combination
+//! adds (`D_n + (T_n - D_n) / (1 + H * inv_q_max_per_e)`) gives a term holding half its
+//! capacity `k` of the other half where the truth gives `k Cap - D` (on the 8-repeat
+//! campaign at 128 x 128 the fit's residual RMS is 1.61 that way, 1.33 with this form).
+//! Model files naming `inv_a_max_per_e` (the per-term form) are refused, naming the
+//! parameter.
 //! Parameter: `inv_q_max_per_e` (1 / the held charge that halves a new fill, 1/e-;
 //! default 5e-5, i.e. 20,000 e-, about twice the charge a saturated pixel of the paper
 //! holds; bounds [0, 0.01], null 0).

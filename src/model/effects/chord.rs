@@ -16,11 +16,10 @@
 //! 0, not fitted): the ramp's first read after its reset. The slope measures the charge
 //! between the first and the last read, so the mean runs from `t_slew + first_read_s`
 //! to `t_slew + T` ([`crate::model::effect::read_span`]); the simulator's and SPHEREx's
-//! first read is one frame, 1.5 s, after the reset. With 0 (the default, as before
-//! this parameter existed) the mean runs from the reset, and the current of the fastest
-//! terms before the first read, which no read sees, counts: with terms from 1 s that
-//! over-predicts the first dark after a bright illumination, which a fitted `strength`
-//! of ~0.86 used to make up for (docs/diagnose_matrix.md, "Fourteenth session").
+//! first read is one frame, 1.5 s, after the reset. With 0 (the default) the mean runs
+//! from the reset, and the current of the fastest terms before the first read, which no
+//! read sees, counts: with terms from 1 s that over-predicts the first dark after a
+//! bright illumination (a fitted `strength` of ~0.86 then makes up for it).
 //! `persist fit --with chord:strength=1,first_read_s=1.5` pins both: the readout is
 //! known, not fitted.
 //! Covariate: time since illumination (the first integrations after a bright one).

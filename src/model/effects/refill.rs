@@ -17,7 +17,7 @@
 //! [`Effect::response_is_fill`]; 1 without it), `A = f Cap` with `Cap` what the exposed
 //! traps could hold: at `beta` = 1 the occupancy relaxes toward `Cap` by the fraction
 //! `f`, `D + f max(0, Cap - D)` (the truth simulator's relaxation, `sim::traps`). With
-//! `f` = 1 in every term the old `min(D, A)` (bit for bit).
+//! `f` = 1 in every term this is `D + A - beta min(D, A)` (bit for bit).
 //! Parameter: `beta` (dimensionless; default 0.5, the start of the fit; bounds [0, 1],
 //! null 0).
 //! Covariate: earlier illuminations: only pixels lit again while their traps

@@ -20,10 +20,10 @@
 //! [`ResponseCtx::no_slope`]) the pixel is brighter than any measured one: its charge
 //! is reached early and its traps are held nearly the whole integration, so the fill is
 //! the level-blind `1 - exp(-k)`, `k = t_exp rate_n / capture_ratio` ([`Soak::fill`]).
-//! Until the eighteenth session the step kept these pixels at the full amplitude, so
-//! after the campaign's x4 illumination its brightest pixels carried unsoaked slow
-//! terms into the next illumination (docs/diagnose_matrix.md). A transient's fluence is
-//! unknown for another reason; it keeps the maximum amplitude whatever the hooks do.
+//! Kept at the full amplitude instead, the brightest pixels of the laboratory campaign's
+//! x4 illumination would carry unsoaked slow terms into the next illumination. A
+//! transient's fluence is unknown for another reason; it keeps the maximum amplitude
+//! whatever the hooks do.
 //! Below the first knot the table is linear through 0 and the fill does not depend on
 //! `F`: one value per term and exposure (every dark pixel).
 //!
@@ -38,17 +38,16 @@
 //! model without `temperature` is unchanged). A warmer exposure fills every term less
 //! (x0.973 at 82 K for `capture_ratio` 0.02 and 0.25 eV), a colder one more. The
 //! filling speed keeps capture alone (`k` above): `capture_ratio` << 1.
-//! The eighteenth session added it (docs/diagnose_matrix.md): with hidden `soak` and
-//! `temperature` the truth's first darks after the 82 K illumination were 2.5 % below
-//! the product of the two effects apart, and the model's were not.
+//! Without this factor, with hidden `soak` and `temperature` the truth's first darks
+//! after the 82 K illumination are 2.5 % below the product of the two effects apart,
+//! and the model's are not.
 //!
 //! Equation (response hook): `A_k,n *= fill_n(F) eq_n` (1 when `capture_ratio` = 0).
 //! Parameter: `capture_ratio` (default 0.1, bounds [0, 100], null 0).
 //! Covariate: illumination (soak) time, and time since illumination (the slow tail).
 //!
-//! The eleventh session replaced the level-blind form `A_k,n *= 1 - exp(-k)` by this
-//! one (docs/diagnose_matrix.md, "Eleventh session"): a fitted `capture_ratio` of the
-//! old form does not carry over.
+//! A `capture_ratio` fitted with the level-blind form `A_k,n *= 1 - exp(-k)` for every
+//! pixel does not carry over to this one.
 
 use super::get;
 use crate::model::effect::{Effect, EffectDef, ParamSpec, ResponseCtx};
@@ -82,8 +81,8 @@ pub struct Soak {
 }
 
 impl Soak {
-    /// Fill fraction of term `rate_per_s` for charge held `t_held_s` (the old,
-    /// level-blind form: every trap held for the whole illumination).
+    /// Fill fraction of term `rate_per_s` for charge held `t_held_s` (the level-blind
+    /// form: every trap held for the whole time).
     pub fn fill(&self, rate_per_s: f64, t_held_s: f64) -> f64 {
         if self.capture_ratio <= 0.0 {
             1.0

@@ -6,9 +6,8 @@
 //! saturation, citing its reference "2021Blooming"). Two channels:
 //! - **collected** (`fraction`): the neighbours' diodes collect it. It is in their ramps,
 //!   so their measured fluence already holds it and a persistence model driven by
-//!   measured fluence has nothing to miss (docs/diagnose_matrix.md, "Not found, and
-//!   why"); it is the image artefact.
-//! - **uncollected** (`trapped_fraction`, since the seventeenth session): charge the
+//!   measured fluence has nothing to miss; it is the image artefact.
+//! - **uncollected** (`trapped_fraction`): charge the
 //!   forward-biased source injects into its neighbours' junction region, where it raises
 //!   their trap fill level as their own charge would, but which never reaches their
 //!   integrating node: it is in no ramp, and the reset that ends the integration clears
@@ -18,7 +17,7 @@
 //!   assumption, chosen so that the paper's suspicion can be tested; nothing measured
 //!   supports its form or its size (the paper only says blooming "may be a contributing
 //!   factor"). A collected spill alone cannot be found by any model driven by measured
-//!   fluence (docs/diagnose_matrix.md, seventeenth session).
+//!   fluence.
 //!
 //! Equation: for each pixel with flux `phi > phi_sat = Q_fw / t_on`,
 //! - a fraction `fraction` of the excess flux `phi - phi_sat` is removed and shared
@@ -31,8 +30,8 @@
 //!   that saturates on its own gains little).
 //!
 //! Parameters: `fraction` (default 0.05, bounds [0, 0.5]) and `trapped_fraction`
-//! (default 0.2, bounds [0, 1]); both assumed, no measurement. `trapped_fraction=0` is
-//! the blooming of sessions 1-16, byte for byte.
+//! (default 0.2, bounds [0, 1]); both assumed, no measurement. With
+//! `trapped_fraction=0` only the collected spill remains.
 //! Visible as: neighbours of saturated pixels collect more charge (`fraction`), and
 //! neighbours of sharp saturated sources show more persistence than their own fluence
 //! gives (`trapped_fraction`); both grow with the source's excess.

@@ -5,8 +5,8 @@
 //! once, capture competes for them and the exposed capacity saturates (Langmuir-like
 //! filling); states that still hold charge from earlier illuminations are occupied and
 //! count against the same total, so a pixel lit again while it holds charge exposes
-//! fewer free states (issue 3: "trap capacity limits accumulation over repeated
-//! illuminations"). The per-bin relaxation of [`crate::sim::traps`] already keeps a
+//! fewer free states: trap capacity limits accumulation over repeated illuminations.
+//! The per-bin relaxation of [`crate::sim::traps`] already keeps a
 //! full bin from filling twice; this effect couples the bins through the pixel's total.
 //! Equation: every bin's exposed capacity is multiplied by
 //! `1 / (1 + (C_tot + H) / n_max)`, where `C_tot = (D_lin e_lin + D_sat e_sat) *
@@ -14,9 +14,9 @@
 //! decades = log10(tau_max/tau_min) = 6) and `H` the charge its traps hold as the
 //! exposure begins ([`CapacityCtx::held_e`]). A first illumination (`H` = 0) is
 //! compressed by `1 / (1 + C_tot / n_max)` alone, which a calibration's knots take in
-//! (docs/diagnose_matrix.md, fifteenth session, "Identifiability"); a repeated one also
-//! by what the pixel still holds. (Until 2026-11-24 `H` was not counted: the effect was
-//! a fluence response only, and could not be found.)
+//! (so a single illumination cannot tell this effect apart); a repeated one also by what
+//! the pixel still holds. Counting `H` is what makes the effect identifiable: without
+//! it the effect would be a fluence response only, which the knots absorb.
 //! Parameter: `n_max_e` (default 20,000 e-, bounds [100, 1e9]; assumed: about twice the
 //! total trapped charge of a typical saturated pixel of the paper, ~9,000 e-).
 //! Visible as: persistence of heavily saturated pixels drops by ~30 % while pixels

@@ -1,6 +1,6 @@
 //! The pixels' spread about the model, correlated between neighbours: what the
-//! simulator's hidden `populations` leaves (issue 4; docs/diagnose_matrix.md,
-//! "Twenty-fifth session" and "Twenty-sixth session").
+//! simulator's hidden `populations` leaves (docs/diagnose_matrix.md,
+//! "round 25" and "round 26").
 //!
 //! The cell statistic ([`super::eval`], `--cell-statistic population`) compares each
 //! cell's 95th percentile with its reference as if the cell's pixels were independent.
@@ -56,10 +56,9 @@
 //! never visited one by one: their products sum to `W_a W_b` (`W` a pixel's sum of
 //! `w` over the cell's exposures), and only the rows both pixels have (the
 //! same-exposure pairs) are merged. The work is linear in a cell's exposures. Visiting
-//! every pair of samples instead (4547d73) made `compare` on the 256 x 256 14 h lab
+//! every pair of samples instead made `compare` on the 256 x 256 14 h lab
 //! sequence, whose cells hold hundreds of exposures, take 88.9 s against 11.9 s
-//! (medians of three runs each, in turns; docs/diagnose_matrix.md, "Twenty-seventh
-//! session").
+//! (medians of three runs each, in turns; docs/diagnose_matrix.md, "round 27").
 
 use super::eval::{self, Samples};
 use levenberg_marquardt::{LeastSquaresProblem, LevenbergMarquardt};
@@ -606,7 +605,7 @@ pub fn score(s: &Samples, pred: &[f64], length_px: f64) -> (f64, u64) {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::diag::eval::{CellStatistic, Cells};
+    use crate::measure::eval::{CellStatistic, Cells};
     use rand::{Rng, SeedableRng};
     use rand_distr::StandardNormal;
 

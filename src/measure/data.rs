@@ -22,7 +22,7 @@
 //! 0.012 e-/s (128 x 128, seed 1). The measured current of a pixel at 4e3 e- is then
 //! low by 14 % more after the first illumination than after the others, and the
 //! calibration, which uses the first, sets the low knots that much too low
-//! (docs/diagnose_matrix.md, "Twenty-second session").
+//! (docs/diagnose_matrix.md, "round 22").
 //! [`Background::Line`] (`--background line`) measures instead, in a laboratory
 //! sequence, the intercept at zero fluence of a line through the background pixels'
 //! values against their fluence in the last illumination ([`background_line`]: the
@@ -343,7 +343,7 @@ impl Sequence {
 /// percentile with the noise removed in quadrature ([`signal_p95`]): the exposure noise
 /// and the shot noise of the bin's median current ([`shot_noise_added`]), which the
 /// statistic adds back sample by sample, so that `r` is the spread of the pixels'
-/// currents themselves (twenty-third session: with the shot noise left in, the
+/// currents themselves (round 23: with the shot noise left in, the
 /// statistic counted it twice). A bin is kept when it
 /// holds at least [`PopulationSpread::MIN_PIXELS`] pixels and its 95th percentile is at
 /// least [`PopulationSpread::MIN_SNR`] times the noise: removing the noise in quadrature
@@ -356,7 +356,7 @@ impl Sequence {
 /// first dark at every time and in every later illumination (true of the simulator's
 /// truth below saturation, where a pixel's current is its trap density, lognormal
 /// with 8 % scatter, times a history; above saturation its three-population mixture
-/// is not Gaussian, docs/diagnose_matrix.md, "Twenty-first session").
+/// is not Gaussian, docs/diagnose_matrix.md, "round 21").
 #[derive(Debug, Clone, Default, PartialEq)]
 pub struct PopulationSpread {
     /// `(log10 F, r)` per kept bin, `log10 F` the mean over the bin's pixels, increasing.
@@ -434,7 +434,7 @@ impl PopulationSpread {
 }
 
 /// Saturation fluence of the neighbour covariates (`neighbour_excess_fluence`, the
-/// neighbour contrast of [`crate::diag::eval`]) and of the calibration's
+/// neighbour contrast of [`crate::measure::eval`]) and of the calibration's
 /// neighbour-dominated cut ([`neighbour_dominated`]): the paper's 200,000 e-.
 pub const SATURATION_FLUENCE_E: f64 = 2e5;
 
@@ -533,30 +533,7 @@ pub fn fluence(e: &Exposure) -> Array2<f64> {
     f
 }
 
-/// The `q`-quantile (0..1) of finite values, linear interpolation; NaN when none.
-pub fn quantile(v: &[f64], q: f64) -> f64 {
-    quantile_in_place(&mut v.to_vec(), q)
-}
-
-/// [`quantile`] of `a`, reordering it (and dropping its values that are not finite)
-/// instead of copying it: the same value.
-pub fn quantile_in_place(a: &mut Vec<f64>, q: f64) -> f64 {
-    a.retain(|x| x.is_finite());
-    if a.is_empty() {
-        return f64::NAN;
-    }
-    let pos = q.clamp(0.0, 1.0) * (a.len() - 1) as f64;
-    let i = pos.floor() as usize;
-    // the i-th and (i+1)-th smallest by selection (the values a full sort would give)
-    let (_, ai, rest) = a.select_nth_unstable_by(i, |x, y| x.total_cmp(y));
-    let ai = *ai;
-    let aj = rest
-        .iter()
-        .copied()
-        .min_by(|x, y| x.total_cmp(y))
-        .unwrap_or(ai);
-    ai + (aj - ai) * (pos - i as f64)
-}
+pub use crate::stats::{quantile, quantile_in_place};
 
 /// The `q`-quantile (0..1) of what a measurement of these predictions would show: of
 /// the mixture `mean_i N(pred_i, sigma_i^2)` (each predicted value plus its sample's
@@ -744,8 +721,7 @@ mod tests {
     /// variance 1.2 / 180 per e-/s, [`super::super::eval::SHOT_VAR_LINE_FIT`]) on top of
     /// the exposure noise: told the shot noise, `r` is the 8 % lognormal's 0.075 within
     /// 15 % at 1e4.3-1e5 e-, where the shot noise is 1-2.6 times the spread below the
-    /// 95th percentile; told only the exposure noise (as before the twenty-third
-    /// session), `r` counts the shot noise as spread and stands more than 30 % high at
+    /// 95th percentile; told only the exposure noise (as before the round 23), `r` counts the shot noise as spread and stands more than 30 % high at
     /// 1e4.3-1e4.5 e-.
     #[test]
     fn population_spread_leaves_out_the_shot_noise() {

@@ -1,0 +1,15 @@
+#!/usr/bin/env bash
+# Build the Python package (python/: PyO3 + maturin, module `persist`) from this
+# checkout, install it into the current Python, check that it imports, and run its
+# pytest suite (python/tests; it also runs docs/python_example.py).
+# scripts/bootstrap.sh --python installs maturin, numpy, h5py, pytest and matplotlib.
+# The build is a release build in python/target (a crate of its own, with its own lock).
+set -euo pipefail
+cd "$(dirname "$0")/.."
+start=$(date +%s)
+python3 -m pip install --quiet --no-build-isolation --force-reinstall --no-deps ./python
+built=$(date +%s)
+echo "python: build+install $((built - start)) s" >&2
+python3 -c "import persist; print('python package persist', persist.__version__, 'imported')"
+# pytest's summary line stays the last line of `make test`.
+python3 -m pytest -q python/tests

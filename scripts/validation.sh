@@ -1,0 +1,182 @@
+#!/usr/bin/env bash
+# Regenerates the validation pages under docs/validation/: current results, each page
+# produced by the commands it names, with a generated header (date, machine, commit,
+# command; scripts/validation_header.sh).
+#
+#   scripts/validation.sh [PAGE...]        (make validation [PAGES="floor bench"])
+#
+# Pages:
+#   floor   docs/validation/floor_scan.md       `persist demo` over sky and model settings
+#                                               (about 13 runs; minutes)
+#   bench   docs/validation/bench.md (+ .json)  `persist bench $BENCH_ARGS` (default: the
+#                                               full benchmark, tens of minutes; BENCH_ARGS=--quick
+#                                               runs in about a minute)
+#   matrix  docs/validation/diagnose_matrix.md  examples/diagnose_matrix $MATRIX_ARGS
+#                                               (default --size 128: hours)
+#   verify  docs/validation/verify.md           scripts/validate_verify.sh (minutes)
+# Without arguments every page is regenerated. Release builds (PERSIST_BIN=path skips the
+# build of the binary); run it on a quiet machine
+# (the header records the load average at the start).
+set -euo pipefail
+cd "$(dirname "$0")/.."
+root=$PWD
+out_dir=docs/validation
+mkdir -p "$out_dir"
+
+pages=("$@")
+if [[ ${#pages[@]} -eq 0 ]]; then
+    pages=(floor bench matrix verify)
+fi
+for p in "${pages[@]}"; do
+    case $p in
+        floor|bench|matrix|verify) ;;
+        *) echo "validation.sh: unknown page '$p' (floor, bench, matrix, verify)" >&2; exit 2 ;;
+    esac
+done
+
+# PERSIST_BIN: use this binary instead of building one (it must be built from the
+# commit the header names).
+if [[ -n "${PERSIST_BIN:-}" ]]; then
+    persist=$(realpath "$PERSIST_BIN")
+else
+    cargo build --release --quiet
+    persist=$root/target/release/persist
+fi
+tmp=$(mktemp -d)
+trap 'rm -rf "$tmp"' EXIT
+
+# ---------------------------------------------------------------------------------
+# floor: the demo's flagged fractions, predicted and true, over a few sky settings.
+page_floor() {
+    local page=$out_dir/floor_scan.md
+    # The default model without early release.
+    "$persist" model default | sed 's/"enabled": true/"enabled": false/' > "$tmp/no-early-release.json"
+    "$persist" model id "$tmp/no-early-release.json" > /dev/null
+    grep -q '"enabled": false' "$tmp/no-early-release.json"
+
+    local rows=(
+        ""
+        "--n12 55"
+        "--size 64"
+        "--size 64 --n12 55"
+        "--size 64 --n12 150"
+        "--size 64 --n12 430"
+        "--size 64 --n12 1660"
+        "--size 64 --cosmic-rate 1"
+        "--size 64 --cosmic-rate 10"
+        "--size 64 --n12 0 --cosmic-rate 0"
+        "--size 64 --model no-early-release.json"
+        "--size 64 --cosmic-rate 0 --model no-early-release.json"
+        "--size 64 --n12 1660 --model no-early-release.json"
+    )
+    local table=$tmp/floor_rows.md
+    : > "$table"
+    local args
+    for args in "${rows[@]}"; do
+        echo "floor: persist demo $args" >&2
+        # shellcheck disable=SC2086
+        (cd "$tmp" && "$persist" --log-level warn demo --out demo $args) > "$tmp/demo.txt"
+        awk -v cmd="persist demo${args:+ $args}" '
+            /^after the first 6 h/ { split($0, a, ": "); split(a[2], b, "% of pixels above 0.1 e-\\/s, "); p1 = b[1]; sub(/% above 0.01 e-\/s/, "", b[2]); p01 = b[2] }
+            /^true persistence after the first 6 h/ { split($0, a, ": "); split(a[2], b, "% above 0.1 e-\\/s, "); t1 = b[1]; sub(/% above 0.01 e-\/s/, "", b[2]); t01 = b[2] }
+            /^median pixel after the first 6 h/ { for (i = 1; i <= NF; i++) { if ($i == "true") mt = $(i + 1); if ($i == "predicted") mp = $(i + 1) } }
+            /^per exposure \(mean\)/ { for (i = 1; i <= NF; i++) { if ($i == "pixels" && $(i + 1) == "saturated,") sat = $(i - 2); if ($i == "hit") cr = $(i - 1) } }
+            END {
+                if (p1 == "" || t1 == "" || mp == "" || sat == "") { print "floor: could not read the demo output of " cmd > "/dev/stderr"; exit 1 }
+                printf "| `%s` | %s%% | %s%% | %s%% | %s%% | %s | %s | %s | %s |\n", cmd, p1, p01, t1, t01, mp, mt, sat, cr
+            }' "$tmp/demo.txt" >> "$table"
+    done
+
+    {
+        scripts/validation_header.sh "Validation: the persistence floor of the two-day sky demo" \
+            "make validation PAGES=floor (scripts/validation.sh floor)"
+        cat <<'TEXT'
+Each row is one `persist demo` run (one detector, 1143 exposures of 112 s: the paper's two
+days of survey, seed 1; 128 x 128 pixels unless `--size 64`) and the numbers are what it
+printed: the median over the exposures after the first 6 h of the fraction of pixels
+whose **predicted** current (the stage's `/persistence/current`) or **true** current (the
+simulator's `truth/*.truth.hdf5`) is above 0.1 and 0.01 e-/s; the median pixel's current,
+predicted and true; the mean fraction of pixels saturated (`OVERFLOW`) and hit by a
+cosmic ray (`TRANSIENT`) per exposure.
+
+Settings (`persist demo --help`): `--n12` is the number of stars per 2040 x 2040 array that
+saturate a pixel in one integration (default 30); `--cosmic-rate` in hits /cm^2/s (default
+5); `no-early-release.json` is `persist model default` with `early_release.enabled` set to
+`false`. What the rows mean for the paper's "floor" is discussed in
+[the model page](../model.md#the-sky-demo-and-the-papers-floor).
+
+| command | predicted > 0.1 | predicted > 0.01 | true > 0.1 | true > 0.01 | median pixel predicted (e-/s) | median pixel true (e-/s) | saturated / exposure | cosmic ray / exposure |
+|---|---|---|---|---|---|---|---|---|
+TEXT
+        cat "$table"
+    } > "$page.tmp"
+    mv "$page.tmp" "$page"
+    echo "wrote $page" >&2
+}
+
+# ---------------------------------------------------------------------------------
+# bench: `persist bench` (docs/performance.md explains the cases).
+page_bench() {
+    local page=$out_dir/bench.md
+    local bench_args=${BENCH_ARGS:-}
+    echo "bench: persist bench $bench_args" >&2
+    # shellcheck disable=SC2086
+    "$persist" --log-level warn bench $bench_args --json "$tmp/bench.json" > "$tmp/bench.txt"
+    local kind="the full benchmark"
+    if [[ " $bench_args " == *" --quick "* ]]; then
+        kind="the quick benchmark (--quick: small sizes, few repetitions; rerun without it on a quiet machine for the sizes of docs/performance.md)"
+    fi
+    {
+        scripts/validation_header.sh "Validation: performance of the model step and the stage" \
+            "make validation PAGES=bench BENCH_ARGS='$bench_args' (persist bench $bench_args)" \
+            "$kind"
+        cat <<'TEXT'
+What each column measures, and the bounds they are compared with, is in
+[docs/performance.md](../performance.md). Rates are exposures per second (medians of the
+pooled samples); "peak" is the stage's peak resident memory for one detector's stream and
+"bound" 1.5 x (state + three float32 images). The raw samples are in
+[bench.json](bench.json).
+
+TEXT
+        cat "$tmp/bench.txt"
+    } > "$page.tmp"
+    mv "$page.tmp" "$page"
+    cp "$tmp/bench.json" "$out_dir/bench.json"
+    echo "wrote $page" >&2
+}
+
+# ---------------------------------------------------------------------------------
+# matrix: hidden effects in simulated laboratory campaigns, diagnosed and refitted.
+page_matrix() {
+    local page=$out_dir/diagnose_matrix.md
+    local matrix_args=${MATRIX_ARGS:---size 128}
+    echo "matrix: cargo run --release --example diagnose_matrix -- $matrix_args" >&2
+    # shellcheck disable=SC2086
+    cargo run --release --quiet --example diagnose_matrix -- $matrix_args --out "$tmp/matrix.md" >&2
+    {
+        scripts/validation_header.sh "Validation: what persist diagnose finds" \
+            "make validation PAGES=matrix MATRIX_ARGS='$matrix_args' (cargo run --release --example diagnose_matrix -- $matrix_args)"
+        cat <<'TEXT'
+Hidden effects in simulated laboratory campaigns (`persist simulate lab --campaign
+--effect NAME`), each diagnosed against a reference model, refitted with `fit --with` and
+compared, as the command line does it (`examples/diagnose_matrix.rs` makes the same
+library calls). How to read `diagnose` is in [docs/diagnostics.md](../diagnostics.md).
+
+TEXT
+        cat "$tmp/matrix.md"
+    } > "$page.tmp"
+    mv "$page.tmp" "$page"
+    if [[ -f "$tmp/matrix.jsonl" ]]; then
+        cp "$tmp/matrix.jsonl" "$out_dir/diagnose_matrix.jsonl"
+    fi
+    echo "wrote $page" >&2
+}
+
+# verify: persist verify against the simulator's truth (its own script).
+page_verify() {
+    PERSIST_BIN=$persist scripts/validate_verify.sh
+}
+
+for p in "${pages[@]}"; do
+    "page_$p"
+done

@@ -1,0 +1,693 @@
+//! What the data can test, and what the residual of a flexible base depends on.
+//!
+//! # Contrast classes
+//! Each library effect acts on one covariate ([`class_of`]). An effect can only be told
+//! from everything else the model gets slightly wrong where its covariate varies among
+//! samples that are otherwise alike (same fluence, same time since illumination).
+//! [`testability`] decides that from the data alone, class by class:
+//!
+//! - `illumination_time` (soak): two illumination durations differing by more than
+//!   [`REL_DIFFERENT`];
+//! - `temperature`: focal-plane temperatures spanning at least [`MIN_TEMPERATURE_SPAN_K`];
+//! - `earlier_illuminations` (capacity, refill): a second illumination event;
+//! - `integration_length` (linefit_bias): dark integrations of lengths differing by
+//!   more than [`REL_DIFFERENT`] (the on-board line fit's bias grows with the length and
+//!   the decay's curvature; at one length it is a function of the time since
+//!   illumination, which the base takes in);
+//! - `neighbour_excess_fluence` (blooming, ipc): at least [`MIN_SHARP_BLOCKS`] sampled
+//!   pixel-events whose neighbours' excess over saturation exceeds their own fluence;
+//! - `position` (populations): at least [`MIN_SHARP_BLOCKS`] pixel-events in strata of
+//!   one event and one fluence bin that span [`MIN_TILES`] tiles of the array (with a
+//!   centred spot radius and fluence go together and position has no contrast);
+//! - `fluence_x_time`, `time_since_illumination` (short_tau_boost, chord): functions of
+//!   (fluence, time since illumination) alone, which the base absorbs by construction
+//!   (module docs of [`super::diagnose`]): never declared from contrasts; `compare` and
+//!   `fit --with` measure them.
+//!
+//! An untestable class is an answer: it is listed with the measurement that would give
+//! it contrast, and its effects are not scored.
+//!
+//! # The flexible base and its residual
+//! The base is the fitted model plus a free offset per cell of (fluence bin, time bin),
+//! shared by every illumination event (a free response per fluence bin and a free decay
+//! per time bin): `e_i = (d_i - mean_c d) / scale_c`, `d_i = measured - predicted`,
+//! `scale_c` the cell's robust spread (1.4826 MAD, at least the median measurement
+//! noise), clipped to +-[`CLIP`]. Any misfit of the decay law, of the response around
+//! saturation, of the mix of trap populations or of the noise level is a function of
+//! (fluence, time) and leaves `e` unchanged on average. For covariates that vary from
+//! pixel to pixel within an event the cells are also split by event.
+//!
+//! # Dependence on a covariate, calibrated by permutation
+//! The samples are grouped in blocks of one pixel in one event (its whole time series).
+//! Each block has a covariate bin `x_b` and a stratum (its fluence bin; with the event
+//! for pixel covariates). `T = sum_(c, x) S_(c,x)^2 / n_(c,x)`, `S` the sum of `e` over
+//! the samples of cell `c` in blocks of bin `x`: the variance of the base's residual
+//! explained by the covariate inside the cells. The null distribution comes from
+//! [`PERMUTATIONS`] permutations of `x` among the blocks of each stratum, whole blocks at
+//! a time: it keeps every misfit of the base, the correlation of a pixel's residuals in
+//! time and the noise, and destroys only the link to the covariate. A class depends on
+//! its covariate when `T` exceeds every permutation (p < 1/(P+1)) and the excess over the
+//! permutations' mean explains at least [`MIN_R2`] of the residual's sum of squares.
+//! Classes are ranked by `z = (T - mean) / sd` of the permutations. The effects of every
+//! class whose `T` exceeds every permutation are refitted, and held-out prediction
+//! chooses among them ([`super::diagnose`]): event-level classes are often confounded
+//! (in a campaign the events differ in duration, flux, temperature and history at once). Two event-level
+//! classes whose covariates split the events the same way cannot be told apart; both
+//! are reported, with the same `T`.
+
+use super::data::{fluence, Sequence};
+use super::eval::{bin_of, Samples};
+use crate::sim::analysis::median;
+use rand::seq::SliceRandom;
+use rand::SeedableRng;
+use serde::Serialize;
+use std::collections::BTreeMap;
+
+/// Two durations (or integration lengths) differ when their ratio exceeds `1 + this`.
+pub const REL_DIFFERENT: f64 = 0.1;
+/// The focal-plane temperatures must span at least this to test `temperature`.
+pub const MIN_TEMPERATURE_SPAN_K: f64 = 1.0;
+/// Pixel-events with the contrast needed for a pixel-level class.
+pub const MIN_SHARP_BLOCKS: usize = 20;
+/// Tiles (of a 4 x 4 grid) one stratum must span for `position`.
+pub const MIN_TILES: usize = 4;
+/// Permutations of the dependence test.
+pub const PERMUTATIONS: usize = 99;
+/// Smallest share of the base residual's sum of squares a covariate must explain.
+pub const MIN_R2: f64 = 0.01;
+/// Clip of the standardised base residual.
+pub const CLIP: f64 = 5.0;
+
+/// The contrast class of a library effect (module docs).
+pub fn class_of(effect: &str, covariate: &str) -> &'static str {
+    match (effect, covariate) {
+        ("linefit_bias", _) => "integration_length",
+        (_, "illumination_time") => "illumination_time",
+        (_, "temperature") => "temperature",
+        (_, "earlier_illuminations") => "earlier_illuminations",
+        (_, "neighbour_excess_fluence") => "neighbour_excess_fluence",
+        (_, "position") => "position",
+        (_, "fluence_x_time") => "fluence_x_time",
+        _ => "time_since_illumination",
+    }
+}
+
+/// Whether a class varies from pixel to pixel inside one event (its cells are split
+/// by event) rather than from event to event.
+fn pixel_level(class: &str) -> bool {
+    matches!(class, "neighbour_excess_fluence" | "position")
+}
+
+/// Whether the data hold contrast for one class.
+#[derive(Debug, Clone, Serialize)]
+pub struct Testability {
+    pub class: String,
+    pub effects: Vec<String>,
+    pub testable: bool,
+    /// What the data hold (testable) or lack (untestable).
+    pub why: String,
+    /// The measurement that would make it testable.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub needs: Option<String>,
+}
+
+/// Distinct values (ratio above `1 + REL_DIFFERENT` apart), sorted.
+fn distinct(mut v: Vec<f64>) -> Vec<f64> {
+    v.retain(|x| x.is_finite() && *x > 0.0);
+    v.sort_by(f64::total_cmp);
+    let mut out: Vec<f64> = Vec::new();
+    for x in v {
+        if out.last().is_none_or(|&l| x > l * (1.0 + REL_DIFFERENT)) {
+            out.push(x);
+        }
+    }
+    out
+}
+
+fn list_s(v: &[f64]) -> String {
+    v.iter()
+        .map(|x| format!("{x:.0} s"))
+        .collect::<Vec<_>>()
+        .join(", ")
+}
+
+/// The events (illumination exposure indices into the sequence) the samples follow.
+fn events(s: &Samples) -> Vec<usize> {
+    let mut e = s.event.clone();
+    e.sort_unstable();
+    e.dedup();
+    e
+}
+
+/// The 4 x 4 tile of a pixel.
+fn tile(seq: &Sequence, (y, x): (usize, usize)) -> i64 {
+    ((y * 4 / seq.ny.max(1)) * 4 + x * 4 / seq.nx.max(1)) as i64
+}
+
+/// Pixel-events (blocks) of the samples: `(event, pixel index, fluence bin)`, each once.
+fn blocks(s: &Samples) -> Vec<(usize, usize, i64)> {
+    let np = s.npix();
+    let mut seen = std::collections::BTreeSet::new();
+    for i in 0..s.len() {
+        if !s.measured[i].is_finite() {
+            continue;
+        }
+        let (row, px) = (i / np, i % np);
+        if let Some(f) = bin_of(s, "fluence", i) {
+            seen.insert((s.event[row], px, f));
+        }
+    }
+    seen.into_iter().collect()
+}
+
+/// Which classes the data can test (module docs), for the library effects `effects`
+/// (name, covariate of the registry).
+pub fn testability(seq: &Sequence, s: &Samples, effects: &[(&str, &str)]) -> Vec<Testability> {
+    let ev = events(s);
+    let mut classes: Vec<(&'static str, Vec<String>)> = Vec::new();
+    for &(name, cov) in effects {
+        let c = class_of(name, cov);
+        match classes.iter_mut().find(|(k, _)| *k == c) {
+            Some((_, v)) => v.push(name.to_string()),
+            None => classes.push((c, vec![name.to_string()])),
+        }
+    }
+    let np = s.npix();
+    let blocks = blocks(s);
+    classes
+        .into_iter()
+        .map(|(class, effects)| {
+            let (testable, why, needs): (bool, String, Option<String>) = match class {
+                "illumination_time" => {
+                    let d = distinct(
+                        ev.iter()
+                            .map(|&a| seq.exposures[a].meta.t_illuminated_s())
+                            .collect(),
+                    );
+                    if d.len() >= 2 {
+                        (true, format!("illumination durations {}", list_s(&d)), None)
+                    } else {
+                        (
+                            false,
+                            format!("every illumination lasts {}", list_s(&d)),
+                            Some(
+                                "illuminations of two durations at equal fluence (for example \
+                                 120 s and 481 s)"
+                                    .into(),
+                            ),
+                        )
+                    }
+                }
+                "temperature" => {
+                    let t: Vec<f64> = s
+                        .temperature_k
+                        .iter()
+                        .copied()
+                        .filter(|t| t.is_finite())
+                        .collect();
+                    let (lo, hi) = t.iter().fold((f64::INFINITY, f64::NEG_INFINITY), |a, &x| {
+                        (a.0.min(x), a.1.max(x))
+                    });
+                    let needs = Some(
+                        "illuminations at focal-plane temperatures at least 2 K apart (for \
+                         example 78 K and 82 K), with focal_plane_temp_k recorded"
+                            .into(),
+                    );
+                    if t.is_empty() {
+                        (
+                            false,
+                            "no exposure records focal_plane_temp_k".into(),
+                            needs,
+                        )
+                    } else if hi - lo >= MIN_TEMPERATURE_SPAN_K {
+                        (true, format!("temperatures {lo:.1} to {hi:.1} K"), None)
+                    } else {
+                        (
+                            false,
+                            format!("temperatures span {lo:.1} to {hi:.1} K only"),
+                            needs,
+                        )
+                    }
+                }
+                "earlier_illuminations" => {
+                    if ev.len() >= 2 {
+                        (true, format!("{} illumination events", ev.len()), None)
+                    } else {
+                        (
+                            false,
+                            "one illumination event: the traps were empty before it".into(),
+                            Some(
+                                "a second illumination while the traps still hold the first's \
+                                 charge (for example illuminations of 240 s repeated after 15 \
+                                 min of darks)"
+                                    .into(),
+                            ),
+                        )
+                    }
+                }
+                "integration_length" => {
+                    let d = distinct(
+                        s.exposures
+                            .iter()
+                            .map(|&k| seq.exposures[k].meta.t_exposure_s)
+                            .collect(),
+                    );
+                    if d.len() >= 2 {
+                        (true, format!("dark integrations of {}", list_s(&d)), None)
+                    } else {
+                        (
+                            false,
+                            format!(
+                                "every dark integration lasts {}: the line fit's bias is then \
+                                 a function of the time since illumination, which the base \
+                                 takes in",
+                                list_s(&d)
+                            ),
+                            Some(
+                                "dark integrations of different lengths after equal \
+                                 illuminations (for example 60 s and 540 s)"
+                                    .into(),
+                            ),
+                        )
+                    }
+                }
+                "neighbour_excess_fluence" => {
+                    let mut sharp = std::collections::BTreeSet::new();
+                    for i in 0..s.len() {
+                        if s.measured[i].is_finite()
+                            && bin_of(s, "neighbour_contrast", i) == Some(1)
+                        {
+                            sharp.insert((s.event[i / np], i % np));
+                        }
+                    }
+                    if sharp.len() >= MIN_SHARP_BLOCKS {
+                        (
+                            true,
+                            format!(
+                                "{} sampled pixel-events next to far brighter, saturated pixels",
+                                sharp.len()
+                            ),
+                            None,
+                        )
+                    } else {
+                        (
+                            false,
+                            format!(
+                                "{} sampled pixel-events next to far brighter, saturated pixels \
+                                 (at least {MIN_SHARP_BLOCKS} needed): no sharp features",
+                                sharp.len()
+                            ),
+                            Some(
+                                "sharp features: pixels below saturation next to saturated ones \
+                                 (a grid of one-pixel pinholes, or an edge)"
+                                    .into(),
+                            ),
+                        )
+                    }
+                }
+                "position" => {
+                    let mut strata: BTreeMap<(usize, i64), (usize, Vec<i64>)> = BTreeMap::new();
+                    for &(e, px, f) in &blocks {
+                        let t = tile(seq, s.pixels[px]);
+                        let st = strata.entry((e, f)).or_default();
+                        st.0 += 1;
+                        if !st.1.contains(&t) {
+                            st.1.push(t);
+                        }
+                    }
+                    let spread: usize = strata
+                        .values()
+                        .filter(|(_, t)| t.len() >= MIN_TILES)
+                        .map(|(n, _)| n)
+                        .sum();
+                    if spread >= MIN_SHARP_BLOCKS {
+                        (
+                            true,
+                            format!(
+                                "{spread} sampled pixel-events share their fluence bin with \
+                                 pixels in {MIN_TILES} or more tiles of the array"
+                            ),
+                            None,
+                        )
+                    } else {
+                        (
+                            false,
+                            "equal fluences lie in one part of the array only (radius and \
+                             fluence go together)"
+                                .into(),
+                            Some(
+                                "equal fluence at different positions (the spot moved across \
+                                 the array, or a flat illumination)"
+                                    .into(),
+                            ),
+                        )
+                    }
+                }
+                _ => (
+                    false,
+                    "a function of fluence and time since illumination alone, which the base \
+                     absorbs: no contrast can tell it from the base's own misfit"
+                        .into(),
+                    Some(
+                        "no measurement separates it from the decay law; measure it with \
+                         persist fit --with NAME and compare"
+                            .into(),
+                    ),
+                ),
+            };
+            Testability {
+                class: class.to_string(),
+                effects,
+                testable,
+                why,
+                needs,
+            }
+        })
+        .collect()
+}
+
+/// The base residual's dependence on one class's covariate (module docs).
+#[derive(Debug, Clone, Serialize)]
+pub struct Dependence {
+    pub class: String,
+    pub effects: Vec<String>,
+    /// `T` over the residual's sum of squares.
+    pub r2: f64,
+    /// The permutations' mean of the same.
+    pub r2_null_mean: f64,
+    /// The permutations' largest.
+    pub r2_null_max: f64,
+    pub z: f64,
+    pub permutations: usize,
+    pub depends: bool,
+    /// `T` above every permutation (p < 1/(P+1)), whatever the effect size: its effects
+    /// are refitted and judged by held-out prediction.
+    pub above_permutations: bool,
+    /// Mean standardised base residual per covariate bin: (bin, blocks, mean).
+    pub by_bin: Vec<(String, usize, f64)>,
+}
+
+/// The standardised residual of the flexible base (module docs), per sample (NaN where
+/// unusable), cells split by event when `by_event`.
+#[allow(clippy::needless_range_loop)] // i indexes the samples' parallel columns
+fn base_residual(s: &Samples, pred: &[f64], by_event: bool) -> Vec<f64> {
+    let np = s.npix();
+    let mut cells: BTreeMap<(i64, i64, usize), Vec<usize>> = BTreeMap::new();
+    for i in 0..s.len() {
+        if !(s.measured[i].is_finite() && pred[i].is_finite()) {
+            continue;
+        }
+        let row = i / np;
+        let (Some(f), Some(t)) = (bin_of(s, "fluence", i), bin_of(s, "time", i)) else {
+            continue;
+        };
+        let e = if by_event { s.event[row] } else { usize::MAX };
+        cells.entry((f, t, e)).or_default().push(i);
+    }
+    let mut out = vec![f64::NAN; s.len()];
+    for idx in cells.values() {
+        if idx.len() < 4 {
+            continue;
+        }
+        let d: Vec<f64> = idx.iter().map(|&i| s.measured[i] - pred[i]).collect();
+        let med = median(&d);
+        let dev: Vec<f64> = d.iter().map(|x| (x - med).abs()).collect();
+        let noise = median(&idx.iter().map(|&i| s.noise[i / np]).collect::<Vec<_>>());
+        let scale = (1.4826 * median(&dev)).max(noise).max(1e-12);
+        let z: Vec<f64> = d
+            .iter()
+            .map(|x| ((x - med) / scale).clamp(-CLIP, CLIP))
+            .collect();
+        let mean = z.iter().sum::<f64>() / z.len() as f64;
+        for (&i, v) in idx.iter().zip(z) {
+            out[i] = v - mean;
+        }
+    }
+    out
+}
+
+/// Per-block covariate bin of a class; None leaves the block out.
+fn covariate_bins(
+    seq: &Sequence,
+    s: &Samples,
+    class: &str,
+    blocks: &[(usize, usize, i64)],
+) -> Vec<Option<i64>> {
+    let np = s.npix();
+    // the first row of each event, for the event-level covariates
+    let mut first_row: BTreeMap<usize, usize> = BTreeMap::new();
+    for (r, &e) in s.event.iter().enumerate() {
+        first_row.entry(e).or_insert(r);
+    }
+    // per event: the fluence map of the illumination before it, for capacity
+    let mut prev: BTreeMap<usize, Option<ndarray::Array2<f64>>> = BTreeMap::new();
+    blocks
+        .iter()
+        .map(|&(e, px, _)| {
+            let row = first_row[&e];
+            let i = row * np + px;
+            match class {
+                "illumination_time" => {
+                    let t = seq.exposures[e].meta.t_illuminated_s();
+                    (t > 0.0).then(|| (t.log10() * 20.0).round() as i64)
+                }
+                "temperature" => {
+                    let t = seq.exposures[e].meta.focal_plane_temp_k?;
+                    Some((t * 2.0).round() as i64)
+                }
+                "integration_length" => {
+                    let rows: Vec<f64> = s
+                        .exposures
+                        .iter()
+                        .zip(&s.event)
+                        .filter(|(_, &ev)| ev == e)
+                        .map(|(&k, _)| seq.exposures[k].meta.t_exposure_s)
+                        .collect();
+                    let m = median(&rows);
+                    (m > 0.0).then(|| (m.log10() * 20.0).round() as i64)
+                }
+                "earlier_illuminations" => {
+                    let f = prev.entry(e).or_insert_with(|| {
+                        seq.illuminations
+                            .iter()
+                            .rfind(|&&a| a < e)
+                            .map(|&a| fluence(&seq.exposures[a]))
+                    });
+                    let (y, x) = s.pixels[px];
+                    Some(match f {
+                        None => -100,
+                        Some(f) => {
+                            let v = f[(y, x)];
+                            if v.is_finite() && v > 1.0 {
+                                (v.log10() * 2.0).floor() as i64
+                            } else {
+                                -100
+                            }
+                        }
+                    })
+                }
+                "neighbour_excess_fluence" => bin_of(s, "neighbour_excess_fluence", i),
+                "position" => Some(tile(seq, s.pixels[px])),
+                _ => None,
+            }
+        })
+        .collect()
+}
+
+/// The dependence of the base residual on each testable class's covariate, ranked by
+/// `z` (module docs). `pred` is the fitted model's prediction of every sample.
+pub fn dependences(
+    seq: &Sequence,
+    s: &Samples,
+    pred: &[f64],
+    classes: &[Testability],
+    seed: u64,
+) -> Vec<Dependence> {
+    let np = s.npix();
+    let blocks = blocks(s);
+    let block_of: BTreeMap<(usize, usize), usize> = blocks
+        .iter()
+        .enumerate()
+        .map(|(b, &(e, px, _))| ((e, px), b))
+        .collect();
+    let mut residual: [Option<Vec<f64>>; 2] = [None, None];
+    let mut out: Vec<Dependence> = classes
+        .iter()
+        .filter(|c| c.testable)
+        .filter(|c| c.class != "fluence_x_time" && c.class != "time_since_illumination")
+        .map(|c| {
+            let by_event = pixel_level(&c.class);
+            let e = residual[usize::from(by_event)]
+                .get_or_insert_with(|| base_residual(s, pred, by_event))
+                .clone();
+            let x = covariate_bins(seq, s, &c.class, &blocks);
+            // per block: (cell id, sum, n) of its samples
+            let mut cell_ids: BTreeMap<(i64, i64, usize), usize> = BTreeMap::new();
+            let mut per_block: Vec<BTreeMap<usize, (f64, f64)>> =
+                vec![BTreeMap::new(); blocks.len()];
+            let mut ss = 0.0;
+            for (i, &v) in e.iter().enumerate() {
+                if !v.is_finite() {
+                    continue;
+                }
+                let (row, px) = (i / np, i % np);
+                let Some(&b) = block_of.get(&(s.event[row], px)) else {
+                    continue;
+                };
+                if x[b].is_none() {
+                    continue;
+                }
+                let (Some(f), Some(t)) = (bin_of(s, "fluence", i), bin_of(s, "time", i)) else {
+                    continue;
+                };
+                let ev = if by_event { s.event[row] } else { usize::MAX };
+                let n = cell_ids.len();
+                let id = *cell_ids.entry((f, t, ev)).or_insert(n);
+                let a = per_block[b].entry(id).or_insert((0.0, 0.0));
+                a.0 += v;
+                a.1 += 1.0;
+                ss += v * v;
+            }
+            let per_block: Vec<Vec<(usize, f64, f64)>> = per_block
+                .into_iter()
+                .map(|m| {
+                    let mut v: Vec<(usize, f64, f64)> =
+                        m.into_iter().map(|(k, (a, n))| (k, a, n)).collect();
+                    v.sort_by_key(|p| p.0);
+                    v
+                })
+                .collect();
+            let stat = |xs: &[Option<i64>]| -> f64 {
+                let mut g: BTreeMap<(usize, i64), (f64, f64)> = BTreeMap::new();
+                for (b, entries) in per_block.iter().enumerate() {
+                    let Some(xb) = xs[b] else { continue };
+                    for &(id, a, n) in entries {
+                        let q = g.entry((id, xb)).or_insert((0.0, 0.0));
+                        q.0 += a;
+                        q.1 += n;
+                    }
+                }
+                g.values().map(|(a, n)| a * a / n).sum::<f64>()
+            };
+            let t = stat(&x);
+            // strata: fluence bin (and event for pixel covariates)
+            let mut strata: BTreeMap<(i64, usize), Vec<usize>> = BTreeMap::new();
+            for (b, &(ev, _, f)) in blocks.iter().enumerate() {
+                if x[b].is_some() {
+                    strata
+                        .entry((f, if by_event { ev } else { usize::MAX }))
+                        .or_default()
+                        .push(b);
+                }
+            }
+            let mut keys: Vec<&(i64, usize)> = strata.keys().collect();
+            keys.sort();
+            let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed ^ 0x51ed_270b_2a1d_c3f5);
+            let null: Vec<f64> = (0..PERMUTATIONS)
+                .map(|_| {
+                    let mut xp = x.clone();
+                    for k in &keys {
+                        let members = &strata[k];
+                        let mut vals: Vec<Option<i64>> = members.iter().map(|&b| x[b]).collect();
+                        vals.shuffle(&mut rng);
+                        for (&b, v) in members.iter().zip(vals) {
+                            xp[b] = v;
+                        }
+                    }
+                    stat(&xp)
+                })
+                .collect();
+            let mean = null.iter().sum::<f64>() / null.len() as f64;
+            let sd = (null.iter().map(|v| (v - mean).powi(2)).sum::<f64>()
+                / (null.len() as f64 - 1.0).max(1.0))
+            .sqrt();
+            let max = null.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+            let ss = ss.max(1e-12);
+            let z = if sd > 0.0 { (t - mean) / sd } else { 0.0 };
+            // the residual by covariate bin (mean over blocks' samples)
+            let mut by: std::collections::BTreeMap<i64, (usize, f64, f64)> = Default::default();
+            for (b, entries) in per_block.iter().enumerate() {
+                let Some(xb) = x[b] else { continue };
+                let q = by.entry(xb).or_default();
+                q.0 += 1;
+                for &(_, a, n) in entries {
+                    q.1 += a;
+                    q.2 += n;
+                }
+            }
+            Dependence {
+                class: c.class.clone(),
+                effects: c.effects.clone(),
+                r2: t / ss,
+                r2_null_mean: mean / ss,
+                r2_null_max: max / ss,
+                z,
+                permutations: PERMUTATIONS,
+                depends: t > max && (t - mean) / ss >= MIN_R2,
+                above_permutations: t > max,
+                by_bin: by
+                    .into_iter()
+                    .map(|(k, (nb, a, n))| (bin_label(&c.class, k), nb, a / n.max(1.0)))
+                    .collect(),
+            }
+        })
+        .collect();
+    out.sort_by(|a, b| {
+        b.depends
+            .cmp(&a.depends)
+            .then(b.z.total_cmp(&a.z))
+            .then(a.class.cmp(&b.class))
+    });
+    out
+}
+
+/// A readable label of a covariate bin of [`covariate_bins`].
+fn bin_label(class: &str, b: i64) -> String {
+    match class {
+        "illumination_time" | "integration_length" => {
+            format!("{:.0} s", 10f64.powf(b as f64 / 20.0))
+        }
+        "temperature" => format!("{:.1} K", b as f64 / 2.0),
+        "earlier_illuminations" if b == -100 => "no earlier fluence".into(),
+        "earlier_illuminations" => {
+            format!("earlier fluence >= {:.2e} e-", 10f64.powf(b as f64 / 2.0))
+        }
+        "neighbour_excess_fluence" if b < 0 => "no neighbour excess".into(),
+        "neighbour_excess_fluence" => {
+            format!("neighbour excess >= {:.2e} e-", 10f64.powf(b as f64 / 2.0))
+        }
+        "position" => format!("tile (row {}, col {})", b / 4, b % 4),
+        _ => b.to_string(),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn classes_of_the_library() {
+        assert_eq!(class_of("soak", "illumination_time"), "illumination_time");
+        assert_eq!(
+            class_of("linefit_bias", "time_since_illumination"),
+            "integration_length"
+        );
+        assert_eq!(
+            class_of("chord", "time_since_illumination"),
+            "time_since_illumination"
+        );
+        assert_eq!(
+            class_of("capacity", "earlier_illuminations"),
+            "earlier_illuminations"
+        );
+    }
+
+    #[test]
+    fn distinct_values_merge_within_ten_percent() {
+        assert_eq!(
+            distinct(vec![481.0, 120.0, 481.0, 490.0]),
+            vec![120.0, 481.0]
+        );
+        assert_eq!(distinct(vec![f64::NAN, 0.0]), Vec::<f64>::new());
+    }
+}

@@ -1,0 +1,581 @@
+//! `persist verify`: persistence measured in flight, with no shutter, against what the
+//! stage predicted and flagged.
+//!
+//! The paper leaves the flight check as its next step ("cross correlations of sequential
+//! exposures"). Here: in a sequence of sky exposures, pixels that saw a bright source
+//! (an *event*: saturating, or above a fluence) are followed through the later exposures;
+//! each later exposure gives the pixel's **excess current** over the sky the same exposure
+//! shows around it ([`track`]: why the surroundings and not the pixel's own history). The
+//! samples are stacked by the event's fluence and the time since it into measured decay
+//! curves with uncertainties that respect their correlations ([`stack`]), next to the
+//! stage's predictions for the same pixel-exposures, and split by whether the stage
+//! flagged them.
+//!
+//! Three checks, each a number and a verdict in the report:
+//! - **decay**: per fluence bin, the log-log slope of the measured decay over the time
+//!   bins where it stands above three standard errors, against the prediction's over the
+//!   same bins; their difference weighted over the fluence bins must be within
+//!   [`VerifyParams::slope_tolerance`]. A slope and not a chi-square of the curves: with
+//!   hundreds of thousands of samples any difference of shape between a conservative
+//!   envelope and the pixels' mean is significant; what matters is whether the decay law
+//!   is the data's.
+//! - **margin**: the paper flags with the 95th percentile of the pixels' response times a
+//!   margin (1.2). The first exposure after an event measures each pixel's response with a
+//!   good signal-to-noise ratio; the 95th percentile of measured / predicted over event
+//!   pixels is the fraction of the prediction that 95 % of pixels stay under, and its
+//!   inverse the model's margin in flight. It agrees when within
+//!   [`VerifyParams::margin_factor`] of the design margin; below, pixels are missed; above,
+//!   the flags cost sky for nothing.
+//! - **flags**: the measured excess of flagged and unflagged samples by time since the event.
+//!
+//! Where the input directory holds a simulator's truth (`truth/`), each bin also carries
+//! the true mean persistence of the same samples, and the report says how often the truth
+//! falls in the measured mean's 95 % interval.
+//!
+//! Files are read in exposure order per detector; one unreadable file is reported (file and
+//! reason) and skipped, and the run goes on.
+
+pub mod report;
+pub mod stack;
+pub mod track;
+
+use crate::error::{Error, ErrorKind, Result};
+use crate::product::read::read_output;
+use ndarray::Array2;
+use serde::Serialize;
+use stack::{bin_of, Bin, Mean, QuantileBin};
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use track::{Frame, Sample, TrackParams, Tracker};
+
+/// What `verify` measures and how it judges.
+#[derive(Debug, Clone, Serialize)]
+pub struct VerifyParams {
+    pub track: TrackParams,
+    /// Edges of the event-fluence bins, e- (ascending; the last may be infinite).
+    pub fluence_edges_e: Vec<f64>,
+    /// Edges of the time-since-event bins, s.
+    pub time_edges_s: Vec<f64>,
+    /// The threshold the flags are judged at, e-/s.
+    pub threshold_e_per_s: f64,
+    /// The margin the model was made with: the paper's knots are the 95th percentile of
+    /// the response times 1.2.
+    pub design_margin: f64,
+    /// The margin measured in flight agrees when it is within this factor of the design
+    /// margin (its 95 % interval overlaps `[design / f, design * f]`).
+    pub margin_factor: f64,
+    /// The decay agrees when the predicted and measured log-log slopes differ by at most
+    /// this (or by less than two standard errors). Over the two decades of time the check
+    /// spans, 0.05 in slope is 26 % in current.
+    pub slope_tolerance: f64,
+    /// Seed of the bootstraps.
+    pub seed: u64,
+}
+
+impl Default for VerifyParams {
+    fn default() -> Self {
+        VerifyParams {
+            track: TrackParams::default(),
+            fluence_edges_e: vec![2e5, 5e5, 1e6, 3e6, 1e7, f64::INFINITY],
+            // four per decade from 30 s to about 2 days
+            time_edges_s: (0..=21)
+                .map(|i| 30.0 * 10f64.powf(f64::from(i) / 4.0))
+                .collect(),
+            threshold_e_per_s: 0.1,
+            design_margin: 1.2,
+            margin_factor: std::f64::consts::SQRT_2,
+            slope_tolerance: 0.05,
+            seed: 1,
+        }
+    }
+}
+
+/// One (fluence, time) bin of the measured decay.
+#[derive(Debug, Clone, Serialize)]
+pub struct DecayBin {
+    pub fluence_lo_e: f64,
+    pub fluence_hi_e: f64,
+    pub time_lo_s: f64,
+    pub time_hi_s: f64,
+    pub samples: usize,
+    pub events: usize,
+    pub mean_time_s: f64,
+    pub measured: Mean,
+    pub predicted: Mean,
+    /// Predicted minus measured over the same samples (its error is the bootstrap's of the
+    /// difference, not the two errors added).
+    pub difference: Mean,
+    pub truth: Option<Mean>,
+    /// The truth inside the measured mean's 95 % interval (`|truth - measured| <= 1.96`
+    /// times the measured mean's standard error).
+    pub truth_inside: Option<bool>,
+}
+
+/// Flagged or not, by time since the event.
+#[derive(Debug, Clone, Serialize)]
+pub struct FlagBin {
+    pub time_lo_s: f64,
+    pub time_hi_s: f64,
+    pub flagged: bool,
+    pub samples: usize,
+    pub measured: Mean,
+    pub truth: Option<Mean>,
+    /// Fraction of the samples whose measured excess is above the threshold by more than
+    /// two noise standard deviations.
+    pub above_threshold_fraction: f64,
+}
+
+/// The response at the first exposure after events of one fluence bin.
+#[derive(Debug, Clone, Serialize)]
+pub struct MarginBin {
+    pub fluence_lo_e: f64,
+    pub fluence_hi_e: f64,
+    pub pixels: usize,
+    /// Median of measured / predicted.
+    pub ratio_median: f64,
+    /// 95th percentile of measured / predicted, with its bootstrap 95 % interval.
+    pub ratio_p95: (f64, f64, f64),
+    pub true_ratio_p95: Option<f64>,
+}
+
+/// The decay's log-log slope in one fluence bin, measured and predicted.
+#[derive(Debug, Clone, Serialize)]
+pub struct SlopeBin {
+    pub fluence_lo_e: f64,
+    pub fluence_hi_e: f64,
+    /// Time bins used (measured mean above three standard errors).
+    pub bins: usize,
+    pub time_from_s: f64,
+    pub time_to_s: f64,
+    pub measured: Mean,
+    pub predicted: f64,
+    pub truth: Option<f64>,
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct Checks {
+    pub slopes: Vec<SlopeBin>,
+    /// Predicted minus measured slope, weighted over the fluence bins.
+    pub slope_difference: Mean,
+    pub decay_agrees: bool,
+    /// 1 / (95th percentile of measured / predicted) over all first samples, with the
+    /// interval from the percentile's.
+    pub margin: (f64, f64, f64),
+    /// `ok`, `under-predicts`, `over-conservative` or `no events`.
+    pub margin_verdict: String,
+    /// Bins whose truth is inside the measured 95 % interval, and bins with a truth.
+    pub truth_inside: Option<(usize, usize)>,
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct FileError {
+    pub file: PathBuf,
+    pub reason: String,
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct Report {
+    pub software_version: String,
+    pub params: VerifyParams,
+    pub model_ids: Vec<String>,
+    pub detectors: Vec<u8>,
+    pub exposures: usize,
+    pub errors: Vec<FileError>,
+    pub samples: usize,
+    pub events: u64,
+    pub rejected_as_sources: u64,
+    pub without_sky: u64,
+    pub decay: Vec<DecayBin>,
+    pub flags: Vec<FlagBin>,
+    pub margins: Vec<MarginBin>,
+    pub checks: Checks,
+}
+
+/// Accumulators of one run (all detectors).
+#[derive(Default)]
+struct Acc {
+    /// columns: excess, predicted, truth, time
+    decay: BTreeMap<(usize, usize), Bin<4>>,
+    /// columns: excess, truth, above threshold by 2 sigma
+    flags: BTreeMap<(usize, bool), Bin<3>>,
+    margin: BTreeMap<usize, (QuantileBin, QuantileBin)>,
+    margin_all: QuantileBin,
+    has_truth: bool,
+    samples: usize,
+}
+
+impl Acc {
+    fn add(&mut self, p: &VerifyParams, s: &Sample, cluster: u64) {
+        let Some(tb) = bin_of(&p.time_edges_s, s.time_s) else {
+            return;
+        };
+        let Some(fb) = bin_of(&p.fluence_edges_e, s.event_fluence_e) else {
+            return;
+        };
+        let truth = s.true_excess_e_per_s.unwrap_or(f64::NAN);
+        self.has_truth |= s.true_excess_e_per_s.is_some();
+        self.samples += 1;
+        let measured = s.excess_e_per_s - s.control_e_per_s;
+        let pred = s.predicted_excess_e_per_s;
+        self.decay
+            .entry((fb, tb))
+            .or_default()
+            .add(cluster, [measured, pred, truth, s.time_s]);
+        let above = s.excess_e_per_s > p.threshold_e_per_s + 2.0 * s.sigma_e_per_s;
+        self.flags
+            .entry((tb, s.flagged))
+            .or_default()
+            .add(cluster, [measured, truth, f64::from(u8::from(above))]);
+        if s.first && pred > 0.0 {
+            let m = self.margin.entry(fb).or_default();
+            m.0.add(cluster, measured / pred);
+            m.1.add(cluster, truth / pred);
+            self.margin_all.add(cluster, measured / pred);
+        }
+    }
+}
+
+/// The (detector, exposure index) of an output product, from its root attributes only.
+fn peek(path: &Path) -> Result<(u8, u64)> {
+    let f = crate::h5io::open(path)?;
+    let read = |name: &str| -> Result<i64> {
+        f.attr(name)
+            .and_then(|a| a.read_scalar::<i64>())
+            .map_err(|e| {
+                Error::new(ErrorKind::Invalid, e.to_string())
+                    .path(path)
+                    .field(name)
+            })
+    };
+    let det = read("detector")?;
+    let idx = read("exposure_index")?;
+    let det = u8::try_from(det).map_err(|_| {
+        Error::new(ErrorKind::Invalid, format!("detector {det} out of range")).path(path)
+    })?;
+    let idx = u64::try_from(idx).map_err(|_| {
+        Error::new(
+            ErrorKind::Invalid,
+            format!("exposure_index {idx} is negative"),
+        )
+        .path(path)
+    })?;
+    Ok((det, idx))
+}
+
+fn read_truth(input: &Path, det: u8, idx: u64) -> Option<Array2<f32>> {
+    let p = crate::sim::output::truth_path(input, det, idx);
+    if !p.is_file() {
+        return None;
+    }
+    let f = crate::h5io::open(&p).ok()?;
+    f.dataset("true_persistence").ok()?.read_2d::<f32>().ok()
+}
+
+/// Run the measurement over the stage's outputs in `output` (the products carry the input
+/// image and flags unchanged); `input` is the stage's input directory, whose `truth/` is
+/// used when present.
+pub fn run(input: &Path, output: &Path, params: &VerifyParams) -> Result<Report> {
+    if !input.is_dir() {
+        return Err(Error::new(ErrorKind::Usage, "input is not a directory").path(input));
+    }
+    let mut errors = Vec::new();
+    let mut by_det: BTreeMap<u8, Vec<(u64, PathBuf)>> = BTreeMap::new();
+    for path in crate::stage::queue::candidates(output)? {
+        match peek(&path) {
+            Ok((d, i)) => by_det.entry(d).or_default().push((i, path)),
+            Err(e) => errors.push(FileError {
+                file: path,
+                reason: e.to_string(),
+            }),
+        }
+    }
+    let mut acc = Acc::default();
+    let mut model_ids = Vec::new();
+    let (mut exposures, mut events, mut rejected, mut no_sky) = (0, 0, 0, 0);
+    for (&det, files) in by_det.iter_mut() {
+        files.sort();
+        let mut tracker: Option<Tracker> = None;
+        for (idx, path) in files.iter() {
+            let (e, planes, attrs) = match read_output(path) {
+                Ok(v) => v,
+                Err(err) => {
+                    errors.push(FileError {
+                        file: path.clone(),
+                        reason: err.to_string(),
+                    });
+                    continue;
+                }
+            };
+            if !model_ids.contains(&attrs.model_id) {
+                model_ids.push(attrs.model_id.clone());
+            }
+            let (ny, nx) = e.image.dim();
+            let t = tracker.get_or_insert_with(|| Tracker::new(params.track.clone(), ny, nx));
+            if t.shape() != (ny, nx) {
+                errors.push(FileError {
+                    file: path.clone(),
+                    reason: format!(
+                        "image is {ny} x {nx}, the detector's earlier ones {:?}",
+                        t.shape()
+                    ),
+                });
+                continue;
+            }
+            let truth = read_truth(input, det, *idx);
+            let start = e.meta.t_start.0;
+            let frame = Frame {
+                image: e.image.view(),
+                flags: e.flags.view(),
+                predicted: planes.current_e_per_s.view(),
+                pflags: planes.flags.view(),
+                truth: truth.as_ref().map(|a| a.view()),
+                t_illuminated_s: e.meta.t_illuminated_s(),
+                t_mid_s: start + 0.5 * e.meta.t_exposure_s,
+                t_reset_s: start + e.meta.t_exposure_s,
+            };
+            let before = t.clusters_started();
+            for s in t.observe(&frame) {
+                let cluster = (u64::from(det) << 48) | s.cluster;
+                acc.add(params, &s, cluster);
+            }
+            events += t.clusters_started() - before;
+            exposures += 1;
+        }
+        if let Some(t) = tracker {
+            rejected += t.rejected;
+            no_sky += t.no_sky;
+        }
+    }
+    Ok(summarise(
+        params,
+        acc,
+        Summary {
+            model_ids,
+            detectors: by_det.keys().copied().collect(),
+            exposures,
+            errors,
+            events,
+            rejected,
+            no_sky,
+        },
+    ))
+}
+
+struct Summary {
+    model_ids: Vec<String>,
+    detectors: Vec<u8>,
+    exposures: usize,
+    errors: Vec<FileError>,
+    events: u64,
+    rejected: u64,
+    no_sky: u64,
+}
+
+fn seed_of(p: &VerifyParams, a: usize, b: usize, c: usize) -> u64 {
+    p.seed ^ ((a as u64) << 40) ^ ((b as u64) << 20) ^ c as u64
+}
+
+fn summarise(p: &VerifyParams, acc: Acc, s: Summary) -> Report {
+    let fe = &p.fluence_edges_e;
+    let te = &p.time_edges_s;
+    let mut decay = Vec::new();
+    for (&(fb, tb), bin) in &acc.decay {
+        // columns: excess, predicted, truth, time
+        let w = [
+            [1.0, 0.0, 0.0, 0.0],
+            [0.0, 1.0, 0.0, 0.0],
+            [-1.0, 1.0, 0.0, 0.0],
+            [0.0, 0.0, 0.0, 1.0],
+            [0.0, 0.0, 1.0, 0.0],
+        ];
+        let Some([meas, pred, diff, time, truth]) = bin.means(w, seed_of(p, 1, fb, tb)) else {
+            continue;
+        };
+        let truth_inside = (truth.mean - meas.mean).abs() <= 1.96 * meas.se;
+        let truth = acc.has_truth.then_some(truth);
+        decay.push(DecayBin {
+            fluence_lo_e: fe[fb],
+            fluence_hi_e: fe[fb + 1],
+            time_lo_s: te[tb],
+            time_hi_s: te[tb + 1],
+            samples: bin.samples(),
+            events: bin.clusters(),
+            mean_time_s: time.mean,
+            measured: meas,
+            predicted: pred,
+            difference: diff,
+            truth,
+            truth_inside: acc.has_truth.then_some(truth_inside),
+        });
+    }
+    let mut flags = Vec::new();
+    for (&(tb, flagged), bin) in &acc.flags {
+        let w = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]];
+        let Some([meas, truth, above]) = bin.means(w, seed_of(p, 2, tb, usize::from(flagged)))
+        else {
+            continue;
+        };
+        flags.push(FlagBin {
+            time_lo_s: te[tb],
+            time_hi_s: te[tb + 1],
+            flagged,
+            samples: bin.samples(),
+            measured: meas,
+            truth: acc.has_truth.then_some(truth),
+            above_threshold_fraction: above.mean,
+        });
+    }
+    let mut margins = Vec::new();
+    for (&fb, (q, qt)) in &acc.margin {
+        let Some(p95) = q.quantile(0.95, seed_of(p, 3, fb, 0)) else {
+            continue;
+        };
+        let med = q
+            .quantile(0.5, seed_of(p, 4, fb, 0))
+            .map_or(f64::NAN, |v| v.0);
+        margins.push(MarginBin {
+            fluence_lo_e: fe[fb],
+            fluence_hi_e: fe[fb + 1],
+            pixels: q.samples(),
+            ratio_median: med,
+            ratio_p95: p95,
+            true_ratio_p95: if acc.has_truth {
+                qt.quantile(0.95, seed_of(p, 5, fb, 0)).map(|v| v.0)
+            } else {
+                None
+            },
+        });
+    }
+    let checks = checks(p, &decay, &acc);
+    Report {
+        software_version: crate::VERSION.to_string(),
+        params: p.clone(),
+        model_ids: s.model_ids,
+        detectors: s.detectors,
+        exposures: s.exposures,
+        errors: s.errors,
+        samples: acc.samples,
+        events: s.events,
+        rejected_as_sources: s.rejected,
+        without_sky: s.no_sky,
+        decay,
+        flags,
+        margins,
+        checks,
+    }
+}
+
+/// Weighted least-squares slope of `y` on `x` and its standard error.
+fn slope(x: &[f64], y: &[f64], sigma_y: &[f64]) -> Mean {
+    let w: Vec<f64> = sigma_y.iter().map(|s| 1.0 / (s * s)).collect();
+    let sw: f64 = w.iter().sum();
+    let xm = x.iter().zip(&w).map(|(x, w)| x * w).sum::<f64>() / sw;
+    let ym = y.iter().zip(&w).map(|(y, w)| y * w).sum::<f64>() / sw;
+    let sxx: f64 = x.iter().zip(&w).map(|(x, w)| w * (x - xm).powi(2)).sum();
+    let sxy: f64 = x
+        .iter()
+        .zip(y)
+        .zip(&w)
+        .map(|((x, y), w)| w * (x - xm) * (y - ym))
+        .sum();
+    Mean {
+        mean: sxy / sxx,
+        se: (1.0 / sxx).sqrt(),
+    }
+}
+
+/// Per fluence bin, the log-log slopes of the measured and predicted decay over the time
+/// bins where the measurement stands above three standard errors.
+fn slopes(decay: &[DecayBin]) -> Vec<SlopeBin> {
+    let mut by_f: BTreeMap<u64, Vec<&DecayBin>> = BTreeMap::new();
+    for b in decay {
+        if b.measured.mean > 3.0 * b.measured.se && b.predicted.mean > 0.0 {
+            by_f.entry(b.fluence_lo_e.to_bits()).or_default().push(b);
+        }
+    }
+    let mut out = Vec::new();
+    for bins in by_f.values().filter(|b| b.len() >= 3) {
+        let x: Vec<f64> = bins.iter().map(|b| b.mean_time_s.log10()).collect();
+        let sig: Vec<f64> = bins
+            .iter()
+            .map(|b| b.measured.se / (b.measured.mean * std::f64::consts::LN_10))
+            .collect();
+        let lg = |f: &dyn Fn(&DecayBin) -> f64| -> Vec<f64> {
+            bins.iter().map(|b| f(b).log10()).collect()
+        };
+        let truth = bins
+            .iter()
+            .all(|b| b.truth.is_some_and(|t| t.mean > 0.0))
+            .then(|| slope(&x, &lg(&|b| b.truth.map_or(f64::NAN, |t| t.mean)), &sig).mean);
+        out.push(SlopeBin {
+            fluence_lo_e: bins[0].fluence_lo_e,
+            fluence_hi_e: bins[0].fluence_hi_e,
+            bins: bins.len(),
+            time_from_s: bins[0].mean_time_s,
+            time_to_s: bins[bins.len() - 1].mean_time_s,
+            measured: slope(&x, &lg(&|b| b.measured.mean), &sig),
+            predicted: slope(&x, &lg(&|b| b.predicted.mean), &sig).mean,
+            truth,
+        });
+    }
+    out
+}
+
+/// The decay and margin checks (module docs).
+fn checks(p: &VerifyParams, decay: &[DecayBin], acc: &Acc) -> Checks {
+    let slopes = slopes(decay);
+    let (mut sw, mut s) = (0.0, 0.0);
+    for b in &slopes {
+        let w = 1.0 / b.measured.se.powi(2);
+        sw += w;
+        s += w * (b.predicted - b.measured.mean);
+    }
+    let slope_difference = Mean {
+        mean: s / sw,
+        se: (1.0 / sw).sqrt(),
+    };
+    let decay_agrees = !slopes.is_empty()
+        && (slope_difference.mean.abs() <= p.slope_tolerance
+            || slope_difference.mean.abs() < 2.0 * slope_difference.se);
+    let margin = acc
+        .margin_all
+        .quantile(0.95, seed_of(p, 6, 0, 0))
+        .map_or((f64::NAN, f64::NAN, f64::NAN), |(q, lo, hi)| {
+            (1.0 / q, 1.0 / hi, 1.0 / lo)
+        });
+    let (low, high) = (
+        p.design_margin / p.margin_factor,
+        p.design_margin * p.margin_factor,
+    );
+    let margin_verdict = if margin.0.is_nan() {
+        "no events"
+    } else if margin.2 < low {
+        "under-predicts"
+    } else if margin.1 > high {
+        "over-conservative"
+    } else {
+        "ok"
+    };
+    let with_truth: Vec<bool> = decay.iter().filter_map(|b| b.truth_inside).collect();
+    Checks {
+        slopes,
+        slope_difference,
+        decay_agrees,
+        margin,
+        margin_verdict: margin_verdict.to_string(),
+        truth_inside: (!with_truth.is_empty())
+            .then(|| (with_truth.iter().filter(|&&b| b).count(), with_truth.len())),
+    }
+}
+
+/// Write `report.json` and `report.html` into `dir`.
+pub fn write_report(report: &Report, dir: &Path) -> Result<()> {
+    std::fs::create_dir_all(dir).map_err(|e| Error::io(dir, e))?;
+    let json = serde_json::to_string_pretty(report)
+        .map_err(|e| Error::new(ErrorKind::Io, e.to_string()))?;
+    let p = dir.join("report.json");
+    std::fs::write(&p, json + "\n").map_err(|e| Error::io(&p, e))?;
+    let p = dir.join("report.html");
+    std::fs::write(&p, report::html(report)?).map_err(|e| Error::io(&p, e))?;
+    Ok(())
+}

@@ -1,0 +1,510 @@
+//! Following bright events through later sky exposures, pixel by pixel (pure array code:
+//! no files, no clock).
+//!
+//! # What is measured
+//! An **event** is a pixel whose extrapolated fluence in an exposure (the line-fit current
+//! times the illuminated time: [`crate::model::fluence`], the rule the stage uses) reaches
+//! [`TrackParams::event_fluence_e`] (default: the paper's saturation level, 200,000 e-),
+//! or that the on-board processing flagged `OVERFLOW`. From the reset that ends that
+//! exposure on, the pixel carries a **track**: in each later exposure its **excess
+//! current** is its measured current minus an estimate of the sky it saw in that same
+//! exposure.
+//!
+//! # The sky estimate, and why it is not the pixel's own history
+//! SPHEREx has no shutter and points elsewhere every exposure, so a pixel's own earlier or
+//! later exposures see other sky: they cannot give its sky now. The estimate is the
+//! median of the pixels of a square annulus around it (Chebyshev distance
+//! [`TrackParams::annulus_inner_px`] to [`TrackParams::annulus_outer_px`]) in the same
+//! exposure, leaving out every pixel that itself carries a track (a recent event: its own
+//! persistence would bias the sky high) and every pixel without a usable slope. The annulus
+//! starts three pixels out so that the event's own point-spread function (and its
+//! persistence, which has the same shape) is not in it. The median is robust to the few
+//! annulus pixels that hold a star in this exposure. What it leaves: the annulus pixels'
+//! own persistence floor (faint sources and zodiacal light, ~0.001-0.004 e-/s in the
+//! simulator) is subtracted with the sky, so the excess is the persistence above that floor.
+//!
+//! The prediction and (in simulations) the truth go through the same operator: each minus
+//! its median over the same annulus pixels, so the three are compared like for like.
+//!
+//! # Stars in the measured pixel
+//! A star that falls on the measured pixel in a later exposure adds to its excess. Charge
+//! released from one event only decays, so a track's excess cannot rise by more than noise:
+//! a sample more than [`TrackParams::spike_nsigma`] noise standard deviations (the
+//! annulus's, from its median absolute deviation) above the last accepted sample of its
+//! track is rejected as a source and counted. Fainter sources pass that screen, and on
+//! average add to the excess. Sources fall where they fall whether or not a pixel saw an
+//! event, so **control pixels** (a grid of pixels with no track, every
+//! [`CONTROL_STRIDE`]-th in each direction) are measured the same way, screened against
+//! their own last value; their mean excess in each exposure ([`Control`]) is what the
+//! sources add, and the stacked means subtract it. A new event at the pixel ends the
+//! track and starts another; a cosmic ray (`TRANSIENT`) ends it (the fluence is unknown).
+//!
+//! Invariants: every [`Sample`] has a finite excess, prediction and time; samples come out
+//! in pixel order, so the result does not depend on threads.
+
+use crate::flags::{bits, pbits};
+use crate::model::fluence::{fluence_map_e, FlagBits};
+use crate::stats::median;
+use ndarray::{Array2, ArrayView2};
+
+/// How events are found and tracks measured.
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct TrackParams {
+    /// Extrapolated fluence at or above which a pixel's exposure is an event, e-.
+    pub event_fluence_e: f64,
+    /// Inner Chebyshev radius of the sky annulus, pixels.
+    pub annulus_inner_px: usize,
+    /// Outer Chebyshev radius of the sky annulus, pixels.
+    pub annulus_outer_px: usize,
+    /// Fewest usable annulus pixels for a sky estimate.
+    pub annulus_min_pixels: usize,
+    /// A rise above the track's last accepted excess of more than this many noise
+    /// standard deviations is a source in the measured pixel, not persistence.
+    pub spike_nsigma: f64,
+    /// Tracks end this long after their event, s.
+    pub max_time_s: f64,
+}
+
+impl Default for TrackParams {
+    fn default() -> Self {
+        TrackParams {
+            event_fluence_e: 2.0e5,
+            annulus_inner_px: 3,
+            annulus_outer_px: 6,
+            annulus_min_pixels: 12,
+            spike_nsigma: 3.0,
+            max_time_s: 2.0e5,
+        }
+    }
+}
+
+/// One exposure, as `verify` sees it.
+#[derive(Debug, Clone, Copy)]
+pub struct Frame<'a> {
+    /// Line-fit current, e-/s.
+    pub image: ArrayView2<'a, f32>,
+    /// On-board flags.
+    pub flags: ArrayView2<'a, u32>,
+    /// The stage's predicted persistence current, e-/s.
+    pub predicted: ArrayView2<'a, f32>,
+    /// The stage's persistence flags.
+    pub pflags: ArrayView2<'a, u8>,
+    /// The simulator's true persistence current, when known, e-/s.
+    pub truth: Option<ArrayView2<'a, f32>>,
+    /// Seconds of illumination that turn the current into fluence.
+    pub t_illuminated_s: f64,
+    /// Middle of the integration, s on the run's clock.
+    pub t_mid_s: f64,
+    /// The reset that ends the integration, s on the same clock.
+    pub t_reset_s: f64,
+}
+
+/// One measured point of a track.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Sample {
+    pub y: usize,
+    pub x: usize,
+    /// The event that started the track: a cluster of adjacent event pixels of one exposure.
+    pub cluster: u64,
+    pub event_fluence_e: f64,
+    /// From the reset ending the event's exposure to the middle of this one, s.
+    pub time_s: f64,
+    pub excess_e_per_s: f64,
+    /// Noise standard deviation of one pixel's current here (the annulus's), e-/s.
+    pub sigma_e_per_s: f64,
+    /// The control pixels' mean screened excess in the same exposure: what sources that
+    /// pass the screen add on average, to subtract from stacked means. A track's first
+    /// sample has no earlier value to be screened against, so a bright source on it stays
+    /// in; such sources are rare, and they widen the bootstrap interval of the bins they
+    /// fall in rather than shift every bin (the unscreened control mean, dominated by the
+    /// rare brightest sources, would).
+    pub control_e_per_s: f64,
+    pub predicted_e_per_s: f64,
+    /// The prediction minus its median over the same annulus pixels.
+    pub predicted_excess_e_per_s: f64,
+    /// Above the high threshold in the stage's output.
+    pub flagged: bool,
+    /// The truth minus its median over the same annulus pixels: the true persistence
+    /// above the surroundings', which is what the excess measures.
+    pub true_excess_e_per_s: Option<f64>,
+    /// The first sample of its track.
+    pub first: bool,
+}
+
+#[derive(Debug, Clone, Copy)]
+struct Track {
+    reset_s: f64,
+    fluence_e: f64,
+    cluster: u64,
+    last_excess: f64,
+    samples: u32,
+}
+
+/// Per-pixel track state of one detector, carried from exposure to exposure.
+#[derive(Debug)]
+pub struct Tracker {
+    params: TrackParams,
+    tracks: Array2<Option<Track>>,
+    next_cluster: u64,
+    control_last: Array2<f64>,
+    last_control: Control,
+    /// Samples rejected as sources in the measured pixel.
+    pub rejected: u64,
+    /// Samples without a sky estimate (too few usable annulus pixels).
+    pub no_sky: u64,
+}
+
+/// The mean excess of the control pixels in one frame, e-/s.
+#[derive(Debug, Clone, Copy, Default, PartialEq, serde::Serialize)]
+pub struct Control {
+    /// Every control pixel.
+    pub raw: f64,
+    /// Control pixels that pass the source screening against their own last value.
+    pub screened: f64,
+    pub pixels: usize,
+}
+
+/// One control pixel every this many pixels in each direction.
+pub const CONTROL_STRIDE: usize = 4;
+
+const UNUSABLE: u32 = bits::TRANSIENT | bits::SUR_ERROR | bits::NONFUNC;
+
+impl Tracker {
+    pub fn new(params: TrackParams, ny: usize, nx: usize) -> Self {
+        Tracker {
+            params,
+            tracks: Array2::from_elem((ny, nx), None),
+            next_cluster: 0,
+            control_last: Array2::from_elem((ny, nx), f64::NAN),
+            last_control: Control::default(),
+            rejected: 0,
+            no_sky: 0,
+        }
+    }
+
+    pub fn params(&self) -> &TrackParams {
+        &self.params
+    }
+
+    /// The detector's shape, `(ny, nx)`.
+    pub fn shape(&self) -> (usize, usize) {
+        self.tracks.dim()
+    }
+
+    /// Events (clusters of adjacent event pixels) started so far.
+    pub fn clusters_started(&self) -> u64 {
+        self.next_cluster
+    }
+
+    /// Pixels currently carrying a track.
+    pub fn active(&self) -> usize {
+        self.tracks.iter().filter(|t| t.is_some()).count()
+    }
+
+    /// Measure every track in `frame`, then start the tracks of its events.
+    pub fn observe(&mut self, frame: &Frame) -> Vec<Sample> {
+        let (ny, nx) = frame.image.dim();
+        assert_eq!(
+            self.tracks.dim(),
+            (ny, nx),
+            "frame shape changed within a detector"
+        );
+        let fluence = fluence_map_e(
+            frame.image,
+            frame.flags,
+            &FlagBits::default(),
+            frame.t_illuminated_s,
+        );
+        let threshold = self.params.event_fluence_e;
+        let event = Array2::from_shape_fn((ny, nx), |(y, x)| {
+            let f = frame.flags[[y, x]];
+            f & UNUSABLE == 0 && (f & bits::OVERFLOW != 0 || fluence[[y, x]] >= threshold)
+        });
+        let control = self.controls(frame, &event);
+        let mut samples = Vec::new();
+        let mut ring = Vec::new();
+        for y in 0..ny {
+            for x in 0..nx {
+                let Some(mut tr) = self.tracks[[y, x]] else {
+                    continue;
+                };
+                let f = frame.flags[[y, x]];
+                let time_s = frame.t_mid_s - tr.reset_s;
+                if f & bits::TRANSIENT != 0 || time_s > self.params.max_time_s {
+                    self.tracks[[y, x]] = None;
+                    continue;
+                }
+                let v = f64::from(frame.image[[y, x]]);
+                let pred = f64::from(frame.predicted[[y, x]]);
+                if f & UNUSABLE != 0 || event[[y, x]] || !v.is_finite() || !pred.is_finite() {
+                    continue;
+                }
+                let Some((sky, sigma)) = self.sky(frame, y, x, &mut ring) else {
+                    self.no_sky += 1;
+                    continue;
+                };
+                let excess = v - sky;
+                let first = tr.samples == 0;
+                if !first && excess > tr.last_excess + self.params.spike_nsigma * sigma {
+                    self.rejected += 1;
+                    continue;
+                }
+                let around = |plane: ArrayView2<f32>| {
+                    let v: Vec<f64> = ring
+                        .iter()
+                        .map(|&(a, b)| f64::from(plane[[a, b]]))
+                        .collect();
+                    f64::from(plane[[y, x]]) - median(&v)
+                };
+                samples.push(Sample {
+                    y,
+                    x,
+                    cluster: tr.cluster,
+                    event_fluence_e: tr.fluence_e,
+                    time_s,
+                    excess_e_per_s: excess,
+                    sigma_e_per_s: sigma,
+                    control_e_per_s: control.screened,
+                    predicted_e_per_s: pred,
+                    predicted_excess_e_per_s: around(frame.predicted),
+                    flagged: frame.pflags[[y, x]] & pbits::HIGH != 0,
+                    true_excess_e_per_s: frame.truth.map(around),
+                    first,
+                });
+                tr.last_excess = excess;
+                tr.samples += 1;
+                self.tracks[[y, x]] = Some(tr);
+            }
+        }
+        self.start_events(frame.t_reset_s, &fluence, &event);
+        self.last_control = control;
+        samples
+    }
+
+    /// The control pixels' mean excess in this frame (see the module docs).
+    pub fn last_control(&self) -> Control {
+        self.last_control
+    }
+
+    /// Measure the control grid: every [`CONTROL_STRIDE`]-th pixel in each direction that
+    /// carries no track and is no event, measured like a track's pixel.
+    fn controls(&mut self, frame: &Frame, event: &Array2<bool>) -> Control {
+        let (ny, nx) = frame.image.dim();
+        let mut ring = Vec::new();
+        let (mut raw, mut screened) = ((0.0, 0usize), (0.0, 0usize));
+        for y in (CONTROL_STRIDE / 2..ny).step_by(CONTROL_STRIDE) {
+            for x in (CONTROL_STRIDE / 2..nx).step_by(CONTROL_STRIDE) {
+                let v = f64::from(frame.image[[y, x]]);
+                let f = frame.flags[[y, x]];
+                if self.tracks[[y, x]].is_some()
+                    || event[[y, x]]
+                    || f & (UNUSABLE | bits::OVERFLOW) != 0
+                    || !v.is_finite()
+                {
+                    continue;
+                }
+                let Some((sky, sigma)) = self.sky(frame, y, x, &mut ring) else {
+                    continue;
+                };
+                let excess = v - sky;
+                raw.0 += excess;
+                raw.1 += 1;
+                let last = &mut self.control_last[[y, x]];
+                if last.is_nan() || excess <= *last + self.params.spike_nsigma * sigma {
+                    screened.0 += excess;
+                    screened.1 += 1;
+                    *last = excess;
+                }
+            }
+        }
+        let mean = |(s, n): (f64, usize)| if n > 0 { s / n as f64 } else { 0.0 };
+        Control {
+            raw: mean(raw),
+            screened: mean(screened),
+            pixels: raw.1,
+        }
+    }
+
+    /// Median and robust standard deviation of the usable, track-free annulus pixels,
+    /// whose positions are left in `ring`.
+    fn sky(
+        &self,
+        frame: &Frame,
+        y: usize,
+        x: usize,
+        ring: &mut Vec<(usize, usize)>,
+    ) -> Option<(f64, f64)> {
+        let (ny, nx) = frame.image.dim();
+        let (r0, r1) = (self.params.annulus_inner_px, self.params.annulus_outer_px);
+        ring.clear();
+        for yy in y.saturating_sub(r1)..(y + r1 + 1).min(ny) {
+            for xx in x.saturating_sub(r1)..(x + r1 + 1).min(nx) {
+                if yy.abs_diff(y).max(xx.abs_diff(x)) < r0 {
+                    continue;
+                }
+                let v = frame.image[[yy, xx]];
+                let usable = frame.flags[[yy, xx]] & (UNUSABLE | bits::OVERFLOW) == 0;
+                if usable && v.is_finite() && self.tracks[[yy, xx]].is_none() {
+                    ring.push((yy, xx));
+                }
+            }
+        }
+        if ring.len() < self.params.annulus_min_pixels {
+            return None;
+        }
+        let vals: Vec<f64> = ring
+            .iter()
+            .map(|&(a, b)| f64::from(frame.image[[a, b]]))
+            .collect();
+        let med = median(&vals);
+        let dev: Vec<f64> = vals.iter().map(|v| (v - med).abs()).collect();
+        Some((med, (1.4826 * median(&dev)).max(1e-6)))
+    }
+
+    /// New tracks at this frame's events; adjacent event pixels (4-connected) share a
+    /// cluster, so that an event's pixels are resampled together.
+    fn start_events(&mut self, t_reset_s: f64, fluence: &Array2<f64>, event: &Array2<bool>) {
+        let (ny, nx) = event.dim();
+        let mut label: Array2<Option<u64>> = Array2::from_elem((ny, nx), None);
+        let mut stack = Vec::new();
+        for y in 0..ny {
+            for x in 0..nx {
+                if label[[y, x]].is_some() || !event[[y, x]] {
+                    continue;
+                }
+                let id = self.next_cluster;
+                self.next_cluster += 1;
+                label[[y, x]] = Some(id);
+                stack.push((y, x));
+                while let Some((cy, cx)) = stack.pop() {
+                    let near = [
+                        (cy.wrapping_sub(1), cx),
+                        (cy + 1, cx),
+                        (cy, cx.wrapping_sub(1)),
+                        (cy, cx + 1),
+                    ];
+                    for (ny_, nx_) in near {
+                        if ny_ < ny && nx_ < nx && label[[ny_, nx_]].is_none() && event[[ny_, nx_]]
+                        {
+                            label[[ny_, nx_]] = Some(id);
+                            stack.push((ny_, nx_));
+                        }
+                    }
+                }
+            }
+        }
+        for ((y, x), l) in label.indexed_iter() {
+            if let Some(cluster) = *l {
+                let f = fluence[[y, x]];
+                self.tracks[[y, x]] = Some(Track {
+                    reset_s: t_reset_s,
+                    fluence_e: if f.is_finite() {
+                        f.max(self.params.event_fluence_e)
+                    } else {
+                        self.params.event_fluence_e
+                    },
+                    cluster,
+                    last_excess: f64::NAN,
+                    samples: 0,
+                });
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use ndarray::Array2;
+
+    struct Owned {
+        image: Array2<f32>,
+        flags: Array2<u32>,
+        pred: Array2<f32>,
+        pflags: Array2<u8>,
+    }
+
+    fn frame(o: &Owned, t_mid_s: f64) -> Frame<'_> {
+        Frame {
+            image: o.image.view(),
+            flags: o.flags.view(),
+            predicted: o.pred.view(),
+            pflags: o.pflags.view(),
+            truth: None,
+            t_illuminated_s: 100.0,
+            t_mid_s,
+            t_reset_s: t_mid_s + 50.0,
+        }
+    }
+
+    fn sky(v: f32) -> Owned {
+        Owned {
+            image: Array2::from_elem((20, 20), v),
+            flags: Array2::zeros((20, 20)),
+            pred: Array2::zeros((20, 20)),
+            pflags: Array2::zeros((20, 20)),
+        }
+    }
+
+    #[test]
+    fn an_event_is_followed_and_its_excess_is_measured_against_the_annulus() {
+        let mut t = Tracker::new(TrackParams::default(), 20, 20);
+        let mut a = sky(1.0);
+        a.image[[10, 10]] = 5000.0; // 5e5 e- in 100 s: an event
+        assert!(t.observe(&frame(&a, 0.0)).is_empty());
+        assert_eq!(t.active(), 1);
+        let mut b = sky(1.5);
+        b.image[[10, 10]] = 1.5 + 0.8;
+        b.pred[[10, 10]] = 0.9;
+        b.pflags[[10, 10]] = pbits::HIGH;
+        let s = t.observe(&frame(&b, 200.0));
+        assert_eq!(s.len(), 1);
+        assert!((s[0].excess_e_per_s - 0.8).abs() < 1e-6, "{s:?}");
+        assert!((s[0].time_s - 150.0).abs() < 1e-9);
+        assert!(s[0].flagged && s[0].first);
+        assert!((s[0].event_fluence_e - 5e5).abs() < 1.0);
+    }
+
+    #[test]
+    fn a_rise_far_above_the_track_is_a_source_and_a_cosmic_ray_ends_the_track() {
+        let mut t = Tracker::new(TrackParams::default(), 20, 20);
+        let mut a = sky(1.0);
+        a.image[[10, 10]] = 5000.0;
+        t.observe(&frame(&a, 0.0));
+        // Noisy annulus so that sigma is known: alternate 0.9 / 1.1 -> MAD 0.1.
+        let mut b = sky(1.0);
+        for ((y, x), v) in b.image.indexed_iter_mut() {
+            *v = if (y + x) % 2 == 0 { 0.9 } else { 1.1 };
+        }
+        b.image[[10, 10]] = 2.0;
+        assert_eq!(t.observe(&frame(&b, 200.0)).len(), 1);
+        b.image[[10, 10]] = 30.0; // a star: +29 against sigma ~0.15
+        assert!(t.observe(&frame(&b, 400.0)).is_empty());
+        assert_eq!(t.rejected, 1);
+        b.image[[10, 10]] = 1.9;
+        assert_eq!(t.observe(&frame(&b, 600.0)).len(), 1);
+        b.flags[[10, 10]] = bits::TRANSIENT;
+        assert!(t.observe(&frame(&b, 800.0)).is_empty());
+        assert_eq!(t.active(), 0);
+    }
+
+    #[test]
+    fn adjacent_event_pixels_share_a_cluster_and_tracked_pixels_are_not_sky() {
+        let mut t = Tracker::new(TrackParams::default(), 20, 20);
+        let mut a = sky(1.0);
+        a.image[[10, 10]] = 5000.0;
+        a.image[[10, 11]] = 5000.0;
+        a.flags[[2, 2]] = bits::OVERFLOW;
+        t.observe(&frame(&a, 0.0));
+        let mut b = sky(1.0);
+        b.image[[10, 10]] = 3.0;
+        b.image[[10, 11]] = 3.0;
+        b.image[[2, 2]] = 3.0;
+        let s = t.observe(&frame(&b, 200.0));
+        assert_eq!(s.len(), 3);
+        let c: Vec<u64> = s.iter().map(|s| s.cluster).collect();
+        assert_eq!(c[1], c[2], "{c:?}");
+        assert_ne!(c[0], c[1]);
+        assert!(s.iter().all(|s| (s.excess_e_per_s - 2.0).abs() < 1e-6));
+    }
+}
