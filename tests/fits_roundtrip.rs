@@ -155,3 +155,92 @@ fn a_corrupt_fits_file_is_quarantined_and_the_rest_processed() {
     }
     assert_eq!(files(&t.join("run").join("out"), "fits").len(), 1);
 }
+
+/// Read a FITS image extension as i32 (the `FLAGS` and `PERSIST_FLAGS` planes).
+fn plane_i32(path: &Path, ext: &str) -> Vec<i32> {
+    let mut f = fitsio::FitsFile::open(path).unwrap();
+    let hdu = f.hdu(ext).unwrap();
+    hdu.read_image(&mut f).unwrap()
+}
+
+#[test]
+fn archive_persist_bits_are_replaced_and_foreign_bit_names_and_outputs_refused() {
+    let tmp = tempfile::tempdir().unwrap();
+    let t = tmp.path();
+    let input = t.join("in");
+    ok(&[
+        "simulate",
+        "sky",
+        "--out",
+        &s(&input),
+        "--size",
+        "16",
+        "--detectors",
+        "1",
+        "--exposures",
+        "4",
+        "--seed",
+        "2",
+        "--format",
+        "fits",
+    ]);
+    let fits = files(&input, "fits");
+    assert_eq!(fits.len(), 4);
+    // Exposure 0 as an archive file: its pipeline set PERSIST (bit 17) on every pixel.
+    let before = plane_i32(Path::new(&fits[0]), "FLAGS");
+    {
+        let mut f = fitsio::FitsFile::edit(&fits[0]).unwrap();
+        let hdu = f.hdu("FLAGS").unwrap();
+        let set: Vec<i32> = before.iter().map(|b| b | 1 << 17).collect();
+        hdu.write_image(&mut f, &set).unwrap();
+    }
+    // Exposure 2 names OVERFLOW at bit 5: its flags do not mean what the model reads.
+    {
+        let mut f = fitsio::FitsFile::edit(&fits[2]).unwrap();
+        f.hdu("FLAGS").unwrap();
+        let (key, comment) = (c"MP_OVERFLOW", c"another mission's bit");
+        let mut status = 0;
+        // SAFETY: the open file's pointer and two NUL-terminated strings, for this call.
+        unsafe {
+            fitsio::sys::ffukyj(
+                f.as_raw(),
+                key.as_ptr(),
+                5,
+                comment.as_ptr(),
+                &mut status,
+            )
+        };
+        assert_eq!(status, 0);
+    }
+    let (code, err) = run_batch(&input, &t.join("run"), &[]);
+    assert_ne!(code, 0, "the refusal must show in the exit code: {err}");
+    let name2 = Path::new(&fits[2]).file_name().unwrap().to_str().unwrap();
+    let reason = std::fs::read_to_string(input.join(format!(".quarantine/{name2}.reason.json")))
+        .unwrap_or_else(|e| panic!("{name2} not quarantined ({e}): {err}"));
+    assert!(reason.contains("FLAGS/MP_OVERFLOW"), "{reason}");
+    let out = t.join("run").join("out");
+    let outputs = files(&out, "fits");
+    assert_eq!(outputs.len(), 3, "exposures 0, 1 and 3: {outputs:?}\n{err}");
+
+    // The output of exposure 0: bit 17 is this stage's (the high plane), every other bit
+    // the input's, and PERSIN counts the archive's PERSIST pixels.
+    let out0 = out.join(Path::new(&fits[0]).file_name().unwrap());
+    let flags = plane_i32(&out0, "FLAGS");
+    let pflags = plane_i32(&out0, "PERSIST_FLAGS");
+    for ((f, p), b) in flags.iter().zip(&pflags).zip(&before) {
+        assert_eq!((f >> 17) & 1, p & 1);
+        assert_eq!(f & !(1 << 17), *b);
+    }
+    let mut f = fitsio::FitsFile::open(&out0).unwrap();
+    let hdu = f.hdu("PERSIST_FLAGS").unwrap();
+    assert_eq!(hdu.read_key::<i64>(&mut f, "PERSIN").unwrap(), 16 * 16);
+
+    // The stage's own outputs are not exposures to flag.
+    let again = t.join("again");
+    std::fs::create_dir(&again).unwrap();
+    std::fs::copy(&out0, again.join("x.fits")).unwrap();
+    let (code, err) = run_batch(&again, &t.join("run2"), &[]);
+    assert_ne!(code, 0, "{err}");
+    let reason = std::fs::read_to_string(again.join(".quarantine/x.fits.reason.json")).unwrap();
+    assert!(reason.contains("PERSIST_CURRENT"), "{reason}");
+}

@@ -171,7 +171,7 @@ pub fn write_exposure(
                         None => "unit BUNIT (export)".into(),
                     },
                 };
-                append_persistence(&mut f, path, planes, attrs, &conv)?;
+                append_persistence(&mut f, path, planes, attrs, &conv, None)?;
             }
             flush(&mut f, path)
         },

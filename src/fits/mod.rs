@@ -36,6 +36,9 @@ use std::path::Path;
 pub use read::{read_exposure, read_meta};
 pub use write::write_output;
 
+/// cfitsio's status for a keyword that is not in the header.
+pub(crate) const KEY_NO_EXIST: i32 = 202;
+
 /// Names of the extensions this stage appends.
 pub const EXT_PERSIST_CURRENT: &str = "PERSIST_CURRENT";
 pub const EXT_PERSIST_FLAGS: &str = "PERSIST_FLAGS";
@@ -155,6 +158,34 @@ pub struct Conversion {
     pub source: String,
 }
 
+/// What reading a FITS exposure found that its output records.
+#[derive(Debug, Clone, PartialEq)]
+pub struct FitsInput {
+    /// The image's conversion to e-/s.
+    pub conversion: Conversion,
+    /// Pixels whose input `FLAGS` had bit 17 (`PERSIST`) set: an archive pipeline's own
+    /// persistence flag (SPHEREx's Level-2 files carry one). It is cleared before the
+    /// step and replaced by this stage's; the count is recorded as `PERSIN`.
+    pub input_persist_px: u64,
+}
+
+/// The `MP_<NAME>` cards of `FLAGS` for the bits the stage reads or writes, with the bit
+/// it gives each ([`crate::flags::bits`]). A header naming one of them at another bit
+/// is refused: its flags do not mean what the model assumes.
+pub const MODEL_FLAG_BITS: &[(&str, u32)] = &[
+    (
+        "MP_TRANSIENT",
+        crate::flags::bits::TRANSIENT.trailing_zeros(),
+    ),
+    ("MP_OVERFLOW", crate::flags::bits::OVERFLOW.trailing_zeros()),
+    (
+        "MP_SUR_ERROR",
+        crate::flags::bits::SUR_ERROR.trailing_zeros(),
+    ),
+    ("MP_NONFUNC", crate::flags::bits::NONFUNC.trailing_zeros()),
+    ("MP_PERSIST", crate::flags::bits::PERSIST.trailing_zeros()),
+];
+
 /// Whether a path names a FITS file (`.fits`, `.fit`, `.fts`, any case).
 pub fn is_fits(path: &Path) -> bool {
     path.extension().and_then(|e| e.to_str()).is_some_and(|e| {
@@ -216,6 +247,13 @@ mod tests {
         assert_eq!(k.exposure_time, "XPOSURE");
         assert_eq!(k.detector, "DETECTOR");
         assert!(serde_json::from_str::<Keywords>(r#"{"exptime": "X"}"#).is_err());
+    }
+
+    #[test]
+    fn the_model_bits_are_spherex_bits() {
+        for (name, bit) in MODEL_FLAG_BITS {
+            assert!(SPHEREX_FLAG_BITS.contains(&(name, *bit)), "{name} = {bit}");
+        }
     }
 
     #[test]

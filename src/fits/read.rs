@@ -5,9 +5,20 @@
 //! that is not a usable exposure: open, headers (detector, exposure index, start time,
 //! exposure time, conversion factor), then the `IMAGE` and `FLAGS` planes, then the same
 //! value checks as for HDF5 ([`crate::product::read::check_exposure_data`]: no +/-Inf,
-//! some finite pixel, no `PERSIST` bit on input).
+//! some finite pixel).
+//!
+//! Refused, besides what the HDF5 reader refuses: a file that does not end where its last
+//! HDU does (truncated), a file that already has `PERSIST_CURRENT` or `PERSIST_FLAGS` (an
+//! output of this stage), and a `FLAGS` header naming a bit the model reads or writes
+//! (`MP_OVERFLOW`, `MP_PERSIST`, ...) at another bit number than SPHEREx's. Unlike an
+//! HDF5 input, `FLAGS` may carry bit 17: archive products hold their pipeline's own
+//! persistence flag, which is cleared here (and counted, [`FitsInput`]) so that the
+//! output's bit 17 is this stage's.
 
-use super::{fits_error, Conversion, FitsConfig, Keywords};
+use super::{
+    fits_error, Conversion, FitsConfig, FitsInput, Keywords, KEY_NO_EXIST, MODEL_FLAG_BITS,
+};
+use super::{EXT_PERSIST_CURRENT, EXT_PERSIST_FLAGS};
 use crate::error::{Error, ErrorKind, Result};
 use crate::product::read::check_exposure_data;
 use crate::product::schema::combine;
@@ -17,9 +28,6 @@ use fitsio::hdu::{FitsHdu, HduInfo};
 use fitsio::FitsFile;
 use ndarray::Array2;
 use std::path::Path;
-
-/// cfitsio's status for a keyword that is not in the header.
-const KEY_NO_EXIST: i32 = 202;
 
 /// Seconds from the MJD epoch to the Unix epoch: MJD 40587 is 1970-01-01.
 const MJD_UNIX_EPOCH: f64 = 40587.0;
@@ -40,6 +48,15 @@ impl<'a> Headers<'a> {
     pub(crate) fn open(path: &'a Path, keywords: &'a Keywords) -> Result<Self> {
         let mut file = FitsFile::open(path).map_err(|e| fits_error(path, "file", e))?;
         check_complete(path, &mut file)?;
+        for ext in [EXT_PERSIST_CURRENT, EXT_PERSIST_FLAGS] {
+            if file.hdu(ext).is_ok() {
+                return Err(Error::invalid(
+                    ext,
+                    "present: this is an output of persist, not an exposure to flag",
+                )
+                .path(path));
+            }
+        }
         let primary = file
             .primary_hdu()
             .map_err(|e| fits_error(path, "PRIMARY", e))?;
@@ -212,9 +229,9 @@ impl<'a> Headers<'a> {
 /// step.
 fn check_complete(path: &Path, file: &mut FitsFile) -> Result<()> {
     let n = file.num_hdus().map_err(|e| fits_error(path, "file", e))?;
-    let last = n.checked_sub(1).ok_or_else(|| {
-        Error::invalid("file", "has no header data unit").path(path)
-    })?;
+    let last = n
+        .checked_sub(1)
+        .ok_or_else(|| Error::invalid("file", "has no header data unit").path(path))?;
     file.hdu(last)
         .map_err(|e| fits_error(path, &format!("HDU {n}"), e))?;
     let (mut header_start, mut data_start, mut data_end) = (0i64, 0i64, 0i64);
@@ -237,7 +254,9 @@ fn check_complete(path: &Path, file: &mut FitsFile) -> Result<()> {
         )
         .path(path));
     }
-    let len = std::fs::metadata(path).map_err(|e| Error::io(path, e))?.len();
+    let len = std::fs::metadata(path)
+        .map_err(|e| Error::io(path, e))?
+        .len();
     let end = u64::try_from(data_end).unwrap_or(0);
     if end > len {
         return Err(Error::invalid(
@@ -292,7 +311,7 @@ pub fn read_meta(path: &Path, cfg: &FitsConfig) -> Result<ExposureMeta> {
 }
 
 /// Read and check one FITS exposure; the image is returned in e-/s.
-pub fn read_exposure(path: &Path, cfg: &FitsConfig) -> Result<(Exposure, Conversion)> {
+pub fn read_exposure(path: &Path, cfg: &FitsConfig) -> Result<(Exposure, FitsInput)> {
     let mut h = Headers::open(path, &cfg.keywords)?;
     let meta = h.meta()?;
     let conv = h.conversion(meta.detector, cfg)?;
@@ -303,6 +322,25 @@ pub fn read_exposure(path: &Path, cfg: &FitsConfig) -> Result<(Exposure, Convers
         .hdu(k.flags_ext.as_str())
         .map_err(|e| fits_error(path, &k.flags_ext, e))?;
     let fdim = plane_shape(path, &k.flags_ext, &flags_hdu)?;
+    for (name, bit) in MODEL_FLAG_BITS {
+        let field = || format!("{}/{name}", k.flags_ext);
+        match flags_hdu.read_key::<i64>(&mut h.file, name) {
+            Ok(b) if b == i64::from(*bit) => {}
+            Ok(b) => {
+                return Err(Error::invalid(
+                    field(),
+                    format!("names bit {b}; persist reads and writes it as bit {bit} (SPHEREx's)"),
+                )
+                .path(path))
+            }
+            Err(fitsio::errors::Error::Fits(f)) if f.status == KEY_NO_EXIST => {}
+            Err(e) => {
+                return Err(
+                    Error::invalid(field(), format!("not an integer bit number: {e}")).path(path),
+                )
+            }
+        }
+    }
     if fdim != dim {
         return Err(Error::invalid(
             k.flags_ext.as_str(),
@@ -346,9 +384,12 @@ pub fn read_exposure(path: &Path, cfg: &FitsConfig) -> Result<(Exposure, Convers
             .collect(),
     )
     .map_err(|e| Error::invalid(k.image_ext.as_str(), e.to_string()).path(path))?;
-    // The bit pattern of the int32 plane, unchanged.
-    let flags = Array2::from_shape_vec(dim, bits.into_iter().map(|b| b as u32).collect())
-        .map_err(|e| Error::invalid(k.flags_ext.as_str(), e.to_string()).path(path))?;
+    // The bit pattern of the int32 plane, unchanged but for an archive's PERSIST bit.
+    let persist = crate::flags::bits::PERSIST;
+    let input_persist_px = bits.iter().filter(|&&b| b as u32 & persist != 0).count() as u64;
+    let flags =
+        Array2::from_shape_vec(dim, bits.into_iter().map(|b| b as u32 & !persist).collect())
+            .map_err(|e| Error::invalid(k.flags_ext.as_str(), e.to_string()).path(path))?;
     let errors: Vec<Error> = check_exposure_data(&image, &flags, None, false)
         .into_iter()
         .map(|mut e| {
@@ -371,7 +412,10 @@ pub fn read_exposure(path: &Path, cfg: &FitsConfig) -> Result<(Exposure, Convers
             ramp: None,
             ramp_times_s: None,
         },
-        conv,
+        FitsInput {
+            conversion: conv,
+            input_persist_px,
+        },
     ))
 }
 

@@ -9,7 +9,10 @@
 //! header cards. Nothing else in the file changes. The file is flushed, re-opened and its
 //! new extensions checked, then published like an HDF5 product (sync, rename, sync).
 
-use super::{fits_error, Conversion, Keywords, EXT_PERSIST_CURRENT, EXT_PERSIST_FLAGS};
+use super::{
+    fits_error, Conversion, FitsInput, Keywords, EXT_PERSIST_CURRENT, EXT_PERSIST_FLAGS,
+    KEY_NO_EXIST,
+};
 use super::{PERSIST_FLAG_BITS, SPHEREX_FLAG_BITS};
 use crate::error::{Error, Result};
 use crate::product::read::check_persistence_data;
@@ -19,9 +22,6 @@ use fitsio::images::{ImageDescription, ImageType};
 use fitsio::FitsFile;
 use std::path::Path;
 
-/// cfitsio's status for a keyword that is not in the header.
-const KEY_NO_EXIST: i32 = 202;
-
 /// Write the output of one FITS exposure: `input` copied to `path` with the stage's
 /// flags and planes (module docs). `e.flags` must carry the `PERSIST` bits already.
 pub fn write_output(
@@ -30,7 +30,7 @@ pub fn write_output(
     e: &Exposure,
     planes: &PersistencePlanes,
     attrs: &PersistenceAttrs,
-    conv: &Conversion,
+    read: &FitsInput,
     keywords: &Keywords,
 ) -> Result<()> {
     let dim = e.image.dim();
@@ -93,7 +93,14 @@ pub fn write_output(
                     .path(path));
                 }
             }
-            append_persistence(&mut f, path, planes, attrs, conv)?;
+            append_persistence(
+                &mut f,
+                path,
+                planes,
+                attrs,
+                &read.conversion,
+                Some(read.input_persist_px),
+            )?;
             flush(&mut f, path)
         },
         |tmp| check_written(tmp, path, dim, &keywords.flags_ext),
@@ -140,6 +147,7 @@ pub(crate) fn append_persistence(
     planes: &PersistencePlanes,
     attrs: &PersistenceAttrs,
     conv: &Conversion,
+    input_persist_px: Option<u64>,
 ) -> Result<()> {
     let (ny, nx) = planes.current_e_per_s.dim();
     let ext = EXT_PERSIST_CURRENT;
@@ -191,6 +199,15 @@ pub(crate) fn append_persistence(
             .map_err(fe)?;
     }
     attr_cards(f, &hdu, attrs).map_err(fe)?;
+    if let Some(n) = input_persist_px {
+        let n = i64::try_from(n).unwrap_or(i64::MAX);
+        hdu.write_key(
+            f,
+            "PERSIN",
+            (n, "pixels with PERSIST in the input, replaced"),
+        )
+        .map_err(fe)?;
+    }
     Ok(())
 }
 

@@ -990,7 +990,7 @@ impl<'a> Processor<'a> {
             std::thread::spawn(move || file_digest(&path))
         });
         // FITS inputs carry the conversion of their image to e-/s, recorded in the output.
-        let (mut exposure, fits): (Exposure, Option<crate::fits::Conversion>) =
+        let (mut exposure, fits): (Exposure, Option<crate::fits::FitsInput>) =
             if crate::fits::is_fits(&entry.path) {
                 let (e, c) = crate::fits::read_exposure(&entry.path, &self.ops.fits)
                     .map_err(Failure::Input)?;
@@ -1095,13 +1095,13 @@ impl<'a> Processor<'a> {
                 processed_utc: self.cfg.processed_utc.clone(),
             };
             match &fits {
-                Some(conv) => crate::fits::write_output(
+                Some(read) => crate::fits::write_output(
                     &entry.path,
                     &out_path,
                     &exposure,
                     planes,
                     &attrs,
-                    conv,
+                    read,
                     &self.ops.fits.keywords,
                 ),
                 None => product::write::write_output(&out_path, &exposure, planes, &attrs),
