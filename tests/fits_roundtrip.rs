@@ -34,6 +34,13 @@ fn files(dir: &Path, ext: &str) -> Vec<String> {
     v
 }
 
+/// Run one cfitsio call on a status word; panic on a non-zero status.
+fn cfitsio(call: impl FnOnce(&mut i32) -> i32) {
+    let mut status = 0;
+    call(&mut status);
+    assert_eq!(status, 0, "cfitsio status {status}");
+}
+
 #[test]
 fn fits_round_trip_matches_hdf5_and_astropy_reads_everything() {
     let tmp = tempfile::tempdir().unwrap();
@@ -73,6 +80,23 @@ fn fits_round_trip_matches_hdf5_and_astropy_reads_everything() {
     );
     ok(&args.iter().map(String::as_str).collect::<Vec<_>>());
     assert_eq!(files(&fitsin, "fits").len(), 8);
+    // As archive files vary: inputs 0-2 lack MP_PERSIST in FLAGS (the stage adds it),
+    // inputs 2-4 carry CHECKSUM and DATASUM in every extension (the stage updates FLAGS's).
+    for (i, p) in files(&fitsin, "fits").iter().enumerate() {
+        let mut f = fitsio::FitsFile::edit(p).unwrap();
+        if i <= 2 {
+            f.hdu("FLAGS").unwrap();
+            // SAFETY: the open file's pointer and a NUL-terminated name, for this call.
+            cfitsio(|st| unsafe { fitsio::sys::ffdkey(f.as_raw(), c"MP_PERSIST".as_ptr(), st) });
+        }
+        if (2..=4).contains(&i) {
+            for h in 0..f.num_hdus().unwrap() {
+                f.hdu(h).unwrap();
+                // SAFETY: the open file's pointer, for this call.
+                cfitsio(|st| unsafe { fitsio::sys::ffpcks(f.as_raw(), st) });
+            }
+        }
+    }
 
     let (code, err) = run_batch(&h5in, &t.join("h5run"), &[]);
     assert_eq!(code, 0, "{err}");
@@ -107,6 +131,8 @@ fn fits_round_trip_matches_hdf5_and_astropy_reads_everything() {
     assert!(counts["high_pixels"].as_u64().unwrap() > 0, "{counts}");
     // PRIMARY, IMAGE, VARIANCE, ZODI, PSF, WCS-WAVE of 8 files.
     assert_eq!(counts["untouched_extensions_identical"], 48);
+    assert_eq!(counts["mp_persist_added"], 3, "{counts}");
+    assert_eq!(counts["flags_checksum_verified"], 3, "{counts}");
     assert!(
         counts["h5_opened"].as_u64().unwrap() >= 8 + 8 + 2,
         "{counts}"
@@ -201,15 +227,7 @@ fn archive_persist_bits_are_replaced_and_foreign_bit_names_and_outputs_refused()
         let (key, comment) = (c"MP_OVERFLOW", c"another mission's bit");
         let mut status = 0;
         // SAFETY: the open file's pointer and two NUL-terminated strings, for this call.
-        unsafe {
-            fitsio::sys::ffukyj(
-                f.as_raw(),
-                key.as_ptr(),
-                5,
-                comment.as_ptr(),
-                &mut status,
-            )
-        };
+        unsafe { fitsio::sys::ffukyj(f.as_raw(), key.as_ptr(), 5, comment.as_ptr(), &mut status) };
         assert_eq!(status, 0);
     }
     let (code, err) = run_batch(&input, &t.join("run"), &[]);

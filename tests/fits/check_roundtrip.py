@@ -8,7 +8,8 @@ output on the same data:
   every other FLAGS bit is the input's;
 - PERSIST_CURRENT equals /persistence/current to float32 precision;
 - every extension other than FLAGS is byte-identical (header and data bytes) to the
-  input's, and the FLAGS header keeps every input card (MP_PERSIST added if missing);
+  input's, and the FLAGS header keeps every input card (MP_PERSIST added if missing;
+  CHECKSUM and DATASUM, when the input had them, updated and verified);
 - astropy opens every FITS file (inputs, outputs, exports) with warnings as errors and
   verify('exception'); h5py opens every HDF5 file under H5_DIR... and reads every dataset.
 Prints one JSON line of counts; exits non-zero on the first failure.
@@ -30,7 +31,7 @@ NEW = {"PERSIST_CURRENT", "PERSIST_FLAGS"}
 
 
 def strict_open(path):
-    hdul = fits.open(path, mode="readonly", memmap=False)
+    hdul = fits.open(path, mode="readonly", memmap=False, checksum=True)
     hdul.verify("exception")
     for hdu in hdul:
         _ = hdu.data  # decode every extension (a bad one raises here)
@@ -53,6 +54,8 @@ outputs = sorted(glob.glob(os.path.join(fits_out, "*.fits")))
 assert outputs, f"no FITS output in {fits_out}"
 n_high = 0
 n_ext_same = 0
+n_mp_added = 0
+n_checksum = 0
 max_rel = 0.0
 for out_path in outputs:
     name = os.path.basename(out_path)
@@ -84,10 +87,16 @@ for out_path in outputs:
     assert hout["PERSIST_CURRENT"].header["BUNIT"] == "e-/s"
     assert "ESCONV" in hout["PERSIST_CURRENT"].header
     assert hout["FLAGS"].header["MP_PERSIST"] == 17
+    n_mp_added += "MP_PERSIST" not in hin["FLAGS"].header
+    if "CHECKSUM" in hin["FLAGS"].header:
+        assert hout["FLAGS"].verify_checksum() == 1, f"{name}: FLAGS CHECKSUM"
+        assert hout["FLAGS"].verify_datasum() == 1, f"{name}: FLAGS DATASUM"
+        n_checksum += 1
     raw_in, raw_out = raw_parts(in_path, hin), raw_parts(out_path, hout)
     for i, ext in enumerate(names_in):
         if ext == "FLAGS":
-            cards_in = [c.image for c in hin[i].header.cards]
+            sums = ("CHECKSUM", "DATASUM")
+            cards_in = [c.image for c in hin[i].header.cards if c.keyword not in sums]
             cards_out = [c.image for c in hout[i].header.cards]
             missing = [c for c in cards_in if c not in cards_out]
             assert not missing, f"{name}: FLAGS header lost {missing}"
@@ -114,6 +123,8 @@ print(json.dumps({
     "high_pixels": n_high,
     "untouched_extensions_identical": n_ext_same,
     "max_rel_current_diff": max_rel,
+    "mp_persist_added": n_mp_added,
+    "flags_checksum_verified": n_checksum,
     "fits_opened_strict": n_fits,
     "h5_opened": n_h5,
 }))
