@@ -5,8 +5,8 @@
 //! the exposure's keywords in its header), `FLAGS` (int32 bit mask whose header names
 //! every bit with `MP_<NAME>` keywords), `VARIANCE`, `ZODI`, `PSF` (a cube) and
 //! `WCS-WAVE` (the wavelength lookup table). This module maps such a file onto the same
-//! [`Exposure`](crate::product::Exposure) the HDF5 reader gives ([`read`]), and writes
-//! the stage's result back into a copy of the same file ([`write`]).
+//! [`Exposure`](crate::product::Exposure) the HDF5 reader gives ([`mod@read`]), and writes
+//! the stage's result back into a copy of the same file ([`mod@write`]).
 //!
 //! Invariants:
 //! - The model path does not change: FITS -> `Exposure` (image converted to e-/s with a

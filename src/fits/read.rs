@@ -4,7 +4,7 @@
 //! header ([`Keywords`] names them). Order, so that nothing big is read from a file
 //! that is not a usable exposure: open, headers (detector, exposure index, start time,
 //! exposure time, conversion factor), then the `IMAGE` and `FLAGS` planes, then the same
-//! value checks as for HDF5 ([`crate::product::read::check_exposure_data`]: no +/-Inf,
+//! value checks as for HDF5 (`check_exposure_data` in [`crate::product::read`]: no +/-Inf,
 //! some finite pixel).
 //!
 //! Refused, besides what the HDF5 reader refuses: a file that does not end where its last
