@@ -5,18 +5,33 @@
 
 mod common;
 
-use common::{bin, run_batch};
+use common::{persist_ok as ok, run_batch};
 use std::path::Path;
 use std::process::Command;
 
-fn ok(args: &[&str]) -> String {
-    let o = bin().args(args).output().unwrap();
-    assert!(
-        o.status.success(),
-        "{args:?}: {}",
-        String::from_utf8_lossy(&o.stderr)
-    );
-    String::from_utf8_lossy(&o.stdout).into_owned()
+/// `persist simulate sky` of one 16 x 16 detector, written as SPHEREx-layout FITS.
+fn simulate_fits(out: &Path, exposures: u32) -> Vec<String> {
+    let n = exposures.to_string();
+    ok(&[
+        "simulate",
+        "sky",
+        "--out",
+        &s(out),
+        "--size",
+        "16",
+        "--detectors",
+        "1",
+        "--exposures",
+        &n,
+        "--seed",
+        "2",
+        "--format",
+        "fits",
+    ]);
+    let fits = files(out, "fits");
+    assert_eq!(fits.len(), exposures as usize);
+    assert!(files(out, "h5").is_empty());
+    fits
 }
 
 fn s(p: &Path) -> String {
@@ -144,25 +159,7 @@ fn a_corrupt_fits_file_is_quarantined_and_the_rest_processed() {
     let tmp = tempfile::tempdir().unwrap();
     let t = tmp.path();
     let h5in = t.join("h5in");
-    ok(&[
-        "simulate",
-        "sky",
-        "--out",
-        &s(&h5in),
-        "--size",
-        "16",
-        "--detectors",
-        "1",
-        "--exposures",
-        "2",
-        "--seed",
-        "2",
-        "--format",
-        "fits",
-    ]);
-    let fits = files(&h5in, "fits");
-    assert_eq!(fits.len(), 2);
-    assert!(files(&h5in, "h5").is_empty());
+    let fits = simulate_fits(&h5in, 2);
     // Exposure 1 cut in half, and a file that is not FITS at all.
     let bytes = std::fs::read(&fits[1]).unwrap();
     std::fs::write(&fits[1], &bytes[..bytes.len() / 2]).unwrap();
@@ -194,24 +191,7 @@ fn archive_persist_bits_are_replaced_and_foreign_bit_names_and_outputs_refused()
     let tmp = tempfile::tempdir().unwrap();
     let t = tmp.path();
     let input = t.join("in");
-    ok(&[
-        "simulate",
-        "sky",
-        "--out",
-        &s(&input),
-        "--size",
-        "16",
-        "--detectors",
-        "1",
-        "--exposures",
-        "4",
-        "--seed",
-        "2",
-        "--format",
-        "fits",
-    ]);
-    let fits = files(&input, "fits");
-    assert_eq!(fits.len(), 4);
+    let fits = simulate_fits(&input, 4);
     // Exposure 0 as an archive file: its pipeline set PERSIST (bit 17) on every pixel.
     let before = plane_i32(Path::new(&fits[0]), "FLAGS");
     {
