@@ -233,12 +233,31 @@ fn archive_persist_bits_are_replaced_and_foreign_bit_names_and_outputs_refused()
     let hdu = f.hdu("PERSIST_FLAGS").unwrap();
     assert_eq!(hdu.read_key::<i64>(&mut f, "PERSIN").unwrap(), 16 * 16);
 
-    // The stage's own outputs are not exposures to flag.
+    // The stage's own outputs are not exposures to flag, and a 16-bit FLAGS plane cannot
+    // take bit 17.
     let again = t.join("again");
     std::fs::create_dir(&again).unwrap();
     std::fs::copy(&out0, again.join("x.fits")).unwrap();
+    let y = again.join("y.fits");
+    std::fs::copy(&fits[1], &y).unwrap();
+    {
+        let mut f = fitsio::FitsFile::edit(&y).unwrap();
+        f.hdu("FLAGS").unwrap().delete(&mut f).unwrap();
+        let desc = fitsio::images::ImageDescription {
+            data_type: fitsio::images::ImageType::Short,
+            dimensions: &[16, 16],
+        };
+        let hdu = f.create_image("FLAGS", &desc).unwrap();
+        hdu.write_image(&mut f, &[0i16; 256]).unwrap();
+    }
     let (code, err) = run_batch(&again, &t.join("run2"), &[]);
     assert_ne!(code, 0, "{err}");
-    let reason = std::fs::read_to_string(again.join(".quarantine/x.fits.reason.json")).unwrap();
+    let quarantined = |name: &str| {
+        std::fs::read_to_string(again.join(format!(".quarantine/{name}.reason.json")))
+            .unwrap_or_else(|e| panic!("{name} not quarantined ({e}): {err}"))
+    };
+    let reason = quarantined("x.fits");
     assert!(reason.contains("PERSIST_CURRENT"), "{reason}");
+    let reason = quarantined("y.fits");
+    assert!(reason.contains("FLAGS/BITPIX"), "{reason}");
 }

@@ -25,6 +25,7 @@ use crate::product::schema::combine;
 use crate::product::{Exposure, ExposureMeta};
 use crate::units::{DetectorId, UtcSeconds};
 use fitsio::hdu::{FitsHdu, HduInfo};
+use fitsio::images::ImageType;
 use fitsio::FitsFile;
 use ndarray::Array2;
 use std::path::Path;
@@ -322,6 +323,21 @@ pub fn read_exposure(path: &Path, cfg: &FitsConfig) -> Result<(Exposure, FitsInp
         .hdu(k.flags_ext.as_str())
         .map_err(|e| fits_error(path, &k.flags_ext, e))?;
     let fdim = plane_shape(path, &k.flags_ext, &flags_hdu)?;
+    // Bit 17 is written back into this plane: it must hold 32 bits or more.
+    if let HduInfo::ImageInfo { image_type, .. } = &flags_hdu.info {
+        if !matches!(
+            image_type,
+            ImageType::Long | ImageType::UnsignedLong | ImageType::LongLong
+        ) {
+            return Err(Error::invalid(
+                format!("{}/BITPIX", k.flags_ext),
+                format!(
+                    "a {image_type:?} plane cannot hold bit 17 (PERSIST): 32-bit integers needed"
+                ),
+            )
+            .path(path));
+        }
+    }
     for (name, bit) in MODEL_FLAG_BITS {
         let field = || format!("{}/{name}", k.flags_ext);
         match flags_hdu.read_key::<i64>(&mut h.file, name) {
