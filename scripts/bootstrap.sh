@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Install what a fresh Debian 12 machine lacks to build persist: HDF5 headers and
+# Install what a fresh Debian 12 machine lacks to build persist: HDF5 and cfitsio headers and
 # pkg-config. Does nothing when pkg-config already finds HDF5.
 # With --chromium, also Debian's chromium (for tests/report_chromium.rs) when it is not
 # on PATH.
@@ -21,9 +21,16 @@ if [ "${1:-}" = "--chromium" ] && ! command -v chromium >/dev/null 2>&1; then
   $SUDO apt-get install -y -qq chromium >/dev/null
   chromium --version >&2 || true
 fi
+# FITS (the fitsio crate links Debian's cfitsio).
+if ! pkg-config --exists cfitsio 2>/dev/null; then
+  echo "bootstrap: cfitsio not found by pkg-config; installing libcfitsio-dev" >&2
+  if [ "$updated" -eq 0 ]; then $SUDO apt-get update -qq; updated=1; fi
+  $SUDO apt-get install -y -qq libcfitsio-dev pkg-config >/dev/null
+  pkg-config --modversion cfitsio >&2
+fi
 # With --python (anywhere in the arguments), also what the Python package and its tests
-# need (scripts/python_test.sh): pip, then maturin, numpy, h5py, pytest and matplotlib
-# from PyPI when they are missing.
+# need (scripts/python_test.sh) and the FITS round trip (tests/fits_roundtrip.rs): pip,
+# then maturin, numpy, h5py, pytest, matplotlib and astropy from PyPI when they are missing.
 for arg in "$@"; do
   if [ "$arg" = "--python" ]; then
     if ! python3 -m pip --version >/dev/null 2>&1; then
@@ -31,12 +38,12 @@ for arg in "$@"; do
       if [ "$updated" -eq 0 ]; then $SUDO apt-get update -qq; updated=1; fi
       $SUDO apt-get install -y -qq python3-pip python3-venv >/dev/null
     fi
-    if ! python3 -c "import maturin, numpy, h5py, pytest, matplotlib" >/dev/null 2>&1; then
-      echo "bootstrap: installing maturin numpy h5py pytest matplotlib (pip)" >&2
+    if ! python3 -c "import maturin, numpy, h5py, pytest, matplotlib, astropy" >/dev/null 2>&1; then
+      echo "bootstrap: installing maturin numpy h5py pytest matplotlib astropy (pip)" >&2
       # Debian's own python3 refuses pip installs outside a venv (PEP 668) unless told.
-      python3 -m pip install --quiet maturin numpy h5py pytest matplotlib 2>/dev/null \
+      python3 -m pip install --quiet maturin numpy h5py pytest matplotlib astropy 2>/dev/null \
         || python3 -m pip install --quiet --break-system-packages \
-          maturin numpy h5py pytest matplotlib
+          maturin numpy h5py pytest matplotlib astropy
     fi
   fi
 done

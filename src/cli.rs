@@ -123,6 +123,9 @@ pub enum Command {
     /// Benchmark the model step, the memory bound, the whole stage and the HDF5 I/O
     /// bound, each case in a child process; prints a markdown table and writes JSON.
     Bench(BenchArgs),
+    /// Export HDF5 products (inputs or outputs) as FITS files in SPHEREx's Level-2
+    /// layout (docs/fits.md).
+    Export(ExportArgs),
     /// Print the command-line reference (docs/cli.md) as markdown.
     #[command(hide = true)]
     HelpMarkdown,
@@ -139,6 +142,24 @@ pub enum Command {
     Tile(persist::slurm::TileArgs),
     /// Assemble a split run's tiles into whole-array outputs and final checkpoints.
     Assemble(persist::slurm::AssembleArgs),
+}
+
+#[derive(Args, Debug)]
+pub struct ExportArgs {
+    /// HDF5 products to export (`NAME.h5` -> `OUT/NAME.fits`).
+    #[arg(long = "fits", required = true, num_args = 1..)]
+    pub files: Vec<PathBuf>,
+    /// Output directory.
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Write the image of detector D in MJy/sr, FACTOR e-/s per MJy/sr (recorded as
+    /// ESCONV); repeatable. Without it the image is written in e-/s.
+    #[arg(long = "fits-gain", value_parser = persist::fits::parse_gain)]
+    pub fits_gain: Vec<(u8, f64)>,
+    /// Add VARIANCE, ZODI, PSF and WCS-WAVE placeholders and a spatial WCS (SPHEREx's
+    /// full layout, synthetic values).
+    #[arg(long)]
+    pub placeholders: bool,
 }
 
 #[derive(Args, Debug)]
@@ -299,6 +320,14 @@ pub struct SkyArgs {
     pub effects: Vec<String>,
     #[command(flatten)]
     pub sky: SkyOptions,
+    /// Product format: `h5` (the ICD), or `fits` (SPHEREx's Level-2 layout with
+    /// placeholder VARIANCE, ZODI, PSF and WCS-WAVE; docs/fits.md).
+    #[arg(long, default_value = "h5", value_parser = ["h5", "fits"])]
+    pub format: String,
+    /// With --format fits: write detector D's image in MJy/sr, FACTOR e-/s per MJy/sr
+    /// (recorded as ESCONV); repeatable.
+    #[arg(long = "fits-gain", value_parser = persist::fits::parse_gain)]
+    pub fits_gain: Vec<(u8, f64)>,
 }
 
 /// Sky and detector parameters of the sky survey (defaults: `persist::sim::sky::SkyConfig`
@@ -435,6 +464,14 @@ pub struct RunArgs {
     /// directories are never scanned].
     #[arg(long)]
     pub quarantine: Option<PathBuf>,
+    /// FITS inputs: a JSON file renaming the header keywords and extensions read
+    /// (docs/fits.md); SPHEREx's names by default.
+    #[arg(long)]
+    pub fits_keywords: Option<PathBuf>,
+    /// FITS inputs: e-/s per image unit for detector D (`D:FACTOR`, repeatable); wins
+    /// over the header's ESCONV.
+    #[arg(long = "fits-gain", value_parser = persist::fits::parse_gain)]
+    pub fits_gain: Vec<(u8, f64)>,
 }
 
 #[derive(Args, Debug)]
@@ -745,6 +782,7 @@ pub fn run(cli: Cli) -> persist::Result<ExitCode> {
         Command::Compare(a) => compare(&a),
         Command::Diagnose(a) => diagnose(&a),
         Command::Bench(args) => bench(&args),
+        Command::Export(a) => export(&a),
         Command::HelpMarkdown => {
             use clap::CommandFactory;
             out_nonl!("{}", crate::cli_reference::markdown(Cli::command()));
@@ -820,6 +858,30 @@ fn verify(a: &VerifyArgs) -> persist::Result<ExitCode> {
     })
 }
 
+/// `persist export --fits FILE... --out DIR`.
+fn export(a: &ExportArgs) -> persist::Result<ExitCode> {
+    std::fs::create_dir_all(&a.out).map_err(|e| Error::io(&a.out, e))?;
+    let opts = persist::fits::export::ExportOptions {
+        gains: a.fits_gain.iter().copied().collect(),
+        placeholders: a.placeholders,
+    };
+    let mut failed = false;
+    for f in &a.files {
+        match persist::fits::export::export_file(f, &a.out, &opts) {
+            Ok(p) => out!("{} -> {}", f.display(), p.display()),
+            Err(e) => {
+                failed = true;
+                tracing::error!("{e}");
+            }
+        }
+    }
+    Ok(if failed {
+        ExitCode::FAILURE
+    } else {
+        ExitCode::SUCCESS
+    })
+}
+
 /// `persist simulate lab|sky`: products and truth written as they are simulated.
 fn simulate(scenario: SimScenario) -> persist::Result<ExitCode> {
     use persist::sim::{effect::EffectSpec, lab, output::Writer, sky};
@@ -878,7 +940,15 @@ fn simulate(scenario: SimScenario) -> persist::Result<ExitCode> {
             sky::validate(&cfg)?;
             let mut w = Writer::new(&a.out)?;
             let desc = sky::run(&cfg, |e| w.write(&e))?;
-            (a.out, w.finish(desc)?)
+            let n = w.finish(desc)?;
+            if a.format == "fits" {
+                let opts = persist::fits::export::ExportOptions {
+                    gains: a.fits_gain.iter().copied().collect(),
+                    placeholders: true,
+                };
+                persist::fits::export::convert_dir(&a.out, &opts)?;
+            }
+            (a.out, n)
         }
         SimScenario::Family(a) => {
             let cfg = persist::trapgen::FamilyConfig {
@@ -992,6 +1062,13 @@ fn run_stage(args: &RunArgs) -> persist::Result<ExitCode> {
         gap_timeout: Duration::from_secs_f64(args.gap_timeout_s),
         stop,
         progress,
+        fits: persist::fits::FitsConfig {
+            keywords: match &args.fits_keywords {
+                Some(p) => persist::fits::Keywords::load(p)?,
+                None => Default::default(),
+            },
+            gains: args.fits_gain.iter().copied().collect(),
+        },
     };
     let cfg = RunConfig {
         input: args.input.clone(),

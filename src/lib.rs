@@ -35,6 +35,7 @@ pub mod checkpoint;
 pub mod demo;
 pub mod diag;
 pub mod error;
+pub mod fits;
 pub mod flags;
 pub mod h5io;
 pub mod measure;

@@ -1,6 +1,7 @@
 //! Discover input products: the candidate files of a directory.
 //!
-//! A file is a candidate when its name ends in `.h5` and neither starts with `.` nor
+//! A file is a candidate when its name ends in `.h5` (or is a FITS exposure, `.fits`,
+//! [`crate::fits::is_fits`]) and neither starts with `.` nor
 //! ends in `.part` (ICD: upstream writes under such temporary names and renames when
 //! done); folders whose names start with `.` (the quarantine among them) are not
 //! searched. Ordering, gaps and duplicates are the stage's ([`super::run()`]).
@@ -13,7 +14,9 @@ pub fn is_candidate(path: &Path) -> bool {
     let Some(name) = path.file_name().and_then(|n| n.to_str()) else {
         return false;
     };
-    name.ends_with(".h5") && !name.starts_with('.') && !name.ends_with(".part")
+    (name.ends_with(".h5") || crate::fits::is_fits(path))
+        && !name.starts_with('.')
+        && !name.ends_with(".part")
 }
 
 /// All candidate files under `dir`, sorted by path (deterministic).
@@ -43,6 +46,9 @@ mod tests {
         assert!(!is_candidate(Path::new("/a/.x.h5")));
         assert!(!is_candidate(Path::new("/a/x.h5.part")));
         assert!(!is_candidate(Path::new("/a/x.part")));
-        assert!(!is_candidate(Path::new("/a/x.fits")));
+        assert!(is_candidate(Path::new("/a/x.fits")));
+        assert!(!is_candidate(Path::new("/a/.x.fits")));
+        assert!(!is_candidate(Path::new("/a/x.fits.part")));
+        assert!(!is_candidate(Path::new("/a/x.txt")));
     }
 }

@@ -137,6 +137,8 @@ pub struct Ops {
     pub stop: Arc<AtomicBool>,
     /// Progress of a batch run (its length is set once the products are queued).
     pub progress: Option<indicatif::ProgressBar>,
+    /// How FITS inputs (`*.fits`) are read: keyword names, conversion factors.
+    pub fits: crate::fits::FitsConfig,
 }
 
 impl Default for Ops {
@@ -147,6 +149,7 @@ impl Default for Ops {
             gap_timeout: Duration::from_secs(600),
             stop: Arc::new(AtomicBool::new(false)),
             progress: None,
+            fits: Default::default(),
         }
     }
 }
@@ -377,7 +380,12 @@ impl<'a> Stage<'a> {
 
     fn observe(&mut self, path: &Path, key: FileKey, now: Instant) {
         self.seen.insert(path.to_path_buf(), key);
-        let meta = match product::read::read_meta(path) {
+        let read = if crate::fits::is_fits(path) {
+            crate::fits::read_meta(path, &self.ops.fits)
+        } else {
+            product::read::read_meta(path)
+        };
+        let meta = match read {
             Ok(m) => m,
             Err(e) if matches!(e.kind, ErrorKind::NotReady | ErrorKind::Io) => {
                 self.not_ready(path, e);
@@ -981,8 +989,16 @@ impl<'a> Processor<'a> {
             let path = entry.path.clone();
             std::thread::spawn(move || file_digest(&path))
         });
-        let mut exposure: Exposure =
-            product::read::read_exposure(&entry.path).map_err(Failure::Input)?;
+        // FITS inputs carry the conversion of their image to e-/s, recorded in the output.
+        let (mut exposure, fits): (Exposure, Option<crate::fits::FitsInput>) =
+            if crate::fits::is_fits(&entry.path) {
+                let (e, c) = crate::fits::read_exposure(&entry.path, &self.ops.fits)
+                    .map_err(Failure::Input)?;
+                (e, Some(c))
+            } else {
+                let e = product::read::read_exposure(&entry.path).map_err(Failure::Input)?;
+                (e, None)
+            };
         let meta = exposure.meta.clone();
         if meta != entry.meta {
             return Err(Failure::Input(
@@ -1078,8 +1094,19 @@ impl<'a> Processor<'a> {
                 software_version: crate::VERSION.to_string(),
                 processed_utc: self.cfg.processed_utc.clone(),
             };
-            product::write::write_output(&out_path, &exposure, planes, &attrs)
-                .map_err(Failure::Output)?;
+            match &fits {
+                Some(read) => crate::fits::write_output(
+                    &entry.path,
+                    &out_path,
+                    &exposure,
+                    planes,
+                    &attrs,
+                    read,
+                    &self.ops.fits.keywords,
+                ),
+                None => product::write::write_output(&out_path, &exposure, planes, &attrs),
+            }
+            .map_err(Failure::Output)?;
             true
         };
         Ok(ExposureReport {
