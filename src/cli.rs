@@ -131,6 +131,9 @@ pub enum Command {
     /// fluence and time, set it beside the stage's predictions and flags; writes
     /// REPORT/report.html and REPORT/report.json.
     Verify(VerifyArgs),
+    /// Measure a detector's per-pixel response map from a laboratory sequence against a
+    /// model (empirical Bayes; docs/pixel_map.md), and optionally write the model naming it.
+    Pixelmap(persist::pixmap::command::PixelmapArgs),
 }
 
 #[derive(Args, Debug)]
@@ -708,11 +711,11 @@ fn parse_checkpoint_key(s: &str) -> Result<(DetectorId, u64), String> {
 }
 
 fn load_model(path: Option<&Path>) -> persist::Result<Model> {
-    let params = match path {
-        Some(p) => persist::model_file::load(p)?,
-        None => ModelParams::default(),
-    };
-    Model::new(params)
+    match path {
+        // with the per-pixel maps the model file names (none: the model alone)
+        Some(p) => persist::pixmap::file::attach(p, persist::model_file::load(p)?),
+        None => Model::new(ModelParams::default()),
+    }
 }
 
 pub fn run(cli: Cli) -> persist::Result<ExitCode> {
@@ -743,6 +746,12 @@ pub fn run(cli: Cli) -> persist::Result<ExitCode> {
             Ok(ExitCode::SUCCESS)
         }
         Command::Verify(a) => verify(&a),
+        Command::Pixelmap(a) => {
+            for line in persist::pixmap::command::run(&a)? {
+                out!("{line}");
+            }
+            Ok(ExitCode::SUCCESS)
+        }
     }
 }
 
