@@ -13,8 +13,9 @@
 //!   transient): `scale[1]`;
 //! - in between, linear in `F` from one to the other.
 //!
-//! Pixels of unknown fluence (transients, non-finite currents) keep the knot table's
-//! maximum, whatever the map says (the effect step's rule); non-functional pixels add
+//! Pixels of unknown fluence (transients, non-finite currents, ramps saturated with no
+//! slope) take the pixel's own maximum: the knot table's maximum times `scale[1]` (the
+//! effect step applies it, [`crate::model::effect_step`]); non-functional pixels add
 //! nothing. The factor is applied in the response hook ([`Effect::response`]), so the
 //! decay, the flags and early release are the model's own.
 //!

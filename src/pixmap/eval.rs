@@ -176,3 +176,136 @@ mod tests {
         assert_eq!((u.samples, u.over_flagged), (5, 0));
     }
 }
+
+/// The measurement of docs/validation/pixel_map.md on one simulated detector: a
+/// laboratory sequence ([`lab_campaign`]) gives the global model (`persist fit`'s
+/// calibration) and the per-pixel map; a sky run of the same detector (same seed and
+/// size: the same pixels) is flagged by the global model and by the model with the map
+/// at each margin, against the truth.
+#[derive(Debug, Clone)]
+pub struct Experiment {
+    pub size: usize,
+    pub seed: u64,
+    pub sky_exposures: u64,
+    /// Tally from this long after the first sky exposure, s.
+    pub t_skip_s: f64,
+    pub margins: Vec<f64>,
+    /// The sky's cosmic-ray rate, hits per cm^2 per s (`None`: the simulator's 5).
+    pub cosmic_rate_per_cm2_s: Option<f64>,
+}
+
+/// What [`Experiment::run`] measured.
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct ExperimentResult {
+    /// Pixels with an observation per range.
+    pub observed: [usize; 2],
+    pub pixels: usize,
+    /// The global model's tallies at (high, low).
+    pub global: (FlagTally, FlagTally),
+    /// Per margin, the map model's tallies at (high, low).
+    pub with_map: Vec<(f64, FlagTally, FlagTally)>,
+    /// Per range, the pixels' posterior mean ratio against their true population
+    /// (simulator truth): mean ratio per population (low, mid, high) in the saturated
+    /// range.
+    pub saturated_ratio_by_population: Vec<(String, f64, usize)>,
+}
+
+/// The laboratory sequence of the measurement: the paper's pattern (every pixel lit,
+/// `--spots paper`) at the calibration's illumination (481 s, 30 darks), then two flats
+/// of the same pattern, 5 and 20 times brighter (481 s each, 10 darks): every pixel is
+/// measured below full well (14,400 and 72,000 e-) and above it (289,000 e- and more).
+pub fn lab_campaign() -> Vec<crate::sim::lab::Illumination> {
+    let i = |scale: f64, darks: usize| crate::sim::lab::Illumination {
+        t_illuminated_s: 481.0,
+        flux_scale: scale,
+        temp_k: 80.0,
+        darks_after: darks,
+        spot_offset: [0.0, 0.0],
+        points: false,
+        dark_s: None,
+        after_shutter_s: None,
+    };
+    vec![i(1.0, 30), i(5.0, 10), i(20.0, 10)]
+}
+
+impl Experiment {
+    pub fn run(&self) -> crate::Result<ExperimentResult> {
+        use crate::sim::{lab, sky};
+        let cfg = lab::LabConfig {
+            size: self.size,
+            seed: self.seed,
+            campaign: Some(lab_campaign()),
+            paper_pattern: Some(lab::PaperPattern { dark_pixels: false }),
+            ..lab::LabConfig::default()
+        };
+        let mut exposures = Vec::new();
+        lab::run(&cfg, |s| {
+            exposures.push(s.exposure);
+            Ok(())
+        })?;
+        let seq = crate::measure::data::Sequence::from_exposures(exposures)?;
+        let (params, _) = crate::calib::calibrate(&seq, &crate::calib::CalibConfig::default())?;
+        let map = super::build(&seq, &params, &super::MapConfig::default())?;
+        drop(seq);
+        let global = Model::new(params.clone())?;
+        let mut trackers = vec![Tracker::new(global, self.t_skip_s)];
+        for &m in &self.margins {
+            let r = super::file::response(&map, m).map_err(|e| crate::Error::invalid("margin", e))?;
+            let model = Model::new(params.clone())?
+                .with_pixel_maps([(1u8, r)].into_iter().collect())
+                .for_detector(1)?;
+            trackers.push(Tracker::new(model, self.t_skip_s));
+        }
+        let mut sky_cfg = sky::SkyConfig {
+            size: self.size,
+            detectors: 1,
+            exposures: self.sky_exposures,
+            seed: self.seed,
+            ..sky::SkyConfig::default()
+        };
+        if let Some(r) = self.cosmic_rate_per_cm2_s {
+            sky_cfg.detector.cosmic_rate_per_cm2_s = r;
+        }
+        sky::run(&sky_cfg, |s| {
+            for t in trackers.iter_mut() {
+                t.step(&s)?;
+            }
+            Ok(())
+        })?;
+        // the map against the truth: the posterior mean in the saturated range per
+        // population
+        let truth = crate::sim::traps::draw_pixels(
+            &cfg.traps,
+            &cfg.detector,
+            self.size,
+            self.size,
+            self.seed,
+            1,
+        );
+        let mut by_pop = Vec::new();
+        for (k, p) in cfg.traps.populations.iter().enumerate() {
+            let v: Vec<f64> = truth
+                .population
+                .indexed_iter()
+                .filter(|(_, q)| usize::from(**q) == k)
+                .map(|((y, x), _)| f64::from(map.ratio[[1, y, x]]))
+                .collect();
+            let mean = v.iter().sum::<f64>() / v.len().max(1) as f64;
+            by_pop.push((p.name.clone(), mean, v.len()));
+        }
+        let mut it = trackers.into_iter();
+        let g = it.next().expect("the global model");
+        Ok(ExperimentResult {
+            observed: super::file::observed(&map),
+            pixels: self.size * self.size,
+            global: (g.high, g.low),
+            with_map: self
+                .margins
+                .iter()
+                .zip(it)
+                .map(|(m, t)| (*m, t.high, t.low))
+                .collect(),
+            saturated_ratio_by_population: by_pop,
+        })
+    }
+}

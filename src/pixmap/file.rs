@@ -52,8 +52,10 @@ pub fn write(path: &Path, map: &PixelMap) -> Result<()> {
                 h5io::write_plain(&f, "ratio_upper", map.ratio_upper.view()),
             )?;
             w("n_obs", h5io::write_plain(&f, "n_obs", map.n_obs.view()))?;
-            let grid = ndarray::Array1::from(map.prior_grid.clone());
-            w("prior_grid", h5io::write_plain(&f, "prior_grid", grid.view()))?;
+            w(
+                "prior_grid",
+                h5io::write_plain(&f, "prior_grid", map.prior_grid.view()),
+            )?;
             w(
                 "prior_weight",
                 h5io::write_plain(&f, "prior_weight", map.prior_weight.view()),
@@ -93,7 +95,7 @@ fn read_as(file_path: &Path, name: &Path) -> Result<PixelMap> {
         .map_err(|e| Error::from(e).field("n_obs").path(name))?;
     let prior_grid = file
         .dataset("prior_grid")
-        .and_then(|d| d.read_raw::<f64>())
+        .and_then(|d| d.read::<f64, ndarray::Ix2>())
         .map_err(|e| Error::from(e).field("prior_grid").path(name))?;
     let prior_weight = file
         .dataset("prior_weight")
@@ -122,13 +124,13 @@ fn read_as(file_path: &Path, name: &Path) -> Result<PixelMap> {
             return Err(bad(k, format!("holds {v}, must be finite and >= 0")));
         }
     }
-    if prior_weight.dim() != (2, prior_grid.len()) {
+    if prior_weight.dim() != prior_grid.dim() || prior_grid.nrows() != 2 {
         return Err(bad(
             "prior_weight",
             format!(
-                "shape {:?}, need [2, {}] (the grid's length)",
+                "shape {:?}, need [2, G] as /prior_grid {:?}",
                 prior_weight.dim(),
-                prior_grid.len()
+                prior_grid.dim()
             ),
         ));
     }

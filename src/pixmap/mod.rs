@@ -65,6 +65,10 @@ pub const PRIOR_SAMPLE: usize = 8000;
 pub const EM_ITERATIONS: usize = 300;
 /// Fewest observed pixels for a range to be measured.
 pub const MIN_PIXELS: usize = 20;
+/// Fluence bins per decade: a pixel's ratio is taken relative to its bin's median.
+pub const BINS_PER_DECADE: f64 = 10.0;
+/// The prior quantile the stored ratios are relative to: the knots' 95th percentile.
+pub const REFERENCE_QUANTILE: f64 = 0.95;
 /// Smallest predicted excess, in units of its noise, for an observation.
 pub const MIN_SNR: f64 = 1.0;
 
@@ -99,8 +103,9 @@ pub struct PixelMap {
     pub ratio_sigma: Array3<f32>,
     pub ratio_upper: Array3<f32>,
     pub n_obs: Array3<u8>,
-    pub prior_grid: Vec<f64>,
-    /// `[2, GRID]`.
+    /// `[2, GRID]`: per range, the grid of ratios (relative to the 95th percentile)
+    /// and the prior's weights on it.
+    pub prior_grid: Array2<f64>,
     pub prior_weight: Array2<f64>,
     pub range_measured: [bool; 2],
     pub source: String,
@@ -238,6 +243,8 @@ pub fn build(seq: &Sequence, params: &ModelParams, cfg: &MapConfig) -> Result<Pi
     let (ny, nx) = (seq.ny, seq.nx);
     let mut obs = vec![[Obs::default(); 2]; ny * nx];
     for (a, d, w) in &blocks {
+        // (pixel, range, fluence bin, x, sigma_x) of this illumination
+        let mut raw: Vec<(usize, usize, i64, f64, f64)> = Vec::new();
         let f = fluence(&seq.exposures[*a]);
         let fl = &seq.exposures[*a].flags;
         let md = seq.measured(*d);
@@ -279,13 +286,31 @@ pub fn build(seq: &Sequence, params: &ModelParams, cfg: &MapConfig) -> Result<Pi
                 if !(ep > 0.0 && ep > MIN_SNR * sigma && sigma > 0.0) {
                     continue;
                 }
-                let (xr, sx) = (e / ep, sigma / ep);
-                let o = &mut obs[y * nx + x][range];
-                let wgt = 1.0 / (sx * sx);
-                o.sum_wx += wgt * xr;
-                o.sum_w += wgt;
-                o.n = o.n.saturating_add(1);
+                let bin = if no_slope {
+                    i64::MAX
+                } else {
+                    (BINS_PER_DECADE * fe.log10()).floor() as i64
+                };
+                raw.push((y * nx + x, range, bin, e / ep, sigma / ep));
             }
+        }
+        // relative to the bin's median (bins of fewer than MIN_PIXELS give none)
+        let mut by_bin: std::collections::BTreeMap<i64, Vec<f64>> = Default::default();
+        raw.iter().for_each(|o| by_bin.entry(o.2).or_default().push(o.3));
+        let medians: std::collections::BTreeMap<i64, f64> = by_bin
+            .into_iter()
+            .filter(|(_, v)| v.len() >= MIN_PIXELS)
+            .map(|(b, v)| (b, median(&v)))
+            .filter(|(_, m)| m.is_finite() && *m > 0.0)
+            .collect();
+        for (i, range, bin, xr, sx) in raw {
+            let Some(m) = medians.get(&bin) else { continue };
+            let (xr, sx) = (xr / m, sx / m);
+            let o = &mut obs[i][range];
+            let wgt = 1.0 / (sx * sx);
+            o.sum_wx += wgt * xr;
+            o.sum_w += wgt;
+            o.n = o.n.saturating_add(1);
         }
     }
     // per range: the prior, then every pixel's posterior
@@ -300,6 +325,7 @@ pub fn build(seq: &Sequence, params: &ModelParams, cfg: &MapConfig) -> Result<Pi
         .min(20.0);
     let grid: Vec<f64> = (0..GRID).map(|i| hi * i as f64 / (GRID - 1) as f64).collect();
     let mut prior_weight = Array2::<f64>::zeros((2, GRID));
+    let mut prior_grid = Array2::<f64>::zeros((2, GRID));
     let mut ratio = Array3::<f32>::zeros((2, ny, nx));
     let mut ratio_sigma = Array3::<f32>::zeros((2, ny, nx));
     let mut ratio_upper = Array3::<f32>::zeros((2, ny, nx));
@@ -328,20 +354,30 @@ pub fn build(seq: &Sequence, params: &ModelParams, cfg: &MapConfig) -> Result<Pi
             g[j] = 1.0;
             g
         };
+        // ratios relative to the prior's 95th percentile (the knots' level, without
+        // their amplification)
+        let c = if range_measured[r] {
+            posterior_summary(&grid, &g, None, REFERENCE_QUANTILE).2
+        } else {
+            1.0
+        };
+        let c = if c > 0.0 { c } else { 1.0 };
         for (j, w) in g.iter().enumerate() {
             prior_weight[[r, j]] = *w;
+            prior_grid[[r, j]] = grid[j] / c;
         }
-        let prior = posterior_summary(&grid, &g, None, cfg.upper_quantile);
+        let rel = |s: (f64, f64, f64)| (s.0 / c, s.1 / c, s.2 / c);
+        let prior = rel(posterior_summary(&grid, &g, None, cfg.upper_quantile));
         for y in 0..ny {
             for x in 0..nx {
                 let o = obs[y * nx + x][r];
                 let s = if o.n > 0 && range_measured[r] {
-                    posterior_summary(
+                    rel(posterior_summary(
                         &grid,
                         &g,
                         Some((o.sum_wx / o.sum_w, (1.0 / o.sum_w).sqrt())),
                         cfg.upper_quantile,
-                    )
+                    ))
                 } else {
                     prior
                 };
@@ -360,7 +396,7 @@ pub fn build(seq: &Sequence, params: &ModelParams, cfg: &MapConfig) -> Result<Pi
         ratio_sigma,
         ratio_upper,
         n_obs,
-        prior_grid: grid,
+        prior_grid,
         prior_weight,
         range_measured,
         source: String::new(),
