@@ -75,7 +75,9 @@ fn main() {
         t_skip_s: 3600.0 * opt("--skip-h").map_or(6.0, |v| v.parse::<f64>().expect("--skip-h")),
         cosmic_rate_per_cm2_s: opt("--cosmic-rate").map(|v| v.parse().expect("--cosmic-rate")),
         margins: opt("--margins").map_or(vec![1.0, 1.2, 1.5], |v| {
-            v.split(',').map(|m| m.parse().expect("--margins")).collect()
+            v.split(',')
+                .map(|m| m.parse().expect("--margins"))
+                .collect()
         }),
     };
     let r = e.run().expect("experiment");
@@ -94,7 +96,10 @@ fn main() {
     println!("Over-flagged: flagged while the true current is below the threshold, per functional pixel-exposure. Missed: truly above, not flagged, per band of true current (count in brackets); non-functional pixels left out.\n");
     let hi: Vec<(f64, &FlagTally)> = r.with_map.iter().map(|(m, h, _)| (*m, h)).collect();
     let lo: Vec<(f64, &FlagTally)> = r.with_map.iter().map(|(m, _, l)| (*m, l)).collect();
-    println!("{}", table("At 0.1 e-/s (the flag, `HIGH`)", &r.global.0, &hi));
+    println!(
+        "{}",
+        table("At 0.1 e-/s (the flag, `HIGH`)", &r.global.0, &hi)
+    );
     println!("{}", table("At 0.01 e-/s (`LOW`)", &r.global.1, &lo));
     println!("### The map against the truth\n\nPosterior mean ratio to the global model above full well, per true population of the simulator:\n");
     println!("| population | pixels | mean ratio |\n|---|---|---|");

@@ -26,7 +26,11 @@ fn map_finds_populations_and_lowers_over_flagging() {
     .expect("experiment");
     // the map against the truth: above full well the low population (no forward-bias
     // traps) sits far below the others, the high one above the mid one
-    let by: Vec<f64> = r.saturated_ratio_by_population.iter().map(|p| p.1).collect();
+    let by: Vec<f64> = r
+        .saturated_ratio_by_population
+        .iter()
+        .map(|p| p.1)
+        .collect();
     assert!(by[0] < 0.3 && by[0] < by[1] && by[1] < by[2], "{by:?}");
     let (g, m) = (&r.global.0, &r.with_map[0].1);
     assert!(g.over_flagged > 0, "{g:?}");
@@ -61,9 +65,17 @@ fn pixelmap_command_writes_map_and_model_the_stage_applies() {
     let dir = tempfile::tempdir().unwrap();
     let d = dir.path();
     let lab = d.join("lab");
-    ok(persist().args(["simulate", "lab", "--size", "24", "--darks", "40", "--spots", "paper", "--out"]).arg(&lab));
+    ok(persist()
+        .args([
+            "simulate", "lab", "--size", "24", "--darks", "40", "--spots", "paper", "--out",
+        ])
+        .arg(&lab));
     let fit = d.join("fit.json");
-    ok(persist().args(["fit", "--input"]).arg(&lab).arg("--out").arg(&fit));
+    ok(persist()
+        .args(["fit", "--input"])
+        .arg(&lab)
+        .arg("--out")
+        .arg(&fit));
     let map = d.join("maps/det1.h5");
     let model = d.join("maps/model.json");
     let out = ok(persist()

@@ -86,8 +86,8 @@ impl PixelResponse {
         } else if fluence_e <= self.linear_below_e || fluence_e.is_nan() {
             lo
         } else {
-            let w = (fluence_e - self.linear_below_e)
-                / (self.saturated_above_e - self.linear_below_e);
+            let w =
+                (fluence_e - self.linear_below_e) / (self.saturated_above_e - self.linear_below_e);
             lo + w * (hi - lo)
         }
     }

@@ -161,7 +161,8 @@ mod tests {
     #[test]
     fn tally_counts_bands() {
         let mut t = FlagTally::new(0.1);
-        let truth = Array2::from_shape_vec((1, 6), vec![0.05, 0.05, 0.12, 0.17, 0.25, 0.5]).unwrap();
+        let truth =
+            Array2::from_shape_vec((1, 6), vec![0.05, 0.05, 0.12, 0.17, 0.25, 0.5]).unwrap();
         let flagged =
             Array2::from_shape_vec((1, 6), vec![true, false, false, true, true, false]).unwrap();
         let mut flags = Array2::<u32>::zeros((1, 6));
@@ -250,7 +251,8 @@ impl Experiment {
         let global = Model::new(params.clone())?;
         let mut trackers = vec![Tracker::new(global, self.t_skip_s)];
         for &m in &self.margins {
-            let r = super::file::response(&map, m).map_err(|e| crate::Error::invalid("margin", e))?;
+            let r =
+                super::file::response(&map, m).map_err(|e| crate::Error::invalid("margin", e))?;
             let model = Model::new(params.clone())?
                 .with_pixel_maps([(1u8, r)].into_iter().collect())
                 .for_detector(1)?;

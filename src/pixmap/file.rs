@@ -31,7 +31,11 @@ pub fn write(path: &Path, map: &PixelMap) -> Result<()> {
             h5io::attr_f64(&f, "linear_below_e", map.config.linear_below_e)?;
             h5io::attr_f64(&f, "saturated_above_e", map.config.saturated_above_e)?;
             h5io::attr_f64(&f, "upper_quantile", map.config.upper_quantile)?;
-            h5io::attr_i64(&f, "range_measured_linear", i64::from(map.range_measured[0]))?;
+            h5io::attr_i64(
+                &f,
+                "range_measured_linear",
+                i64::from(map.range_measured[0]),
+            )?;
             h5io::attr_i64(
                 &f,
                 "range_measured_saturated",
@@ -175,7 +179,11 @@ pub fn response(map: &PixelMap, margin: f64) -> std::result::Result<PixelRespons
             scale.index_axis_mut(ndarray::Axis(0), r).fill(1.0);
         }
     }
-    PixelResponse::new(map.config.linear_below_e, map.config.saturated_above_e, scale)
+    PixelResponse::new(
+        map.config.linear_below_e,
+        map.config.saturated_above_e,
+        scale,
+    )
 }
 
 /// Where a model file's map path points: relative to the model file's directory.
@@ -184,10 +192,7 @@ pub fn resolve(model_path: &Path, path: &str) -> PathBuf {
     if p.is_absolute() {
         p.to_path_buf()
     } else {
-        model_path
-            .parent()
-            .unwrap_or(Path::new("."))
-            .join(p)
+        model_path.parent().unwrap_or(Path::new(".")).join(p)
     }
 }
 
@@ -213,9 +218,12 @@ fn load_maps(
         let field = |k: &str| format!("/pixel_map/files/{i}/{k}");
         let path = resolve(model_path, &f.path);
         let bytes = std::fs::read(&path).map_err(|e| {
-            Error::new(ErrorKind::Model, format!("cannot read {}: {e}", path.display()))
-                .field(field("path"))
-                .path(model_path)
+            Error::new(
+                ErrorKind::Model,
+                format!("cannot read {}: {e}", path.display()),
+            )
+            .field(field("path"))
+            .path(model_path)
         })?;
         let sum = sha256_hex(&bytes);
         if sum != f.sha256 {
@@ -252,7 +260,8 @@ fn load_maps(
             )
             .path(&path));
         }
-        let resp = response(&map, r.margin).map_err(|m| Error::invalid("ratio_upper", m).path(&path))?;
+        let resp =
+            response(&map, r.margin).map_err(|m| Error::invalid("ratio_upper", m).path(&path))?;
         out.insert(f.detector, resp);
     }
     Ok(out)

@@ -296,7 +296,8 @@ pub fn build(seq: &Sequence, params: &ModelParams, cfg: &MapConfig) -> Result<Pi
         }
         // relative to the bin's median (bins of fewer than MIN_PIXELS give none)
         let mut by_bin: std::collections::BTreeMap<i64, Vec<f64>> = Default::default();
-        raw.iter().for_each(|o| by_bin.entry(o.2).or_default().push(o.3));
+        raw.iter()
+            .for_each(|o| by_bin.entry(o.2).or_default().push(o.3));
         let medians: std::collections::BTreeMap<i64, f64> = by_bin
             .into_iter()
             .filter(|(_, v)| v.len() >= MIN_PIXELS)
@@ -323,7 +324,9 @@ pub fn build(seq: &Sequence, params: &ModelParams, cfg: &MapConfig) -> Result<Pi
     let hi = quantile_of(all.iter().map(|o| o.0 + 2.0 * o.1).collect(), 0.999)
         .max(2.0)
         .min(20.0);
-    let grid: Vec<f64> = (0..GRID).map(|i| hi * i as f64 / (GRID - 1) as f64).collect();
+    let grid: Vec<f64> = (0..GRID)
+        .map(|i| hi * i as f64 / (GRID - 1) as f64)
+        .collect();
     let mut prior_weight = Array2::<f64>::zeros((2, GRID));
     let mut prior_grid = Array2::<f64>::zeros((2, GRID));
     let mut ratio = Array3::<f32>::zeros((2, ny, nx));
@@ -468,7 +471,12 @@ pub fn npmle(grid: &[f64], obs: &[(f64, f64)], iterations: usize) -> Vec<f64> {
 
 /// `(mean, sd, quantile q)` of the posterior on `grid` for prior `g` and one
 /// observation `(x, sigma)` (`None`: the prior itself).
-pub fn posterior_summary(grid: &[f64], g: &[f64], obs: Option<(f64, f64)>, q: f64) -> (f64, f64, f64) {
+pub fn posterior_summary(
+    grid: &[f64],
+    g: &[f64],
+    obs: Option<(f64, f64)>,
+    q: f64,
+) -> (f64, f64, f64) {
     let w: Vec<f64> = match obs {
         None => g.to_vec(),
         Some((x, s)) => {

@@ -594,7 +594,10 @@ impl<'a> Processor<'a> {
             det,
             // Model::new built the same effects already, so this cannot fail; keep the
             // run's model if it did
-            model: cfg.model.for_detector(det.0).unwrap_or_else(|_| cfg.model.clone()),
+            model: cfg
+                .model
+                .for_detector(det.0)
+                .unwrap_or_else(|_| cfg.model.clone()),
             on_exposure,
             started: false,
             dead: false,
