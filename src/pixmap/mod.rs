@@ -23,8 +23,11 @@
 //!   `s` the noise of one dark (1.4826 MAD over the pixels of the difference of the
 //!   block's last two darks, over `sqrt 2`), `v` the line fit's shot-noise variance per
 //!   e-/s ([`crate::measure::data::Sequence::shot_var_per_e_per_s`]); kept when
-//!   `e' > MIN_SNR sigma_e`. Several observations of one range combine by inverse
-//!   variance.
+//!   `e' > MIN_SNR sigma_e`;
+//! - each observation is divided by the median of its fluence bin's ([`BINS_PER_DECADE`]
+//!   per decade, per illumination; the pixel's "relative to its fluence bin"; bins of
+//!   fewer than [`MIN_PIXELS`] give none), and several observations of one range
+//!   combine by inverse variance.
 //!
 //! # Shrinkage (empirical Bayes, [`npmle`])
 //! Per range, the prior `g` of the ratio is the nonparametric maximum-likelihood
@@ -35,7 +38,9 @@
 //! populations: a normal prior would pull a pixel of the low population toward the
 //! middle one. Each pixel's posterior on the grid gives its mean (`/ratio`), standard
 //! deviation (`/ratio_sigma`) and upper quantile (`/ratio_upper`, at `upper_quantile`);
-//! a pixel with no observation in a range has the prior as its posterior. A range with
+//! a pixel with no observation in a range has the prior as its posterior. All three are
+//! then divided by the prior's [`REFERENCE_QUANTILE`] quantile, so that a ratio of 1 is
+//! the bin's 95th percentile: the level of the model's knots before their amplification. A range with
 //! fewer than [`MIN_PIXELS`] observed pixels is not measured: its prior is a point mass
 //! at 1 and the stage keeps the knots there (`range_measured_*` 0).
 //!
