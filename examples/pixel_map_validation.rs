@@ -101,7 +101,7 @@ fn main() {
         table("At 0.1 e-/s (the flag, `HIGH`)", &r.global.0, &hi)
     );
     println!("{}", table("At 0.01 e-/s (`LOW`)", &r.global.1, &lo));
-    println!("### The map against the truth\n\nPosterior mean ratio to the global model above full well, per true population of the simulator:\n");
+    println!("### The map against the truth\n\nPosterior mean ratio above full well (relative to the fluence bin's 95th percentile, the knots' level before their 1.2), per true population of the simulator:\n");
     println!("| population | pixels | mean ratio |\n|---|---|---|");
     for (name, mean, n) in &r.saturated_ratio_by_population {
         println!("| {name} | {n} | {mean:.3} |");

@@ -4,7 +4,7 @@
 //! (masked anyway). Used by `examples/pixel_map_validation` and the tests.
 
 use crate::flags::{bits, pbits};
-use crate::model::{Input, Model, Output, State};
+use crate::model::{Model, State};
 use ndarray::Array2;
 
 /// Bands of true current, in units of the threshold: `[1, 1.5)`, `[1.5, 2)`, `[2, 3)`,
@@ -117,32 +117,9 @@ impl Tracker {
         let st = self
             .state
             .get_or_insert_with(|| self.model.new_state(ny, nx));
-        let mut flags = e.flags.clone();
         let mut cur = Array2::<f32>::zeros((ny, nx));
         let mut pf = Array2::<u8>::zeros((ny, nx));
-        let input = Input {
-            image_e_per_s: e.image.view(),
-            exposure_index: e.meta.exposure_index,
-            t_start_unix_s: e.meta.t_start.0,
-            t_exposure_s: e.meta.t_exposure_s,
-            t_illuminated_s: e.meta.t_illuminated_s(),
-            history_incomplete: false,
-            background_e_per_s: None,
-        };
-        let env = crate::model::StepContext {
-            focal_plane_temp_k: e.meta.focal_plane_temp_k,
-            ..Default::default()
-        };
-        self.model.step_with(
-            st,
-            &input,
-            &env,
-            &mut Output {
-                flags: &mut flags,
-                current_e_per_s: &mut cur,
-                pflags: &mut pf,
-            },
-        )?;
+        super::step_exposure(&self.model, st, e, None, &mut cur, &mut pf)?;
         let t0 = *self.t_first.get_or_insert(e.meta.t_start.0);
         if e.meta.t_start.0 - t0 >= self.t_skip_s {
             let hi = pf.mapv(|f| f & pbits::HIGH != 0);

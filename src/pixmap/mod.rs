@@ -147,33 +147,48 @@ fn predictions(
     let mut pf = Array2::<u8>::zeros((ny, nx));
     let mut out = Vec::with_capacity(seq.exposures.len());
     for (k, e) in seq.exposures.iter().enumerate() {
-        let mut flags = e.flags.clone();
-        let input = Input {
-            image_e_per_s: e.image.view(),
-            exposure_index: e.meta.exposure_index,
-            t_start_unix_s: e.meta.t_start.0,
-            t_exposure_s: e.meta.t_exposure_s,
-            t_illuminated_s: e.meta.t_illuminated_s(),
-            history_incomplete: false,
-            background_e_per_s: Some(0.0),
-        };
-        let env = crate::model::StepContext {
-            focal_plane_temp_k: e.meta.focal_plane_temp_k,
-            ..Default::default()
-        };
-        model.step_with(
-            &mut st,
-            &input,
-            &env,
-            &mut Output {
-                flags: &mut flags,
-                current_e_per_s: &mut cur,
-                pflags: &mut pf,
-            },
-        )?;
+        step_exposure(&model, &mut st, e, Some(0.0), &mut cur, &mut pf)?;
         out.push(keep[k].then(|| cur.clone()));
     }
     Ok(out)
+}
+
+/// Step `model` over one product `e` (its flags copied, history complete), writing the
+/// predicted current and the persistence flags; `background_e_per_s` as
+/// [`Input::background_e_per_s`].
+pub fn step_exposure(
+    model: &Model,
+    st: &mut crate::model::State,
+    e: &crate::product::Exposure,
+    background_e_per_s: Option<f64>,
+    cur: &mut Array2<f32>,
+    pf: &mut Array2<u8>,
+) -> Result<()> {
+    let mut flags = e.flags.clone();
+    let input = Input {
+        image_e_per_s: e.image.view(),
+        exposure_index: e.meta.exposure_index,
+        t_start_unix_s: e.meta.t_start.0,
+        t_exposure_s: e.meta.t_exposure_s,
+        t_illuminated_s: e.meta.t_illuminated_s(),
+        history_incomplete: false,
+        background_e_per_s,
+    };
+    let env = crate::model::StepContext {
+        focal_plane_temp_k: e.meta.focal_plane_temp_k,
+        ..Default::default()
+    };
+    model.step_with(
+        st,
+        &input,
+        &env,
+        &mut Output {
+            flags: &mut flags,
+            current_e_per_s: cur,
+            pflags: pf,
+        },
+    )?;
+    Ok(())
 }
 
 /// One illumination's first dark and late darks (module docs), if it has them.
@@ -326,9 +341,7 @@ pub fn build(seq: &Sequence, params: &ModelParams, cfg: &MapConfig) -> Result<Pi
         .filter(|o| o.n > 0)
         .map(|o| (o.sum_wx / o.sum_w, (1.0 / o.sum_w).sqrt()))
         .collect();
-    let hi = quantile_of(all.iter().map(|o| o.0 + 2.0 * o.1).collect(), 0.999)
-        .max(2.0)
-        .min(20.0);
+    let hi = quantile_of(all.iter().map(|o| o.0 + 2.0 * o.1).collect(), 0.999).clamp(2.0, 20.0);
     let grid: Vec<f64> = (0..GRID)
         .map(|i| hi * i as f64 / (GRID - 1) as f64)
         .collect();
