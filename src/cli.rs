@@ -142,6 +142,9 @@ pub enum Command {
     Tile(persist::slurm::TileArgs),
     /// Assemble a split run's tiles into whole-array outputs and final checkpoints.
     Assemble(persist::slurm::AssembleArgs),
+    /// Measure a detector's per-pixel response map from a laboratory sequence against a
+    /// model (empirical Bayes; docs/pixel_map.md), and optionally write the model naming it.
+    Pixelmap(persist::pixmap::command::PixelmapArgs),
 }
 
 #[derive(Args, Debug)]
@@ -753,11 +756,11 @@ fn parse_checkpoint_key(s: &str) -> Result<(DetectorId, u64), String> {
 }
 
 fn load_model(path: Option<&Path>) -> persist::Result<Model> {
-    let params = match path {
-        Some(p) => persist::model_file::load(p)?,
-        None => ModelParams::default(),
-    };
-    Model::new(params)
+    match path {
+        // with the per-pixel maps the model file names (none: the model alone)
+        Some(p) => persist::pixmap::file::attach(p, persist::model_file::load(p)?),
+        None => Model::new(ModelParams::default()),
+    }
 }
 
 pub fn run(cli: Cli) -> persist::Result<ExitCode> {
@@ -795,6 +798,12 @@ pub fn run(cli: Cli) -> persist::Result<ExitCode> {
         }
         Command::Tile(a) => lines_out(persist::slurm::tile_command(&a)?),
         Command::Assemble(a) => lines_out(persist::slurm::assemble_command(&a)?),
+        Command::Pixelmap(a) => {
+            for line in persist::pixmap::command::run(&a)? {
+                out!("{line}");
+            }
+            Ok(ExitCode::SUCCESS)
+        }
     }
 }
 

@@ -41,6 +41,7 @@ pub mod h5io;
 pub mod measure;
 pub mod model;
 pub mod model_file;
+pub mod pixmap;
 pub mod plot;
 pub mod product;
 pub mod sim;

@@ -218,6 +218,15 @@ pub(crate) fn step(
             *kd = NO_SLOPE;
         }
     }
+    // with a per-pixel map, a pixel's maximum is its own: the table's maximum times its
+    // factor above full well (crate::model::pixel_response)
+    if let Some(r) = model.pixel_response() {
+        for ((y, x), b) in base.indexed_iter_mut() {
+            if kind[[y, x]] == UNKNOWN || kind[[y, x]] == NO_SLOPE {
+                *b *= r.factor(y, x, f64::NAN, true);
+            }
+        }
+    }
     // the terms' emission rates while this exposure holds its charge (its temperature)
     let held_rates = {
         let ictx = IntervalCtx {

@@ -214,6 +214,36 @@ pub struct ModelParams {
     /// so such a model keeps its identity).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub calibration: Option<Calibration>,
+    /// Per-pixel response maps, one per detector ([`PixelMapRef`]); absent (not written)
+    /// without, so models without one keep their identity.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub pixel_map: Option<PixelMapRef>,
+}
+
+/// The per-pixel response maps a model applies (`crate::pixmap`; docs/pixel_map.md):
+/// the files and their content hashes (which enter the model identity with the rest of
+/// the model file), and the margin the flags keep above each pixel's own response.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PixelMapRef {
+    /// One file per detector.
+    pub files: Vec<PixelMapFile>,
+    /// Each pixel's response is `A_k(F) * margin * ratio_upper(F)`: `ratio_upper` the
+    /// map's upper posterior quantile of the pixel's amplitude relative to this model's
+    /// knots (`> 0`).
+    pub margin: f64,
+}
+
+/// One detector's map file.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PixelMapFile {
+    /// Detector 1..=6.
+    pub detector: u8,
+    /// The HDF5 map, absolute or relative to the model file's directory.
+    pub path: String,
+    /// SHA-256 of the file's bytes, 64 lower-case hex digits.
+    pub sha256: String,
 }
 
 /// The `persist fit` options a model was calibrated with, so that a refit of the same
@@ -301,6 +331,7 @@ impl Default for ModelParams {
             early_release: EarlyRelease::default(),
             effects: Vec::new(),
             calibration: None,
+            pixel_map: None,
         }
     }
 }
@@ -406,6 +437,29 @@ impl ModelParams {
         }
         if er.consecutive == 0 {
             return Err("early_release.consecutive: must be >= 1".into());
+        }
+        if let Some(m) = &self.pixel_map {
+            if !(m.margin.is_finite() && m.margin > 0.0) {
+                return Err("pixel_map.margin: must be finite and > 0".into());
+            }
+            let mut dets = Vec::new();
+            for (i, f) in m.files.iter().enumerate() {
+                if !(1..=6).contains(&f.detector) || dets.contains(&f.detector) {
+                    return Err(format!(
+                        "pixel_map.files[{i}].detector: must be 1..=6 and given once"
+                    ));
+                }
+                dets.push(f.detector);
+                if f.path.is_empty() {
+                    return Err(format!("pixel_map.files[{i}].path: must not be empty"));
+                }
+                let hex = |c: char| c.is_ascii_digit() || ('a'..='f').contains(&c);
+                if f.sha256.len() != 64 || !f.sha256.chars().all(hex) {
+                    return Err(format!(
+                        "pixel_map.files[{i}].sha256: must be 64 lower-case hex digits"
+                    ));
+                }
+            }
         }
         let mut seen: Vec<&str> = Vec::new();
         for (i, e) in self.effects.iter().enumerate() {

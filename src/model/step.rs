@@ -32,6 +32,7 @@ use super::decay::ExpSum;
 pub use super::fluence::FlagBits;
 use super::fluence::{pixel_fluence, PixelFluence};
 use super::params::{BackgroundEstimate, ModelParams};
+use super::pixel_response::PixelResponse;
 use super::response::Response;
 use super::state::{State, PENDING_MAX_AMPLITUDE};
 use crate::error::{Error, ErrorKind};
@@ -49,6 +50,10 @@ pub struct Model {
     bits: FlagBits,
     /// The model file's effects, built once (empty: the fused paper kernel below).
     effects: std::sync::Arc<Vec<Box<dyn super::effect::Effect>>>,
+    /// Per-pixel response maps by detector ([`Model::with_pixel_maps`]).
+    pixel_maps: std::sync::Arc<std::collections::BTreeMap<u8, std::sync::Arc<PixelResponse>>>,
+    /// The map this model applies ([`Model::for_detector`]), among its effects.
+    pixel_response: Option<std::sync::Arc<PixelResponse>>,
 }
 
 impl Model {
@@ -69,7 +74,66 @@ impl Model {
             identity: params.identity(),
             params,
             bits: FlagBits::default(),
+            pixel_maps: Default::default(),
+            pixel_response: None,
         })
+    }
+
+    /// The same model with per-pixel response maps by detector (a detector's map is
+    /// applied by the model [`Model::for_detector`] returns).
+    pub fn with_pixel_maps(mut self, maps: std::collections::BTreeMap<u8, PixelResponse>) -> Self {
+        self.pixel_maps = std::sync::Arc::new(
+            maps.into_iter()
+                .map(|(d, r)| (d, std::sync::Arc::new(r)))
+                .collect(),
+        );
+        self
+    }
+
+    /// The detectors with a per-pixel response map.
+    pub fn pixel_map_detectors(&self) -> Vec<u8> {
+        self.pixel_maps.keys().copied().collect()
+    }
+
+    /// The map this model applies, if any.
+    pub fn pixel_response(&self) -> Option<&PixelResponse> {
+        self.pixel_response.as_deref()
+    }
+
+    /// The model that steps `detector`: this one with that detector's per-pixel map
+    /// applied after the model file's effects ([`super::pixel_response`]), or this one
+    /// when it has no map for it.
+    pub fn for_detector(&self, detector: u8) -> Result<Model, Error> {
+        let Some(map) = self.pixel_maps.get(&detector) else {
+            return Ok(self.clone());
+        };
+        let mut effects = self
+            .params
+            .effects
+            .iter()
+            .map(super::effects::build)
+            .collect::<Result<Vec<_>, _>>()
+            .map_err(|m| Error::new(ErrorKind::Model, m))?;
+        effects.push(Box::new(super::pixel_response::PixelScale(map.clone())));
+        let mut m = self.clone();
+        m.effects = std::sync::Arc::new(effects);
+        m.pixel_response = Some(map.clone());
+        Ok(m)
+    }
+
+    /// A model applying a per-pixel map steps only arrays of the map's shape.
+    fn check_pixel_response(&self, state: &State) -> Result<(), Error> {
+        match &self.pixel_response {
+            Some(r) if r.dim() != state.shape() => Err(Error::invalid(
+                "pixel_map",
+                format!(
+                    "the per-pixel map is {:?}, the detector's array {:?}",
+                    r.dim(),
+                    state.shape()
+                ),
+            )),
+            _ => Ok(()),
+        }
     }
 
     pub fn with_flag_bits(mut self, bits: FlagBits) -> Self {
@@ -144,6 +208,7 @@ impl Model {
         if self.effects.is_empty() {
             return self.step(state, input, out);
         }
+        self.check_pixel_response(state)?;
         super::effect_step::step(self, &self.effects, state, input, ctx, out)
     }
 
@@ -157,6 +222,7 @@ impl Model {
         out: &mut Output<'_>,
     ) -> Result<StepSummary, Error> {
         if !self.effects.is_empty() {
+            self.check_pixel_response(state)?;
             let ctx = super::effect_step::StepContext::default();
             return super::effect_step::step(self, &self.effects, state, input, &ctx, out);
         }

@@ -64,20 +64,22 @@ pub enum Schema {
     L2Persistence,
     Checkpoint,
     Model,
+    PixelMap,
 }
 
-const SCHEMAS: [Schema; 4] = [
+const SCHEMAS: [Schema; 5] = [
     Schema::L1Exposure,
     Schema::L2Persistence,
     Schema::Checkpoint,
     Schema::Model,
+    Schema::PixelMap,
 ];
 
-static COMPILED: [OnceLock<std::result::Result<jsonschema::Validator, String>>; 4] =
-    [const { OnceLock::new() }; 4];
+static COMPILED: [OnceLock<std::result::Result<jsonschema::Validator, String>>; 5] =
+    [const { OnceLock::new() }; 5];
 
 impl Schema {
-    pub fn all() -> [Schema; 4] {
+    pub fn all() -> [Schema; 5] {
         SCHEMAS
     }
 
@@ -88,6 +90,7 @@ impl Schema {
             Schema::L2Persistence => include_str!("../../schemas/l2_persistence.schema.json"),
             Schema::Checkpoint => include_str!("../../schemas/checkpoint.schema.json"),
             Schema::Model => include_str!("../../schemas/model.schema.json"),
+            Schema::PixelMap => include_str!("../../schemas/pixel_map.schema.json"),
         }
     }
 
@@ -97,6 +100,7 @@ impl Schema {
             Schema::L2Persistence => "l2_persistence.schema.json",
             Schema::Checkpoint => "checkpoint.schema.json",
             Schema::Model => "model.schema.json",
+            Schema::PixelMap => "pixel_map.schema.json",
         }
     }
 
@@ -107,6 +111,7 @@ impl Schema {
             Schema::L2Persistence => "an output product",
             Schema::Checkpoint => "a checkpoint",
             Schema::Model => "a model file",
+            Schema::PixelMap => "a per-pixel response map",
         }
     }
 
@@ -116,6 +121,7 @@ impl Schema {
             Schema::L2Persistence => 1,
             Schema::Checkpoint => 2,
             Schema::Model => 3,
+            Schema::PixelMap => 4,
         }
     }
 

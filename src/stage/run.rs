@@ -565,6 +565,8 @@ struct Processor<'a> {
     cfg: &'a RunConfig,
     ops: &'a Ops,
     det: DetectorId,
+    /// The run's model with this detector's per-pixel map, if the model names one.
+    model: Model,
     on_exposure: &'a (dyn Fn(&ExposureReport) + Sync),
     started: bool,
     dead: bool,
@@ -598,6 +600,12 @@ impl<'a> Processor<'a> {
             cfg,
             ops,
             det,
+            // Model::new built the same effects already, so this cannot fail; keep the
+            // run's model if it did
+            model: cfg
+                .model
+                .for_detector(det.0)
+                .unwrap_or_else(|_| cfg.model.clone()),
             on_exposure,
             started: false,
             dead: false,
@@ -982,7 +990,7 @@ impl<'a> Processor<'a> {
 
     /// Read, step, publish one exposure.
     fn one(&mut self, entry: &mut Pending) -> Result<ExposureReport, Failure> {
-        let model = &self.cfg.model;
+        let model = &self.model;
         // The duplicate digest reads the file's bytes with plain file I/O (no HDF5), on
         // its own thread while the product is read through HDF5.
         let digesting = entry.digest.is_none().then(|| {
