@@ -423,10 +423,11 @@ fn case_stage(spec: &CaseSpec) -> Result<Vec<f64>> {
         from_checkpoint: None,
         allow_model_change: false,
         checkpoint_every: spec.checkpoint_every.max(1),
+        checkpoint_idle: std::time::Duration::ZERO,
         // Few files on disk; pruning still runs after every checkpoint.
         retention: Retention {
             keep_latest: 2,
-            keep_one_per_hour: true,
+            ..Retention::default()
         },
         processed_utc: "2026-03-02T00:00:00.000000Z".into(),
     };
