@@ -39,7 +39,6 @@ fn workers_match_one_process_and_keep_order_and_exit_status() {
     // --quiet is in run_args: no table. Without it, rows in detector order.
     assert!(table.is_empty(), "{table}");
     let c = tmp.path().join("table");
-    std::fs::remove_file(input.join("broken.h5")).unwrap();
     let mut args = run_args(&input, &c);
     args.retain(|x| x != "--quiet");
     let out = bin().args(args).output().unwrap();
