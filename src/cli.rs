@@ -107,6 +107,16 @@ pub enum Command {
     /// Per detector: last exposure processed, backlog, gaps, quarantined files, age of
     /// the newest checkpoint. Reads the directories only; safe while a stage runs.
     Status(StatusArgs),
+    /// Summarise the table of a run (`persist run --table FILE`) per detector: the
+    /// fraction of pixels above each threshold and the pixels flagged; `--plot` draws
+    /// the fractions per exposure into a PNG.
+    Fractions {
+        /// The CSV written by `persist run --table`.
+        table: PathBuf,
+        /// Draw the fractions above each threshold per exposure into this PNG.
+        #[arg(long)]
+        plot: Option<PathBuf>,
+    },
     /// Calibrate a model from a laboratory sequence (the paper's fit), optionally with
     /// effects, and write the model file and a fit report.
     Fit(FitArgs),
@@ -401,6 +411,11 @@ pub struct RunArgs {
     /// seconds (between, one every --checkpoint-every exposures).
     #[arg(long, default_value_t = 600.0, value_parser = nonnegative_seconds)]
     pub checkpoint_idle_s: f64,
+    /// Write one CSV row per detector and exposure processed to this file (replaced by
+    /// each run): the fraction of pixels above each threshold, the pixels flagged, ...
+    /// (`persist fractions FILE` summarises and plots it).
+    #[arg(long)]
+    pub table: Option<PathBuf>,
     /// Print nothing per exposure (no table, no progress bar, warnings and errors only).
     #[arg(long, short)]
     pub quiet: bool,
@@ -452,6 +467,11 @@ pub struct StatusArgs {
     /// Print JSON instead of a table.
     #[arg(long)]
     pub json: bool,
+    /// Also print the checkpoint footprint one detector would reach after
+    /// --project-exposures exposures under the retention given (the options of
+    /// `persist run`), at the mean size of the checkpoints on disk.
+    #[arg(long)]
+    pub projection: bool,
     /// The retention to project the checkpoint footprint with (as `persist run`'s).
     #[command(flatten)]
     pub ckpt: stage::options::CheckpointArgs,
@@ -748,6 +768,7 @@ pub fn run(cli: Cli) -> persist::Result<ExitCode> {
         Command::Validate { files } => Ok(validate(&files)),
         Command::Simulate { scenario } => simulate(scenario),
         Command::Status(args) => status(&args),
+        Command::Fractions { table, plot } => fractions(&table, plot.as_deref()),
         Command::Demo(args) => demo(&args),
         Command::Fit(a) => fit(&a),
         Command::Compare(a) => compare(&a),
@@ -932,18 +953,34 @@ fn status(args: &StatusArgs) -> persist::Result<ExitCode> {
         args.input.as_deref(),
         quarantine.as_deref(),
     );
-    st.projection = stage::status::project(
-        &st,
-        &args.ckpt.retention(),
-        args.project_exposures,
-        args.project_interval_s,
-    );
+    if args.projection {
+        st.projection = stage::status::project(
+            &st,
+            &args.ckpt.retention(),
+            args.project_exposures,
+            args.project_interval_s,
+        );
+        if st.projection.is_none() {
+            st.problems
+                .push("no checkpoint on disk: nothing to project the footprint from".into());
+        }
+    }
     if args.json {
         let text = serde_json::to_string_pretty(&st)
             .map_err(|e| Error::new(ErrorKind::Io, format!("status as JSON: {e}")))?;
         out!("{text}");
     } else {
         out_nonl!("{}", stage::status::render(&st));
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+fn fractions(table: &Path, plot: Option<&Path>) -> persist::Result<ExitCode> {
+    let rows = stage::table::read(table)?;
+    out_nonl!("{}", stage::table::summary(&rows));
+    if let Some(png) = plot {
+        stage::table::plot(&rows, png)?;
+        out!("plot {}", png.display());
     }
     Ok(ExitCode::SUCCESS)
 }
@@ -982,9 +1019,17 @@ fn run_stage(args: &RunArgs) -> persist::Result<ExitCode> {
                 Error::new(ErrorKind::Io, format!("cannot install signal handler: {e}"))
             })?;
     }
-    if worker.is_none() && !args.watch && !args.one_process {
+    // A missing input is the stage's error to report (exit 1), not a usage error.
+    // The parent starts the table; its workers append to it.
+    let table = match (&args.table, worker) {
+        (None, _) => None,
+        (Some(t), None) => Some(stage::table::RunTable::create(t)?),
+        (Some(t), Some(_)) => Some(stage::table::RunTable::append_to(t)?),
+    };
+    if worker.is_none() && !args.watch && !args.one_process && args.input.is_dir() {
         let dets = stage::workers::detectors(&args.input)?;
         if dets.len() > 1 {
+            drop(table);
             return run_workers(args, &dets, &stop);
         }
     }
@@ -1032,11 +1077,17 @@ fn run_stage(args: &RunArgs) -> persist::Result<ExitCode> {
         retention: args.ckpt.retention(),
         processed_utc: stage::processing_time(),
     };
-    let report = stage::run_with(&cfg, &ops, &|_| {
+    let report = stage::run_with(&cfg, &ops, &|r| {
         if let Some(pb) = &ops.progress {
             pb.inc(1);
         }
+        if let Some(Err(e)) = table.as_ref().map(|t| t.append(r)) {
+            tracing::error!(error = %e, "cannot append to the table");
+        }
     });
+    if let (Some(t), None) = (&args.table, worker) {
+        stage::table::sort(t)?;
+    }
     if let Some(pb) = &ops.progress {
         pb.finish_and_clear();
     }
@@ -1055,6 +1106,9 @@ fn run_workers(
     let exe = std::env::current_exe().map_err(|e| Error::new(ErrorKind::Io, e.to_string()))?;
     let argv: Vec<std::ffi::OsString> = std::env::args_os().skip(1).collect();
     let outcomes = stage::workers::run_workers(&exe, &argv, dets, stop)?;
+    if let Some(t) = &args.table {
+        stage::table::sort(t)?;
+    }
     if !args.quiet {
         print_summary(&RunReport::default(), true);
     }
@@ -1063,7 +1117,10 @@ fn run_workers(
         out_nonl!("{}", o.stdout);
         if !o.status.success() {
             failed = true;
-            eprintln!("persist: worker of detector {}: {}", o.detector.0, o.status);
+            // Exit status 1: the worker reported its failures itself.
+            if o.status.code() != Some(1) {
+                eprintln!("persist: worker of detector {}: {}", o.detector.0, o.status);
+            }
         }
     }
     Ok(if failed {

@@ -70,6 +70,7 @@ fn workers_match_one_process_and_keep_order_and_exit_status() {
         "--checkpoints",
         &c.join("ckpt").display().to_string(),
         "--json",
+        "--projection",
     ]);
     let v: serde_json::Value = serde_json::from_str(&st).unwrap();
     let bytes: u64 = l

@@ -8,6 +8,7 @@ pub mod quarantine;
 pub mod queue;
 pub mod run;
 pub mod status;
+pub mod table;
 pub mod watch;
 pub mod workers;
 

@@ -1113,6 +1113,7 @@ impl<'a> Processor<'a> {
                 previous_exposure_index: summary.previous_index.map_or(-1, |i| i as i64),
                 software_version: crate::VERSION.to_string(),
                 processed_utc: self.cfg.processed_utc.clone(),
+                stats: Some(product::FlagStats::of_plane(&planes.flags)),
             };
             product::write::write_output(&out_path, &exposure, planes, &attrs)
                 .map_err(Failure::Output)?;
