@@ -424,7 +424,12 @@ fn case_memory(spec: &CaseSpec) -> Vec<f64> {
 /// (c) The stage itself on a stream of `reps` products of one detector.
 fn case_stage(spec: &CaseSpec) -> Result<Vec<f64>> {
     let input = input_dir(&spec.scratch, spec.size);
-    let root = stage_root(&spec.scratch, spec.size, spec.threads, spec.checkpoint_every);
+    let root = stage_root(
+        &spec.scratch,
+        spec.size,
+        spec.threads,
+        spec.checkpoint_every,
+    );
     if root.exists() {
         std::fs::remove_dir_all(&root).map_err(|e| Error::io(&root, e))?;
     }

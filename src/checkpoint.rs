@@ -102,7 +102,7 @@ impl Default for Retention {
 impl Retention {
     /// Is `index` on the cadence grid?
     pub fn on_grid(&self, index: u64) -> bool {
-        (index + 1) % self.cadence.max(1) == 0
+        (index + 1).is_multiple_of(self.cadence.max(1))
     }
 
     /// The bucket a grid checkpoint of reset time `t` falls in when the newest is at

@@ -1019,13 +1019,17 @@ fn run_stage(args: &RunArgs) -> persist::Result<ExitCode> {
                 Error::new(ErrorKind::Io, format!("cannot install signal handler: {e}"))
             })?;
     }
-    // A missing input is the stage's error to report (exit 1), not a usage error.
+    if worker.is_some() {
+        // Blocked since the worker started: a stop forwarded before now is handled now.
+        stage::workers::unblock_stop_signals();
+    }
     // The parent starts the table; its workers append to it.
     let table = match (&args.table, worker) {
         (None, _) => None,
         (Some(t), None) => Some(stage::table::RunTable::create(t)?),
         (Some(t), Some(_)) => Some(stage::table::RunTable::append_to(t)?),
     };
+    // A missing input is the stage's error to report (exit 1), not a usage error.
     if worker.is_none() && !args.watch && !args.one_process && args.input.is_dir() {
         let dets = stage::workers::detectors(&args.input)?;
         if dets.len() > 1 {

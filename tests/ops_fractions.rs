@@ -71,6 +71,13 @@ fn fractions_in_attributes_and_table_match_a_recount_of_the_planes() {
         &png.display().to_string(),
     ]);
     assert_eq!(out.lines().count(), 4, "{out}");
-    assert!(out.lines().nth(1).unwrap().trim_start().starts_with("1        12"), "{out}");
+    assert!(
+        out.lines()
+            .nth(1)
+            .unwrap()
+            .trim_start()
+            .starts_with("1        12"),
+        "{out}"
+    );
     assert!(std::fs::metadata(&png).unwrap().len() > 1000);
 }

@@ -106,10 +106,6 @@ impl FlagStats {
     /// Counted from a persistence flag plane.
     pub fn of_plane(pflags: &Array2<u8>) -> FlagStats {
         let count = |b: u8| pflags.iter().filter(|&&f| f & b != 0).count() as u64;
-        FlagStats::from_counts(
-            pflags.len() as u64,
-            count(pbits::HIGH),
-            count(pbits::LOW),
-        )
+        FlagStats::from_counts(pflags.len() as u64, count(pbits::HIGH), count(pbits::LOW))
     }
 }

@@ -836,7 +836,6 @@ impl<'a> Processor<'a> {
         if self.dead || !self.started {
             return;
         }
-        let every = self.cfg.checkpoint_every.max(1);
         loop {
             if self.ops.stop.load(Ordering::SeqCst) {
                 break;
@@ -884,7 +883,7 @@ impl<'a> Processor<'a> {
                     self.reports.push(report);
                     self.unsaved += 1;
                     self.last_step = Some(Instant::now());
-                    if next % every == every - 1 {
+                    if self.cfg.retention().on_grid(next) {
                         self.save_now();
                     }
                 }

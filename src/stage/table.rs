@@ -74,9 +74,18 @@ impl Row {
         if f.len() != 10 {
             return Err(format!("{} fields, expected 10", f.len()));
         }
-        let int = |i: usize| f[i].parse::<u64>().map_err(|e| format!("field {}: {e}", i + 1));
-        let float = |i: usize| f[i].parse::<f64>().map_err(|e| format!("field {}: {e}", i + 1));
-        let boolean = |i: usize| f[i].parse::<bool>().map_err(|e| format!("field {}: {e}", i + 1));
+        let int = |i: usize| {
+            f[i].parse::<u64>()
+                .map_err(|e| format!("field {}: {e}", i + 1))
+        };
+        let float = |i: usize| {
+            f[i].parse::<f64>()
+                .map_err(|e| format!("field {}: {e}", i + 1))
+        };
+        let boolean = |i: usize| {
+            f[i].parse::<bool>()
+                .map_err(|e| format!("field {}: {e}", i + 1))
+        };
         Ok(Row {
             detector: f[0].parse().map_err(|e| format!("field 1: {e}"))?,
             exposure_index: int(1)?,
@@ -146,8 +155,7 @@ pub fn read(path: &Path) -> Result<Vec<Row>> {
         .enumerate()
         .filter(|(_, l)| !l.is_empty())
         .map(|(i, l)| {
-            Row::parse(l)
-                .map_err(|m| Error::invalid(format!("line {}", i + 2), m).path(path))
+            Row::parse(l).map_err(|m| Error::invalid(format!("line {}", i + 2), m).path(path))
         })
         .collect()
 }
@@ -217,7 +225,10 @@ pub fn plot(rows: &[Row], png: &Path) -> Result<()> {
     let mut series = Vec::new();
     for d in dets {
         for (name, f) in [
-            ("above high", (|r: &Row| r.stats.fraction_above_high) as fn(&Row) -> f64),
+            (
+                "above high",
+                (|r: &Row| r.stats.fraction_above_high) as fn(&Row) -> f64,
+            ),
             ("above low", |r: &Row| r.stats.fraction_above_low),
         ] {
             series.push(Series {

@@ -36,6 +36,20 @@ pub fn detectors(input: &Path) -> Result<BTreeSet<DetectorId>> {
         .collect())
 }
 
+/// In a worker, once its SIGINT/SIGTERM handlers are installed: unblock the two signals
+/// (blocked from its start by [`run_workers`]), so that a stop the parent forwarded
+/// early is delivered now, to the handlers.
+pub fn unblock_stop_signals() {
+    // SAFETY: plain libc calls on a local signal set.
+    unsafe {
+        let mut set: libc::sigset_t = std::mem::zeroed();
+        libc::sigemptyset(&mut set);
+        libc::sigaddset(&mut set, libc::SIGINT);
+        libc::sigaddset(&mut set, libc::SIGTERM);
+        libc::pthread_sigmask(libc::SIG_UNBLOCK, &set, std::ptr::null_mut());
+    }
+}
+
 /// What one worker did.
 #[derive(Debug)]
 pub struct WorkerOutcome {
@@ -67,7 +81,8 @@ pub fn run_workers(
         }
         {
             use std::os::unix::process::CommandExt;
-            // SAFETY: prctl is async-signal-safe and touches no memory of the parent.
+            // SAFETY: prctl, getppid, _exit, sigemptyset, sigaddset and sigprocmask are
+            // async-signal-safe and touch no memory of the parent.
             unsafe {
                 cmd.pre_exec(|| {
                     if libc::prctl(libc::PR_SET_PDEATHSIG, libc::SIGKILL) != 0 {
@@ -77,6 +92,13 @@ pub fn run_workers(
                     if libc::getppid() == 1 {
                         libc::_exit(137);
                     }
+                    // A stop forwarded before the worker's handlers are installed waits
+                    // for them ([`unblock_stop_signals`]) instead of killing it.
+                    let mut set: libc::sigset_t = std::mem::zeroed();
+                    libc::sigemptyset(&mut set);
+                    libc::sigaddset(&mut set, libc::SIGINT);
+                    libc::sigaddset(&mut set, libc::SIGTERM);
+                    libc::sigprocmask(libc::SIG_BLOCK, &set, std::ptr::null_mut());
                     Ok(())
                 });
             }
