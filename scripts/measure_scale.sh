@@ -14,6 +14,8 @@ P="$ROOT/target/release/persist"
 W="${1:-/tmp/persist-scale}"
 rm -rf "$W"; mkdir -p "$W"; cd "$W"
 ts() { date +%s.%N; }
+# Every timed run starts after `sync`: the write-back of the files just deleted and
+# written would otherwise land on whichever run comes next.
 since() { echo "$(ts) - $1" | bc; }
 q=(--quiet --log-level warn)
 
@@ -24,7 +26,7 @@ for mode in default every1 tail-only; do
   # No grid checkpoint, only the tail at the end: what the rest of the stage costs.
   [ "$mode" = tail-only ] && extra=(--checkpoint-every 1000000)
   for rep in 1 2 3; do
-    rm -rf out ck
+    rm -rf out ck; sync
     t0=$(ts)
     "$P" run --input sky1 --output out --checkpoints ck "${q[@]}" "${extra[@]}"
     t=$(since "$t0")
@@ -39,13 +41,13 @@ rm -rf sky1 out ck empty
 "$P" simulate sky --out sky2 --size 2040 --detectors 2 --exposures 8 --seed 1 > /dev/null
 mkdir -p d1 d2; ln sky2/d1_*.h5 d1/; ln sky2/d2_*.h5 d2/
 for rep in 1 2 3; do
-  rm -rf r; t0=$(ts)
+  rm -rf r; sync; t0=$(ts)
   "$P" run --input sky2 --output r/out --checkpoints r/ck "${q[@]}"
   echo "detectors: one run (workers) run $rep: $(since "$t0") s"
-  rm -rf r; t0=$(ts)
+  rm -rf r; sync; t0=$(ts)
   "$P" run --input sky2 --output r/out --checkpoints r/ck "${q[@]}" --one-process
   echo "detectors: --one-process run $rep: $(since "$t0") s"
-  rm -rf r; t0=$(ts)
+  rm -rf r; sync; t0=$(ts)
   "$P" run --input d1 --output r/o1 --checkpoints r/c1 "${q[@]}" & a=$!
   "$P" run --input d2 --output r/o2 --checkpoints r/c2 "${q[@]}" & b=$!
   wait "$a"; wait "$b"
