@@ -12,8 +12,8 @@
 //!   in the same parallel row layout, with trivial arithmetic.
 //! - **(c) `stage`**: the whole stage per exposure, through [`crate::stage::run()`] itself
 //!   (no copy of its code): read and validate an input product, step, publish the
-//!   output (write, validate, fsync, rename), checkpoint (every exposure by default,
-//!   `checkpoint_every` otherwise) and prune. The time per exposure is the interval
+//!   output (write, validate, fsync, rename), checkpoint (at the stage's default
+//!   cadence, or `checkpoint_every`) and prune. The time per exposure is the interval
 //!   between consecutive exposure reports of one detector's stream, which holds exactly
 //!   one of each; the median over the stream is reported.
 //! - **(d) `io`**: the I/O bound of (c): a raw HDF5 read of the input's `/image` and
@@ -23,11 +23,20 @@
 //!   left on disk (every output, the two newest checkpoints); no validation, no model,
 //!   no rename.
 //!
+//! - **(e) `copy`**: a plain copy of the bytes (c) moves through files: read each input
+//!   file, write the bytes of its output product (as the `stage` case published them,
+//!   read beforehand, not timed) to a new file and `fsync` it. No HDF5, no checkpoint.
+//!
+//! (c) runs at the stage's default checkpoint cadence
+//! ([`crate::checkpoint::DEFAULT_CADENCE`]); its samples are means over whole cadence
+//! periods, so each holds its share of one checkpoint. (c)/(e) is what the stage costs
+//! beyond moving its input and output bytes.
+//!
 //! The table gives exposures per second (1 / median time per exposure), the ratios
-//! a/b and c/d, and the peak memory of the `stage` child (one detector's stream) against
+//! a/b, c/d and c/e, and the peak memory of the `stage` child (one detector's stream) against
 //! the bound `1.5 x (state + three images)`, an image being `ny x nx` float32.
 
-use crate::checkpoint::Retention;
+use crate::checkpoint::{Retention, DEFAULT_CADENCE};
 use crate::error::{Error, ErrorKind, Result};
 use crate::flags::bits;
 use crate::h5io;
@@ -57,6 +66,7 @@ pub enum Case {
     Memory,
     Stage,
     Io,
+    Copy,
 }
 
 impl Case {
@@ -66,11 +76,12 @@ impl Case {
             Case::Memory => "memory",
             Case::Stage => "stage",
             Case::Io => "io",
+            Case::Copy => "copy",
         }
     }
 
     pub fn parse(s: &str) -> Option<Case> {
-        [Case::Step, Case::Memory, Case::Stage, Case::Io]
+        [Case::Step, Case::Memory, Case::Stage, Case::Io, Case::Copy]
             .into_iter()
             .find(|c| c.name() == s)
     }
@@ -171,10 +182,14 @@ pub struct Row {
     pub memory_s: f64,
     pub stage_s: f64,
     pub io_s: f64,
+    /// (e) a plain copy of the input and output bytes, seconds per exposure.
+    pub copy_s: f64,
     /// `(checkpoint_every, seconds per exposure)` of the extra stage rows.
     pub stage_every_s: Vec<(u64, f64)>,
     pub a_over_b: f64,
     pub c_over_d: f64,
+    /// The whole stage against a plain copy of its input and output bytes (target <= 2).
+    pub c_over_e: f64,
     pub stage_peak_bytes: u64,
     /// `1.5 x (state + three images)`.
     pub memory_bound_bytes: u64,
@@ -301,6 +316,7 @@ pub fn run_case(spec: &CaseSpec) -> Result<CaseResult> {
         Case::Memory => Ok(case_memory(spec)),
         Case::Stage => case_stage(spec),
         Case::Io => case_io(spec),
+        Case::Copy => case_copy(spec),
     })?;
     Ok(CaseResult {
         case: spec.case,
@@ -408,10 +424,12 @@ fn case_memory(spec: &CaseSpec) -> Vec<f64> {
 /// (c) The stage itself on a stream of `reps` products of one detector.
 fn case_stage(spec: &CaseSpec) -> Result<Vec<f64>> {
     let input = input_dir(&spec.scratch, spec.size);
-    let root = spec.scratch.join(format!(
-        "stage_{}_{}_{}",
-        spec.size, spec.threads, spec.checkpoint_every
-    ));
+    let root = stage_root(
+        &spec.scratch,
+        spec.size,
+        spec.threads,
+        spec.checkpoint_every,
+    );
     if root.exists() {
         std::fs::remove_dir_all(&root).map_err(|e| Error::io(&root, e))?;
     }
@@ -423,10 +441,11 @@ fn case_stage(spec: &CaseSpec) -> Result<Vec<f64>> {
         from_checkpoint: None,
         allow_model_change: false,
         checkpoint_every: spec.checkpoint_every.max(1),
+        checkpoint_idle: std::time::Duration::ZERO,
         // Few files on disk; pruning still runs after every checkpoint.
         retention: Retention {
             keep_latest: 2,
-            keep_one_per_hour: true,
+            ..Retention::default()
         },
         processed_utc: "2026-03-02T00:00:00.000000Z".into(),
     };
@@ -436,7 +455,8 @@ fn case_stage(spec: &CaseSpec) -> Result<Vec<f64>> {
             s.push(Instant::now());
         }
     });
-    let _ = std::fs::remove_dir_all(&root);
+    // The outputs stay for the `copy` case (the parent removes the scratch directory).
+    let _ = std::fs::remove_dir_all(&cfg.checkpoints);
     if let Some(e) = report.errors.into_iter().next() {
         return Err(e);
     }
@@ -523,6 +543,46 @@ fn case_io(spec: &CaseSpec) -> Result<Vec<f64>> {
     Ok(samples)
 }
 
+/// The directory where the `stage` case at the default cadence left its outputs.
+fn stage_root(scratch: &Path, size: usize, threads: usize, every: u64) -> PathBuf {
+    scratch.join(format!("stage_{size}_{threads}_{every}"))
+}
+
+/// (e) A plain copy: read each input file, write its output product's bytes, fsync.
+fn case_copy(spec: &CaseSpec) -> Result<Vec<f64>> {
+    let input = input_dir(&spec.scratch, spec.size);
+    let outputs = stage_root(&spec.scratch, spec.size, spec.threads, DEFAULT_CADENCE).join("out");
+    let root = spec
+        .scratch
+        .join(format!("copy_{}_{}", spec.size, spec.threads));
+    if root.exists() {
+        std::fs::remove_dir_all(&root).map_err(|e| Error::io(&root, e))?;
+    }
+    std::fs::create_dir_all(&root).map_err(|e| Error::io(&root, e))?;
+    let mut samples = Vec::new();
+    for k in 0..spec.reps as u64 {
+        let name = format!("l1_det1_exp{k:04}.h5");
+        let out_path = outputs.join(&name);
+        let out_bytes = std::fs::read(&out_path).map_err(|e| {
+            Error::io(&out_path, e).field("the `stage` case's output (run it first)")
+        })?;
+        let in_path = input.join(&name);
+        let dst = root.join(&name);
+        let t = Instant::now();
+        let in_bytes = std::fs::read(&in_path).map_err(|e| Error::io(&in_path, e))?;
+        std::hint::black_box(&in_bytes);
+        let mut f = std::fs::File::create(&dst).map_err(|e| Error::io(&dst, e))?;
+        std::io::Write::write_all(&mut f, &out_bytes).map_err(|e| Error::io(&dst, e))?;
+        f.sync_all().map_err(|e| Error::io(&dst, e))?;
+        samples.push(t.elapsed().as_secs_f64());
+    }
+    let _ = std::fs::remove_dir_all(&root);
+    if samples.len() > 2 {
+        samples.remove(0);
+    }
+    Ok(samples)
+}
+
 fn sync(path: &Path) -> Result<()> {
     std::fs::File::open(path)
         .and_then(|f| f.sync_all())
@@ -570,7 +630,8 @@ pub fn run(cfg: &BenchConfig, progress: &dyn Fn(&CaseResult)) -> Result<BenchRep
     std::fs::create_dir_all(&cfg.scratch).map_err(|e| Error::io(&cfg.scratch, e))?;
     let mut results = Vec::new();
     let mut rows = Vec::new();
-    let mut stage_exposures = cfg.exposures.max(3);
+    // The stage case needs whole checkpoint periods: at least one at the default cadence.
+    let mut stage_exposures = cfg.exposures.max(2 * DEFAULT_CADENCE as usize + 1);
     for &e in &cfg.checkpoint_every {
         stage_exposures = stage_exposures.max(e as usize * 3 + 1);
     }
@@ -588,16 +649,18 @@ pub fn run(cfg: &BenchConfig, progress: &dyn Fn(&CaseResult)) -> Result<BenchRep
             // Interleaved rounds per size and thread count, so that drifts in the
             // machine's load hit the numerator and the denominator of each ratio alike;
             // each case's samples of all rounds are pooled into one median.
-            let mut merged: Vec<Option<CaseResult>> = vec![None, None, None, None];
+            let mut merged: Vec<Option<CaseResult>> = vec![None, None, None, None, None];
             for _ in 0..cfg.rounds.max(1) {
+                // (e) copies what (c) just wrote, so it runs right after it.
                 let runs = [
-                    (Case::Step, cfg.reps),
-                    (Case::Memory, cfg.reps),
-                    (Case::Stage, cfg.exposures),
-                    (Case::Io, cfg.exposures),
+                    (Case::Step, cfg.reps, 1),
+                    (Case::Memory, cfg.reps, 1),
+                    (Case::Stage, stage_exposures, DEFAULT_CADENCE),
+                    (Case::Copy, stage_exposures, 1),
+                    (Case::Io, cfg.exposures, 1),
                 ];
-                for (slot, (case, reps)) in merged.iter_mut().zip(runs) {
-                    let r = spawn(cfg, &spec(case, reps, 1))?;
+                for (slot, (case, reps, every)) in merged.iter_mut().zip(runs) {
+                    let r = spawn(cfg, &spec(case, reps, every))?;
                     progress(&r);
                     *slot = Some(match slot.take() {
                         None => r,
@@ -610,8 +673,8 @@ pub fn run(cfg: &BenchConfig, progress: &dyn Fn(&CaseResult)) -> Result<BenchRep
                     });
                 }
             }
-            let [Some(a), Some(b), Some(c), Some(d)] =
-                merged.try_into().unwrap_or([None, None, None, None])
+            let [Some(a), Some(b), Some(c), Some(e), Some(d)] =
+                merged.try_into().unwrap_or([None, None, None, None, None])
             else {
                 return Err(bench_error("no result"));
             };
@@ -629,13 +692,18 @@ pub fn run(cfg: &BenchConfig, progress: &dyn Fn(&CaseResult)) -> Result<BenchRep
                 memory_s: b.median_s,
                 stage_s: c.median_s,
                 io_s: d.median_s,
+                copy_s: e.median_s,
                 stage_every_s: every,
                 a_over_b: a.median_s / b.median_s,
                 c_over_d: c.median_s / d.median_s,
+                c_over_e: c.median_s / e.median_s,
                 stage_peak_bytes: c.peak_rss_bytes,
                 memory_bound_bytes: memory_bound_bytes(size, model().n_terms()),
             });
-            results.extend([a, b, c, d]);
+            results.extend([a, b, c, d, e]);
+            for every in std::iter::once(DEFAULT_CADENCE).chain(cfg.checkpoint_every.clone()) {
+                let _ = std::fs::remove_dir_all(stage_root(&cfg.scratch, size, threads, every));
+            }
         }
         let dir = input_dir(&cfg.scratch, size);
         let _ = std::fs::remove_dir_all(&dir);
@@ -661,19 +729,19 @@ pub fn table(rows: &[Row]) -> String {
         .map(|r| r.stage_every_s.iter().map(|e| e.0).collect())
         .unwrap_or_default();
     let mut s = String::from(
-        "| image | threads | (a) step exp/s | (b) memory exp/s | a/b | (c) stage exp/s | (d) I/O exp/s | c/d |",
+        "| image | threads | (a) step exp/s | (b) memory exp/s | a/b | (c) stage exp/s | (d) I/O exp/s | c/d | (e) copy exp/s | c/e |",
     );
     for e in &every {
         s.push_str(&format!(" (c) ckpt/{e} exp/s |"));
     }
-    s.push_str(" stage peak MiB | bound MiB |\n|---|---|---|---|---|---|---|---|");
+    s.push_str(" stage peak MiB | bound MiB |\n|---|---|---|---|---|---|---|---|---|---|");
     for _ in &every {
         s.push_str("---|");
     }
     s.push_str("---|---|\n");
     for r in rows {
         s.push_str(&format!(
-            "| {0}^2 | {1} | {2:.1} | {3:.1} | {4:.2} | {5:.2} | {6:.2} | {7:.2} |",
+            "| {0}^2 | {1} | {2:.1} | {3:.1} | {4:.2} | {5:.2} | {6:.2} | {7:.2} | {8:.2} | {9:.2} |",
             r.size,
             r.threads,
             1.0 / r.step_s,
@@ -681,7 +749,9 @@ pub fn table(rows: &[Row]) -> String {
             r.a_over_b,
             1.0 / r.stage_s,
             1.0 / r.io_s,
-            r.c_over_d
+            r.c_over_d,
+            1.0 / r.copy_s,
+            r.c_over_e
         ));
         for (_, t) in &r.stage_every_s {
             s.push_str(&format!(" {:.2} |", 1.0 / t));

@@ -28,7 +28,7 @@ use crate::model::State;
 use crate::product::schema::{self, Schema, View};
 use crate::units::{DetectorId, UtcSeconds};
 use ndarray::{Array2, Array3};
-use std::collections::HashSet;
+use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 
 /// Root attribute `product` of a checkpoint.
@@ -52,21 +52,125 @@ pub struct CheckpointMeta {
     pub software_version: String,
 }
 
-/// Which checkpoints [`prune`] keeps.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+/// Which checkpoints [`prune`] keeps (module docs of [`Retention`]'s fields).
+///
+/// A checkpoint is *on the cadence grid* when `(exposure_index + 1) % cadence == 0`;
+/// others are *tails* (written when a batch ends, the stage stops, or a watch goes idle)
+/// and are removed as soon as a newer checkpoint exists. Among the grid checkpoints older
+/// than the newest, the `keep_latest` newest are kept; older ones thin with their age
+/// (data time: the newest checkpoint's `t_reset_unix_s` minus theirs): the first of each
+/// hour while younger than `hourly_for_s`, the first of each day while younger than
+/// `daily_for_s`, then the first of each week (with `weekly`), buckets counted from the
+/// Unix epoch (`floor(t / 3600)`, `/ 86400`, `/ 604800`), which nest, so the kept set does
+/// not depend on how often pruning ran: the first of a week is the first of its day and
+/// of its hour. The newest checkpoint is always kept.
+#[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Retention {
-    /// The newest checkpoints (by exposure index) always kept.
+    /// The newest checkpoints always kept: the newest, and the `keep_latest - 1` grid
+    /// checkpoints before it.
     pub keep_latest: usize,
-    /// Also keep the first checkpoint of each hour of data (by `t_reset_unix_s`).
+    /// Thin older checkpoints by age (hourly, daily, weekly); `false`: keep only the
+    /// newest `keep_latest`.
     pub keep_one_per_hour: bool,
+    /// Keep the first checkpoint of each hour while younger than this (seconds of data).
+    pub hourly_for_s: f64,
+    /// Keep the first checkpoint of each day while younger than this.
+    pub daily_for_s: f64,
+    /// Keep the first checkpoint of each week beyond `daily_for_s`, forever.
+    pub weekly: bool,
+    /// The stage's checkpoint cadence (exposures, >= 1): what tells a tail.
+    pub cadence: u64,
 }
+
+/// The stage's default checkpoint cadence: one checkpoint every 8 exposures, so a crash
+/// replays at most 7 exposures (about 2 s at 2040 x 2040) and rewrites nothing.
+pub const DEFAULT_CADENCE: u64 = 8;
 
 impl Default for Retention {
     fn default() -> Self {
         Retention {
             keep_latest: 20,
             keep_one_per_hour: true,
+            hourly_for_s: 86_400.0,
+            daily_for_s: 30.0 * 86_400.0,
+            weekly: true,
+            cadence: DEFAULT_CADENCE,
         }
+    }
+}
+
+impl Retention {
+    /// Is `index` on the cadence grid?
+    pub fn on_grid(&self, index: u64) -> bool {
+        (index + 1).is_multiple_of(self.cadence.max(1))
+    }
+
+    /// The bucket a grid checkpoint of reset time `t` falls in when the newest is at
+    /// `t_newest`: `(level, number)`, `None` when its age keeps nothing.
+    fn bucket(&self, t: f64, t_newest: f64) -> Option<(u8, i64)> {
+        let age = t_newest - t;
+        let (level, width) = if age < self.hourly_for_s {
+            (0, 3600.0)
+        } else if age < self.daily_for_s {
+            (1, 86_400.0)
+        } else if self.weekly {
+            (2, 604_800.0)
+        } else {
+            return None;
+        };
+        Some((level, (t / width).floor() as i64))
+    }
+
+    /// Which of `items` (exposure index, reset time; sorted by index, the last the
+    /// newest) this rule keeps. `None` reset times (unreadable) are kept.
+    pub fn keep(&self, items: &[(u64, Option<f64>)]) -> Vec<bool> {
+        let n = items.len();
+        let mut keep = vec![false; n];
+        let Some(&(_, t_newest)) = items.last() else {
+            return keep;
+        };
+        keep[n - 1] = true;
+        let grid: Vec<usize> = (0..n - 1).filter(|&i| self.on_grid(items[i].0)).collect();
+        let n_old = grid
+            .len()
+            .saturating_sub(self.keep_latest.saturating_sub(1));
+        for &i in &grid[n_old..] {
+            keep[i] = true;
+        }
+        if !self.keep_one_per_hour {
+            return keep;
+        }
+        let t_newest = t_newest.or_else(|| grid.iter().rev().find_map(|&i| items[i].1));
+        // The first (lowest index) grid checkpoint of every bucket at every level.
+        let mut first: HashMap<(u8, i64), usize> = HashMap::new();
+        for &i in &grid {
+            if let Some(t) = items[i].1 {
+                for (level, width) in [(0u8, 3600.0), (1, 86_400.0), (2, 604_800.0)] {
+                    first
+                        .entry((level, (t / width).floor() as i64))
+                        .or_insert(i);
+                }
+            }
+        }
+        for &i in &grid[..n_old] {
+            keep[i] = match (items[i].1, t_newest) {
+                (Some(t), Some(tn)) => self
+                    .bucket(t, tn)
+                    .is_some_and(|b| first.get(&b) == Some(&i)),
+                _ => true,
+            };
+        }
+        keep
+    }
+
+    /// How many checkpoints this rule leaves after `n_exposures` exposures taken every
+    /// `interval_s` seconds (the projection `persist status` prints).
+    pub fn projected_count(&self, n_exposures: u64, interval_s: f64) -> usize {
+        let items: Vec<(u64, Option<f64>)> = (0..n_exposures)
+            .filter(|&i| self.on_grid(i) || i + 1 == n_exposures)
+            .map(|i| (i, Some(1.0e9 + i as f64 * interval_s)))
+            .collect();
+        self.keep(&items).iter().filter(|&&k| k).count()
     }
 }
 
@@ -478,37 +582,32 @@ fn t_reset_of(path: &Path) -> Option<f64> {
     t.is_finite().then_some(t)
 }
 
-/// Delete the checkpoints of `detector` beyond the newest `keep_latest`, except (with
-/// `keep_one_per_hour`) the first checkpoint of each hour of data, bucketed by
-/// `floor(t_reset_unix_s / 3600)`. A checkpoint whose reset time cannot be read is kept
-/// when hours are kept (it is not understood, so not deleted). Returns what was removed.
+/// Delete the checkpoints of `detector` that `retention` does not keep ([`Retention`]:
+/// tails once a newer checkpoint exists, old grid checkpoints thinned by age). A
+/// checkpoint whose reset time cannot be read is kept when thinning (it is not
+/// understood, so not deleted). Returns what was removed.
 pub fn prune(dir: &Path, detector: DetectorId, retention: &Retention) -> Result<Vec<PathBuf>> {
     let all = list(dir, detector)?;
-    let n_old = all.len().saturating_sub(retention.keep_latest);
-    if n_old == 0 {
+    if all.len() <= 1 {
         return Ok(Vec::new());
     }
-    let mut first_of_hour: HashSet<u64> = HashSet::new();
-    let mut unreadable: HashSet<u64> = HashSet::new();
-    if retention.keep_one_per_hour {
-        let mut seen_hours: HashSet<i64> = HashSet::new();
-        for (index, path) in &all {
-            match t_reset_of(path) {
-                Some(t) => {
-                    if seen_hours.insert((t / 3600.0).floor() as i64) {
-                        first_of_hour.insert(*index);
-                    }
-                }
-                None => {
-                    tracing::warn!(path = %path.display(), "checkpoint reset time unreadable; kept");
-                    unreadable.insert(*index);
-                }
+    let items: Vec<(u64, Option<f64>)> = all
+        .iter()
+        .enumerate()
+        .map(|(k, (index, path))| {
+            let needed =
+                retention.keep_one_per_hour && (k + 1 == all.len() || retention.on_grid(*index));
+            let t = if needed { t_reset_of(path) } else { None };
+            if needed && t.is_none() {
+                tracing::warn!(path = %path.display(), "checkpoint reset time unreadable; kept");
             }
-        }
-    }
+            (*index, t)
+        })
+        .collect();
+    let keep = retention.keep(&items);
     let mut removed = Vec::new();
-    for (index, path) in &all[..n_old] {
-        if first_of_hour.contains(index) || unreadable.contains(index) {
+    for ((_, path), kept) in all.iter().zip(keep) {
+        if kept {
             continue;
         }
         std::fs::remove_file(path).map_err(|e| Error::io(path, e))?;
@@ -628,7 +727,8 @@ mod tests {
             d,
             &Retention {
                 keep_latest: 3,
-                keep_one_per_hour: true,
+                cadence: 1,
+                ..Retention::default()
             },
         )
         .unwrap();
@@ -641,6 +741,8 @@ mod tests {
             &Retention {
                 keep_latest: 2,
                 keep_one_per_hour: false,
+                cadence: 1,
+                ..Retention::default()
             },
         )
         .unwrap();
@@ -648,5 +750,70 @@ mod tests {
         assert_eq!(clean_temporaries(dir.path()).unwrap(), 1);
         assert!(detector_dir(dir.path(), d).join("notes.txt").exists());
         assert_eq!(list(dir.path(), DetectorId(4)).unwrap(), vec![]);
+    }
+
+    /// Tails (off the cadence grid) go once a newer checkpoint exists; grid checkpoints
+    /// thin hourly, daily, weekly with their age.
+    #[test]
+    fn retention_thins_with_age_and_drops_tails() {
+        let r = Retention {
+            keep_latest: 2,
+            cadence: 4,
+            ..Retention::default()
+        };
+        let day = 86_400.0;
+        // Grid indices 3, 7, 11, ...; one exposure every 200 s for 60 days.
+        let t0 = 1_000_000_000.0 - 1_000_000_000.0 % 604_800.0;
+        let n = (60.0 * day / 200.0) as u64;
+        let mut items: Vec<(u64, Option<f64>)> = (0..n)
+            .filter(|&i| r.on_grid(i))
+            .map(|i| (i, Some(t0 + i as f64 * 200.0)))
+            .collect();
+        // A tail in the middle, and the newest a tail.
+        items.insert(10, (42, Some(t0 + 8400.0)));
+        items.sort_by_key(|x| x.0);
+        items.push((n, Some(t0 + n as f64 * 200.0)));
+        let keep = r.keep(&items);
+        let kept: Vec<(u64, f64)> = items
+            .iter()
+            .zip(&keep)
+            .filter(|x| *x.1)
+            .map(|(i, _)| (i.0, i.1.unwrap()))
+            .collect();
+        let t_new = kept.last().unwrap().1;
+        assert_eq!(kept.last().unwrap().0, n, "the newest is kept");
+        assert!(!kept.iter().any(|k| k.0 == 42), "a tail goes");
+        let ages = |lo: f64, hi: f64| {
+            kept.iter()
+                .filter(|k| (lo..hi).contains(&(t_new - k.1)) && k.0 + 2 < n)
+                .count()
+        };
+        // Besides the 2 newest: about 24 hourly within a day, 29 daily, weekly beyond.
+        let hourly = ages(0.0, day);
+        assert!((21..=25).contains(&hourly), "{hourly}");
+        let daily = ages(day, 30.0 * day);
+        assert!((28..=30).contains(&daily), "{daily}");
+        let weekly = ages(30.0 * day, 61.0 * day);
+        assert!((4..=6).contains(&weekly), "{weekly}");
+        // Pruning after every checkpoint leaves the same set as pruning once.
+        let mut held: Vec<(u64, Option<f64>)> = Vec::new();
+        for it in &items {
+            held.push(*it);
+            let k = r.keep(&held);
+            held = held
+                .into_iter()
+                .zip(k)
+                .filter(|x| x.1)
+                .map(|x| x.0)
+                .collect();
+        }
+        assert_eq!(
+            held.iter().map(|x| x.0).collect::<Vec<_>>(),
+            kept.iter().map(|x| x.0).collect::<Vec<_>>()
+        );
+        // Two years of 4 x 10^5 exposures, default rule: the 20 newest (within the last
+        // day), the other hours of that day, 29 days, about 100 weeks.
+        let c = Retention::default().projected_count(400_000, 2.0 * 365.25 * day / 400_000.0);
+        assert!((150..=190).contains(&c), "{c}");
     }
 }

@@ -11,7 +11,6 @@
 
 use clap::{Args, Parser, Subcommand};
 use persist::calib::Preset;
-use persist::checkpoint::Retention;
 use persist::diag::data::Background;
 use persist::diag::diagnose::{Refit, Statistic};
 use persist::diag::eval::{CellStatistic, Cells};
@@ -108,6 +107,16 @@ pub enum Command {
     /// Per detector: last exposure processed, backlog, gaps, quarantined files, age of
     /// the newest checkpoint. Reads the directories only; safe while a stage runs.
     Status(StatusArgs),
+    /// Summarise the table of a run (`persist run --table FILE`) per detector: the
+    /// fraction of pixels above each threshold and the pixels flagged; `--plot` draws
+    /// the fractions per exposure into a PNG.
+    Fractions {
+        /// The CSV written by `persist run --table`.
+        table: PathBuf,
+        /// Draw the fractions above each threshold per exposure into this PNG.
+        #[arg(long)]
+        plot: Option<PathBuf>,
+    },
     /// Calibrate a model from a laboratory sequence (the paper's fit), optionally with
     /// effects, and write the model file and a fit report.
     Fit(FitArgs),
@@ -436,15 +445,17 @@ pub struct RunArgs {
     /// Continue from checkpoints made with a different model.
     #[arg(long)]
     pub allow_model_change: bool,
-    /// Write a checkpoint every N exposures (and always at the end).
-    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u64).range(1..))]
-    pub checkpoint_every: u64,
-    /// Keep this many newest checkpoints per detector (plus one per hour of data).
-    #[arg(long, default_value_t = 20)]
-    pub keep_latest: usize,
-    /// Do not keep one checkpoint per hour of data beyond the newest ones.
+    #[command(flatten)]
+    pub ckpt: stage::options::CheckpointArgs,
+    /// With --watch: write a checkpoint once no exposure was processed for this many
+    /// seconds (between, one every --checkpoint-every exposures).
+    #[arg(long, default_value_t = 600.0, value_parser = nonnegative_seconds)]
+    pub checkpoint_idle_s: f64,
+    /// Write one CSV row per detector and exposure processed to this file (replaced by
+    /// each run): the fraction of pixels above each threshold, the pixels flagged, ...
+    /// (`persist fractions FILE` summarises and plots it).
     #[arg(long)]
-    pub no_hourly_checkpoints: bool,
+    pub table: Option<PathBuf>,
     /// Print nothing per exposure (no table, no progress bar, warnings and errors only).
     #[arg(long, short)]
     pub quiet: bool,
@@ -462,6 +473,16 @@ pub struct RunArgs {
     /// seconds (from when it was first seen); then the gap is crossed.
     #[arg(long, default_value_t = 600.0, value_parser = nonnegative_seconds)]
     pub gap_timeout_s: f64,
+    /// Process every detector in this one process (threads) rather than one worker
+    /// process per detector (HDF5 serialises the I/O of one process).
+    #[arg(long)]
+    pub one_process: bool,
+    /// Internal: the worker of one detector under a parent that holds the lock.
+    #[arg(long, hide = true)]
+    pub worker: Option<u8>,
+    /// Internal: this worker also refuses products whose detector cannot be read.
+    #[arg(long, hide = true)]
+    pub worker_unattributed: bool,
     /// Where refused inputs are moved, each with a `NAME.reason.json` [default:
     /// INPUT/.quarantine, on the input's file system so the move is a rename; hidden
     /// directories are never scanned].
@@ -494,6 +515,21 @@ pub struct StatusArgs {
     /// Print JSON instead of a table.
     #[arg(long)]
     pub json: bool,
+    /// Also print the checkpoint footprint one detector would reach after
+    /// --project-exposures exposures under the retention given (the options of
+    /// `persist run`), at the mean size of the checkpoints on disk.
+    #[arg(long)]
+    pub projection: bool,
+    /// The retention to project the checkpoint footprint with (as `persist run`'s).
+    #[command(flatten)]
+    pub ckpt: stage::options::CheckpointArgs,
+    /// Project the footprint after this many exposures per detector (SPHEREx: about
+    /// 4 x 10^5 in two years).
+    #[arg(long, default_value_t = 400_000)]
+    pub project_exposures: u64,
+    /// ... taken every this many seconds (two years / 4 x 10^5).
+    #[arg(long, default_value_t = 157.8, value_parser = positive_seconds)]
+    pub project_interval_s: f64,
 }
 
 fn positive_seconds(s: &str) -> Result<f64, String> {
@@ -780,6 +816,7 @@ pub fn run(cli: Cli) -> persist::Result<ExitCode> {
         Command::Validate { files } => Ok(validate(&files)),
         Command::Simulate { scenario } => simulate(scenario),
         Command::Status(args) => status(&args),
+        Command::Fractions { table, plot } => fractions(&table, plot.as_deref()),
         Command::Demo(args) => demo(&args),
         Command::Fit(a) => fit(&a),
         Command::Compare(a) => compare(&a),
@@ -1011,12 +1048,24 @@ fn status(args: &StatusArgs) -> persist::Result<ExitCode> {
         .quarantine
         .clone()
         .or_else(|| args.input.as_ref().map(|i| i.join(".quarantine")));
-    let st = stage::status::status(
+    let mut st = stage::status::status(
         &args.output,
         &args.checkpoints,
         args.input.as_deref(),
         quarantine.as_deref(),
     );
+    if args.projection {
+        st.projection = stage::status::project(
+            &st,
+            &args.ckpt.retention(),
+            args.project_exposures,
+            args.project_interval_s,
+        );
+        if st.projection.is_none() {
+            st.problems
+                .push("no checkpoint on disk: nothing to project the footprint from".into());
+        }
+    }
     if args.json {
         let text = serde_json::to_string_pretty(&st)
             .map_err(|e| Error::new(ErrorKind::Io, format!("status as JSON: {e}")))?;
@@ -1027,12 +1076,36 @@ fn status(args: &StatusArgs) -> persist::Result<ExitCode> {
     Ok(ExitCode::SUCCESS)
 }
 
+fn fractions(table: &Path, plot: Option<&Path>) -> persist::Result<ExitCode> {
+    let rows = stage::table::read(table)?;
+    out_nonl!("{}", stage::table::summary(&rows));
+    if let Some(png) = plot {
+        stage::table::plot(&rows, png)?;
+        out!("plot {}", png.display());
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
 fn run_stage(args: &RunArgs) -> persist::Result<ExitCode> {
     let model = load_model(args.model.as_deref())?;
     // One stage per set of directories; then nothing else writes there, so every
     // temporary left is from an interrupted write of ours.
-    let _lock = DirLock::acquire(&[&args.output, &args.checkpoints])?;
-    for dir in [&args.output, &args.checkpoints] {
+    let worker = args
+        .worker
+        .map(|d| {
+            DetectorId::new(i64::from(d))
+                .ok_or_else(|| Error::invalid("--worker", format!("detector {d} is not in 1..=6")))
+        })
+        .transpose()?;
+    // A worker runs under its parent's lock (module docs of `stage::workers`).
+    let _lock = match worker {
+        None => Some(DirLock::acquire(&[&args.output, &args.checkpoints])?),
+        Some(_) => None,
+    };
+    for dir in [&args.output, &args.checkpoints]
+        .into_iter()
+        .filter(|_| worker.is_none())
+    {
         let n = persist::checkpoint::clean_temporaries(dir)?;
         if n > 0 {
             tracing::info!(dir = %dir.display(), removed = n, "stray temporary files removed");
@@ -1047,17 +1120,45 @@ fn run_stage(args: &RunArgs) -> persist::Result<ExitCode> {
                 Error::new(ErrorKind::Io, format!("cannot install signal handler: {e}"))
             })?;
     }
-    let progress = (!args.watch && !args.quiet && std::io::stderr().is_terminal()).then(|| {
-        let pb = indicatif::ProgressBar::new(0);
-        pb.set_style(
-            indicatif::ProgressStyle::with_template(
-                "{elapsed_precise} [{bar:40}] {pos}/{len} exposures ({eta} left)",
-            )
-            .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
+    if worker.is_some() {
+        // Blocked since the worker started: a stop forwarded before now is handled now.
+        stage::workers::unblock_stop_signals();
+    }
+    // The parent starts the table; its workers append to it.
+    let table = match (&args.table, worker) {
+        (None, _) => None,
+        (Some(t), None) => Some(stage::table::RunTable::create(t)?),
+        (Some(t), Some(_)) => Some(stage::table::RunTable::append_to(t)?),
+    };
+    let fits = persist::fits::FitsConfig {
+        keywords: match &args.fits_keywords {
+            Some(p) => persist::fits::Keywords::load(p)?,
+            None => Default::default(),
+        },
+        gains: args.fits_gain.iter().copied().collect(),
+    };
+    // A missing input is the stage's error to report (exit 1), not a usage error.
+    if worker.is_none() && !args.watch && !args.one_process && args.input.is_dir() {
+        let dets = stage::workers::detectors(&args.input, &fits)?;
+        if dets.len() > 1 {
+            drop(table);
+            return run_workers(args, &dets, &stop);
+        }
+    }
+    let progress =
+        (worker.is_none() && !args.watch && !args.quiet && std::io::stderr().is_terminal()).then(
+            || {
+                let pb = indicatif::ProgressBar::new(0);
+                pb.set_style(
+                    indicatif::ProgressStyle::with_template(
+                        "{elapsed_precise} [{bar:40}] {pos}/{len} exposures ({eta} left)",
+                    )
+                    .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
+                );
+                let _ = BAR.set(pb.clone());
+                pb
+            },
         );
-        let _ = BAR.set(pb.clone());
-        pb
-    });
     let ops = Ops {
         quarantine: Some(
             args.quarantine
@@ -1071,13 +1172,11 @@ fn run_stage(args: &RunArgs) -> persist::Result<ExitCode> {
         gap_timeout: Duration::from_secs_f64(args.gap_timeout_s),
         stop,
         progress,
-        fits: persist::fits::FitsConfig {
-            keywords: match &args.fits_keywords {
-                Some(p) => persist::fits::Keywords::load(p)?,
-                None => Default::default(),
-            },
-            gains: args.fits_gain.iter().copied().collect(),
-        },
+        fits: fits.clone(),
+        only: worker.map(|detector| stage::OnlyDetector {
+            detector,
+            unattributed: args.worker_unattributed,
+        }),
     };
     let cfg = RunConfig {
         input: args.input.clone(),
@@ -1086,42 +1185,81 @@ fn run_stage(args: &RunArgs) -> persist::Result<ExitCode> {
         model,
         from_checkpoint: args.from_checkpoint,
         allow_model_change: args.allow_model_change,
-        checkpoint_every: args.checkpoint_every,
-        retention: Retention {
-            keep_latest: args.keep_latest,
-            keep_one_per_hour: !args.no_hourly_checkpoints,
-        },
+        checkpoint_every: args.ckpt.checkpoint_every,
+        checkpoint_idle: Duration::from_secs_f64(args.checkpoint_idle_s),
+        retention: args.ckpt.retention(),
         processed_utc: stage::processing_time(),
     };
-    let report = stage::run_with(&cfg, &ops, &|_| {
+    let report = stage::run_with(&cfg, &ops, &|r| {
         if let Some(pb) = &ops.progress {
             pb.inc(1);
         }
+        if let Some(Err(e)) = table.as_ref().map(|t| t.append(r)) {
+            tracing::error!(error = %e, "cannot append to the table");
+        }
     });
+    if let (Some(t), None) = (&args.table, worker) {
+        stage::table::sort(t)?;
+    }
     if let Some(pb) = &ops.progress {
         pb.finish_and_clear();
     }
     if !args.quiet && !args.watch {
-        print_summary(&report);
+        print_summary(&report, worker.is_none());
     }
     Ok(finish(&report))
 }
 
+/// `persist run` as one worker process per detector (`stage::workers`).
+fn run_workers(
+    args: &RunArgs,
+    dets: &std::collections::BTreeSet<DetectorId>,
+    stop: &AtomicBool,
+) -> persist::Result<ExitCode> {
+    let exe = std::env::current_exe().map_err(|e| Error::new(ErrorKind::Io, e.to_string()))?;
+    let argv: Vec<std::ffi::OsString> = std::env::args_os().skip(1).collect();
+    let outcomes = stage::workers::run_workers(&exe, &argv, dets, stop)?;
+    if let Some(t) = &args.table {
+        stage::table::sort(t)?;
+    }
+    if !args.quiet {
+        print_summary(&RunReport::default(), true);
+    }
+    let mut failed = false;
+    for o in &outcomes {
+        out_nonl!("{}", o.stdout);
+        if !o.status.success() {
+            failed = true;
+            // Exit status 1: the worker reported its failures itself.
+            if o.status.code() != Some(1) {
+                eprintln!("persist: worker of detector {}: {}", o.detector.0, o.status);
+            }
+        }
+    }
+    Ok(if failed {
+        ExitCode::from(1)
+    } else {
+        ExitCode::SUCCESS
+    })
+}
+
 /// Per-exposure table, sorted by (detector, exposure), then the errors.
-fn print_summary(report: &RunReport) {
+fn print_summary(report: &RunReport, header: bool) {
     let mut rows: Vec<&ExposureReport> = report.exposures.iter().collect();
     rows.sort_by_key(|r| (r.detector, r.exposure_index));
-    out!(
-        "{:>3} {:>8} {:>10} {:>9} {:>7} {:>9} {:>7} {:>8}  notes",
-        "det",
-        "exposure",
-        "t_meas_s",
-        ">0.1e/s",
-        "%",
-        ">0.01e/s",
-        "%",
-        "released"
-    );
+    if header {
+        out!(
+            "{:>3} {:>8} {:>10} {:>9} {:>7} {:>9} {:>7} {:>8}  notes",
+            "det",
+            "exposure",
+            "t_meas_s",
+            ">0.1e/s",
+            "%",
+            ">0.01e/s",
+            "%",
+            "released"
+        );
+    }
     for r in rows {
         let s = &r.summary;
         let pct = |n: u64| 100.0 * n as f64 / s.pixels.max(1) as f64;

@@ -189,6 +189,7 @@ pub fn run(cfg: &DemoConfig, progress: &dyn Fn(&str)) -> Result<DemoReport> {
         from_checkpoint: None,
         allow_model_change: false,
         checkpoint_every: 1,
+        checkpoint_idle: std::time::Duration::ZERO,
         retention: Retention::default(),
         processed_utc: stage::processing_time(),
     };

@@ -281,6 +281,7 @@ pub fn slurm_command(a: &SlurmArgs, model: &crate::model::Model) -> Result<Vec<S
         crate::checkpoint::Retention {
             keep_latest: a.keep_latest,
             keep_one_per_hour: !a.no_hourly_checkpoints,
+            ..Default::default()
         },
         a.allow_model_change,
     )?;

@@ -285,6 +285,7 @@ impl Plan {
         Retention {
             keep_latest: self.keep_latest,
             keep_one_per_hour: self.keep_one_per_hour,
+            ..Retention::default()
         }
     }
 
@@ -875,7 +876,7 @@ fn assemble_detector(
         return Ok(out);
     }
     let (ny, nx) = first.shape;
-    let attrs_of = |r: &ExposureRecord| PersistenceAttrs {
+    let attrs_of = |r: &ExposureRecord, planes: &PersistencePlanes| PersistenceAttrs {
         model_id: model.identity().to_string(),
         model_name: model.params().name.clone(),
         threshold_high_e_per_s: model.params().thresholds.high_e_per_s,
@@ -884,6 +885,7 @@ fn assemble_detector(
         previous_exposure_index: r.previous_index.map_or(-1, |i| i as i64),
         software_version: crate::VERSION.to_string(),
         processed_utc: plan.processed_utc.clone(),
+        stats: Some(product::FlagStats::of_plane(&planes.flags)),
     };
     std::fs::create_dir_all(&plan.output).map_err(|e| Error::io(&plan.output, e))?;
     for r in &first.exposures {
@@ -931,7 +933,7 @@ fn assemble_detector(
             planes.flags.slice_mut(win).assign(&pflags);
             exposure.flags.slice_mut(win).assign(&flags);
         }
-        product::write::write_output(&out_path, &exposure, &planes, &attrs_of(r))?;
+        product::write::write_output(&out_path, &exposure, &planes, &attrs_of(r, &planes))?;
         out.written += 1;
     }
     let mut state = model.new_state(ny, nx);

@@ -86,11 +86,12 @@ fn run_prints_a_summary_and_refuses_a_model_change_unless_asked() {
         "{err}"
     );
 
-    // Reprocess detector 1 from exposure 5 with the new model, explicitly allowed.
-    with_model.extend(["--allow-model-change", "--from-checkpoint", "1:5"]);
+    // Reprocess detector 1 from exposure 7 (the default cadence's checkpoint: every 8th)
+    // with the new model, explicitly allowed.
+    with_model.extend(["--allow-model-change", "--from-checkpoint", "1:7"]);
     let out = persist(&with_model, tmp.path());
     assert!(out.status.success(), "{}", text(&out.stderr));
-    assert_eq!(text(&out.stdout).lines().count(), 1 + 6);
+    assert_eq!(text(&out.stdout).lines().count(), 1 + 4);
     let f = hdf5::File::open(tmp.path().join("out/l1_det1_exp0009.h5"))
         .map(persist::h5io::close_on_exec)
         .unwrap();

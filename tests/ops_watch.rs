@@ -25,6 +25,9 @@ fn start_watch(input: &Path, root: &Path, extra: &[&str]) -> Child {
         .arg("--log-json")
         .args(args)
         .arg("--watch")
+        // Checkpoint as soon as the queue is drained: these tests read the newest
+        // checkpoint after each burst of arrivals.
+        .args(["--checkpoint-idle-s", "0"])
         .args(extra)
         .stdin(Stdio::null())
         .stdout(Stdio::null())

@@ -21,9 +21,10 @@ fn config(input: &Path, root: &Path, from: Option<(DetectorId, u64)>) -> RunConf
         from_checkpoint: from,
         allow_model_change: false,
         checkpoint_every: 1,
+        checkpoint_idle: std::time::Duration::ZERO,
         retention: Retention {
             keep_latest: 1000,
-            keep_one_per_hour: true,
+            ..Retention::default()
         },
         processed_utc: "2026-03-02T00:00:00.000000Z".into(),
     }

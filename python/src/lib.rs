@@ -621,9 +621,12 @@ fn run<'py>(
         from_checkpoint,
         allow_model_change,
         checkpoint_every,
+        checkpoint_idle: std::time::Duration::ZERO,
         retention: persist::checkpoint::Retention {
             keep_latest,
             keep_one_per_hour: hourly_checkpoints,
+            cadence: checkpoint_every,
+            ..persist::checkpoint::Retention::default()
         },
         processed_utc: stage::processing_time(),
     };

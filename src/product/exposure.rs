@@ -75,4 +75,37 @@ pub struct PersistenceAttrs {
     /// UTC time of processing. Excluded from byte-identity comparisons by construction:
     /// tests compare the datasets; the stage can pin it with `--processing-time`.
     pub processed_utc: String,
+    /// What this exposure flagged (`None`: an output written before these attributes).
+    pub stats: Option<FlagStats>,
+}
+
+/// Per-exposure statistics of an output's persistence flags (attributes of
+/// `/persistence`). Invariant: they are counts of `/persistence/flags` itself, so a
+/// reader recounts them from the plane ([`FlagStats::of_plane`]) and finds the same.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct FlagStats {
+    /// Fraction of the pixels with bit 0 (above the high threshold), in [0, 1].
+    pub fraction_above_high: f64,
+    /// Fraction of the pixels with bit 1 (above the low threshold), in [0, 1].
+    pub fraction_above_low: f64,
+    /// Pixels flagged `PERSIST` (bit 0; `PERSIST` in `/flags` is set exactly there).
+    pub n_flagged: u64,
+}
+
+impl FlagStats {
+    /// From counts of pixels with bit 0 and bit 1 among `pixels`.
+    pub fn from_counts(pixels: u64, above_high: u64, above_low: u64) -> FlagStats {
+        let fraction = |n: u64| n as f64 / pixels.max(1) as f64;
+        FlagStats {
+            fraction_above_high: fraction(above_high),
+            fraction_above_low: fraction(above_low),
+            n_flagged: above_high,
+        }
+    }
+
+    /// Counted from a persistence flag plane.
+    pub fn of_plane(pflags: &Array2<u8>) -> FlagStats {
+        let count = |b: u8| pflags.iter().filter(|&&f| f & b != 0).count() as u64;
+        FlagStats::from_counts(pflags.len() as u64, count(pbits::HIGH), count(pbits::LOW))
+    }
 }

@@ -13,7 +13,9 @@
 //!
 //! Every error names the file and the field; reading never panics, whatever the bytes.
 
-use super::exposure::{bits, pbits, Exposure, ExposureMeta, PersistenceAttrs, PersistencePlanes};
+use super::exposure::{
+    bits, pbits, Exposure, ExposureMeta, FlagStats, PersistenceAttrs, PersistencePlanes,
+};
 use super::schema::{self, Schema, View};
 use crate::error::{Error, Result};
 use crate::h5io;
@@ -101,7 +103,21 @@ pub(crate) fn read_l2(
             .unwrap_or(-1),
         software_version: text("software_version"),
         processed_utc: text("processed_utc"),
+        stats: match (
+            g("fraction_above_high").and_then(Value::as_f64),
+            g("fraction_above_low").and_then(Value::as_f64),
+            g("n_flagged").and_then(Value::as_u64),
+        ) {
+            (Some(h), Some(l), Some(n)) => Some(FlagStats {
+                fraction_above_high: h,
+                fraction_above_low: l,
+                n_flagged: n,
+            }),
+            _ => None,
+        },
     };
+    let mut errors = errors;
+    errors.extend(check_stats(attrs.stats.as_ref(), &flags));
     if errors.is_empty() {
         Ok((
             e,
@@ -281,6 +297,37 @@ pub(crate) fn check_exposure_data(
 /// The value checks of the persistence planes of an output: the predicted current
 /// finite and >= 0, no undefined `/persistence/flags` bits, and `PERSIST` in `/flags`
 /// exactly where `/persistence/flags` has `HIGH`. Errors name the field only.
+/// The per-exposure statistics of `/persistence` are those of its flag plane (exactly:
+/// the same counts, the same divisions).
+pub(crate) fn check_stats(stats: Option<&FlagStats>, pflags: &Array2<u8>) -> Vec<Error> {
+    let Some(st) = stats else {
+        return Vec::new();
+    };
+    let want = FlagStats::of_plane(pflags);
+    let mut errors = Vec::new();
+    for (field, got, recount) in [
+        (
+            "fraction_above_high",
+            st.fraction_above_high,
+            want.fraction_above_high,
+        ),
+        (
+            "fraction_above_low",
+            st.fraction_above_low,
+            want.fraction_above_low,
+        ),
+        ("n_flagged", st.n_flagged as f64, want.n_flagged as f64),
+    ] {
+        if got.to_bits() != recount.to_bits() {
+            errors.push(Error::invalid(
+                field,
+                format!("is {got}, but /persistence/flags gives {recount}"),
+            ));
+        }
+    }
+    errors
+}
+
 pub(crate) fn check_persistence_data(
     flags: &Array2<u32>,
     current_e_per_s: &Array2<f32>,

@@ -17,7 +17,9 @@
 //! floats as float64, all scalar.
 
 use super::exposure::{Exposure, PersistenceAttrs, PersistencePlanes, PRODUCT_L1, SCHEMA_VERSION};
-use super::read::{check_exposure_data, check_l1_layout, check_l2_layout, check_persistence_data};
+use super::read::{
+    check_exposure_data, check_l1_layout, check_l2_layout, check_persistence_data, check_stats,
+};
 use super::schema::combine;
 use crate::error::{Error, Result};
 use crate::h5io::{self, attr_f64, attr_i64, attr_str};
@@ -72,6 +74,7 @@ pub fn write_output(
         &planes.current_e_per_s,
         &planes.flags,
     ));
+    errors.extend(check_stats(attrs.stats.as_ref(), &planes.flags));
     data_errors(path, errors)?;
     h5io::publish(
         path,
@@ -89,6 +92,13 @@ pub fn write_output(
             attr_i64(&g, "previous_exposure_index", attrs.previous_exposure_index)?;
             attr_str(&g, "software_version", &attrs.software_version)?;
             attr_str(&g, "processed_utc", &attrs.processed_utc)?;
+            if let Some(st) = &attrs.stats {
+                attr_f64(&g, "fraction_above_high", st.fraction_above_high)?;
+                attr_f64(&g, "fraction_above_low", st.fraction_above_low)?;
+                let n = i64::try_from(st.n_flagged)
+                    .map_err(|_| Error::invalid("n_flagged", "does not fit an int64"))?;
+                attr_i64(&g, "n_flagged", n)?;
+            }
             drop(g);
             file.close()?;
             Ok(())

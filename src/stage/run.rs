@@ -114,12 +114,26 @@ pub struct RunConfig {
     pub from_checkpoint: Option<(DetectorId, u64)>,
     /// Continue from checkpoints made with another model.
     pub allow_model_change: bool,
-    /// Write a checkpoint every this many exposures (>= 1), and always when idle or
-    /// stopping.
+    /// Write a checkpoint after every exposure whose `(index + 1)` is a multiple of this
+    /// (>= 1: the cadence grid), and a tail checkpoint when a batch ends, when stopping,
+    /// and when a watch has been idle for `checkpoint_idle`.
     pub checkpoint_every: u64,
+    /// With `watch`: write a tail checkpoint once no exposure was processed for this
+    /// long (at most `checkpoint_every - 1` exposures are replayed after a crash).
+    pub checkpoint_idle: Duration,
     pub retention: Retention,
     /// Recorded as the processing time in every output of this run.
     pub processed_utc: String,
+}
+
+impl RunConfig {
+    /// The retention rule with this run's cadence (what tells a tail checkpoint).
+    pub fn retention(&self) -> Retention {
+        Retention {
+            cadence: self.checkpoint_every.max(1),
+            ..self.retention
+        }
+    }
 }
 
 /// How the stage is operated (beyond what it computes).
@@ -139,6 +153,18 @@ pub struct Ops {
     pub progress: Option<indicatif::ProgressBar>,
     /// How FITS inputs (`*.fits`) are read: keyword names, conversion factors.
     pub fits: crate::fits::FitsConfig,
+    /// Worker mode ([`super::workers`]): process this detector only; the products of
+    /// other detectors are left alone.
+    pub only: Option<OnlyDetector>,
+}
+
+/// One detector of a run split into worker processes.
+#[derive(Debug, Clone, Copy)]
+pub struct OnlyDetector {
+    pub detector: DetectorId,
+    /// This worker also refuses (and quarantines) the products whose detector cannot be
+    /// read; exactly one worker of a run does.
+    pub unattributed: bool,
 }
 
 impl Default for Ops {
@@ -150,6 +176,7 @@ impl Default for Ops {
             stop: Arc::new(AtomicBool::new(false)),
             progress: None,
             fits: Default::default(),
+            only: None,
         }
     }
 }
@@ -380,13 +407,10 @@ impl<'a> Stage<'a> {
 
     fn observe(&mut self, path: &Path, key: FileKey, now: Instant) {
         self.seen.insert(path.to_path_buf(), key);
-        let read = if crate::fits::is_fits(path) {
-            crate::fits::read_meta(path, &self.ops.fits)
-        } else {
-            product::read::read_meta(path)
-        };
-        let meta = match read {
+        let meta = match read_input_meta(path, &self.ops.fits) {
+            Ok(m) if self.ops.only.is_some_and(|o| o.detector != m.detector) => return,
             Ok(m) => m,
+            Err(_) if self.ops.only.is_some_and(|o| !o.unattributed) => return,
             Err(e) if matches!(e.kind, ErrorKind::NotReady | ErrorKind::Io) => {
                 self.not_ready(path, e);
                 return;
@@ -578,6 +602,8 @@ struct Processor<'a> {
     refused: BTreeSet<u64>,
     gap_before: bool,
     unsaved: u64,
+    /// When the last exposure was processed (what a watch's idle checkpoint waits on).
+    last_step: Option<Instant>,
     reprocess: bool,
     // Produced since the last collect:
     reports: Vec<ExposureReport>,
@@ -616,6 +642,7 @@ impl<'a> Processor<'a> {
             refused: BTreeSet::new(),
             gap_before: false,
             unsaved: 0,
+            last_step: None,
             reprocess: matches!(cfg.from_checkpoint, Some((d, _)) if d == det),
             reports: Vec::new(),
             errors: Vec::new(),
@@ -646,7 +673,7 @@ impl<'a> Processor<'a> {
                 // A crash between a checkpoint and its pruning leaves old ones behind:
                 // prune now, or a history with nothing left to process never would.
                 if let Err(e) =
-                    checkpoint::prune(&self.cfg.checkpoints, self.det, &self.cfg.retention)
+                    checkpoint::prune(&self.cfg.checkpoints, self.det, &self.cfg.retention())
                 {
                     tracing::error!(error = %e, "pruning checkpoints failed");
                     self.errors.push(e.detector(self.det));
@@ -820,7 +847,6 @@ impl<'a> Processor<'a> {
         if self.dead || !self.started {
             return;
         }
-        let every = self.cfg.checkpoint_every.max(1);
         loop {
             if self.ops.stop.load(Ordering::SeqCst) {
                 break;
@@ -867,7 +893,8 @@ impl<'a> Processor<'a> {
                     (self.on_exposure)(&report);
                     self.reports.push(report);
                     self.unsaved += 1;
-                    if self.unsaved >= every {
+                    self.last_step = Some(Instant::now());
+                    if self.cfg.retention().on_grid(next) {
                         self.save_now();
                     }
                 }
@@ -928,7 +955,10 @@ impl<'a> Processor<'a> {
                 }
             }
         }
-        if self.unsaved > 0 {
+        let idle = self
+            .last_step
+            .is_none_or(|t| t.elapsed() >= self.cfg.checkpoint_idle);
+        if self.unsaved > 0 && (final_ || idle || self.ops.stop.load(Ordering::SeqCst)) {
             self.save_now();
         }
         // Every pass ends with its checkpoints published; a failed publication is
@@ -951,7 +981,7 @@ impl<'a> Processor<'a> {
             Ok((staged, index)) => {
                 self.unsaved = 0;
                 let (dir, det, retention) =
-                    (self.cfg.checkpoints.clone(), self.det, self.cfg.retention);
+                    (self.cfg.checkpoints.clone(), self.det, self.cfg.retention());
                 self.publishing = Some(std::thread::spawn(move || {
                     if let checkpoint::Staged::Written(s) = staged {
                         s.commit().map_err(|e| e.exposure(index))?;
@@ -1101,6 +1131,7 @@ impl<'a> Processor<'a> {
                 previous_exposure_index: summary.previous_index.map_or(-1, |i| i as i64),
                 software_version: crate::VERSION.to_string(),
                 processed_utc: self.cfg.processed_utc.clone(),
+                stats: Some(product::FlagStats::of_plane(&planes.flags)),
             };
             match &fits {
                 Some(read) => crate::fits::write_output(
@@ -1151,5 +1182,18 @@ impl<'a> Processor<'a> {
             checkpoint::stage(&self.cfg.checkpoints, &meta, state)?,
             index,
         ))
+    }
+}
+
+/// The metadata of an input product: a FITS exposure (`*.fits`, read with `fits`) or a
+/// Level-1 HDF5 product.
+pub fn read_input_meta(
+    path: &Path,
+    fits: &crate::fits::FitsConfig,
+) -> Result<crate::product::ExposureMeta> {
+    if crate::fits::is_fits(path) {
+        crate::fits::read_meta(path, fits)
+    } else {
+        product::read::read_meta(path)
     }
 }

@@ -33,6 +33,8 @@ pub struct DetectorStatus {
     pub checkpoint: Option<PathBuf>,
     pub checkpoint_age_s: Option<f64>,
     pub checkpoints: usize,
+    /// Bytes of this detector's checkpoint files.
+    pub checkpoint_bytes: u64,
     pub crossed_gaps: Vec<(u64, u64)>,
     pub history_incomplete_until_utc: Option<String>,
     /// Inputs with an index after the last processed one (needs `--input`).
@@ -52,6 +54,41 @@ pub struct Status {
     /// Input products whose header cannot be read (needs `--input`).
     pub unreadable_inputs: usize,
     pub problems: Vec<String>,
+    /// The checkpoint footprint a long history would leave ([`project`]).
+    pub projection: Option<Projection>,
+}
+
+/// The checkpoint footprint of one detector after `exposures` exposures taken every
+/// `interval_s` seconds, under a retention rule, at the mean size of the checkpoints on
+/// disk.
+#[derive(Debug, Clone, Serialize)]
+pub struct Projection {
+    pub exposures: u64,
+    pub interval_s: f64,
+    pub checkpoints: usize,
+    /// Mean bytes of one checkpoint file (all detectors' files on disk).
+    pub checkpoint_bytes: u64,
+    pub total_bytes: u64,
+}
+
+/// Project the footprint of `retention` from the checkpoints `st` found (none: `None`).
+pub fn project(
+    st: &Status,
+    retention: &crate::checkpoint::Retention,
+    exposures: u64,
+    interval_s: f64,
+) -> Option<Projection> {
+    let files: usize = st.detectors.iter().map(|d| d.checkpoints).sum();
+    let bytes: u64 = st.detectors.iter().map(|d| d.checkpoint_bytes).sum();
+    let mean = bytes.checked_div(files as u64)?;
+    let n = retention.projected_count(exposures, interval_s);
+    Some(Projection {
+        exposures,
+        interval_s,
+        checkpoints: n,
+        checkpoint_bytes: mean,
+        total_bytes: mean * n as u64,
+    })
 }
 
 fn missing_ranges(from: u64, present: &[u64]) -> Vec<(u64, u64)> {
@@ -92,6 +129,11 @@ pub fn status(
             detector: d,
             last_processed: Some(index),
             checkpoints: list.len(),
+            checkpoint_bytes: list
+                .iter()
+                .filter_map(|(_, p)| std::fs::metadata(p).ok())
+                .map(|m| m.len())
+                .sum(),
             checkpoint_age_s: std::fs::metadata(&path)
                 .and_then(|m| m.modified())
                 .ok()
@@ -212,8 +254,16 @@ pub fn render(st: &Status) -> String {
     let mut out = String::new();
     let _ = writeln!(
         out,
-        "{:>3} {:>10} {:>12} {:>8} {:<20} {:<20} {:>11}",
-        "det", "last", "ckpt age", "backlog", "missing", "crossed gaps", "quarantined"
+        "{:>3} {:>10} {:>12} {:>6} {:>10} {:>8} {:<20} {:<20} {:>11}",
+        "det",
+        "last",
+        "ckpt age",
+        "ckpts",
+        "ckpt MB",
+        "backlog",
+        "missing",
+        "crossed gaps",
+        "quarantined"
     );
     let ranges = |v: &[(u64, u64)]| {
         if v.is_empty() {
@@ -234,11 +284,13 @@ pub fn render(st: &Status) -> String {
     for d in &st.detectors {
         let _ = writeln!(
             out,
-            "{:>3} {:>10} {:>12} {:>8} {:<20} {:<20} {:>11}",
+            "{:>3} {:>10} {:>12} {:>6} {:>10.1} {:>8} {:<20} {:<20} {:>11}",
             d.detector,
             d.last_processed.map_or("-".into(), |i| i.to_string()),
             d.checkpoint_age_s
                 .map_or("-".into(), |a| format!("{a:.0} s")),
+            d.checkpoints,
+            d.checkpoint_bytes as f64 / 1e6,
             d.backlog,
             ranges(&d.missing),
             ranges(&d.crossed_gaps),
@@ -269,6 +321,18 @@ pub fn render(st: &Status) -> String {
         );
     }
     let _ = writeln!(out, "outputs published: {}", st.outputs);
+    if let Some(p) = &st.projection {
+        let _ = writeln!(
+            out,
+            "projected checkpoints per detector after {} exposures every {:.0} s under this \
+             retention: {} x {:.1} MB = {:.1} GB",
+            p.exposures,
+            p.interval_s,
+            p.checkpoints,
+            p.checkpoint_bytes as f64 / 1e6,
+            p.total_bytes as f64 / 1e9
+        );
+    }
     if st.unreadable_inputs > 0 {
         let _ = writeln!(out, "unreadable inputs: {}", st.unreadable_inputs);
     }

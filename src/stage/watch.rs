@@ -123,6 +123,8 @@ pub(crate) fn watch(stage: &mut Stage<'_>, w: &WatchOpts) {
             }
         }
     }
+    // The stop may have come while waiting: one more pass writes the tail checkpoint.
+    stage.advance(Instant::now(), false);
     tracing::info!("stop requested: exposure in hand finished, checkpoints written");
     drop(watcher);
 }
