@@ -1,6 +1,6 @@
 //! Per-pixel response maps: each pixel's own persistence amplitude relative to its
 //! fluence bin, measured on a laboratory sequence, shrunk toward the bin's distribution
-//! where the pixel's own data are noisy, stored per detector ([`file`]) and applied by
+//! where the pixel's own data are noisy, stored per detector ([`mod@file`]) and applied by
 //! the stage through [`crate::model::pixel_response`] (docs/pixel_map.md).
 //!
 //! # Measurement ([`build`])
@@ -97,7 +97,7 @@ impl Default for MapConfig {
     }
 }
 
-/// A measured map of one detector (module docs; the file layout: [`file`]).
+/// A measured map of one detector (module docs; the file layout: [`mod@file`]).
 #[derive(Debug, Clone, PartialEq)]
 pub struct PixelMap {
     pub detector: u8,
