@@ -429,23 +429,7 @@ fn start_state(
         )
         .path(&path));
     }
-    if state.n_terms() != model.n_terms() {
-        return Err(Error::new(
-            ErrorKind::Checkpoint,
-            format!(
-                "holds {} terms, the model has {}",
-                state.n_terms(),
-                model.n_terms()
-            ),
-        )
-        .path(&path));
-    }
-    let book: Bookkeeping = serde_json::from_str(&meta.stage_json).map_err(|e| {
-        Error::new(ErrorKind::Checkpoint, format!("stage_json: {e}"))
-            .path(&path)
-            .field("stage_json")
-    })?;
-    Ok(Some((state, book)))
+    crate::stage::run::resume_parts(&path, state, &meta, model).map(Some)
 }
 
 fn crop_state(s: &State, r: Rect) -> State {

@@ -720,23 +720,7 @@ impl<'a> Processor<'a> {
             )
             .path(&path));
         }
-        if state.n_terms() != cfg.model.n_terms() {
-            return Err(Error::new(
-                ErrorKind::Checkpoint,
-                format!(
-                    "holds {} terms, the model has {}",
-                    state.n_terms(),
-                    cfg.model.n_terms()
-                ),
-            )
-            .path(&path));
-        }
-        let book: Bookkeeping = serde_json::from_str(&meta.stage_json).map_err(|e| {
-            Error::new(ErrorKind::Checkpoint, format!("stage_json: {e}"))
-                .path(&path)
-                .field("stage_json")
-        })?;
-        Ok(Some((state, book)))
+        resume_parts(&path, state, &meta, &cfg.model).map(Some)
     }
 
     /// Decide what to do with a newly observed product (module docs: duplicates, late).
@@ -1185,6 +1169,32 @@ impl<'a> Processor<'a> {
     }
 }
 
+/// What every resume checks once the checkpoint's model is accepted: the state holds as
+/// many terms as the model, and the stage's bookkeeping (`stage_json`) parses.
+pub(crate) fn resume_parts(
+    path: &Path,
+    state: State,
+    meta: &CheckpointMeta,
+    model: &Model,
+) -> Result<(State, Bookkeeping)> {
+    if state.n_terms() != model.n_terms() {
+        return Err(Error::new(
+            ErrorKind::Checkpoint,
+            format!(
+                "holds {} terms, the model has {}",
+                state.n_terms(),
+                model.n_terms()
+            ),
+        )
+        .path(path));
+    }
+    let book: Bookkeeping = serde_json::from_str(&meta.stage_json).map_err(|e| {
+        Error::new(ErrorKind::Checkpoint, format!("stage_json: {e}"))
+            .path(path)
+            .field("stage_json")
+    })?;
+    Ok((state, book))
+}
 /// The metadata of an input product: a FITS exposure (`*.fits`, read with `fits`) or a
 /// Level-1 HDF5 product.
 pub fn read_input_meta(
