@@ -520,13 +520,7 @@ pub fn run_tile_with(
     };
     let started_from = state.as_ref().and_then(|s| s.last_index);
     let place = opts.placement.unwrap_or_else(|| placement(model));
-    let t_cross = model
-        .exp_sum()
-        .crossing_time_s(
-            model.response().max_e(),
-            model.params().thresholds.low_e_per_s,
-        )
-        .unwrap_or(f64::INFINITY);
+    let t_cross = model.carry_over_s();
     // Fixed by the first exposure, with the state of the region it steps.
     let mut work: Option<(Geometry, State)> = None;
     let mut exposures = Vec::new();

@@ -170,6 +170,14 @@ impl Model {
     pub fn response(&self) -> &Response {
         &self.response
     }
+    /// How long the largest response takes to decay below the low threshold, s
+    /// (infinite if it never does): after a gap, how long a missing exposure could still
+    /// change a flag, so how long outputs carry "history incomplete".
+    pub fn carry_over_s(&self) -> f64 {
+        self.sum
+            .crossing_time_s(self.response.max_e(), self.params.thresholds.low_e_per_s)
+            .unwrap_or(f64::INFINITY)
+    }
     pub fn flag_bits(&self) -> FlagBits {
         self.bits
     }

@@ -1057,14 +1057,7 @@ impl<'a> Processor<'a> {
         let t_mid = meta.t_start.0 + 0.5 * meta.t_exposure_s;
         let mut until = book.history_incomplete_until_unix_s;
         if self.gap_before {
-            let t_cross = model
-                .exp_sum()
-                .crossing_time_s(
-                    model.response().max_e(),
-                    model.params().thresholds.low_e_per_s,
-                )
-                .unwrap_or(f64::INFINITY);
-            let u = meta.t_start.0 + t_cross;
+            let u = meta.t_start.0 + model.carry_over_s();
             until = Some(until.map_or(u, |x| x.max(u)));
         }
         let history_incomplete = until.is_some_and(|u| t_mid < u);
