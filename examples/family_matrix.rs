@@ -16,7 +16,9 @@
 //! right-hand quarter unlit), `--held-out` (also the forms held aside for the final
 //! proof), `--work DIR` (data, default `target/family_matrix`), `--persist PATH` (the
 //! binary; default: `persist` beside this example's directory), `--out FILE`
-//! (default `docs/validation/diagnostics_family.md`; JSON lines beside it).
+//! (default `docs/validation/diagnostics_family.md`; JSON lines beside it),
+//! `--fit-args "..."` (added to every `fit`, for comparing a non-default calibration;
+//! the page's command line records it).
 //!
 //! A row is `none` or `CLASS:FORM`, then optionally `@single` or `@campaign` (default:
 //! `single` for `none`, `campaign` otherwise) and `+dark` (with dark pixels). Blooming
@@ -126,12 +128,20 @@ struct Ctx {
     work: PathBuf,
     size: usize,
     darks: usize,
+    /// Extra arguments of every `fit` (`--fit-args`; none by default).
+    fit_args: Vec<String>,
 }
 
 /// Run a `persist` command; Ok(stdout) or Err(the last line of stderr).
 fn persist(ctx: &Ctx, args: &[&str]) -> Result<String, String> {
+    let extra: &[String] = if args.first() == Some(&"fit") {
+        &ctx.fit_args
+    } else {
+        &[]
+    };
     let out = Command::new(&ctx.persist)
         .args(args)
+        .args(extra)
         .env("PERSIST_LOG", "error")
         .output()
         .map_err(|e| format!("cannot run {}: {e}", ctx.persist.display()))?;
@@ -196,6 +206,29 @@ fn simulate(ctx: &Ctx, row: &Row, pinholes: bool, seed: u64) -> Result<PathBuf, 
 
 fn read_json(p: &Path) -> Option<serde_json::Value> {
     serde_json::from_str(&std::fs::read_to_string(p).ok()?).ok()
+}
+
+/// What `diagnose` printed to run next: the declared effect's `fit` command (for the
+/// model as given), the one that measures it, and the fit of the measurements'
+/// description it tested against (absent when it tested the model itself).
+#[derive(Debug, Default)]
+struct Suggested {
+    command: Option<String>,
+    measure_command: Option<String>,
+    reference_fit: Option<String>,
+}
+
+fn read_suggested(v: &serde_json::Value) -> Suggested {
+    let text = |x: Option<&serde_json::Value>| x.and_then(|c| c.as_str()).map(str::to_string);
+    let first = v.get("ranking").and_then(|r| r.as_array()).and_then(|r| {
+        r.iter()
+            .find(|c| c.get("significant") == Some(&true.into()))
+    });
+    Suggested {
+        command: text(first.and_then(|c| c.get("command"))),
+        measure_command: text(first.and_then(|c| c.get("measure_command"))),
+        reference_fit: text(v.get("reference").and_then(|r| r.get("fit_command"))),
+    }
 }
 
 /// Declared first, every declared effect, the candidates called untestable.
@@ -381,21 +414,51 @@ struct Run {
     seconds: f64,
 }
 
-/// The baseline's own fit and RMS (cached per baseline directory).
-fn baseline_rms(ctx: &Ctx, b: &Path, cache: &mut BTreeMap<PathBuf, Option<f64>>) -> Option<f64> {
-    if let Some(v) = cache.get(b) {
+/// The baseline's own fit and RMS (cached per baseline directory and kind): `fit`'s
+/// defaults, or with `measured` the measurements' description `diagnose` tests against
+/// (`fit --preset readout`, `persist::diag::reference`).
+fn baseline_rms(
+    ctx: &Ctx,
+    b: &Path,
+    measured: bool,
+    cache: &mut BTreeMap<(PathBuf, bool), Option<f64>>,
+) -> Option<f64> {
+    if let Some(v) = cache.get(&(b.to_path_buf(), measured)) {
         return *v;
     }
-    let m = b.with_extension("model.json");
-    let v = persist(ctx, &["fit", "--input", b.to_str()?, "--out", m.to_str()?])
+    let m = b.with_extension(if measured {
+        "measured.json"
+    } else {
+        "model.json"
+    });
+    let mut a = vec!["fit", "--input", b.to_str()?, "--out", m.to_str()?];
+    if measured {
+        a.extend(["--preset", "readout"]);
+    }
+    let v = persist(ctx, &a)
         .ok()
-        .and_then(|_| compare(ctx, b, &[&m], &b.with_extension("compare")).ok())
+        .and_then(|_| compare(ctx, b, &[&m], &m.with_extension("compare")).ok())
         .map(|v| v[0]);
-    cache.insert(b.to_path_buf(), v);
+    cache.insert((b.to_path_buf(), measured), v);
     v
 }
 
-fn one(ctx: &Ctx, row: &Row, seed: u64, cache: &mut BTreeMap<PathBuf, Option<f64>>) -> Run {
+/// Run a `persist ...` command line as `diagnose` prints it; Ok(its `--out` path).
+fn run_printed(ctx: &Ctx, line: &str) -> Result<PathBuf, String> {
+    let words: Vec<&str> = line
+        .split_whitespace()
+        .skip_while(|w| *w == "persist")
+        .collect();
+    let out = words
+        .iter()
+        .position(|w| *w == "--out")
+        .and_then(|i| words.get(i + 1))
+        .map(PathBuf::from)
+        .ok_or_else(|| format!("no --out in `{line}`"))?;
+    persist(ctx, &words).map(|_| out)
+}
+
+fn one(ctx: &Ctx, row: &Row, seed: u64, cache: &mut BTreeMap<(PathBuf, bool), Option<f64>>) -> Run {
     let t0 = Instant::now();
     let mut r = Run {
         row: row.name(),
@@ -427,6 +490,7 @@ fn one(ctx: &Ctx, row: &Row, seed: u64, cache: &mut BTreeMap<PathBuf, Option<f64
     }
     r.fit_ok = true;
     let dj = d.with_extension("diag.json");
+    let mut suggested: Suggested = Suggested::default();
     match persist(
         ctx,
         &[
@@ -446,36 +510,40 @@ fn one(ctx: &Ctx, row: &Row, seed: u64, cache: &mut BTreeMap<PathBuf, Option<f64
                 r.declared_first = first;
                 r.declared = declared;
                 r.untestable = untestable;
+                suggested = read_suggested(&v);
             }
         }
     }
-    let m2 = d.with_extension("model_with.json");
-    let mut with_ok = false;
-    if let Some(effect) = &r.declared_first {
-        match persist(
-            ctx,
-            &[
-                "fit",
-                "--input",
-                d.to_str().unwrap_or_default(),
-                "--out",
-                m2.to_str().unwrap_or_default(),
-                "--with",
-                effect,
-            ],
-        ) {
-            Ok(_) => with_ok = true,
+    // step 4: the commands `diagnose` printed for the declared effect
+    let mut m2 = None;
+    if let Some(cmd) = &suggested.command {
+        match run_printed(ctx, cmd) {
+            Ok(p) => m2 = Some(p),
             Err(e) => r.fit_with_error = Some(e),
         }
     }
-    let models: Vec<&Path> = if with_ok { vec![&m, &m2] } else { vec![&m] };
+    let with_ok = m2.is_some();
+    // step 5: the error, of the measurements' description when `diagnose` tested
+    // against one, else of the model
+    let measured = suggested.reference_fit.is_some();
+    let described = match (&suggested.reference_fit, &suggested.measure_command) {
+        (Some(f), Some(mc)) => run_printed(ctx, f)
+            .ok()
+            .map(|a| (a, run_printed(ctx, mc).ok())),
+        (Some(f), None) => run_printed(ctx, f).ok().map(|a| (a, None)),
+        _ => None,
+    };
+    let models: Vec<&Path> = match &described {
+        Some((a, b)) => std::iter::once(a.as_path()).chain(b.as_deref()).collect(),
+        None => std::iter::once(m.as_path()).chain(m2.as_deref()).collect(),
+    };
     if let Ok(v) = compare(ctx, &d, &models, &d.with_extension("compare")) {
         r.rms_before = v.first().copied();
         r.rms_after = v.get(1).copied();
     }
     if row.hidden.is_some() {
         if let Ok(b) = simulate(ctx, &row.baseline(), pin, seed) {
-            r.rms_baseline = baseline_rms(ctx, &b, cache);
+            r.rms_baseline = baseline_rms(ctx, &b, measured, cache);
             if let (Some(x), Some(b0)) = (r.rms_before, r.rms_baseline) {
                 r.excess_before = Some(x - b0);
                 if let Some(y) = r.rms_after {
@@ -493,8 +561,8 @@ fn one(ctx: &Ctx, row: &Row, seed: u64, cache: &mut BTreeMap<PathBuf, Option<f64
                 }
                 r.touched_pixels = Some(touched.iter().filter(|t| **t).count());
                 r.missed_before = run_missed(ctx, &d, &m, "before", &td, &touched).ok();
-                if with_ok {
-                    r.missed_after = run_missed(ctx, &d, &m2, "after", &td, &touched).ok();
+                if let Some(m2) = m2.as_deref().filter(|_| with_ok) {
+                    r.missed_after = run_missed(ctx, &d, m2, "after", &td, &touched).ok();
                 }
             }
         }
@@ -573,6 +641,9 @@ fn main() {
         work: PathBuf::from(arg(&args, "--work").unwrap_or("target/family_matrix".into())),
         size,
         darks,
+        fit_args: arg(&args, "--fit-args")
+            .map(|s| s.split_whitespace().map(String::from).collect())
+            .unwrap_or_default(),
     };
     std::fs::create_dir_all(&ctx.work).expect("work directory");
     let mut cache = BTreeMap::new();

@@ -767,6 +767,14 @@ pub struct DiagnoseArgs {
     /// matrix of docs/diagnose_matrix.md measured).
     #[arg(long, default_value_t = persist::diag::diagnose::Decide::default(), value_parser = parse_flag::<persist::diag::diagnose::Decide>)]
     pub decide: persist::diag::diagnose::Decide,
+    /// What the effects are tested against: `auto` (a model calibrated for flagging,
+    /// knots off the measured level as the paper's 1.2 margin puts them, is replaced by
+    /// a description of the measurements fitted from the input: `persist fit --preset
+    /// readout` with the model's own effects; a model at the measured level is used as
+    /// it is), `model` (the model file as given) or `measured` (always the description;
+    /// `persist::diag::reference`).
+    #[arg(long, default_value_t = persist::diag::reference::Reference::default(), value_parser = parse_flag::<persist::diag::reference::Reference>)]
+    pub reference: persist::diag::reference::Reference,
 }
 
 #[derive(Subcommand, Debug)]
@@ -1454,7 +1462,8 @@ fn diagnose(a: &DiagnoseArgs) -> persist::Result<ExitCode> {
         joint: a.joint,
         decide: a.decide,
     };
-    let s = persist::diag::diagnose::run(&a.input, &a.model, a.json.as_deref(), &cfg)?;
+    let s =
+        persist::diag::reference::run(&a.input, &a.model, a.json.as_deref(), &cfg, a.reference)?;
     out!("{s}");
     Ok(ExitCode::SUCCESS)
 }

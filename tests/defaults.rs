@@ -56,6 +56,20 @@ fn fit_compare_and_diagnose_default_to_illumination_paired_full() {
     assert_eq!(dj["residual_cells"], "illumination");
     assert_eq!(dj["cell_statistic"], "paired");
     assert_eq!(dj["refit"], "full");
+    // `fit`'s default model flags with the paper's margin: the effects are tested
+    // against the measurements' description fitted from the input, and the output
+    // says so and how to write that description
+    assert_eq!(dj["reference"]["kind"], "measured", "{text}");
+    assert!(text.starts_with("tested against: the measurements' description"));
+    assert!(dj["reference"]["fit_command"]
+        .as_str()
+        .is_some_and(|c| c.contains("--preset readout") && c.contains("m.measured.json")));
+    assert!(
+        dj["reference"]["effects"].as_array().is_some_and(|e| e
+            .iter()
+            .any(|e| e.as_str().unwrap().starts_with("refill:beta="))),
+        "{dj}"
+    );
 
     // the pooled cells and the levels statistic are there when asked for, and recorded
     let cmp_old = path("cmp_old");

@@ -699,7 +699,7 @@ fn diagnose<'py>(
     joint: bool,
     json: Option<PathBuf>,
 ) -> PyResult<Bound<'py, PyAny>> {
-    use persist::diag::diagnose::{self as dg, Config};
+    use persist::diag::diagnose::Config;
     let defaults = Config::default();
     let cfg = Config {
         pixels: pixels.unwrap_or(defaults.pixels),
@@ -720,7 +720,14 @@ fn diagnose<'py>(
         .detach(|| -> persist::Result<String> {
             let seq = persist::diag::data::Sequence::load_with(&input, cfg.background)?;
             let params = persist::model_file::load(&model)?;
-            let d = dg::diagnose(&params, &seq, &cfg, &input, &model)?;
+            let d = persist::diag::reference::diagnose_with(
+                &params,
+                &seq,
+                &cfg,
+                persist::diag::reference::Reference::default(),
+                &input,
+                &model,
+            )?;
             let text = serde_json::to_string_pretty(&d)
                 .map_err(|e| persist::Error::new(persist::ErrorKind::Io, e.to_string()))?;
             if let Some(p) = &json {

@@ -897,22 +897,21 @@ pub fn level_fitted_to_campaign(params: &ModelParams) -> bool {
     )
 }
 
-/// `persist fit`: calibrate, fit the `--with` effects (and what `free` frees: the `C_n`
-/// or the knots' level, [`effects`] module docs), write the model and the report.
-pub fn run(
-    input: &std::path::Path,
+/// What `persist fit` computes before it writes anything: the calibration of `seq`
+/// with `cfg`, then the `with` effects (and what `free` frees) fitted on it. Returns
+/// the model, the calibration report and the effects' fit (`None` when nothing was
+/// fitted beyond the calibration).
+pub fn fit_params(
+    seq: &Sequence,
     cfg: &CalibConfig,
     with: &[String],
     free: effects::Free,
-    out: &std::path::Path,
-    report_path: &std::path::Path,
-) -> Result<String> {
-    let seq = Sequence::load_with(input, cfg.background)?;
-    let (mut params, cal) = calibrate(&seq, cfg).map_err(|e| e.path(input))?;
-    let samples = cfg.samples(&seq);
+) -> Result<(ModelParams, CalibReport, Option<effects::EffectFit>)> {
+    let (mut params, cal) = calibrate(seq, cfg)?;
+    let samples = cfg.samples(seq);
     let mut ef = None;
     if !with.is_empty() || free != effects::Free::default() {
-        let (p, f) = effects::fit_with(&params, with, free, &seq, &samples)?;
+        let (p, f) = effects::fit_with(&params, with, free, seq, &samples)?;
         params = p;
         if let Some(c) = params.calibration.as_mut() {
             c.fit_cn = free.c_n;
@@ -942,6 +941,22 @@ pub fn run(
         }
         ef = Some(f);
     }
+    Ok((params, cal, ef))
+}
+
+/// `persist fit`: calibrate, fit the `--with` effects (and what `free` frees: the `C_n`
+/// or the knots' level, [`effects`] module docs), write the model and the report.
+pub fn run(
+    input: &std::path::Path,
+    cfg: &CalibConfig,
+    with: &[String],
+    free: effects::Free,
+    out: &std::path::Path,
+    report_path: &std::path::Path,
+) -> Result<String> {
+    let seq = Sequence::load_with(input, cfg.background)?;
+    let (params, cal, ef) = fit_params(&seq, cfg, with, free).map_err(|e| e.path(input))?;
+    let samples = cfg.samples(&seq);
     let pr = crate::measure::eval::predict(&params, &seq, &samples, false)?;
     let cells = crate::measure::spread::model_cell_z(&params, &samples, &pr.current);
     let rep = FitReport {

@@ -424,7 +424,7 @@ fn fit_candidate(
 /// are not `fit`'s defaults, and the residual cells of this diagnosis when they are not
 /// the defaults. A model without that record (written by hand, or by `fit` before
 /// 2026-11-24) gets `fit`'s defaults.
-fn fit_command(
+pub(super) fn fit_command(
     input: &Path,
     model_path: &Path,
     params: &ModelParams,
@@ -435,7 +435,11 @@ fn fit_command(
         "persist fit --input {} --out {}+{}.json",
         input.display(),
         model_path.with_extension("").display(),
-        names.join("+")
+        names
+            .iter()
+            .map(|n| n.split(':').next().unwrap_or(n))
+            .collect::<Vec<_>>()
+            .join("+")
     );
     let preset = params.calibration.as_ref().and_then(preset_of);
     if let Some(p) = preset {
@@ -619,6 +623,11 @@ pub struct Candidate {
     /// fit that measures its parameters instead (`measure_command`).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub measure_command: Option<String>,
+    /// The candidate at the values its refit measured, as `persist fit --with` takes it
+    /// with every fitted parameter held (`NAME:param=value,...`); `None` when it was
+    /// not refitted.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub measured_with: Option<String>,
 }
 
 /// A pair of library effects refitted together (module docs, "Joint check").
@@ -1381,6 +1390,7 @@ pub fn diagnose(
                 covariate: def.covariate.into(),
                 command: fit_command(input, model_path, params, &[name], cfg),
                 measure_command: measure_command(input, model_path, params, &[name], cfg),
+                measured_with: None,
             }
         })
         .collect();
@@ -1440,6 +1450,7 @@ pub fn diagnose(
                 rms_after: f.residual_rms_normalised_after,
                 held_out: ho,
                 rss_after: rss1,
+                measured_with: held_with_arg(&fitted, name),
             })
         })
         .collect::<Result<_>>()?;
@@ -1456,6 +1467,7 @@ pub fn diagnose(
         c.refused_no_field = gates && !position_supported(&c.covariate, spatial.as_ref());
         c.significant = gates && !c.refused_no_field;
         c.held_out = r.held_out;
+        c.measured_with = r.measured_with;
     }
     // no candidate alone (and asked): the leader refitted with each other library effect
     let joint = match leader {
@@ -1651,6 +1663,38 @@ struct Refitted {
     /// Its sum of squared normalised residuals after the fit (the joint check's
     /// baseline for the leader).
     rss_after: f64,
+    /// [`Candidate::measured_with`].
+    measured_with: Option<String>,
+}
+
+/// The `--with` argument that adds effect `name` of `fitted` with every fitted
+/// parameter held at its value (four significant digits).
+pub(super) fn held_with_arg(fitted: &ModelParams, name: &str) -> Option<String> {
+    let e = fitted.effects.iter().find(|e| e.name == name)?;
+    let def = crate::model::effects::lookup(name)?;
+    let held: Vec<String> = def
+        .params
+        .iter()
+        .filter(|p| p.fitted)
+        .filter_map(|p| {
+            let v = e.params.get(p.name)?.as_f64()?;
+            Some(format!("{}={}", p.name, significant(v, 4)))
+        })
+        .collect();
+    Some(if held.is_empty() {
+        name.to_string()
+    } else {
+        format!("{name}:{}", held.join(","))
+    })
+}
+
+/// `v` rounded to `digits` significant digits.
+fn significant(v: f64, digits: i32) -> f64 {
+    if v == 0.0 || !v.is_finite() {
+        return v;
+    }
+    let scale = 10f64.powi(digits - 1 - v.abs().log10().floor() as i32);
+    (v * scale).round() / scale
 }
 
 /// What the joint check shares with the single refits.
@@ -1752,19 +1796,6 @@ fn cautions(params: &ModelParams) -> Vec<String> {
         );
     }
     c
-}
-
-/// `persist diagnose`.
-pub fn run(input: &Path, model: &Path, json: Option<&Path>, cfg: &Config) -> Result<String> {
-    let seq = Sequence::load_with(input, cfg.background)?;
-    let params = crate::model_file::load(model)?;
-    let d = diagnose(&params, &seq, cfg, input, model)?;
-    if let Some(p) = json {
-        let text = serde_json::to_string_pretty(&d)
-            .map_err(|e| Error::new(ErrorKind::Io, e.to_string()))?;
-        crate::calib::write_text(p, &(text + "\n"))?;
-    }
-    Ok(render(&d))
 }
 
 /// The printed ranking.

@@ -1,5 +1,6 @@
 //! Comparing the model with measurements: residuals by covariate and flag quality
-//! ([`compare`]), the search for missing effects ([`diagnose`]: what the data can test
+//! ([`compare`]), the search for missing effects ([`diagnose`], against the model or a description
+//! of the measurements fitted from the input, [`reference`]: what the data can test
 //! and what a flexible base's residual depends on, [`contrast`] and [`base`]), the
 //! spatial check ([`spatial`]) and the HTML report ([`report`]). The measurements
 //! themselves ([`data`], [`eval`], [`spread`]) live in [`crate::measure`], which the
@@ -11,5 +12,6 @@ pub mod base;
 pub mod compare;
 pub mod contrast;
 pub mod diagnose;
+pub mod reference;
 pub mod report;
 pub mod spatial;
