@@ -231,6 +231,37 @@ fn read_suggested(v: &serde_json::Value) -> Suggested {
     }
 }
 
+/// The contrast class a hidden class's evidence lies in
+/// (`persist::diag::contrast::class_of` of the library effect of that name); `None` for
+/// a class no library effect stands for (`shape`).
+fn kind_of_class(class: &str) -> Option<&'static str> {
+    persist::model::effects::lookup(class)
+        .map(|def| persist::diag::contrast::class_of(def.name, def.covariate))
+}
+
+/// The kind of physics the verdict names: the first significant candidate's contrast
+/// class, else the first covariate the base's residual depends on (`dependences[]`
+/// with `depends`: the verdict then says the physics is of that kind in another form).
+fn read_kind(v: &serde_json::Value) -> Option<String> {
+    let declared = v
+        .get("ranking")?
+        .as_array()?
+        .iter()
+        .find(|c| c.get("significant") == Some(&true.into()))
+        .and_then(|c| {
+            let e = c.get("effect")?.as_str()?;
+            let cov = c.get("covariate")?.as_str()?;
+            Some(persist::diag::contrast::class_of(e, cov).to_string())
+        });
+    declared.or_else(|| {
+        v.get("dependences")?
+            .as_array()?
+            .iter()
+            .find(|d| d.get("depends") == Some(&true.into()))
+            .and_then(|d| d.get("class")?.as_str().map(str::to_string))
+    })
+}
+
 /// Declared first, every declared effect, the candidates called untestable.
 fn read_diagnosis(v: &serde_json::Value) -> (Option<String>, Vec<String>, Vec<String>) {
     let name = |c: &serde_json::Value| {
@@ -399,6 +430,9 @@ struct Run {
     fit_error: Option<String>,
     diagnose_error: Option<String>,
     declared_first: Option<String>,
+    /// The kind of physics the verdict names: the declared effect's contrast class, or
+    /// else the covariate the base's residual depends on ([`read_kind`]).
+    kind_named: Option<String>,
     declared: Vec<String>,
     untestable: Vec<String>,
     fit_with_error: Option<String>,
@@ -511,6 +545,7 @@ fn one(ctx: &Ctx, row: &Row, seed: u64, cache: &mut BTreeMap<(PathBuf, bool), Op
                 r.declared = declared;
                 r.untestable = untestable;
                 suggested = read_suggested(&v);
+                r.kind_named = read_kind(&v);
             }
         }
     }
@@ -657,10 +692,11 @@ fn main() {
         for seed in first..first + seeds {
             let r = one(&ctx, row, seed, &mut cache);
             eprintln!(
-                "{} seed {seed}: fit {} | first {:?} | untestable {:?} | excess {} -> {} | missed {} -> {} | {:.0} s{}",
+                "{} seed {seed}: fit {} | first {:?} | kind {:?} | untestable {:?} | excess {} -> {} | missed {} -> {} | {:.0} s{}",
                 r.row,
                 if r.fit_ok { "ok" } else { "FAILED" },
                 r.declared_first,
+                r.kind_named,
                 r.untestable,
                 f3(r.excess_before),
                 f3(r.excess_after),
@@ -743,13 +779,13 @@ fn write_table(
     .unwrap();
     writeln!(
         md,
-        "Data: `persist simulate family` ({size} x {size}, seeds {first}..{}, see `persist::trapgen` for the physics and the forms). Every run uses the default commands only (`examples/family_matrix.rs` docs): `fit`, `diagnose`, then `fit --with` the effect declared first. Excess RMS: the normalised residual RMS (`compare`) minus the baseline's (same seed, nothing hidden, its own fit). Missed: the fraction of samples of touched pixels with a true persistence current of at least 0.1 e-/s that `persist run` did not flag.\n",
+        "Data: `persist simulate family` ({size} x {size}, seeds {first}..{}, see `persist::trapgen` for the physics and the forms). Every run uses the default commands only (`examples/family_matrix.rs` docs): `fit`, `diagnose`, then the `fit` commands `diagnose` prints for the effect declared first. Kind named: the declared effect's contrast class, or else the covariate the verdict says the residual depends on (\"of this kind in another form\"). Excess RMS: the normalised residual RMS (`compare`) minus the baseline's (same seed, nothing hidden, its own fit), of the measurements' description `diagnose` tested against when it fitted one. Missed: the fraction of samples of touched pixels with a true persistence current of at least 0.1 e-/s that `persist run` did not flag.\n",
         first + seeds - 1
     )
     .unwrap();
     writeln!(
         md,
-        "| row | runs | fit ok | diagnose ran | class named first | declared first (each run) | untestable answers | excess RMS before -> after (median) | halved | missed@0.1 touched before -> after (median) |\n|---|---|---|---|---|---|---|---|---|---|"
+        "| row | runs | fit ok | diagnose ran | class named first | kind named first | kind (each run) | declared first (each run) | untestable answers | excess RMS before -> after (median) | halved | missed@0.1 touched before -> after (median) |\n|---|---|---|---|---|---|---|---|---|---|---|---|"
     )
     .unwrap();
     for row in rows {
@@ -763,6 +799,18 @@ fn write_table(
                 None => r.declared_first.is_none() && r.fit_ok && r.diagnose_error.is_none(),
             })
             .count();
+        let kind = class.map(kind_of_class);
+        let kind_named = rs
+            .iter()
+            .filter(|r| match kind {
+                Some(k) => k.is_some() && r.kind_named.as_deref() == k,
+                None => r.kind_named.is_none() && r.fit_ok && r.diagnose_error.is_none(),
+            })
+            .count();
+        let kinds: Vec<String> = rs
+            .iter()
+            .map(|r| r.kind_named.clone().unwrap_or("nothing".into()))
+            .collect();
         let firsts: Vec<String> = rs
             .iter()
             .map(|r| {
@@ -794,7 +842,7 @@ fn write_table(
         let halved_of = rs.iter().filter(|r| r.halved.is_some()).count();
         writeln!(
             md,
-            "| {} | {n} | {} | {} | {} | {} | {} | {} -> {} | {} | {} -> {} |",
+            "| {} | {n} | {} | {} | {} | {} | {} | {} | {} | {} -> {} | {} | {} -> {} |",
             row.name(),
             rs.iter().filter(|r| r.fit_ok).count(),
             rs.iter()
@@ -804,6 +852,12 @@ fn write_table(
                 Some(c) => format!("{c}: {named} of {n}"),
                 None => format!("nothing declared: {named} of {n}"),
             },
+            match kind {
+                Some(Some(k)) => format!("{k}: {kind_named} of {n}"),
+                Some(None) => "- (no library class)".into(),
+                None => format!("nothing named: {kind_named} of {n}"),
+            },
+            kinds.join(", "),
             firsts.join(", "),
             if unt.is_empty() {
                 "-".into()
