@@ -7,6 +7,8 @@ output on the same data:
 - bit 17 of FLAGS equals the high-threshold plane (bit 0 of /persistence/flags), and
   every other FLAGS bit is the input's;
 - PERSIST_CURRENT equals /persistence/current to float32 precision;
+- the conversion (ESCONV, ESCONVSR, IMGUNIT) and the exposure index (EXPINDEX, IDXSRC:
+  the start time, as SPHEREx's files carry no sequence number) are recorded;
 - every extension other than FLAGS is byte-identical (header and data bytes) to the
   input's, and the FLAGS header keeps every input card (MP_PERSIST added if missing;
   CHECKSUM and DATASUM, when the input had them, updated and verified);
@@ -85,7 +87,15 @@ for out_path in outputs:
     max_rel = max(max_rel, float(rel.max()))
     n_high += int(high.sum())
     assert hout["PERSIST_CURRENT"].header["BUNIT"] == "e-/s"
-    assert "ESCONV" in hout["PERSIST_CURRENT"].header
+    # The conversion used and the exposure order are recorded: the input's ESCONV (no
+    # argument in this run), the start time in ms since 1970 UTC as the index.
+    hcur = hout["PERSIST_CURRENT"].header
+    assert hcur["ESCONV"] == hin["IMAGE"].header["ESCONV"], (name, hcur["ESCONV"])
+    assert hcur["ESCONVSR"] == "header ESCONV", (name, hcur["ESCONVSR"])
+    assert hcur["IMGUNIT"] == hin["IMAGE"].header["BUNIT"]
+    assert "EXPINDEX" not in hin["IMAGE"].header, f"{name}: SPHEREx files have no EXPINDEX"
+    assert hcur["IDXSRC"] == "DATE-OBS: ms since 1970 UTC", (name, hcur["IDXSRC"])
+    assert hcur["EXPINDEX"] == hout["PERSIST_FLAGS"].header["EXPINDEX"]
     assert hout["FLAGS"].header["MP_PERSIST"] == 17
     n_mp_added += "MP_PERSIST" not in hin["FLAGS"].header
     if "CHECKSUM" in hin["FLAGS"].header:
