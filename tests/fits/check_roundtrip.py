@@ -13,18 +13,24 @@ output on the same data:
   input's, and the FLAGS header keeps every input card (MP_PERSIST added if missing;
   CHECKSUM and DATASUM, when the input had them, updated and verified);
 - astropy opens every FITS file (inputs, outputs, exports) with warnings as errors and
-  verify('exception'); h5py opens every HDF5 file under H5_DIR... and reads every dataset.
+  verify('exception') (and writes it back to memory with output_verify='exception');
+  h5py opens every HDF5 file under H5_DIR... and reads every dataset, with
+  HDF5_PLUGIN_PATH an empty directory and only HDF5's built-in filters.
 Prints one JSON line of counts; exits non-zero on the first failure.
 """
 import glob
+import io
 import json
 import os
 import sys
+import tempfile
 import warnings
 
-import h5py
-import numpy as np
-from astropy.io import fits
+# No HDF5 filter plugin can be found: every file must open with HDF5's own filters.
+os.environ["HDF5_PLUGIN_PATH"] = tempfile.mkdtemp()
+import h5py  # noqa: E402
+import numpy as np  # noqa: E402
+from astropy.io import fits  # noqa: E402
 
 warnings.simplefilter("error")
 fits_in, fits_out, h5_out, exported = sys.argv[1:5]
@@ -37,6 +43,7 @@ def strict_open(path):
     hdul.verify("exception")
     for hdu in hdul:
         _ = hdu.data  # decode every extension (a bad one raises here)
+    hdul.writeto(io.BytesIO(), output_verify="exception")  # as astropy would write it
     return hdul
 
 
@@ -122,11 +129,22 @@ for d in (fits_in, fits_out, exported):
     for p in sorted(glob.glob(os.path.join(d, "*.fits"))):
         strict_open(p).close()
         n_fits += 1
+# HDF5's built-in filters (H5Z): anything else would need a plugin.
+BUILTIN_FILTERS = {"gzip", "shuffle", "fletcher32", "scaleoffset", "szip"}
+
+
+def read_dataset(name, obj):
+    if isinstance(obj, h5py.Dataset):
+        extra = set(obj._filters) - BUILTIN_FILTERS
+        assert not extra, f"{name}: filters {extra} need a plugin"
+        obj[...]
+
+
 n_h5 = 0
 for d in h5_dirs:
     for p in sorted(glob.glob(os.path.join(d, "**", "*.h5"), recursive=True)):
         with h5py.File(p, "r") as f:
-            f.visititems(lambda _n, o: o[...] if isinstance(o, h5py.Dataset) else None)
+            f.visititems(read_dataset)
         n_h5 += 1
 print(json.dumps({
     "outputs": len(outputs),
