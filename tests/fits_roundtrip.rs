@@ -407,6 +407,47 @@ fn spherex_files_are_ordered_by_start_time_and_the_order_and_conversion_recorded
     assert!(reason(&b, "bad_tcb.fits").contains("IMAGE/TIMESYS"));
     assert!(reason(&b, "zz_mixed.fits").contains("not mixed"));
 
+    // Another mission's keywords through a mapping file: the start in `DATE-BEG`, no
+    // `MJD-OBS`; the same order and indices, the source named.
+    let c = t.join("c");
+    std::fs::create_dir(&c).unwrap();
+    for p in &fits {
+        let to = c.join(p.file_name().unwrap());
+        std::fs::copy(p, &to).unwrap();
+        let mut f = fitsio::FitsFile::edit(&to).unwrap();
+        f.hdu("IMAGE").unwrap();
+        // SAFETY: the open file's pointer and two NUL-terminated names, for this call.
+        cfitsio(|st| unsafe {
+            fitsio::sys::ffmnam(f.as_raw(), c"DATE-OBS".as_ptr(), c"DATE-BEG".as_ptr(), st)
+        });
+        drop(f);
+        delete_key(&to, "IMAGE", "MJD-OBS");
+    }
+    let mapping = t.join("keywords.json");
+    std::fs::write(&mapping, r#"{"date_obs": "DATE-BEG", "mjd_obs": "MJD-BEG"}"#).unwrap();
+    let (code, err) = run_batch(&c, &t.join("runc"), &[]);
+    assert_ne!(code, 0, "without the mapping the start is missing: {err}");
+    assert!(reason(&c, "d1_e000000.fits").contains("IMAGE/MJD-OBS"));
+    for p in &fits {
+        let name = p.file_name().unwrap();
+        std::fs::rename(c.join(".quarantine").join(name), c.join(name)).unwrap();
+    }
+    let m = s(&mapping);
+    let (code, err) = run_batch(&c, &t.join("runc2"), &["--fits-keywords", &m]);
+    assert_eq!(code, 0, "{err}");
+    for out in &out_a {
+        let oc = t.join("runc2/out").join(out.file_name().unwrap());
+        assert_eq!(
+            plane_f32(&oc, "PERSIST_CURRENT"),
+            plane_f32(out, "PERSIST_CURRENT")
+        );
+        assert_eq!(
+            key_i64(&oc, "PERSIST_FLAGS", "EXPINDEX"),
+            key_i64(out, "PERSIST_FLAGS", "EXPINDEX")
+        );
+        assert_eq!(key_str(&oc, "PERSIST_FLAGS", "IDXSRC"), "DATE-BEG: ms since 1970 UTC");
+    }
+
     // A file that starts between exposures 1 and 2, arriving after they were processed:
     // late, refused; the rerun leaves the outputs as they were.
     let before: Vec<Vec<u8>> = out_a.iter().map(|p| std::fs::read(p).unwrap()).collect();

@@ -197,7 +197,8 @@ impl<'a> Headers<'a> {
                 k.date_obs.clone(),
             ),
             None => {
-                let mjd: f64 = self.required(&k.mjd_obs, "start time (or DATE-OBS)")?;
+                let what = format!("start time (or {})", k.date_obs);
+                let mjd: f64 = self.required(&k.mjd_obs, &what)?;
                 if !mjd.is_finite() {
                     return Err(
                         Error::invalid(self.field(&k.mjd_obs), "not finite").path(self.path)
