@@ -424,7 +424,11 @@ fn spherex_files_are_ordered_by_start_time_and_the_order_and_conversion_recorded
         delete_key(&to, "IMAGE", "MJD-OBS");
     }
     let mapping = t.join("keywords.json");
-    std::fs::write(&mapping, r#"{"date_obs": "DATE-BEG", "mjd_obs": "MJD-BEG"}"#).unwrap();
+    std::fs::write(
+        &mapping,
+        r#"{"date_obs": "DATE-BEG", "mjd_obs": "MJD-BEG"}"#,
+    )
+    .unwrap();
     let (code, err) = run_batch(&c, &t.join("runc"), &[]);
     assert_ne!(code, 0, "without the mapping the start is missing: {err}");
     assert!(reason(&c, "d1_e000000.fits").contains("IMAGE/MJD-OBS"));
@@ -445,7 +449,10 @@ fn spherex_files_are_ordered_by_start_time_and_the_order_and_conversion_recorded
             key_i64(&oc, "PERSIST_FLAGS", "EXPINDEX"),
             key_i64(out, "PERSIST_FLAGS", "EXPINDEX")
         );
-        assert_eq!(key_str(&oc, "PERSIST_FLAGS", "IDXSRC"), "DATE-BEG: ms since 1970 UTC");
+        assert_eq!(
+            key_str(&oc, "PERSIST_FLAGS", "IDXSRC"),
+            "DATE-BEG: ms since 1970 UTC"
+        );
     }
 
     // A file that starts between exposures 1 and 2, arriving after they were processed:

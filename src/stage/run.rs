@@ -245,9 +245,16 @@ pub struct Bookkeeping {
     pub digests: BTreeMap<u64, String>,
     /// Whether this history's exposure indices are start times (FITS exposures without
     /// a sequence number) rather than sequence numbers; set by the first product
-    /// offered. The two are never mixed in one history.
-    #[serde(default)]
+    /// offered. The two are never mixed in one history. Written only when true, so
+    /// that sequence-number checkpoints are as before (and as `persist tile` writes
+    /// them); a resumed history without it that has processed anything is one of
+    /// sequence numbers.
+    #[serde(default, skip_serializing_if = "is_not_true")]
     pub by_start_time: Option<bool>,
+}
+
+fn is_not_true(v: &Option<bool>) -> bool {
+    *v != Some(true)
 }
 
 impl Bookkeeping {
@@ -763,29 +770,29 @@ impl<'a> Processor<'a> {
                 .detector(self.det)
                 .exposure(index)
         };
-        match self.book.by_start_time {
-            None => self.book.by_start_time = Some(by_start_time),
-            Some(b) if b != by_start_time => {
-                let (this, history) = if by_start_time {
-                    (
-                        "has no sequence number (ordered by its start time)",
-                        "sequence numbers",
-                    )
-                } else {
-                    (
-                        "has a sequence number",
-                        "start times (FITS without a sequence number)",
-                    )
-                };
-                return Offer::Refused(err(
-                    ErrorKind::Sequence,
-                    format!(
-                        "this product {this}, but detector {}'s history is ordered by {history}: the two are not mixed",
-                        self.det
-                    ),
-                ));
-            }
-            Some(_) => {}
+        let resumed = self.last().is_some();
+        let history = self.book.by_start_time.unwrap_or(!resumed && by_start_time);
+        self.book.by_start_time = Some(history);
+        if history != by_start_time {
+            let (this, history) = if by_start_time {
+                (
+                    "has no sequence number (ordered by its start time)",
+                    "sequence numbers",
+                )
+            } else {
+                (
+                    "has a sequence number",
+                    "start times (FITS without a sequence number)",
+                )
+            };
+            let det = self.det;
+            return Offer::Refused(err(
+                ErrorKind::Sequence,
+                format!(
+                    "this product {this}, but detector {det}'s history is ordered by \
+                     {history}: the two are not mixed"
+                ),
+            ));
         }
         if let Some(last) = self.last().filter(|&l| index <= l) {
             if let Some(d) = self.book.digests.get(&index) {
