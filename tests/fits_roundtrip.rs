@@ -313,6 +313,24 @@ fn date_obs_s(path: &Path) -> f64 {
         .0
 }
 
+/// Two FITS outputs with the same persistence planes and exposure index.
+fn assert_same_persistence(a: &Path, b: &Path) {
+    let what = format!("{} vs {}", a.display(), b.display());
+    assert_eq!(
+        plane_f32(a, "PERSIST_CURRENT"),
+        plane_f32(b, "PERSIST_CURRENT"),
+        "{what}"
+    );
+    assert_eq!(plane_i32(a, "PERSIST_FLAGS"), plane_i32(b, "PERSIST_FLAGS"));
+    for ext in ["PERSIST_CURRENT", "PERSIST_FLAGS"] {
+        assert_eq!(
+            key_i64(a, ext, "EXPINDEX"),
+            key_i64(b, ext, "EXPINDEX"),
+            "{what}"
+        );
+    }
+}
+
 #[test]
 fn spherex_files_are_ordered_by_start_time_and_the_order_and_conversion_recorded() {
     let tmp = tempfile::tempdir().unwrap();
@@ -384,19 +402,7 @@ fn spherex_files_are_ordered_by_start_time_and_the_order_and_conversion_recorded
     // B: in time order despite the names and the time scale, so the same planes.
     for (k, out) in out_a.iter().enumerate() {
         let ob = t.join("runb/out").join(renamed[k].file_name().unwrap());
-        assert_eq!(
-            plane_f32(&ob, "PERSIST_CURRENT"),
-            plane_f32(out, "PERSIST_CURRENT"),
-            "exposure {k}"
-        );
-        assert_eq!(
-            plane_i32(&ob, "PERSIST_FLAGS"),
-            plane_i32(out, "PERSIST_FLAGS")
-        );
-        assert_eq!(
-            key_i64(&ob, "PERSIST_CURRENT", "EXPINDEX"),
-            key_i64(out, "PERSIST_CURRENT", "EXPINDEX")
-        );
+        assert_same_persistence(&ob, out);
         assert_eq!(key_str(&ob, "PERSIST_CURRENT", "ESCONVSR"), "unit BUNIT");
     }
     let reason = |dir: &Path, name: &str| {
@@ -441,14 +447,7 @@ fn spherex_files_are_ordered_by_start_time_and_the_order_and_conversion_recorded
     assert_eq!(code, 0, "{err}");
     for out in &out_a {
         let oc = t.join("runc2/out").join(out.file_name().unwrap());
-        assert_eq!(
-            plane_f32(&oc, "PERSIST_CURRENT"),
-            plane_f32(out, "PERSIST_CURRENT")
-        );
-        assert_eq!(
-            key_i64(&oc, "PERSIST_FLAGS", "EXPINDEX"),
-            key_i64(out, "PERSIST_FLAGS", "EXPINDEX")
-        );
+        assert_same_persistence(&oc, out);
         assert_eq!(
             key_str(&oc, "PERSIST_FLAGS", "IDXSRC"),
             "DATE-BEG: ms since 1970 UTC"
