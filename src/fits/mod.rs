@@ -185,7 +185,7 @@ pub enum Sequence {
     /// since 1970-01-01T00:00:00 UTC ([`index_of_start`]), so that a detector's
     /// exposures are processed in start-time order. Consecutive exposures then have
     /// non-consecutive indices: the stage cannot tell a missing exposure from a gap in
-    /// time, so it processes each one when it comes ([`crate::stage::run`] docs).
+    /// time, so it processes each one when it comes ([`mod@crate::stage::run`] docs).
     StartTime(String),
 }
 
