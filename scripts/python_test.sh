@@ -7,7 +7,12 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 start=$(date +%s)
-python3 -m pip install --quiet --no-build-isolation --force-reinstall --no-deps ./python
+# A wheel (what a release would publish), then installed from that file.
+rm -f python/target/wheels/persist-*.whl
+python3 -m pip wheel --quiet --no-build-isolation --no-deps -w python/target/wheels ./python
+wheel=$(ls python/target/wheels/persist-*.whl)
+echo "python: built $wheel" >&2
+python3 -m pip install --quiet --force-reinstall --no-deps "$wheel"
 built=$(date +%s)
 echo "python: build+install $((built - start)) s" >&2
 python3 -c "import persist; print('python package persist', persist.__version__, 'imported')"

@@ -555,7 +555,9 @@ pub fn list(dir: &Path, detector: DetectorId) -> Result<Vec<(u64, PathBuf)>> {
         let index = name
             .strip_prefix(&prefix)
             .and_then(|r| r.strip_suffix(".h5"))
-            .filter(|d| d.len() == 10 && d.bytes().all(|b| b.is_ascii_digit()))
+            // At least 10 digits: `{index:010}` grows for larger indices (start-time
+            // indices of FITS exposures have 13).
+            .filter(|d| d.len() >= 10 && d.bytes().all(|b| b.is_ascii_digit()))
             .and_then(|d| d.parse::<u64>().ok());
         if let Some(index) = index {
             out.push((index, entry.path()));
@@ -682,6 +684,23 @@ mod tests {
         assert_eq!(std::fs::metadata(&p).unwrap().modified().unwrap(), mtime);
         assert_eq!(find(dir.path(), DetectorId(2), 7), Some(p.clone()));
         assert_eq!(find(dir.path(), DetectorId(2), 8), None);
+    }
+
+    #[test]
+    fn indices_longer_than_ten_digits_are_listed_in_order() {
+        // FITS exposures without a sequence number: the index is the start in ms.
+        let dir = tempfile::tempdir().unwrap();
+        let (a, b) = (9_999_999_999u64, 1_772_323_707_916u64);
+        for i in [b, a] {
+            save(dir.path(), &meta(1, i), &state(i, 1.77e9)).unwrap();
+        }
+        let listed: Vec<u64> = list(dir.path(), DetectorId(1))
+            .unwrap()
+            .into_iter()
+            .map(|(i, _)| i)
+            .collect();
+        assert_eq!(listed, vec![a, b]);
+        assert!(find(dir.path(), DetectorId(1), b).is_some());
     }
 
     #[test]

@@ -261,3 +261,210 @@ fn archive_persist_bits_are_replaced_and_foreign_bit_names_and_outputs_refused()
     let reason = quarantined("y.fits");
     assert!(reason.contains("FLAGS/BITPIX"), "{reason}");
 }
+
+/// Update (or add) a string card in extension `ext`.
+fn set_key_str(path: &Path, ext: &str, key: &str, value: &str) {
+    let mut f = fitsio::FitsFile::edit(path).unwrap();
+    f.hdu(ext).unwrap();
+    let (k, v) = (
+        std::ffi::CString::new(key).unwrap(),
+        std::ffi::CString::new(value).unwrap(),
+    );
+    // SAFETY: the open file's pointer and NUL-terminated strings, for this call.
+    cfitsio(|st| unsafe {
+        fitsio::sys::ffukys(f.as_raw(), k.as_ptr(), v.as_ptr(), c"".as_ptr(), st)
+    });
+}
+
+/// Delete a card from extension `ext`.
+fn delete_key(path: &Path, ext: &str, key: &str) {
+    let mut f = fitsio::FitsFile::edit(path).unwrap();
+    f.hdu(ext).unwrap();
+    let k = std::ffi::CString::new(key).unwrap();
+    // SAFETY: the open file's pointer and a NUL-terminated name, for this call.
+    cfitsio(|st| unsafe { fitsio::sys::ffdkey(f.as_raw(), k.as_ptr(), st) });
+}
+
+fn key_i64(path: &Path, ext: &str, key: &str) -> i64 {
+    let mut f = fitsio::FitsFile::open(path).unwrap();
+    let hdu = f.hdu(ext).unwrap();
+    hdu.read_key::<i64>(&mut f, key)
+        .unwrap_or_else(|e| panic!("{}: {ext}/{key}: {e}", path.display()))
+}
+
+fn key_str(path: &Path, ext: &str, key: &str) -> String {
+    let mut f = fitsio::FitsFile::open(path).unwrap();
+    let hdu = f.hdu(ext).unwrap();
+    hdu.read_key::<String>(&mut f, key)
+        .unwrap_or_else(|e| panic!("{}: {ext}/{key}: {e}", path.display()))
+}
+
+fn plane_f32(path: &Path, ext: &str) -> Vec<f32> {
+    let mut f = fitsio::FitsFile::open(path).unwrap();
+    let hdu = f.hdu(ext).unwrap();
+    hdu.read_image(&mut f).unwrap()
+}
+
+/// `DATE-OBS` of a FITS exposure, as Unix seconds (UTC).
+fn date_obs_s(path: &Path) -> f64 {
+    let s = key_str(path, "IMAGE", "DATE-OBS");
+    persist::units::UtcSeconds::parse(&format!("{s}Z"))
+        .unwrap()
+        .0
+}
+
+/// Two FITS outputs with the same persistence planes and exposure index.
+fn assert_same_persistence(a: &Path, b: &Path) {
+    let what = format!("{} vs {}", a.display(), b.display());
+    assert_eq!(
+        plane_f32(a, "PERSIST_CURRENT"),
+        plane_f32(b, "PERSIST_CURRENT"),
+        "{what}"
+    );
+    assert_eq!(plane_i32(a, "PERSIST_FLAGS"), plane_i32(b, "PERSIST_FLAGS"));
+    for ext in ["PERSIST_CURRENT", "PERSIST_FLAGS"] {
+        assert_eq!(
+            key_i64(a, ext, "EXPINDEX"),
+            key_i64(b, ext, "EXPINDEX"),
+            "{what}"
+        );
+    }
+}
+
+#[test]
+fn spherex_files_are_ordered_by_start_time_and_the_order_and_conversion_recorded() {
+    let tmp = tempfile::tempdir().unwrap();
+    let t = tmp.path();
+    let a = t.join("a");
+    let fits: Vec<std::path::PathBuf> = simulate_fits(&a, 4)
+        .iter()
+        .map(std::path::PathBuf::from)
+        .collect();
+    // As SPHEREx's files: no sequence number in the headers.
+    for p in &fits {
+        let mut f = fitsio::FitsFile::open(p).unwrap();
+        let hdu = f.hdu("IMAGE").unwrap();
+        assert!(hdu.read_key::<i64>(&mut f, "EXPINDEX").is_err());
+    }
+    // The same exposures under names in the reverse of their time order, exposure 1's
+    // start given in TAI (37 s later, TIMESYS = 'TAI'), plus three files to refuse.
+    let b = t.join("b");
+    std::fs::create_dir(&b).unwrap();
+    let renamed: Vec<_> = (0..4).map(|k| b.join(format!("x{}.fits", 3 - k))).collect();
+    for (from, to) in fits.iter().zip(&renamed) {
+        std::fs::copy(from, to).unwrap();
+    }
+    let tai = persist::units::UtcSeconds(date_obs_s(&fits[1]) + 37.0).to_iso();
+    set_key_str(&renamed[1], "IMAGE", "DATE-OBS", tai.trim_end_matches('Z'));
+    set_key_str(&renamed[1], "IMAGE", "TIMESYS", "TAI");
+    let nodate = b.join("bad_nodate.fits");
+    std::fs::copy(&fits[0], &nodate).unwrap();
+    delete_key(&nodate, "IMAGE", "DATE-OBS");
+    delete_key(&nodate, "IMAGE", "MJD-OBS");
+    let tcb = b.join("bad_tcb.fits");
+    std::fs::copy(&fits[3], &tcb).unwrap();
+    set_key_str(&tcb, "IMAGE", "TIMESYS", "TCB");
+    let mixed = b.join("zz_mixed.fits");
+    std::fs::copy(&fits[2], &mixed).unwrap();
+    {
+        let mut f = fitsio::FitsFile::edit(&mixed).unwrap();
+        let hdu = f.hdu("IMAGE").unwrap();
+        hdu.write_key(&mut f, "EXPINDEX", 2i64).unwrap();
+    }
+
+    // A: the factor given as an argument; B: from the unit (e-/s).
+    let (code, err) = run_batch(&a, &t.join("runa"), &["--fits-gain", "1:1"]);
+    assert_eq!(code, 0, "{err}");
+    let (code, err) = run_batch(&b, &t.join("runb"), &[]);
+    assert_ne!(code, 0, "the refusals must show in the exit code: {err}");
+
+    let out_a: Vec<_> = fits
+        .iter()
+        .map(|p| t.join("runa/out").join(p.file_name().unwrap()))
+        .collect();
+    let mut prev = -1;
+    for (input, out) in fits.iter().zip(&out_a) {
+        // The index is the start in ms since 1970 UTC, recorded in both extensions, and
+        // the previous exposure of each is the one before it in time.
+        let ms = (date_obs_s(input) * 1e3).round() as i64;
+        for ext in ["PERSIST_CURRENT", "PERSIST_FLAGS"] {
+            assert_eq!(key_i64(out, ext, "EXPINDEX"), ms, "{}", out.display());
+            assert_eq!(key_str(out, ext, "IDXSRC"), "DATE-OBS: ms since 1970 UTC");
+            assert_eq!(key_i64(out, ext, "PREV_EXP"), prev);
+        }
+        prev = ms;
+        assert_eq!(
+            key_str(out, "PERSIST_CURRENT", "ESCONVSR"),
+            "argument --fits-gain"
+        );
+        assert_eq!(key_str(out, "PERSIST_CURRENT", "IMGUNIT"), "e-/s");
+    }
+    // B: in time order despite the names and the time scale, so the same planes.
+    for (k, out) in out_a.iter().enumerate() {
+        let ob = t.join("runb/out").join(renamed[k].file_name().unwrap());
+        assert_same_persistence(&ob, out);
+        assert_eq!(key_str(&ob, "PERSIST_CURRENT", "ESCONVSR"), "unit BUNIT");
+    }
+    let reason = |dir: &Path, name: &str| {
+        std::fs::read_to_string(dir.join(format!(".quarantine/{name}.reason.json")))
+            .unwrap_or_else(|e| panic!("{name} not quarantined ({e})"))
+    };
+    assert!(reason(&b, "bad_nodate.fits").contains("IMAGE/MJD-OBS"));
+    assert!(reason(&b, "bad_tcb.fits").contains("IMAGE/TIMESYS"));
+    assert!(reason(&b, "zz_mixed.fits").contains("not mixed"));
+
+    // Another mission's keywords through a mapping file: the start in `DATE-BEG`, no
+    // `MJD-OBS`; the same order and indices, the source named.
+    let c = t.join("c");
+    std::fs::create_dir(&c).unwrap();
+    for p in &fits {
+        let to = c.join(p.file_name().unwrap());
+        std::fs::copy(p, &to).unwrap();
+        let mut f = fitsio::FitsFile::edit(&to).unwrap();
+        f.hdu("IMAGE").unwrap();
+        // SAFETY: the open file's pointer and two NUL-terminated names, for this call.
+        cfitsio(|st| unsafe {
+            fitsio::sys::ffmnam(f.as_raw(), c"DATE-OBS".as_ptr(), c"DATE-BEG".as_ptr(), st)
+        });
+        drop(f);
+        delete_key(&to, "IMAGE", "MJD-OBS");
+    }
+    let mapping = t.join("keywords.json");
+    std::fs::write(
+        &mapping,
+        r#"{"date_obs": "DATE-BEG", "mjd_obs": "MJD-BEG"}"#,
+    )
+    .unwrap();
+    let (code, err) = run_batch(&c, &t.join("runc"), &[]);
+    assert_ne!(code, 0, "without the mapping the start is missing: {err}");
+    assert!(reason(&c, "d1_e000000.fits").contains("IMAGE/MJD-OBS"));
+    for p in &fits {
+        let name = p.file_name().unwrap();
+        std::fs::rename(c.join(".quarantine").join(name), c.join(name)).unwrap();
+    }
+    let m = s(&mapping);
+    let (code, err) = run_batch(&c, &t.join("runc2"), &["--fits-keywords", &m]);
+    assert_eq!(code, 0, "{err}");
+    for out in &out_a {
+        let oc = t.join("runc2/out").join(out.file_name().unwrap());
+        assert_same_persistence(&oc, out);
+        assert_eq!(
+            key_str(&oc, "PERSIST_FLAGS", "IDXSRC"),
+            "DATE-BEG: ms since 1970 UTC"
+        );
+    }
+
+    // A file that starts between exposures 1 and 2, arriving after they were processed:
+    // late, refused; the rerun leaves the outputs as they were.
+    let before: Vec<Vec<u8>> = out_a.iter().map(|p| std::fs::read(p).unwrap()).collect();
+    let late = a.join("late.fits");
+    std::fs::copy(&fits[1], &late).unwrap();
+    let t_late = persist::units::UtcSeconds(date_obs_s(&fits[1]) + 10.0).to_iso();
+    set_key_str(&late, "IMAGE", "DATE-OBS", t_late.trim_end_matches('Z'));
+    let (code, err) = run_batch(&a, &t.join("runa"), &["--fits-gain", "1:1"]);
+    assert_ne!(code, 0, "{err}");
+    assert!(reason(&a, "late.fits").contains("late product"), "{err}");
+    for (p, b) in out_a.iter().zip(&before) {
+        assert_eq!(&std::fs::read(p).unwrap(), b);
+    }
+}

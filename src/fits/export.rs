@@ -109,14 +109,6 @@ pub fn write_exposure(
             }
             hdu.write_key(&mut f, &k.detector, (i64::from(det.0), "detector number"))
                 .map_err(fe)?;
-            let index = i64::try_from(m.exposure_index)
-                .map_err(|_| Error::invalid("exposure_index", "does not fit an int64"))?;
-            hdu.write_key(
-                &mut f,
-                &k.exposure_index,
-                (index, "exposure sequence number"),
-            )
-            .map_err(fe)?;
             hdu.write_key(&mut f, "TIMESYS", ("UTC", "time scale"))
                 .map_err(fe)?;
             hdu.write_key(
@@ -171,7 +163,8 @@ pub fn write_exposure(
                         None => "unit BUNIT (export)".into(),
                     },
                 };
-                append_persistence(&mut f, path, planes, attrs, &conv, None)?;
+                let index = (e.meta.exposure_index, "HDF5 exposure_index");
+                append_persistence(&mut f, path, planes, attrs, &conv, index, None)?;
             }
             flush(&mut f, path)
         },

@@ -33,7 +33,7 @@ use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 use std::path::Path;
 
-pub use read::{read_exposure, read_meta};
+pub use read::{index_of_start, read_exposure, read_meta, read_meta_sequence};
 pub use write::write_output;
 
 /// cfitsio's status for a keyword that is not in the header.
@@ -91,13 +91,17 @@ pub struct Keywords {
     pub flags_ext: String,
     /// Detector number 1..=6 (integer).
     pub detector: String,
-    /// Exposure sequence number per detector (non-negative integer): the order the
-    /// stage processes a detector's exposures in.
+    /// Optional: exposure sequence number per detector (non-negative integer), the
+    /// order the stage processes a detector's exposures in. Absent (SPHEREx's files
+    /// carry none), or named `""` here: the start time orders them ([`Sequence`]).
     pub exposure_index: String,
-    /// Start of the exposure, ISO 8601 UTC (`YYYY-MM-DDThh:mm:ss[.s]`).
+    /// Start of the exposure, ISO 8601 (`YYYY-MM-DDThh:mm:ss[.s]`), in `time_system`.
     pub date_obs: String,
-    /// Start of the exposure, MJD (UTC); used when `date_obs` is absent.
+    /// Start of the exposure, MJD, in `time_system`; used when `date_obs` is absent.
     pub mjd_obs: String,
+    /// Optional: the time scale of `date_obs` / `mjd_obs` (FITS `TIMESYS`: UTC when
+    /// absent; TAI, TT, TDB and GPS are converted to UTC).
+    pub time_system: String,
     /// Exposure time, seconds.
     pub exposure_time: String,
     /// Optional: seconds of the exposure that were illuminated.
@@ -120,6 +124,7 @@ impl Default for Keywords {
             exposure_index: "EXPINDEX".into(),
             date_obs: "DATE-OBS".into(),
             mjd_obs: "MJD-OBS".into(),
+            time_system: "TIMESYS".into(),
             exposure_time: "EXPTIME".into(),
             illuminated_time: "EXPILLUM".into(),
             focal_plane_temp: "FPATEMP".into(),
@@ -167,6 +172,36 @@ pub struct FitsInput {
     /// persistence flag (SPHEREx's Level-2 files carry one). It is cleared before the
     /// step and replaced by this stage's; the count is recorded as `PERSIN`.
     pub input_persist_px: u64,
+    /// Where the exposure index came from (recorded as `IDXSRC`).
+    pub sequence: Sequence,
+}
+
+/// Where a FITS exposure's index (its place in its detector's history) comes from.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum Sequence {
+    /// A sequence-number keyword (the mapping's `exposure_index`, named here).
+    Keyword(String),
+    /// The start time, read from the keyword named here: the index is milliseconds
+    /// since 1970-01-01T00:00:00 UTC ([`index_of_start`]), so that a detector's
+    /// exposures are processed in start-time order. Consecutive exposures then have
+    /// non-consecutive indices: the stage cannot tell a missing exposure from a gap in
+    /// time, so it processes each one when it comes ([`mod@crate::stage::run`] docs).
+    StartTime(String),
+}
+
+impl Sequence {
+    /// Whether the index is a start time (not a sequence number).
+    pub fn is_start_time(&self) -> bool {
+        matches!(self, Sequence::StartTime(_))
+    }
+
+    /// How the index was found, for the `IDXSRC` card.
+    pub fn describe(&self) -> String {
+        match self {
+            Sequence::Keyword(k) => format!("header {k}"),
+            Sequence::StartTime(k) => format!("{k}: ms since 1970 UTC"),
+        }
+    }
 }
 
 /// The `MP_<NAME>` cards of `FLAGS` for the bits the stage reads or writes, with the bit

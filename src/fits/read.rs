@@ -16,7 +16,8 @@
 //! output's bit 17 is this stage's.
 
 use super::{
-    fits_error, Conversion, FitsConfig, FitsInput, Keywords, KEY_NO_EXIST, MODEL_FLAG_BITS,
+    fits_error, Conversion, FitsConfig, FitsInput, Keywords, Sequence, KEY_NO_EXIST,
+    MODEL_FLAG_BITS,
 };
 use super::{EXT_PERSIST_CURRENT, EXT_PERSIST_FLAGS};
 use crate::error::{Error, ErrorKind, Result};
@@ -102,8 +103,9 @@ impl<'a> Headers<'a> {
         })
     }
 
-    /// The root attributes of the exposure (as the HDF5 reader gives them).
-    pub(crate) fn meta(&mut self) -> Result<ExposureMeta> {
+    /// The root attributes of the exposure (as the HDF5 reader gives them), and where its
+    /// exposure index came from.
+    pub(crate) fn meta(&mut self) -> Result<(ExposureMeta, Sequence)> {
         let k = self.keywords;
         let d: i64 = self.required(&k.detector, "detector number (1..=6)")?;
         let detector = DetectorId::new(d).ok_or_else(|| {
@@ -113,26 +115,38 @@ impl<'a> Headers<'a> {
             )
             .path(self.path)
         })?;
-        let index: i64 = self.required(&k.exposure_index, "exposure sequence number")?;
-        let exposure_index = u64::try_from(index).map_err(|_| {
-            Error::invalid(
-                self.field(&k.exposure_index),
-                format!("{index} is negative"),
-            )
-            .path(self.path)
-        })?;
-        let t_start = match self.key::<String>(&k.date_obs)? {
-            Some(s) => parse_date_obs(&s)
-                .map_err(|m| Error::invalid(self.field(&k.date_obs), m).path(self.path))?,
-            None => {
-                let mjd: f64 = self.required(&k.mjd_obs, "start time (or DATE-OBS)")?;
-                if !mjd.is_finite() {
-                    return Err(
-                        Error::invalid(self.field(&k.mjd_obs), "not finite").path(self.path)
-                    );
-                }
-                UtcSeconds((mjd - MJD_UNIX_EPOCH) * 86_400.0)
-            }
+        let (t_start, time_key) = self.start_time()?;
+        // The sequence number when the header has one (another mission's, or added by
+        // hand); otherwise the start time itself orders the exposures (SPHEREx).
+        let from_keyword: Option<i64> = if k.exposure_index.is_empty() {
+            None
+        } else {
+            self.key(&k.exposure_index)?
+        };
+        let (exposure_index, sequence) = match from_keyword {
+            Some(index) => (
+                u64::try_from(index).map_err(|_| {
+                    Error::invalid(
+                        self.field(&k.exposure_index),
+                        format!("{index} is negative"),
+                    )
+                    .path(self.path)
+                })?,
+                Sequence::Keyword(k.exposure_index.clone()),
+            ),
+            None => (
+                index_of_start(t_start).ok_or_else(|| {
+                    Error::invalid(
+                        self.field(&time_key),
+                        format!(
+                            "start {} is before 1970-01-01: no exposure index can be derived",
+                            t_start.to_iso()
+                        ),
+                    )
+                    .path(self.path)
+                })?,
+                Sequence::StartTime(time_key),
+            ),
         };
         let t_exposure_s: f64 = self.required(&k.exposure_time, "exposure time (s)")?;
         if !(t_exposure_s.is_finite() && t_exposure_s > 0.0) {
@@ -160,7 +174,7 @@ impl<'a> Headers<'a> {
             )
             .path(self.path));
         }
-        Ok(ExposureMeta {
+        let meta = ExposureMeta {
             detector,
             exposure_index,
             t_start_utc: t_start.to_iso(),
@@ -168,7 +182,41 @@ impl<'a> Headers<'a> {
             t_exposure_s,
             focal_plane_temp_k,
             t_illuminated_s,
-        })
+        };
+        Ok((meta, sequence))
+    }
+
+    /// The start of the exposure in UTC, and the keyword it was read from: `DATE-OBS`,
+    /// else `MJD-OBS`, in the time scale `TIMESYS` names ([`utc_offset_s`]).
+    fn start_time(&mut self) -> Result<(UtcSeconds, String)> {
+        let k = self.keywords;
+        let (t, key) = match self.key::<String>(&k.date_obs)? {
+            Some(s) => (
+                parse_date_obs(&s)
+                    .map_err(|m| Error::invalid(self.field(&k.date_obs), m).path(self.path))?,
+                k.date_obs.clone(),
+            ),
+            None => {
+                let what = format!("start time (or {})", k.date_obs);
+                let mjd: f64 = self.required(&k.mjd_obs, &what)?;
+                if !mjd.is_finite() {
+                    return Err(
+                        Error::invalid(self.field(&k.mjd_obs), "not finite").path(self.path)
+                    );
+                }
+                (
+                    UtcSeconds((mjd - MJD_UNIX_EPOCH) * 86_400.0),
+                    k.mjd_obs.clone(),
+                )
+            }
+        };
+        let scale = self
+            .key::<String>(&k.time_system)?
+            .map(|s| s.trim().to_ascii_uppercase())
+            .unwrap_or_default();
+        let offset = utc_offset_s(&scale, t)
+            .map_err(|m| Error::invalid(self.field(&k.time_system), m).path(self.path))?;
+        Ok((UtcSeconds(t.0 - offset), key))
     }
 
     /// The factor that turns the image into e-/s, and where it came from.
@@ -305,16 +353,59 @@ pub(crate) fn plane_shape(path: &Path, ext: &str, hdu: &FitsHdu) -> Result<(usiz
 
 /// The exposure's header values only (cheap: no plane is read), for queueing.
 pub fn read_meta(path: &Path, cfg: &FitsConfig) -> Result<ExposureMeta> {
+    read_meta_sequence(path, cfg).map(|(meta, _)| meta)
+}
+
+/// [`read_meta`], and where the exposure index came from.
+pub fn read_meta_sequence(path: &Path, cfg: &FitsConfig) -> Result<(ExposureMeta, Sequence)> {
     let mut h = Headers::open(path, &cfg.keywords)?;
-    let meta = h.meta()?;
+    let (meta, sequence) = h.meta()?;
     h.conversion(meta.detector, cfg)?;
-    Ok(meta)
+    Ok((meta, sequence))
+}
+
+/// The exposure index of a start time: milliseconds since 1970-01-01T00:00:00 UTC
+/// (rounded), so that the index order is the start-time order; `None` before 1970.
+pub fn index_of_start(t_start: UtcSeconds) -> Option<u64> {
+    let ms = (t_start.0 * 1e3).round();
+    (ms.is_finite() && ms >= 0.0 && ms < 2f64.powi(63)).then_some(ms as u64)
+}
+
+/// TAI - UTC since 2017-01-01T00:00:00 UTC (IERS Bulletin C: no leap second since).
+const TAI_MINUS_UTC_S: f64 = 37.0;
+/// 2017-01-01T00:00:00 UTC, Unix seconds: the last leap second's end.
+const LAST_LEAP_UNIX_S: f64 = 1_483_228_800.0;
+
+/// Seconds to subtract from a time read in the scale `scale` (FITS `TIMESYS`, upper
+/// case; empty when absent) to get UTC. UTC and absent: 0. TAI: 37 s, GPS: 19 s less,
+/// TT (or TDT): TAI + 32.184 s; TDB is taken as TT (they differ by < 2 ms). The offsets
+/// hold from 2017 on (the last leap second); earlier times in those scales, and other
+/// scales, are refused rather than converted wrongly.
+pub fn utc_offset_s(scale: &str, t: UtcSeconds) -> std::result::Result<f64, String> {
+    let offset = match scale {
+        "" | "UTC" => return Ok(0.0),
+        "TAI" => TAI_MINUS_UTC_S,
+        "GPS" => TAI_MINUS_UTC_S - 19.0,
+        "TT" | "TDT" | "TDB" => TAI_MINUS_UTC_S + 32.184,
+        other => {
+            return Err(format!(
+                "time scale `{other}` is not supported: UTC, TAI, TT, TDB or GPS"
+            ))
+        }
+    };
+    if t.0 - offset < LAST_LEAP_UNIX_S {
+        return Err(format!(
+            "{scale} before 2017-01-01 is not supported (leap seconds before it are not \
+             tabulated): give the start time in UTC"
+        ));
+    }
+    Ok(offset)
 }
 
 /// Read and check one FITS exposure; the image is returned in e-/s.
 pub fn read_exposure(path: &Path, cfg: &FitsConfig) -> Result<(Exposure, FitsInput)> {
     let mut h = Headers::open(path, &cfg.keywords)?;
-    let meta = h.meta()?;
+    let (meta, sequence) = h.meta()?;
     let conv = h.conversion(meta.detector, cfg)?;
     let k = &cfg.keywords;
     let dim = plane_shape(path, &k.image_ext, &h.image)?;
@@ -431,6 +522,7 @@ pub fn read_exposure(path: &Path, cfg: &FitsConfig) -> Result<(Exposure, FitsInp
         FitsInput {
             conversion: conv,
             input_persist_px,
+            sequence,
         },
     ))
 }
@@ -445,5 +537,31 @@ mod tests {
         let b = UtcSeconds::parse("2025-05-01T12:00:00.5Z").unwrap();
         assert_eq!(a, b);
         assert!(parse_date_obs("2025-05-01").is_err());
+    }
+
+    #[test]
+    fn start_time_indices_order_as_the_times_do() {
+        let t = UtcSeconds::parse("2025-05-01T12:00:00.0016Z").unwrap();
+        // 1,746,100,800 s since 1970 (date -d 2025-05-01T12:00:00Z +%s), in ms, rounded.
+        assert_eq!(index_of_start(t), Some(1_746_100_800_002));
+        let later = UtcSeconds(t.0 + 0.001);
+        assert!(index_of_start(later) > index_of_start(t));
+        assert_eq!(index_of_start(UtcSeconds(-1.0)), None);
+        assert_eq!(index_of_start(UtcSeconds(f64::NAN)), None);
+    }
+
+    #[test]
+    fn time_scales_convert_to_utc_or_are_refused() {
+        let t = UtcSeconds::parse("2025-05-01T12:00:00Z").unwrap();
+        assert_eq!(utc_offset_s("", t), Ok(0.0));
+        assert_eq!(utc_offset_s("UTC", t), Ok(0.0));
+        // TAI - UTC = 37 s since 2017-01-01 (IERS Bulletin C); TT = TAI + 32.184 s.
+        assert_eq!(utc_offset_s("TAI", t), Ok(37.0));
+        assert_eq!(utc_offset_s("TT", t), Ok(69.184));
+        assert_eq!(utc_offset_s("GPS", t), Ok(18.0));
+        assert!(utc_offset_s("TCB", t).unwrap_err().contains("TCB"));
+        let old = UtcSeconds::parse("2010-01-01T00:00:00Z").unwrap();
+        assert!(utc_offset_s("TAI", old).is_err());
+        assert_eq!(utc_offset_s("UTC", old), Ok(0.0));
     }
 }

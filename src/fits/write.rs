@@ -99,6 +99,7 @@ pub fn write_output(
                 planes,
                 attrs,
                 &read.conversion,
+                (e.meta.exposure_index, &read.sequence.describe()),
                 Some(read.input_persist_px),
             )?;
             flush(&mut f, path)
@@ -140,15 +141,19 @@ pub(crate) fn check_written(
     Ok(())
 }
 
-/// Append `PERSIST_CURRENT` and `PERSIST_FLAGS` with their header cards.
+/// Append `PERSIST_CURRENT` and `PERSIST_FLAGS` with their header cards; `index` is
+/// the exposure index used and where it came from (`EXPINDEX`, `IDXSRC`).
 pub(crate) fn append_persistence(
     f: &mut FitsFile,
     path: &Path,
     planes: &PersistencePlanes,
     attrs: &PersistenceAttrs,
     conv: &Conversion,
+    index: (u64, &str),
     input_persist_px: Option<u64>,
 ) -> Result<()> {
+    let index_card = i64::try_from(index.0)
+        .map_err(|_| Error::invalid("EXPINDEX", "does not fit an int64").path(path))?;
     let (ny, nx) = planes.current_e_per_s.dim();
     let ext = EXT_PERSIST_CURRENT;
     let fe = |err| fits_error(path, ext, err);
@@ -166,6 +171,7 @@ pub(crate) fn append_persistence(
     hdu.write_key(f, "BUNIT", ("e-/s", "predicted persistence current"))
         .map_err(fe)?;
     attr_cards(f, &hdu, attrs).map_err(fe)?;
+    index_cards(f, &hdu, index_card, index.1).map_err(fe)?;
     hdu.write_key(f, "ESCONV", (conv.factor, "e-/s per input image unit used"))
         .map_err(fe)?;
     hdu.write_key(
@@ -199,6 +205,7 @@ pub(crate) fn append_persistence(
             .map_err(fe)?;
     }
     attr_cards(f, &hdu, attrs).map_err(fe)?;
+    index_cards(f, &hdu, index_card, index.1).map_err(fe)?;
     if let Some(n) = input_persist_px {
         let n = i64::try_from(n).unwrap_or(i64::MAX);
         hdu.write_key(
@@ -253,6 +260,17 @@ fn attr_cards(
         (a.processed_utc.as_str(), "processing time (UTC)"),
     )?;
     Ok(())
+}
+
+/// The exposure index the stage used (`PREV_EXP` of the next output) and its source.
+fn index_cards(
+    f: &mut FitsFile,
+    hdu: &fitsio::hdu::FitsHdu,
+    index: i64,
+    source: &str,
+) -> fitsio::errors::Result<()> {
+    hdu.write_key(f, "EXPINDEX", (index, "exposure index used (IDXSRC)"))?;
+    hdu.write_key(f, "IDXSRC", (source, "where EXPINDEX came from"))
 }
 
 /// The `MP_<NAME>` cards of a `FLAGS` header written from scratch.

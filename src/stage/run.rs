@@ -57,6 +57,17 @@
 //! the missing exposure cannot change any flag. The deadline is carried in the
 //! checkpoint, so it survives restarts.
 //!
+//! # Start-time order (FITS without a sequence number)
+//!
+//! SPHEREx's FITS files carry no exposure sequence number: their exposure index is the
+//! start time in milliseconds since 1970 UTC ([`crate::fits::Sequence::StartTime`]),
+//! deterministic per file and recorded in the output (`EXPINDEX`, `IDXSRC`). Such a
+//! detector's history (the bookkeeping's `by_start_time`, kept in the checkpoint, never
+//! mixed with sequence numbers) has no successor index to wait for: the earliest queued
+//! product is processed at once, no gap is crossed or marked (a missing exposure cannot
+//! be told from a pause; a refused one still marks history incomplete), and a product
+//! that starts before the last processed one, within the digest window, is late.
+//!
 //! # Duplicates and late products
 //!
 //! - Two queued products with the same (detector, exposure index): identical bytes -> the
@@ -232,6 +243,18 @@ pub struct Bookkeeping {
     /// processed exposures, by index.
     #[serde(default)]
     pub digests: BTreeMap<u64, String>,
+    /// Whether this history's exposure indices are start times (FITS exposures without
+    /// a sequence number) rather than sequence numbers; set by the first product
+    /// offered. The two are never mixed in one history. Written only when true, so
+    /// that sequence-number checkpoints are as before (and as `persist tile` writes
+    /// them); a resumed history without it that has processed anything is one of
+    /// sequence numbers.
+    #[serde(default, skip_serializing_if = "is_not_true")]
+    pub by_start_time: Option<bool>,
+}
+
+fn is_not_true(v: &Option<bool>) -> bool {
+    *v != Some(true)
 }
 
 impl Bookkeeping {
@@ -407,8 +430,8 @@ impl<'a> Stage<'a> {
 
     fn observe(&mut self, path: &Path, key: FileKey, now: Instant) {
         self.seen.insert(path.to_path_buf(), key);
-        let meta = match read_input_meta(path, &self.ops.fits) {
-            Ok(m) if self.ops.only.is_some_and(|o| o.detector != m.detector) => return,
+        let (meta, by_start_time) = match read_input_sequence(path, &self.ops.fits) {
+            Ok((m, _)) if self.ops.only.is_some_and(|o| o.detector != m.detector) => return,
             Ok(m) => m,
             Err(_) if self.ops.only.is_some_and(|o| !o.unattributed) => return,
             Err(e) if matches!(e.kind, ErrorKind::NotReady | ErrorKind::Io) => {
@@ -447,7 +470,7 @@ impl<'a> Stage<'a> {
             .entry(meta.detector)
             .or_insert_with(|| Processor::new(cfg, ops, meta.detector, on_exposure));
         proc.ensure_started();
-        let offer = proc.offer(path, meta, now);
+        let offer = proc.offer(path, meta, by_start_time, now);
         self.collect();
         match offer {
             Offer::Queued => {
@@ -723,8 +746,19 @@ impl<'a> Processor<'a> {
         resume_parts(&path, state, &meta, &cfg.model).map(Some)
     }
 
+    /// Whether this detector's indices are start times (module docs: start-time order).
+    fn by_start_time(&self) -> bool {
+        self.book.by_start_time == Some(true)
+    }
+
     /// Decide what to do with a newly observed product (module docs: duplicates, late).
-    fn offer(&mut self, path: &Path, meta: ExposureMeta, now: Instant) -> Offer {
+    fn offer(
+        &mut self,
+        path: &Path,
+        meta: ExposureMeta,
+        by_start_time: bool,
+        now: Instant,
+    ) -> Offer {
         if self.dead {
             return Offer::Dead;
         }
@@ -736,6 +770,30 @@ impl<'a> Processor<'a> {
                 .detector(self.det)
                 .exposure(index)
         };
+        let resumed = self.last().is_some();
+        let history = self.book.by_start_time.unwrap_or(!resumed && by_start_time);
+        self.book.by_start_time = Some(history);
+        if history != by_start_time {
+            let (this, history) = if by_start_time {
+                (
+                    "has no sequence number (ordered by its start time)",
+                    "sequence numbers",
+                )
+            } else {
+                (
+                    "has a sequence number",
+                    "start times (FITS without a sequence number)",
+                )
+            };
+            let det = self.det;
+            return Offer::Refused(err(
+                ErrorKind::Sequence,
+                format!(
+                    "this product {this}, but detector {det}'s history is ordered by \
+                     {history}: the two are not mixed"
+                ),
+            ));
+        }
         if let Some(last) = self.last().filter(|&l| index <= l) {
             if let Some(d) = self.book.digests.get(&index) {
                 return match file_digest(path) {
@@ -754,6 +812,17 @@ impl<'a> Processor<'a> {
                     ErrorKind::Sequence,
                     format!(
                         "late product: arrived after its gap was crossed (exposure {last} already processed): refused"
+                    ),
+                ));
+            }
+            // Ordered by start time, a product starting between two processed ones (or
+            // before the last) that was not processed itself is late.
+            let within_window = self.book.digests.keys().next().is_some_and(|&f| index > f);
+            if self.by_start_time() && within_window {
+                return Offer::Refused(err(
+                    ErrorKind::Sequence,
+                    format!(
+                        "late product: starts before exposure {last} (already processed, exposures ordered by start time): refused"
                     ),
                 ));
             }
@@ -818,6 +887,10 @@ impl<'a> Processor<'a> {
             return false;
         }
         let timed_out = now.saturating_duration_since(p.seen) >= self.ops.gap_timeout;
+        if self.by_start_time() {
+            // Start times have no successor to wait for: the earliest queued goes now.
+            return true;
+        }
         match self.last() {
             Some(l) if next == l + 1 => true,
             Some(l) => final_ || timed_out || (l + 1..next).all(|i| self.refused.contains(&i)),
@@ -845,7 +918,8 @@ impl<'a> Processor<'a> {
                 break;
             };
             let last = self.last();
-            if let Some(l) = last.filter(|&l| next != l + 1) {
+            let by_start_time = self.by_start_time();
+            if let Some(l) = last.filter(|&l| next != l + 1 && !by_start_time) {
                 self.gap_before = true;
                 if !(l + 1..next).all(|i| self.refused.contains(&i)) {
                     tracing::warn!(
@@ -1092,7 +1166,7 @@ impl<'a> Processor<'a> {
         exposure.flags = flags;
         if let Some(prev) = summary
             .previous_index
-            .filter(|&p| meta.exposure_index > p + 1)
+            .filter(|&p| meta.exposure_index > p + 1 && book.by_start_time != Some(true))
         {
             book.crossed.push((prev + 1, meta.exposure_index - 1));
         }
@@ -1194,9 +1268,18 @@ pub fn read_input_meta(
     path: &Path,
     fits: &crate::fits::FitsConfig,
 ) -> Result<crate::product::ExposureMeta> {
+    read_input_sequence(path, fits).map(|(meta, _)| meta)
+}
+
+/// [`read_input_meta`], and whether its exposure index is a start time (a FITS exposure
+/// without a sequence number, [`crate::fits::Sequence::StartTime`]).
+pub fn read_input_sequence(
+    path: &Path,
+    fits: &crate::fits::FitsConfig,
+) -> Result<(crate::product::ExposureMeta, bool)> {
     if crate::fits::is_fits(path) {
-        crate::fits::read_meta(path, fits)
+        crate::fits::read_meta_sequence(path, fits).map(|(m, s)| (m, s.is_start_time()))
     } else {
-        product::read::read_meta(path)
+        product::read::read_meta(path).map(|m| (m, false))
     }
 }

@@ -7,22 +7,30 @@ output on the same data:
 - bit 17 of FLAGS equals the high-threshold plane (bit 0 of /persistence/flags), and
   every other FLAGS bit is the input's;
 - PERSIST_CURRENT equals /persistence/current to float32 precision;
+- the conversion (ESCONV, ESCONVSR, IMGUNIT) and the exposure index (EXPINDEX, IDXSRC:
+  the start time, as SPHEREx's files carry no sequence number) are recorded;
 - every extension other than FLAGS is byte-identical (header and data bytes) to the
   input's, and the FLAGS header keeps every input card (MP_PERSIST added if missing;
   CHECKSUM and DATASUM, when the input had them, updated and verified);
 - astropy opens every FITS file (inputs, outputs, exports) with warnings as errors and
-  verify('exception'); h5py opens every HDF5 file under H5_DIR... and reads every dataset.
+  verify('exception') (and writes it back to memory with output_verify='exception');
+  h5py opens every HDF5 file under H5_DIR... and reads every dataset, with
+  HDF5_PLUGIN_PATH an empty directory and only HDF5's built-in filters.
 Prints one JSON line of counts; exits non-zero on the first failure.
 """
 import glob
+import io
 import json
 import os
 import sys
+import tempfile
 import warnings
 
-import h5py
-import numpy as np
-from astropy.io import fits
+# No HDF5 filter plugin can be found: every file must open with HDF5's own filters.
+os.environ["HDF5_PLUGIN_PATH"] = tempfile.mkdtemp()
+import h5py  # noqa: E402
+import numpy as np  # noqa: E402
+from astropy.io import fits  # noqa: E402
 
 warnings.simplefilter("error")
 fits_in, fits_out, h5_out, exported = sys.argv[1:5]
@@ -35,6 +43,7 @@ def strict_open(path):
     hdul.verify("exception")
     for hdu in hdul:
         _ = hdu.data  # decode every extension (a bad one raises here)
+    hdul.writeto(io.BytesIO(), output_verify="exception")  # as astropy would write it
     return hdul
 
 
@@ -85,7 +94,15 @@ for out_path in outputs:
     max_rel = max(max_rel, float(rel.max()))
     n_high += int(high.sum())
     assert hout["PERSIST_CURRENT"].header["BUNIT"] == "e-/s"
-    assert "ESCONV" in hout["PERSIST_CURRENT"].header
+    # The conversion used and the exposure order are recorded: the input's ESCONV (no
+    # argument in this run), the start time in ms since 1970 UTC as the index.
+    hcur = hout["PERSIST_CURRENT"].header
+    assert hcur["ESCONV"] == hin["IMAGE"].header["ESCONV"], (name, hcur["ESCONV"])
+    assert hcur["ESCONVSR"] == "header ESCONV", (name, hcur["ESCONVSR"])
+    assert hcur["IMGUNIT"] == hin["IMAGE"].header["BUNIT"]
+    assert "EXPINDEX" not in hin["IMAGE"].header, f"{name}: SPHEREx files have no EXPINDEX"
+    assert hcur["IDXSRC"] == "DATE-OBS: ms since 1970 UTC", (name, hcur["IDXSRC"])
+    assert hcur["EXPINDEX"] == hout["PERSIST_FLAGS"].header["EXPINDEX"]
     assert hout["FLAGS"].header["MP_PERSIST"] == 17
     n_mp_added += "MP_PERSIST" not in hin["FLAGS"].header
     if "CHECKSUM" in hin["FLAGS"].header:
@@ -112,11 +129,22 @@ for d in (fits_in, fits_out, exported):
     for p in sorted(glob.glob(os.path.join(d, "*.fits"))):
         strict_open(p).close()
         n_fits += 1
+# HDF5's built-in filters (H5Z): anything else would need a plugin.
+BUILTIN_FILTERS = {"gzip", "shuffle", "fletcher32", "scaleoffset", "szip"}
+
+
+def read_dataset(name, obj):
+    if isinstance(obj, h5py.Dataset):
+        extra = set(obj._filters) - BUILTIN_FILTERS
+        assert not extra, f"{name}: filters {extra} need a plugin"
+        obj[...]
+
+
 n_h5 = 0
 for d in h5_dirs:
     for p in sorted(glob.glob(os.path.join(d, "**", "*.h5"), recursive=True)):
         with h5py.File(p, "r") as f:
-            f.visititems(lambda _n, o: o[...] if isinstance(o, h5py.Dataset) else None)
+            f.visititems(read_dataset)
         n_h5 += 1
 print(json.dumps({
     "outputs": len(outputs),
