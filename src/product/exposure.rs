@@ -77,6 +77,20 @@ pub struct PersistenceAttrs {
     pub processed_utc: String,
     /// What this exposure flagged (`None`: an output written before these attributes).
     pub stats: Option<FlagStats>,
+    /// Set on an output of a time-split span that started from zero with a warm-up
+    /// ([`crate::timesplit`]); `None` on every output computed from the whole history.
+    pub warmup: Option<WarmupAttrs>,
+}
+
+/// What an output computed after a warm-up (not from the whole history) records
+/// (attributes of `/persistence`).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct WarmupAttrs {
+    /// Seconds of data stepped from a zero state before the first published exposure.
+    pub warmup_s: f64,
+    /// The most persistence current, e-/s, the history before the warm-up could still
+    /// add to any pixel of this output (the model's bound, [`crate::timesplit`]).
+    pub carry_in_bound_e_per_s: f64,
 }
 
 /// Per-exposure statistics of an output's persistence flags (attributes of

@@ -115,6 +115,13 @@ pub(crate) fn read_l2(
             }),
             _ => None,
         },
+        warmup: match (number("warmup_s"), number("carry_in_bound_e_per_s")) {
+            (w, b) if w.is_finite() && b.is_finite() => Some(crate::product::WarmupAttrs {
+                warmup_s: w,
+                carry_in_bound_e_per_s: b,
+            }),
+            _ => None,
+        },
     };
     let mut errors = errors;
     errors.extend(check_stats(attrs.stats.as_ref(), &flags));
