@@ -119,7 +119,19 @@ impl FlagStats {
 
     /// Counted from a persistence flag plane.
     pub fn of_plane(pflags: &Array2<u8>) -> FlagStats {
-        let count = |b: u8| pflags.iter().filter(|&&f| f & b != 0).count() as u64;
-        FlagStats::from_counts(pflags.len() as u64, count(pbits::HIGH), count(pbits::LOW))
+        use rayon::prelude::*;
+        let block = |c: &[u8]| {
+            c.iter().fold((0u64, 0u64), |(h, l), &f| {
+                (h + u64::from(f & pbits::HIGH != 0), l + u64::from(f & pbits::LOW != 0))
+            })
+        };
+        let (high, low) = match pflags.as_slice() {
+            Some(s) => s
+                .par_chunks(1 << 16)
+                .map(block)
+                .reduce(|| (0, 0), |a, b| (a.0 + b.0, a.1 + b.1)),
+            None => block(&pflags.iter().copied().collect::<Vec<u8>>()),
+        };
+        FlagStats::from_counts(pflags.len() as u64, high, low)
     }
 }
