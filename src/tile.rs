@@ -533,7 +533,9 @@ fn start_state(
             })?,
         ),
         _ if from_start => None,
-        _ => checkpoint::list(&plan.checkpoints, det)?.pop().map(|(_, p)| p),
+        _ => checkpoint::list(&plan.checkpoints, det)?
+            .pop()
+            .map(|(_, p)| p),
     };
     let Some(path) = path else {
         return Ok(None);

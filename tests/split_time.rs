@@ -46,7 +46,10 @@ fn split(input: &Path, dir: &Path, extra: &[&str]) -> String {
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let printed = String::from_utf8_lossy(&o.stdout).into_owned();
     let tiles = std::fs::read_to_string(dir.join("work/tiles.sbatch")).unwrap();
-    assert!(tiles.contains("#SBATCH --array=0-2"), "one task per span\n{tiles}");
+    assert!(
+        tiles.contains("#SBATCH --array=0-2"),
+        "one task per span\n{tiles}"
+    );
     let o = std::process::Command::new("bash")
         .arg(dir.join("work/run_local.sh"))
         .env("SOURCE_DATE_EPOCH", common::SOURCE_DATE_EPOCH)
@@ -90,13 +93,19 @@ fn three_spans_from_zero_stay_within_the_recorded_bound() {
         if k < 12 {
             // Span 0 starts as the run does: exact.
             assert!(ab.warmup.is_none(), "{k}");
-            assert_eq!(std::fs::read(&a).unwrap(), std::fs::read(&b).unwrap(), "{k}");
+            assert_eq!(
+                std::fs::read(&a).unwrap(),
+                std::fs::read(&b).unwrap(),
+                "{k}"
+            );
             continue;
         }
         if k % 12 == 0 {
             released_apart.clear();
         }
-        let w = ab.warmup.unwrap_or_else(|| panic!("{k}: no warm-up recorded"));
+        let w = ab
+            .warmup
+            .unwrap_or_else(|| panic!("{k}: no warm-up recorded"));
         assert!(aa.warmup.is_none());
         assert!(w.warmup_s > 800.0 && w.warmup_s <= 1200.0, "{w:?}");
         let bound = w.carry_in_bound_e_per_s;
@@ -175,7 +184,10 @@ fn spans_that_start_from_a_checkpoint_give_the_sequential_bytes() {
             && printed.contains("span 2: exposures 24..=35 from checkpoint 23 (exact)"),
         "{printed}"
     );
-    let (a, b) = (common::tree(&seq.join("out")), common::tree(&re.join("out")));
+    let (a, b) = (
+        common::tree(&seq.join("out")),
+        common::tree(&re.join("out")),
+    );
     assert_eq!(a.len(), EXPOSURES);
     assert!(a == b, "outputs differ from the sequential run");
     let (ia, pa) = common::newest_checkpoint(&seq, 1).unwrap();

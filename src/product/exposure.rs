@@ -122,7 +122,10 @@ impl FlagStats {
         use rayon::prelude::*;
         let block = |c: &[u8]| {
             c.iter().fold((0u64, 0u64), |(h, l), &f| {
-                (h + u64::from(f & pbits::HIGH != 0), l + u64::from(f & pbits::LOW != 0))
+                (
+                    h + u64::from(f & pbits::HIGH != 0),
+                    l + u64::from(f & pbits::LOW != 0),
+                )
             })
         };
         let (high, low) = match pflags.as_slice() {

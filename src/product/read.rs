@@ -387,7 +387,10 @@ pub(crate) fn check_persistence_data(
         | pbits::HISTORY_INCOMPLETE;
     let pf = elements(pflags);
     let undefined = par_count(&pf, |c| {
-        ((c.iter().fold(0u8, |acc, f| acc | f) & !defined != 0) as usize, 0)
+        (
+            (c.iter().fold(0u8, |acc, f| acc | f) & !defined != 0) as usize,
+            0,
+        )
     })
     .0;
     if undefined > 0 {
