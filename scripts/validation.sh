@@ -125,6 +125,8 @@ page_bench() {
     local kind="the full benchmark"
     if [[ " $bench_args " == *" --quick "* ]]; then
         kind="the quick benchmark (--quick: small sizes, few repetitions; rerun without it on a quiet machine for the sizes of docs/performance.md)"
+    elif [[ -n "$bench_args" ]]; then
+        kind="a part of the full benchmark (the sizes, thread counts and repetitions in the command); rerun with no BENCH_ARGS on a quiet machine for all of them"
     fi
     {
         scripts/validation_header.sh "Validation: performance of the model step and the stage" \

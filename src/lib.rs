@@ -49,6 +49,7 @@ pub mod slurm;
 pub mod stage;
 pub mod stats;
 pub mod tile;
+pub mod timesplit;
 pub mod trapgen;
 pub mod units;
 pub mod validate;

@@ -102,10 +102,15 @@ pub fn write_scripts(plan: &Plan, o: &BatchOptions) -> Result<Scripts> {
     let planw = path_word(&plan_path);
     let n = plan.tasks();
     let tiles = format!(
-        "{}#SBATCH --array=0-{}\n\n# One task per (detector, tile): {} detector(s) x {} tile(s).\nset -euo pipefail\nexec {exe} tile --plan {planw} --task \"$SLURM_ARRAY_TASK_ID\"\n",
+        "{}#SBATCH --array=0-{}\n\n# One task per (detector, {}tile): {} detector(s){} x {} tile(s).\nset -euo pipefail\nexec {exe} tile --plan {planw} --task \"$SLURM_ARRAY_TASK_ID\"\n",
         header("persist-tiles", &logs.join("tile_%a.out"), o),
         n - 1,
+        if plan.time.is_some() { "time span, " } else { "" },
         plan.detectors.len(),
+        plan.time.as_ref().map_or(String::new(), |t| format!(
+            " x up to {} time span(s)",
+            t.spans_requested
+        )),
         plan.grid.count(),
     );
     let assemble = format!(
@@ -213,6 +218,20 @@ pub struct SlurmArgs {
     /// Tiles per detector, ROWSxCOLS (one array task each).
     #[arg(long, default_value = "1x1")]
     pub tiles: Grid,
+    /// Cut each detector's history into N time spans of equal exposure counts (one
+    /// array task per span and tile). A span starts from the retained checkpoint before
+    /// it, else from zero after a warm-up (its outputs record the carry-in bound).
+    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u64).range(1..=100000))]
+    pub time_spans: u64,
+    /// Seconds of data a span that starts from zero steps before its first published
+    /// exposure [default: the model's carry-over time, when one exposure's largest
+    /// response has decayed to the low threshold].
+    #[arg(long)]
+    pub warmup_s: Option<f64>,
+    /// Start every detector from a zero state at its first product instead of its newest
+    /// checkpoint, rewriting published outputs (a reprocessing of the whole input).
+    #[arg(long)]
+    pub from_start: bool,
     /// Continue from checkpoints made with a different model.
     #[arg(long)]
     pub allow_model_change: bool,
@@ -270,7 +289,7 @@ pub struct AssembleArgs {
 /// `persist slurm`: the plan and scripts (printed), submitted with `--submit`.
 pub fn slurm_command(a: &SlurmArgs, model: &crate::model::Model) -> Result<Vec<String>> {
     let mut lines = Vec::new();
-    let plan = Plan::new(
+    let mut plan = Plan::new(
         &a.input,
         &a.output,
         &a.checkpoints,
@@ -285,6 +304,12 @@ pub fn slurm_command(a: &SlurmArgs, model: &crate::model::Model) -> Result<Vec<S
         },
         a.allow_model_change,
     )?;
+    if a.time_spans > 1 || a.from_start {
+        let warmup_s = a
+            .warmup_s
+            .unwrap_or_else(|| crate::timesplit::default_warmup_s(model));
+        plan.split_time(model, a.time_spans as usize, warmup_s, a.from_start)?;
+    }
     let persist = match &a.persist {
         Some(p) => std::path::absolute(p).map_err(|e| Error::io(p, e))?,
         None => std::env::current_exe()
@@ -300,13 +325,40 @@ pub fn slurm_command(a: &SlurmArgs, model: &crate::model::Model) -> Result<Vec<S
     };
     let s = write_scripts(&plan, &o)?;
     lines.push(format!(
-        "plan {}: {} detector(s) x {} tile(s) = {} array task(s), halo {} px",
+        "plan {}: {} detector(s){} x {} tile(s) = {} array task(s), halo {} px",
         s.plan.display(),
         plan.detectors.len(),
+        plan.time.as_ref().map_or(String::new(), |t| format!(
+            " x up to {} time span(s)",
+            t.spans_requested
+        )),
         plan.grid.count(),
         plan.tasks(),
         crate::tile::halo_px(model).map_or("whole array".to_string(), |h| h.to_string())
     ));
+    if let Some(t) = &plan.time {
+        for (d, spans) in &t.spans {
+            for (k, sp) in spans.iter().enumerate() {
+                let how = match &sp.start {
+                    crate::timesplit::SpanStart::Run => "as the run starts (exact)".to_string(),
+                    crate::timesplit::SpanStart::Checkpoint { index } => {
+                        format!("from checkpoint {index} (exact)")
+                    }
+                    crate::timesplit::SpanStart::Warmup {
+                        from,
+                        warmup_s,
+                        carry_in_bound_e_per_s,
+                    } => format!(
+                        "from zero at exposure {from}: warm-up {warmup_s:.0} s, carry-in bound {carry_in_bound_e_per_s:.3e} e-/s"
+                    ),
+                };
+                lines.push(format!(
+                    "detector {d} span {k}: exposures {}..={} {how}",
+                    sp.first, sp.last
+                ));
+            }
+        }
+    }
     for p in [&s.tiles, &s.assemble, &s.submit, &s.run_local] {
         lines.push(format!("wrote {}", p.display()));
     }

@@ -60,6 +60,7 @@ use crate::h5io;
 use crate::model::{Input, Model, ModelParams, Output, State, StepContext};
 use crate::product::{self, ExposureMeta, PersistenceAttrs, PersistencePlanes};
 use crate::stage::run::{file_digest, Bookkeeping, DUPLICATE_WINDOW};
+use crate::timesplit::{Span, SpanStart, TimeSplit};
 use crate::units::DetectorId;
 use ndarray::{s, Array2, Array3, ArrayView2};
 use serde::{Deserialize, Serialize};
@@ -190,6 +191,19 @@ pub struct Plan {
     pub allow_model_change: bool,
     pub keep_latest: usize,
     pub keep_one_per_hour: bool,
+    /// Time spans of each detector ([`crate::timesplit`]); `None`: each detector's
+    /// history in one piece.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub time: Option<TimeSplit>,
+}
+
+/// One job of a plan: a tile of a detector, over one time span (`None`: the whole
+/// history after the start).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Job {
+    pub det: DetectorId,
+    pub span: Option<usize>,
+    pub tile: usize,
 }
 
 impl Plan {
@@ -237,33 +251,118 @@ impl Plan {
             allow_model_change,
             keep_latest: retention.keep_latest,
             keep_one_per_hour: retention.keep_one_per_hour,
+            time: None,
         })
     }
 
-    /// Number of tile jobs: detectors x tiles.
+    /// Cut each detector's history into `n_spans` time spans ([`crate::timesplit`]),
+    /// spans that start from zero stepping `warmup_s` of data first. With `from_start`,
+    /// every detector starts from a zero state at its first product (its checkpoints are
+    /// only used as the starts of later spans) and published outputs are rewritten.
+    pub fn split_time(
+        &mut self,
+        model: &Model,
+        n_spans: usize,
+        warmup_s: f64,
+        from_start: bool,
+    ) -> Result<()> {
+        if n_spans == 0 || !(warmup_s.is_finite() && warmup_s >= 0.0) {
+            return Err(Error::new(
+                ErrorKind::Usage,
+                "time spans must be >= 1 and the warm-up a finite number of seconds >= 0",
+            )
+            .field("time-spans"));
+        }
+        let mut spans = BTreeMap::new();
+        for &d in &self.detectors {
+            let det = DetectorId::new(i64::from(d))
+                .ok_or_else(|| Error::invalid("detectors", format!("{d}: must be 1..=6")))?;
+            let products: BTreeMap<u64, ExposureMeta> = detector_products(&self.input, det)?
+                .into_iter()
+                .map(|(i, (_, m))| (i, m))
+                .collect();
+            let start = if from_start {
+                None
+            } else {
+                checkpoint::list(&self.checkpoints, det)?.pop()
+            };
+            let start = start.as_ref().map(|(i, p)| (*i, p.as_path()));
+            spans.insert(
+                d,
+                crate::timesplit::plan_detector(
+                    model,
+                    &self.checkpoints,
+                    det,
+                    &products,
+                    start,
+                    n_spans,
+                    warmup_s,
+                )?,
+            );
+        }
+        self.time = Some(TimeSplit {
+            spans_requested: n_spans,
+            warmup_s,
+            from_start,
+            spans,
+        });
+        Ok(())
+    }
+
+    /// The time spans of `det` (`None`: not split in time).
+    pub fn spans(&self, det: DetectorId) -> Option<&[Span]> {
+        self.time
+            .as_ref()
+            .map(|t| t.spans.get(&det.0).map_or(&[][..], |v| v.as_slice()))
+    }
+
+    /// The jobs of the plan in task order: detector, then span, then tile.
+    pub fn jobs(&self) -> Vec<Job> {
+        let mut out = Vec::new();
+        for &d in &self.detectors {
+            let Some(det) = DetectorId::new(i64::from(d)) else {
+                continue;
+            };
+            let spans: Vec<Option<usize>> = match self.spans(det) {
+                None => vec![None],
+                Some(s) => (0..s.len()).map(Some).collect(),
+            };
+            for span in spans {
+                for tile in 0..self.grid.count() {
+                    out.push(Job { det, span, tile });
+                }
+            }
+        }
+        out
+    }
+
+    /// Job `n` ([`Plan::jobs`]).
+    pub fn job(&self, n: usize) -> Result<Job> {
+        let jobs = self.jobs();
+        jobs.get(n).copied().ok_or_else(|| {
+            Error::new(
+                ErrorKind::Usage,
+                format!(
+                    "task {n}: the plan has {} tasks (0..{})",
+                    jobs.len(),
+                    jobs.len()
+                ),
+            )
+            .field("task")
+        })
+    }
+
+    /// Number of tile jobs: detectors x tiles (x time spans).
     pub fn tasks(&self) -> usize {
-        self.detectors.len() * self.grid.count()
+        match &self.time {
+            None => self.detectors.len() * self.grid.count(),
+            Some(_) => self.jobs().len(),
+        }
     }
 
     /// The (detector, tile) of job `n`.
     pub fn task(&self, n: usize) -> Result<(DetectorId, usize)> {
-        let t = self.grid.count();
-        let det = self
-            .detectors
-            .get(n / t.max(1))
-            .and_then(|&d| DetectorId::new(i64::from(d)))
-            .ok_or_else(|| {
-                Error::new(
-                    ErrorKind::Usage,
-                    format!(
-                        "task {n}: the plan has {} tasks (0..{})",
-                        self.tasks(),
-                        self.tasks()
-                    ),
-                )
-                .field("task")
-            })?;
-        Ok((det, n % t))
+        self.job(n).map(|j| (j.det, j.tile))
     }
 
     /// The plan's model, checked against its recorded identity.
@@ -332,8 +431,13 @@ impl Plan {
             .join(format!("x{index:010}"))
             .join(format!("t{tile:03}.h5"))
     }
-    fn state_path(&self, det: DetectorId, tile: usize) -> PathBuf {
-        self.det_dir(det).join(format!("state_t{tile:03}.h5"))
+    fn state_path(&self, det: DetectorId, span: Option<usize>, tile: usize) -> PathBuf {
+        match span {
+            None => self.det_dir(det).join(format!("state_t{tile:03}.h5")),
+            Some(k) => self
+                .det_dir(det)
+                .join(format!("state_s{k:03}_t{tile:03}.h5")),
+        }
     }
 }
 
@@ -413,8 +517,27 @@ fn start_state(
     plan: &Plan,
     model: &Model,
     det: DetectorId,
+    span: Option<&Span>,
 ) -> Result<Option<(State, Bookkeeping)>> {
-    let Some((_, path)) = checkpoint::list(&plan.checkpoints, det)?.pop() else {
+    let from_start = plan.time.as_ref().is_some_and(|t| t.from_start);
+    let path = match span.map(|s| &s.start) {
+        Some(SpanStart::Warmup { .. }) => return Ok(None),
+        Some(SpanStart::Checkpoint { index }) => Some(
+            checkpoint::find(&plan.checkpoints, det, *index).ok_or_else(|| {
+                Error::new(
+                    ErrorKind::Checkpoint,
+                    format!("the plan's start checkpoint {index} is gone: write the plan again"),
+                )
+                .path(checkpoint::path_for(&plan.checkpoints, det, *index))
+                .detector(det)
+            })?,
+        ),
+        _ if from_start => None,
+        _ => checkpoint::list(&plan.checkpoints, det)?
+            .pop()
+            .map(|(_, p)| p),
+    };
+    let Some(path) = path else {
         return Ok(None);
     };
     let (meta, state) = checkpoint::load(&path)?;
@@ -512,20 +635,31 @@ pub fn run_tile_with(
     task: usize,
     opts: TileOptions,
 ) -> Result<TileRecord> {
-    let (det, tile) = plan.task(task)?;
+    let Job {
+        det,
+        span: span_k,
+        tile,
+    } = plan.job(task)?;
+    let span = span_k.and_then(|k| plan.spans(det).and_then(|s| s.get(k)));
     let products = detector_products(&plan.input, det)?;
-    let (mut state, mut book) = match start_state(plan, model, det)? {
+    let (mut state, mut book) = match start_state(plan, model, det, span)? {
         Some((s, b)) => (Some(s), b),
         None => (None, Bookkeeping::default()),
     };
     let started_from = state.as_ref().and_then(|s| s.last_index);
+    // A span steps from its start and publishes from its first exposure to its last.
+    let from = match span.map(|s| &s.start) {
+        Some(SpanStart::Warmup { from, .. }) => *from,
+        _ => started_from.map_or(0, |l| l + 1),
+    };
+    let (publish_from, last) = span.map_or((0, u64::MAX), |s| (s.first, s.last));
     let place = opts.placement.unwrap_or_else(|| placement(model));
     let t_cross = model.carry_over_s();
     // Fixed by the first exposure, with the state of the region it steps.
     let mut work: Option<(Geometry, State)> = None;
     let mut exposures = Vec::new();
     let mut planes: Option<(Array2<f32>, Array2<u8>)> = None;
-    for (&index, (path, queued)) in products.range(started_from.map_or(0, |l| l + 1)..) {
+    for (&index, (path, queued)) in products.range(from..=last.max(from)) {
         let fail = |e: Error| e.path(path).detector(det).exposure(index);
         let digest = file_digest(path).map_err(fail)?;
         let exposure = product::read::read_exposure(path).map_err(fail)?;
@@ -616,12 +750,16 @@ pub fn run_tile_with(
         if let Some(prev) = summary.previous_index.filter(|&p| index > p + 1) {
             book.crossed.push((prev + 1, index - 1));
         }
-        if book.first_index.is_none() && exposures.is_empty() && started_from.is_none() {
+        if book.first_index.is_none() && started_from.is_none() {
             book.first_index = Some(index);
         }
         book.digests.insert(index, digest);
         while book.digests.len() > DUPLICATE_WINDOW {
             book.digests.pop_first();
+        }
+        if index < publish_from {
+            // The warm-up (or the replay up to the span): stepped, not published.
+            continue;
         }
         let record = ExposureRecord {
             exposure_index: index,
@@ -663,7 +801,7 @@ pub fn run_tile_with(
         last_index: work.as_ref().and_then(|(_, s)| s.last_index),
     };
     let kept = work.as_ref().map(|(g, s)| crop_state(s, g.core));
-    write_state(&plan.state_path(det, tile), &record, kept.as_ref())?;
+    write_state(&plan.state_path(det, span_k, tile), &record, kept.as_ref())?;
     Ok(record)
 }
 
@@ -782,11 +920,32 @@ pub fn assemble(plan: &Plan, model: &Model, keep_work: bool) -> Result<Vec<Assem
     for &d in &plan.detectors {
         let det = DetectorId::new(i64::from(d))
             .ok_or_else(|| Error::invalid("detectors", format!("{d}: must be 1..=6")))?;
-        loaded.push((det, load_tiles(plan, det)?));
+        let spans: Vec<Option<usize>> = match plan.spans(det) {
+            None => vec![None],
+            Some(s) => (0..s.len()).map(Some).collect(),
+        };
+        let mut per_span = Vec::with_capacity(spans.len());
+        for k in spans {
+            per_span.push((k, load_tiles(plan, det, k)?));
+        }
+        loaded.push((det, per_span));
     }
     let mut done = Vec::new();
-    for (det, tiles) in &loaded {
-        done.push(assemble_detector(plan, model, *det, tiles)?);
+    for (det, per_span) in &loaded {
+        let mut total = Assembled {
+            detector: det.0,
+            ..Default::default()
+        };
+        // In time order: each exact span's final checkpoint is published after its
+        // outputs, and before the next span's.
+        for (k, tiles) in per_span {
+            let span = k.and_then(|k| plan.spans(*det).and_then(|s| s.get(k)));
+            let a = assemble_detector(plan, model, *det, span, tiles)?;
+            total.written += a.written;
+            total.already_published += a.already_published;
+            total.checkpoint = a.checkpoint.or(total.checkpoint);
+        }
+        done.push(total);
     }
     drop(loaded);
     if !keep_work {
@@ -801,17 +960,19 @@ pub fn assemble(plan: &Plan, model: &Model, keep_work: bool) -> Result<Vec<Assem
 /// A detector's tiles: (state file, open file, record), all with tile 0's history.
 type Tiles = Vec<(PathBuf, hdf5::File, TileRecord)>;
 
-fn load_tiles(plan: &Plan, det: DetectorId) -> Result<Tiles> {
+fn load_tiles(plan: &Plan, det: DetectorId, span: Option<usize>) -> Result<Tiles> {
     let n = plan.grid.count();
     let mut tiles = Vec::with_capacity(n);
     for k in 0..n {
-        let path = plan.state_path(det, k);
+        let path = plan.state_path(det, span, k);
         let file = h5io::open(&path).map_err(|e| {
             Error::new(
                 e.kind,
                 format!(
-                    "tile {k} of detector {} has not finished: {}",
-                    det.0, e.message
+                    "tile {k} of detector {}{} has not finished: {}",
+                    det.0,
+                    span.map_or(String::new(), |s| format!(" (time span {s})")),
+                    e.message
                 ),
             )
             .path(&path)
@@ -843,6 +1004,7 @@ fn assemble_detector(
     plan: &Plan,
     model: &Model,
     det: DetectorId,
+    span: Option<&Span>,
     tiles: &Tiles,
 ) -> Result<Assembled> {
     let first = tiles[0].2.clone();
@@ -864,11 +1026,13 @@ fn assemble_detector(
         software_version: crate::VERSION.to_string(),
         processed_utc: plan.processed_utc.clone(),
         stats: Some(product::FlagStats::of_plane(&planes.flags)),
+        warmup: span.and_then(Span::warmup_attrs),
     };
+    let rewrite = plan.time.as_ref().is_some_and(|t| t.from_start);
     std::fs::create_dir_all(&plan.output).map_err(|e| Error::io(&plan.output, e))?;
     for r in &first.exposures {
         let out_path = plan.output.join(r.input.file_name().unwrap_or_default());
-        if out_path.exists() {
+        if out_path.exists() && !rewrite {
             out.already_published += 1;
             continue;
         }
@@ -913,6 +1077,10 @@ fn assemble_detector(
         }
         product::write::write_output(&out_path, &exposure, &planes, &attrs_of(r, &planes))?;
         out.written += 1;
+    }
+    if span.is_some_and(|s| !s.exact()) {
+        // Its state lacks the carry-in from before the warm-up: not a checkpoint.
+        return Ok(out);
     }
     let mut state = model.new_state(ny, nx);
     for (path, f, t) in tiles {

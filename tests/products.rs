@@ -62,6 +62,7 @@ fn planes_for(e: &Exposure) -> (Exposure, PersistencePlanes, PersistenceAttrs) {
         software_version: persist::VERSION.into(),
         processed_utc: "2026-03-02T10:00:00.000000Z".into(),
         stats: None,
+        warmup: None,
     };
     (
         out,

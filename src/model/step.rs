@@ -178,6 +178,13 @@ impl Model {
             .crossing_time_s(self.response.max_e(), self.params.thresholds.low_e_per_s)
             .unwrap_or(f64::INFINITY)
     }
+    /// The largest current, e-/s, that one exposure's response (at most the knot table's
+    /// maximum amplitude, on every term) can still give `age_s` after the reset that
+    /// ended it: the current [`Model::carry_over_s`] brings down to the low threshold.
+    /// Decreasing in `age_s`.
+    pub fn carry_over_e_per_s(&self, age_s: f64) -> f64 {
+        self.response.max_e() * self.sum.unit_current_per_s(age_s.max(0.0))
+    }
     pub fn flag_bits(&self) -> FlagBits {
         self.bits
     }

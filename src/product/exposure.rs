@@ -77,6 +77,20 @@ pub struct PersistenceAttrs {
     pub processed_utc: String,
     /// What this exposure flagged (`None`: an output written before these attributes).
     pub stats: Option<FlagStats>,
+    /// Set on an output of a time-split span that started from zero with a warm-up
+    /// ([`crate::timesplit`]); `None` on every output computed from the whole history.
+    pub warmup: Option<WarmupAttrs>,
+}
+
+/// What an output computed after a warm-up (not from the whole history) records
+/// (attributes of `/persistence`).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct WarmupAttrs {
+    /// Seconds of data stepped from a zero state before the first published exposure.
+    pub warmup_s: f64,
+    /// The most persistence current, e-/s, the history before the warm-up could still
+    /// add to any pixel of this output (the model's bound, [`crate::timesplit`]).
+    pub carry_in_bound_e_per_s: f64,
 }
 
 /// Per-exposure statistics of an output's persistence flags (attributes of
@@ -105,7 +119,22 @@ impl FlagStats {
 
     /// Counted from a persistence flag plane.
     pub fn of_plane(pflags: &Array2<u8>) -> FlagStats {
-        let count = |b: u8| pflags.iter().filter(|&&f| f & b != 0).count() as u64;
-        FlagStats::from_counts(pflags.len() as u64, count(pbits::HIGH), count(pbits::LOW))
+        use rayon::prelude::*;
+        let block = |c: &[u8]| {
+            c.iter().fold((0u64, 0u64), |(h, l), &f| {
+                (
+                    h + u64::from(f & pbits::HIGH != 0),
+                    l + u64::from(f & pbits::LOW != 0),
+                )
+            })
+        };
+        let (high, low) = match pflags.as_slice() {
+            Some(s) => s
+                .par_chunks(1 << 16)
+                .map(block)
+                .reduce(|| (0, 0), |a, b| (a.0 + b.0, a.1 + b.1)),
+            None => block(&pflags.iter().copied().collect::<Vec<u8>>()),
+        };
+        FlagStats::from_counts(pflags.len() as u64, high, low)
     }
 }

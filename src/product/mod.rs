@@ -14,6 +14,8 @@ pub mod schema;
 pub mod synthetic;
 pub mod write;
 
-pub use exposure::{Exposure, ExposureMeta, FlagStats, PersistenceAttrs, PersistencePlanes};
+pub use exposure::{
+    Exposure, ExposureMeta, FlagStats, PersistenceAttrs, PersistencePlanes, WarmupAttrs,
+};
 pub use read::{read_exposure, read_output};
 pub use write::{write_exposure, write_output};

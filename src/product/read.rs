@@ -115,6 +115,13 @@ pub(crate) fn read_l2(
             }),
             _ => None,
         },
+        warmup: match (number("warmup_s"), number("carry_in_bound_e_per_s")) {
+            (w, b) if w.is_finite() && b.is_finite() => Some(crate::product::WarmupAttrs {
+                warmup_s: w,
+                carry_in_bound_e_per_s: b,
+            }),
+            _ => None,
+        },
     };
     let mut errors = errors;
     errors.extend(check_stats(attrs.stats.as_ref(), &flags));
@@ -234,6 +241,20 @@ fn elements<T: Clone>(a: &Array2<T>) -> std::borrow::Cow<'_, [T]> {
     }
 }
 
+/// Elements per block of the parallel value checks.
+const PAR_CHUNK: usize = 1 << 16;
+
+/// Two counts over `a`, block by block in parallel (each block branch-free), summed.
+fn par_count<T: Sync>(
+    a: &[T],
+    count: impl Fn(&[T]) -> (usize, usize) + Sync + Send,
+) -> (usize, usize) {
+    use rayon::prelude::*;
+    a.par_chunks(PAR_CHUNK)
+        .map(&count)
+        .reduce(|| (0, 0), |x, y| (x.0 + y.0, x.1 + y.1))
+}
+
 /// The value checks of an input (`output`: of the input part of an output product):
 /// no +/-Inf in `/image`, at least one finite pixel, no `PERSIST` in an input's
 /// `/flags`, `ramp_times_s` finite and strictly increasing. Errors name the field only.
@@ -246,8 +267,10 @@ pub(crate) fn check_exposure_data(
     let mut errors = Vec::new();
     let img = elements(image);
     // One branch-free pass for the common case; details only when something is wrong.
-    let (infinite, finite) = img.iter().fold((0usize, 0usize), |(i, f), v| {
-        (i + v.is_infinite() as usize, f + v.is_finite() as usize)
+    let (infinite, finite) = par_count(&img, |c| {
+        c.iter().fold((0usize, 0usize), |(i, f), v| {
+            (i + v.is_infinite() as usize, f + v.is_finite() as usize)
+        })
     });
     if infinite > 0 {
         let first = image
@@ -266,10 +289,15 @@ pub(crate) fn check_exposure_data(
         ));
     }
     if !output {
-        let persist = elements(flags)
-            .iter()
-            .map(|f| (*f & bits::PERSIST != 0) as usize)
-            .sum::<usize>();
+        let persist = par_count(&elements(flags), |c| {
+            (
+                c.iter()
+                    .map(|f| (*f & bits::PERSIST != 0) as usize)
+                    .sum::<usize>(),
+                0,
+            )
+        })
+        .0;
         if persist > 0 {
             errors.push(Error::invalid(
                 "/flags",
@@ -335,10 +363,15 @@ pub(crate) fn check_persistence_data(
 ) -> Vec<Error> {
     let mut errors = Vec::new();
     let current = elements(current_e_per_s);
-    let bad_current = current
-        .iter()
-        .map(|c| !(c.is_finite() && *c >= 0.0) as usize)
-        .sum::<usize>();
+    let bad_current = par_count(&current, |c| {
+        (
+            c.iter()
+                .map(|c| !(c.is_finite() && *c >= 0.0) as usize)
+                .sum::<usize>(),
+            0,
+        )
+    })
+    .0;
     if bad_current > 0 {
         if let Some(bad) = current.iter().find(|c| !(c.is_finite() && **c >= 0.0)) {
             errors.push(Error::invalid(
@@ -353,7 +386,14 @@ pub(crate) fn check_persistence_data(
         | pbits::RELEASED
         | pbits::HISTORY_INCOMPLETE;
     let pf = elements(pflags);
-    if pf.iter().fold(0u8, |acc, f| acc | f) & !defined != 0 {
+    let undefined = par_count(&pf, |c| {
+        (
+            (c.iter().fold(0u8, |acc, f| acc | f) & !defined != 0) as usize,
+            0,
+        )
+    })
+    .0;
+    if undefined > 0 {
         if let Some(bad) = pf.iter().find(|f| **f & !defined != 0) {
             errors.push(Error::invalid(
                 "/persistence/flags",
@@ -363,9 +403,15 @@ pub(crate) fn check_persistence_data(
     }
     let f = elements(flags);
     let mismatched = if f.len() == pf.len() {
-        f.iter()
-            .zip(pf.iter())
-            .map(|(f, p)| ((*f & bits::PERSIST != 0) != (*p & pbits::HIGH != 0)) as usize)
+        use rayon::prelude::*;
+        f.par_chunks(PAR_CHUNK)
+            .zip(pf.par_chunks(PAR_CHUNK))
+            .map(|(f, pf)| {
+                f.iter()
+                    .zip(pf)
+                    .map(|(f, p)| ((*f & bits::PERSIST != 0) != (*p & pbits::HIGH != 0)) as usize)
+                    .sum::<usize>()
+            })
             .sum::<usize>()
     } else {
         f.len().max(pf.len())

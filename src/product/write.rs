@@ -99,6 +99,10 @@ pub fn write_output(
                     .map_err(|_| Error::invalid("n_flagged", "does not fit an int64"))?;
                 attr_i64(&g, "n_flagged", n)?;
             }
+            if let Some(w) = &attrs.warmup {
+                attr_f64(&g, "warmup_s", w.warmup_s)?;
+                attr_f64(&g, "carry_in_bound_e_per_s", w.carry_in_bound_e_per_s)?;
+            }
             drop(g);
             file.close()?;
             Ok(())

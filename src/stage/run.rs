@@ -1183,6 +1183,7 @@ impl<'a> Processor<'a> {
                 software_version: crate::VERSION.to_string(),
                 processed_utc: self.cfg.processed_utc.clone(),
                 stats: Some(product::FlagStats::of_plane(&planes.flags)),
+                warmup: None,
             };
             match &fits {
                 Some(read) => crate::fits::write_output(
