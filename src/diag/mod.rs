@@ -1,6 +1,6 @@
 //! Comparing the model with measurements: residuals by covariate and flag quality
 //! ([`compare`]), the search for missing effects ([`diagnose`], against the model or a description
-//! of the measurements fitted from the input, [`reference`]: what the data can test
+//! of the measurements fitted from the input, [`reference`](mod@reference): what the data can test
 //! and what a flexible base's residual depends on, [`contrast`] and [`base`]), the
 //! spatial check ([`spatial`]) and the HTML report ([`report`]). The measurements
 //! themselves ([`data`], [`eval`], [`spread`]) live in [`crate::measure`], which the
