@@ -52,7 +52,7 @@
 
 use crate::error::{Error, Result};
 use crate::measure::data::Sequence;
-use crate::sim::analysis::median;
+use crate::stats::median;
 use ndarray::Array2;
 use serde::Serialize;
 

@@ -411,7 +411,7 @@ pub fn calibrate(seq: &Sequence, cfg: &CalibConfig) -> Result<(ModelParams, Cali
             let bins: Vec<BinResult> = bins.into_iter().map(|b| b.1).collect();
             let r_max = r.iter().copied().fold(0.0, f64::max);
             let fitted: Vec<f64> = r.iter().copied().filter(|v| *v > 0.0).collect();
-            let r_typical = crate::sim::analysis::median(&fitted);
+            let r_typical = crate::stats::median(&fitted);
             if r_typical > dark::MAX_LATE_FRACTION {
                 let t_end = l.spans_s.last().map_or(0.0, |s| s.1);
                 return Err(Error::invalid(
@@ -442,7 +442,7 @@ pub fn calibrate(seq: &Sequence, cfg: &CalibConfig) -> Result<(ModelParams, Cali
                     l.spans_s.last().map_or(f64::NAN, |s| 0.5 * (s.0 + s.1)),
                 ]),
                 late_fraction_max: Some(r_max),
-                median_e_per_s: crate::sim::analysis::median(&levels),
+                median_e_per_s: crate::stats::median(&levels),
                 noise_e_per_s: l.noise_e_per_s,
             };
             (bins, rep)

@@ -57,7 +57,7 @@
 
 use super::data::{fluence, Sequence};
 use super::eval::{bin_of, Samples};
-use crate::sim::analysis::median;
+use crate::stats::median;
 use rand::seq::SliceRandom;
 use rand::SeedableRng;
 use serde::Serialize;

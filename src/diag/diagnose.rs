@@ -187,7 +187,7 @@ use super::spread;
 use crate::error::{Error, ErrorKind, Result};
 use crate::model::effects::REGISTRY;
 use crate::model::params::{EffectSpec, ModelParams};
-use crate::sim::analysis::median;
+use crate::stats::median;
 use rand::{Rng, SeedableRng};
 use rand_distr::StandardNormal;
 use rayon::prelude::*;

@@ -192,7 +192,7 @@ fn ratios_after(
             }
             for members in bins.values() {
                 let v: Vec<f64> = members.iter().map(|&p| r[p]).collect();
-                let med = crate::sim::analysis::median(&v);
+                let med = crate::stats::median(&v);
                 for &p in members {
                     r[p] -= med;
                 }

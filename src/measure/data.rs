@@ -40,7 +40,7 @@
 use crate::error::{Error, ErrorKind, Result};
 use crate::flags::bits;
 use crate::product::{read, Exposure};
-use crate::sim::analysis::median;
+use crate::stats::median;
 use ndarray::Array2;
 use std::path::Path;
 

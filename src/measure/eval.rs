@@ -129,7 +129,7 @@ use super::data::{
 use crate::error::Result;
 use crate::model::effects::blooming::neighbour_excess;
 use crate::model::{Input, Model, ModelParams, Output, StepContext};
-use crate::sim::analysis::median;
+use crate::stats::median;
 use ndarray::Array2;
 use rayon::prelude::*;
 use serde::Serialize;

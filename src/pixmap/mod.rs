@@ -57,7 +57,7 @@ use crate::error::{Error, Result};
 use crate::flags::bits;
 use crate::measure::data::{fluence, Sequence};
 use crate::model::{Input, Model, ModelParams, Output};
-use crate::sim::analysis::median;
+use crate::stats::median;
 use ndarray::{Array2, Array3};
 
 /// Late darks per block, at most (module docs).
