@@ -69,16 +69,17 @@ fn main() {
             .and_then(|i| args.get(i + 1).cloned())
     };
     if let Some(days) = opt("--flight-days") {
-        flight(
-            FlightExperiment {
-                size: opt("--size").map_or(128, |v| v.parse().expect("--size")),
-                seed: opt("--seed").map_or(1, |v| v.parse().expect("--seed")),
-                learn_days: days.split(',').map(|d| d.parse().expect("--flight-days")).collect(),
-                eval_days: opt("--eval-days").map_or(1.0, |v| v.parse().expect("--eval-days")),
-                t_skip_s: 3600.0 * opt("--skip-h").map_or(6.0, |v| v.parse::<f64>().expect("--skip-h")),
-                margin: opt("--margin").map_or(0.8, |v| v.parse().expect("--margin")),
-            },
-        );
+        flight(FlightExperiment {
+            size: opt("--size").map_or(128, |v| v.parse().expect("--size")),
+            seed: opt("--seed").map_or(1, |v| v.parse().expect("--seed")),
+            learn_days: days
+                .split(',')
+                .map(|d| d.parse().expect("--flight-days"))
+                .collect(),
+            eval_days: opt("--eval-days").map_or(1.0, |v| v.parse().expect("--eval-days")),
+            t_skip_s: 3600.0 * opt("--skip-h").map_or(6.0, |v| v.parse::<f64>().expect("--skip-h")),
+            margin: opt("--margin").map_or(0.8, |v| v.parse().expect("--margin")),
+        });
         return;
     }
     let e = Experiment {
@@ -137,8 +138,14 @@ fn flight(e: FlightExperiment) {
         e.margin,
         t.elapsed().as_secs_f64()
     );
-    let g = (rows[0].high.over_flag_fraction(), rows[0].low.over_flag_fraction());
-    let lab = (rows[1].high.over_flag_fraction(), rows[1].low.over_flag_fraction());
+    let g = (
+        rows[0].high.over_flag_fraction(),
+        rows[0].low.over_flag_fraction(),
+    );
+    let lab = (
+        rows[1].high.over_flag_fraction(),
+        rows[1].low.over_flag_fraction(),
+    );
     let red = |x: f64, g: f64, l: f64| {
         if (g - l).abs() > 0.0 {
             format!("{:.2}", (g - x) / (g - l))
@@ -167,7 +174,11 @@ fn flight(e: FlightExperiment) {
         );
     }
     println!("\nPosterior mean ratio above full well per true population of the simulator, over the pixels each map measured (pixels in brackets):\n");
-    let names: Vec<String> = rows[1].ratio_by_population.iter().map(|p| p.0.clone()).collect();
+    let names: Vec<String> = rows[1]
+        .ratio_by_population
+        .iter()
+        .map(|p| p.0.clone())
+        .collect();
     println!("| model | {} |", names.join(" | "));
     println!("|---|{}", "---|".repeat(names.len()));
     for r in rows.iter().skip(1) {

@@ -212,7 +212,11 @@ pub fn lab_campaign() -> Vec<crate::sim::lab::Illumination> {
 pub fn lab_model_and_map(
     size: usize,
     seed: u64,
-) -> crate::Result<(crate::sim::lab::LabConfig, crate::model::ModelParams, super::PixelMap)> {
+) -> crate::Result<(
+    crate::sim::lab::LabConfig,
+    crate::model::ModelParams,
+    super::PixelMap,
+)> {
     use crate::sim::lab;
     let cfg = lab::LabConfig {
         size,
@@ -342,7 +346,12 @@ pub fn true_populations(
     seed: u64,
 ) -> (Array2<u8>, Vec<String>) {
     let truth = crate::sim::traps::draw_pixels(&lab.traps, &lab.detector, size, size, seed, 1);
-    let names = lab.traps.populations.iter().map(|p| p.name.clone()).collect();
+    let names = lab
+        .traps
+        .populations
+        .iter()
+        .map(|p| p.name.clone())
+        .collect();
     (truth.population, names)
 }
 
@@ -362,7 +371,11 @@ pub fn ratio_by_population(
                 .filter(|((y, x), q)| usize::from(**q) == k && map.n_obs[[1, *y, *x]] > 0)
                 .map(|((y, x), _)| f64::from(map.ratio[[1, y, x]]))
                 .collect();
-            (name.clone(), v.iter().sum::<f64>() / v.len().max(1) as f64, v.len())
+            (
+                name.clone(),
+                v.iter().sum::<f64>() / v.len().max(1) as f64,
+                v.len(),
+            )
         })
         .collect()
 }
@@ -469,14 +482,16 @@ impl FlightExperiment {
         })?;
         Ok(eval
             .into_iter()
-            .map(|(name, tr, observed_pixels, observations, ratio_by_population)| FlightRow {
-                name,
-                observed_pixels,
-                observations,
-                high: tr.high,
-                low: tr.low,
-                ratio_by_population,
-            })
+            .map(
+                |(name, tr, observed_pixels, observations, ratio_by_population)| FlightRow {
+                    name,
+                    observed_pixels,
+                    observations,
+                    high: tr.high,
+                    low: tr.low,
+                    ratio_by_population,
+                },
+            )
             .collect())
     }
 }

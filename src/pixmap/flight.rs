@@ -130,7 +130,10 @@ impl FlightLearner {
             if p.detector != detector {
                 return Err(Error::invalid(
                     "detector",
-                    format!("the prior map is detector {}, the flight data {detector}", p.detector),
+                    format!(
+                        "the prior map is detector {}, the flight data {detector}",
+                        p.detector
+                    ),
                 ));
             }
             if p.model_identity != identity {
@@ -204,4 +207,63 @@ impl FlightLearner {
             source: source.to_string(),
         })
     }
+}
+
+/// `persist verify --flight-map OUT --map-model MODEL [--prior-map LAB]`: run the
+/// verification ([`crate::verify::run_observing`]) and learn the first detector's flight
+/// map from its samples, written to `out` with its provenance (`source`: the input and
+/// output directories, the prior map).
+pub fn learn_and_write(
+    input: &std::path::Path,
+    output: &std::path::Path,
+    params: &crate::verify::VerifyParams,
+    out: &std::path::Path,
+    model: Option<&std::path::Path>,
+    prior: Option<&std::path::Path>,
+) -> Result<crate::verify::Report> {
+    let Some(model) = model else {
+        return Err(Error::new(
+            crate::error::ErrorKind::Usage,
+            "--flight-map needs --map-model (the model the stage ran with, without a map)",
+        ));
+    };
+    let mparams = crate::model_file::load(model)?;
+    let prior = prior.map(super::file::read).transpose()?;
+    let cfg = prior
+        .as_ref()
+        .map_or_else(MapConfig::default, |p| p.config.clone());
+    // the first product gives the detector and its shape
+    let first = crate::stage::queue::candidates(output)?
+        .into_iter()
+        .next()
+        .ok_or_else(|| {
+            Error::invalid("products", "no product in the stage's output").path(output)
+        })?;
+    let (e, _, _) = crate::product::read::read_output(&first)?;
+    let (det, (ny, nx)) = (e.meta.detector.0, e.image.dim());
+    let mut learner = FlightLearner::new(ny, nx, &cfg);
+    let report = crate::verify::run_observing(input, output, params, &mut |d, s| {
+        if d == det {
+            learner.add(s);
+        }
+    })?;
+    let source = format!(
+        "flight: verify of {} (stage output {}), {} observations{}",
+        input.display(),
+        output.display(),
+        learner.observations(),
+        if prior.is_some() {
+            "; prior: a laboratory map"
+        } else {
+            ""
+        }
+    );
+    let map = learner
+        .build(det, &mparams, &cfg, prior.as_ref(), &source)
+        .map_err(|e| e.path(out))?;
+    if let Some(d) = out.parent().filter(|d| !d.as_os_str().is_empty()) {
+        std::fs::create_dir_all(d).map_err(|e| Error::io(d, e))?;
+    }
+    super::file::write(out, &map)?;
+    Ok(report)
 }

@@ -227,15 +227,17 @@ impl Acc {
         let measured = s.excess_e_per_s - s.control_e_per_s;
         let pred = s.predicted_excess_e_per_s;
         let w = sample_weight(s.sigma_e_per_s);
-        self.decay
-            .entry((fb, tb))
-            .or_default()
-            .add_weighted(cluster, w, [measured, pred, truth, s.time_s]);
+        self.decay.entry((fb, tb)).or_default().add_weighted(
+            cluster,
+            w,
+            [measured, pred, truth, s.time_s],
+        );
         let above = s.excess_e_per_s > p.threshold_e_per_s + 2.0 * s.sigma_e_per_s;
-        self.flags
-            .entry((tb, s.flagged))
-            .or_default()
-            .add_weighted(cluster, w, [measured, truth, f64::from(u8::from(above))]);
+        self.flags.entry((tb, s.flagged)).or_default().add_weighted(
+            cluster,
+            w,
+            [measured, truth, f64::from(u8::from(above))],
+        );
         if s.first && pred > 0.0 {
             let m = self.margin.entry(fb).or_default();
             m.0.add(cluster, measured / pred);

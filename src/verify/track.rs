@@ -374,7 +374,11 @@ impl Tracker {
             }
         }
         let mean = |(s, n): (f64, usize)| if n > 0 { s / n as f64 } else { 0.0 };
-        let screened = if screened.1 > 0.0 { screened.0 / screened.1 } else { 0.0 };
+        let screened = if screened.1 > 0.0 {
+            screened.0 / screened.1
+        } else {
+            0.0
+        };
         Control {
             raw: mean(raw),
             screened,
