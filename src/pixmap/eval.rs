@@ -324,6 +324,9 @@ pub struct FlightExperiment {
     pub margin: f64,
 }
 
+/// Mean ratio per true population: (name, mean, pixels).
+pub type ByPopulation = Vec<(String, f64, usize)>;
+
 /// One model of a [`FlightExperiment`].
 #[derive(Debug, Clone, serde::Serialize)]
 pub struct FlightRow {
@@ -403,7 +406,7 @@ impl FlightExperiment {
         let mut learner = super::flight::FlightLearner::new(self.size, self.size, &cfg);
         let mut maps: Vec<(String, super::PixelMap, usize)> = Vec::new();
         let mut pending: Vec<f64> = self.learn_days.clone();
-        let mut eval: Vec<(String, Tracker, usize, usize, Vec<(String, f64, usize)>)> = Vec::new();
+        let mut eval: Vec<(String, Tracker, usize, usize, ByPopulation)> = Vec::new();
         let mut t0 = None;
         let mut cur = Array2::<f32>::zeros((self.size, self.size));
         let mut pf = Array2::<u8>::zeros((self.size, self.size));

@@ -180,15 +180,15 @@ impl FlightLearner {
             }
             for (i, o) in obs.iter_mut().enumerate() {
                 let (y, x) = (i / nx, i % nx);
-                for r in 0..2 {
+                for (r, or) in o.iter_mut().enumerate() {
                     if !p.range_measured[r] || p.n_obs[[r, y, x]] == 0 {
                         continue;
                     }
                     let v = f64::from(p.ratio[[r, y, x]]);
                     let s = f64::from(p.ratio_sigma[[r, y, x]]).max(PRIOR_SIGMA_FLOOR);
-                    o[r].sum_wx += v / (s * s);
-                    o[r].sum_w += 1.0 / (s * s);
-                    o[r].n = o[r].n.saturating_add(1);
+                    or.sum_wx += v / (s * s);
+                    or.sum_w += 1.0 / (s * s);
+                    or.n = or.n.saturating_add(1);
                 }
             }
         }
