@@ -35,16 +35,7 @@ fn a_flight_map_from_a_sky_run_is_read_by_the_stage_and_follows_the_true_populat
     persist::sim::sky::run(&cfg, |s| {
         let e = &s.exposure;
         step_exposure(&model, &mut state, e, None, &mut cur, &mut pf)?;
-        let frame = Frame {
-            image: e.image.view(),
-            flags: e.flags.view(),
-            predicted: cur.view(),
-            pflags: pf.view(),
-            truth: None,
-            t_illuminated_s: e.meta.t_illuminated_s(),
-            t_mid_s: e.meta.t_start.0 + 0.5 * e.meta.t_exposure_s,
-            t_reset_s: e.meta.t_start.0 + e.meta.t_exposure_s,
-        };
+        let frame = Frame::of(e, cur.view(), pf.view(), None);
         for sample in follow.observe(&frame) {
             learner.add(&sample);
         }

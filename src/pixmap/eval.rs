@@ -437,16 +437,7 @@ impl FlightExperiment {
             }
             if t < last * DAY_S {
                 super::step_exposure(&global, &mut state, e, None, &mut cur, &mut pf)?;
-                let frame = Frame {
-                    image: e.image.view(),
-                    flags: e.flags.view(),
-                    predicted: cur.view(),
-                    pflags: pf.view(),
-                    truth: None,
-                    t_illuminated_s: e.meta.t_illuminated_s(),
-                    t_mid_s: e.meta.t_start.0 + 0.5 * e.meta.t_exposure_s,
-                    t_reset_s: e.meta.t_start.0 + e.meta.t_exposure_s,
-                };
+                let frame = Frame::of(e, cur.view(), pf.view(), None);
                 for sample in follow.observe(&frame) {
                     learner.add(&sample);
                 }

@@ -192,20 +192,7 @@ impl FlightLearner {
                 }
             }
         }
-        let sh = shrink(&obs, ny, nx, cfg);
-        Ok(PixelMap {
-            detector,
-            model_identity: identity,
-            config: cfg.clone(),
-            ratio: sh.ratio,
-            ratio_sigma: sh.ratio_sigma,
-            ratio_upper: sh.ratio_upper,
-            n_obs: sh.n_obs,
-            prior_grid: sh.prior_grid,
-            prior_weight: sh.prior_weight,
-            range_measured: sh.range_measured,
-            source: source.to_string(),
-        })
+        Ok(shrink(&obs, ny, nx, cfg).into_map(detector, identity, cfg, source.to_string()))
     }
 }
 

@@ -336,19 +336,36 @@ pub fn build(seq: &Sequence, params: &ModelParams, cfg: &MapConfig) -> Result<Pi
         }
     }
     let sh = shrink(&obs, ny, nx, cfg);
-    Ok(PixelMap {
-        detector: seq.exposures[0].meta.detector.0,
-        model_identity: base_identity(params),
-        config: cfg.clone(),
-        ratio: sh.ratio,
-        ratio_sigma: sh.ratio_sigma,
-        ratio_upper: sh.ratio_upper,
-        n_obs: sh.n_obs,
-        prior_grid: sh.prior_grid,
-        prior_weight: sh.prior_weight,
-        range_measured: sh.range_measured,
-        source: String::new(),
-    })
+    Ok(sh.into_map(
+        seq.exposures[0].meta.detector.0,
+        base_identity(params),
+        cfg,
+        String::new(),
+    ))
+}
+
+impl Shrunk {
+    fn into_map(
+        self,
+        detector: u8,
+        model_identity: String,
+        cfg: &MapConfig,
+        source: String,
+    ) -> PixelMap {
+        PixelMap {
+            detector,
+            model_identity,
+            config: cfg.clone(),
+            ratio: self.ratio,
+            ratio_sigma: self.ratio_sigma,
+            ratio_upper: self.ratio_upper,
+            n_obs: self.n_obs,
+            prior_grid: self.prior_grid,
+            prior_weight: self.prior_weight,
+            range_measured: self.range_measured,
+            source,
+        }
+    }
 }
 
 /// A map's arrays from per-pixel combined observations.

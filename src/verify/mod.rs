@@ -361,17 +361,12 @@ pub fn run_observing(
                 continue;
             }
             let truth = read_truth(input, det, *idx);
-            let start = e.meta.t_start.0;
-            let frame = Frame {
-                image: e.image.view(),
-                flags: e.flags.view(),
-                predicted: planes.current_e_per_s.view(),
-                pflags: planes.flags.view(),
-                truth: truth.as_ref().map(|a| a.view()),
-                t_illuminated_s: e.meta.t_illuminated_s(),
-                t_mid_s: start + 0.5 * e.meta.t_exposure_s,
-                t_reset_s: start + e.meta.t_exposure_s,
-            };
+            let frame = Frame::of(
+                &e,
+                planes.current_e_per_s.view(),
+                planes.flags.view(),
+                truth.as_ref().map(|a| a.view()),
+            );
             let before = t.clusters_started();
             for s in t.observe(&frame) {
                 let cluster = (u64::from(det) << 48) | s.cluster;

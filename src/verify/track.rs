@@ -107,6 +107,28 @@ pub struct Frame<'a> {
     pub t_reset_s: f64,
 }
 
+impl<'a> Frame<'a> {
+    /// The frame of exposure `e` with the stage's predicted current and flags for it.
+    pub fn of(
+        e: &'a crate::product::Exposure,
+        predicted: ArrayView2<'a, f32>,
+        pflags: ArrayView2<'a, u8>,
+        truth: Option<ArrayView2<'a, f32>>,
+    ) -> Frame<'a> {
+        let start = e.meta.t_start.0;
+        Frame {
+            image: e.image.view(),
+            flags: e.flags.view(),
+            predicted,
+            pflags,
+            truth,
+            t_illuminated_s: e.meta.t_illuminated_s(),
+            t_mid_s: start + 0.5 * e.meta.t_exposure_s,
+            t_reset_s: start + e.meta.t_exposure_s,
+        }
+    }
+}
+
 /// One measured point of a track.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Sample {
