@@ -189,8 +189,8 @@ pub struct VerifyArgs {
     /// the paper's saturation level; OVERFLOW pixels always are].
     #[arg(long)]
     pub event_fluence_e: Option<f64>,
-    /// Reject a track's sample that rises more than this many noise standard deviations
-    /// above its last accepted one (a source in the pixel).
+    /// Reject a track's sample that rises more than this many standard deviations of the
+    /// difference above its last accepted one floored at zero (a source in the pixel).
     #[arg(long, default_value_t = 3.0)]
     pub spike_nsigma: f64,
     /// Inner and outer Chebyshev radii of the sky annulus, pixels.

@@ -29,13 +29,15 @@
 //! # Stars in the measured pixel
 //! A star that falls on the measured pixel in a later exposure adds to its excess. Charge
 //! released from one event only decays, so a track's excess cannot rise by more than noise:
-//! a sample more than [`TrackParams::spike_nsigma`] noise standard deviations (the
-//! annulus's, from its median absolute deviation) above the last accepted sample of its
-//! track is rejected as a source and counted. Fainter sources pass that screen, and on
-//! average add to the excess. Sources fall where they fall whether or not a pixel saw an
-//! event, so **control pixels** (a grid of pixels with no track, every
-//! [`CONTROL_STRIDE`]-th in each direction) are measured the same way, screened against
-//! their own last value; their mean excess in each exposure ([`Control`]) is what the
+//! a sample more than [`TrackParams::spike_nsigma`] standard deviations of the difference
+//! (its and the last accepted sample's annulus noise) above the last accepted excess
+//! floored at zero is rejected as a source and counted ([`passes_screen`]: why floored).
+//! Fainter sources pass that screen, and on average add to the excess. Sources fall where
+//! they fall whether or not a pixel saw an event, so **control pixels** (a grid of pixels
+//! with no track and no fluence above [`TrackParams::control_lit_fluence_e`] within
+//! [`TrackParams::control_quiet_s`], every [`CONTROL_STRIDE`]-th in each direction) are
+//! measured and screened the same way; their weighted mean excess in each exposure
+//! ([`Control`]) is what the
 //! sources add, and the stacked means subtract it. A new event at the pixel ends the
 //! track and starts another; a cosmic ray (`TRANSIENT`) ends it (the fluence is unknown).
 //!
