@@ -9,7 +9,7 @@
 //! target/release/examples/pixel_map_validation [--size 128] [--seed 1] [--exposures 1143] [--skip-h 6] [--margins 1,1.2,1.5]
 //! ```
 //! Prints the page's body (markdown) on stdout.
-use persist::pixmap::eval::{Experiment, FlagTally, BANDS};
+use persist::pixmap::eval::{Experiment, FlagTally, FlightExperiment, BANDS};
 
 fn pct(x: f64) -> String {
     if x.is_nan() {
@@ -68,6 +68,20 @@ fn main() {
             .position(|a| a == name)
             .and_then(|i| args.get(i + 1).cloned())
     };
+    if let Some(days) = opt("--flight-days") {
+        flight(FlightExperiment {
+            size: opt("--size").map_or(128, |v| v.parse().expect("--size")),
+            seed: opt("--seed").map_or(1, |v| v.parse().expect("--seed")),
+            learn_days: days
+                .split(',')
+                .map(|d| d.parse().expect("--flight-days"))
+                .collect(),
+            eval_days: opt("--eval-days").map_or(1.0, |v| v.parse().expect("--eval-days")),
+            t_skip_s: 3600.0 * opt("--skip-h").map_or(6.0, |v| v.parse::<f64>().expect("--skip-h")),
+            margin: opt("--margin").map_or(0.8, |v| v.parse().expect("--margin")),
+        });
+        return;
+    }
     let e = Experiment {
         size: opt("--size").map_or(128, |v| v.parse().expect("--size")),
         seed: opt("--seed").map_or(1, |v| v.parse().expect("--seed")),
@@ -105,5 +119,74 @@ fn main() {
     println!("| population | pixels | mean ratio |\n|---|---|---|");
     for (name, mean, n) in &r.saturated_ratio_by_population {
         println!("| {name} | {n} | {mean:.3} |");
+    }
+}
+
+/// The flight maps' table (`--flight-days`).
+fn flight(e: FlightExperiment) {
+    let t = std::time::Instant::now();
+    let rows = e.run().expect("flight experiment");
+    println!(
+        "Detector 1, {0} x {0} pixels, seed {1}: flight maps learned from the first {2:?} days of sky \
+         (global model's flags, `verify`'s tracks), then every model flags the next {3} days, \
+         tallied from {4} h after that start; map margin {5}. Computed in {6:.0} s.\n",
+        e.size,
+        e.seed,
+        e.learn_days,
+        e.eval_days,
+        e.t_skip_s / 3600.0,
+        e.margin,
+        t.elapsed().as_secs_f64()
+    );
+    let g = (
+        rows[0].high.over_flag_fraction(),
+        rows[0].low.over_flag_fraction(),
+    );
+    let lab = (
+        rows[1].high.over_flag_fraction(),
+        rows[1].low.over_flag_fraction(),
+    );
+    let red = |x: f64, g: f64, l: f64| {
+        if (g - l).abs() > 0.0 {
+            format!("{:.2}", (g - x) / (g - l))
+        } else {
+            "-".into()
+        }
+    };
+    println!("Reduction relative to the laboratory map's: (global's over-flagged - this one's) / (global's - the laboratory map's); 1 = the laboratory map's reduction.\n");
+    println!("| model | pixels measured (saturated) | flight observations | over-flagged at 0.1 | / global's | reduction vs lab map's | missed at 0.1, all | over-flagged at 0.01 | / global's | reduction vs lab map's | missed at 0.01, all |");
+    println!("|---|---|---|---|---|---|---|---|---|---|---|");
+    for r in &rows {
+        let (h, l) = (r.high.over_flag_fraction(), r.low.over_flag_fraction());
+        println!(
+            "| {} | {} | {} | {} | {:.2} | {} | {} | {} | {:.2} | {} | {} |",
+            r.name,
+            r.observed_pixels,
+            r.observations,
+            pct(h),
+            h / g.0,
+            red(h, g.0, lab.0),
+            pct(r.high.missed_fraction_all()),
+            pct(l),
+            l / g.1,
+            red(l, g.1, lab.1),
+            pct(r.low.missed_fraction_all())
+        );
+    }
+    println!("\nPosterior mean ratio above full well per true population of the simulator, over the pixels each map measured (pixels in brackets):\n");
+    let names: Vec<String> = rows[1]
+        .ratio_by_population
+        .iter()
+        .map(|p| p.0.clone())
+        .collect();
+    println!("| model | {} |", names.join(" | "));
+    println!("|---|{}", "---|".repeat(names.len()));
+    for r in rows.iter().skip(1) {
+        let cells: Vec<String> = r
+            .ratio_by_population
+            .iter()
+            .map(|(_, m, n)| format!("{m:.3} ({n})"))
+            .collect();
+        println!("| {} | {} |", r.name, cells.join(" | "));
     }
 }

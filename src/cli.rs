@@ -189,8 +189,8 @@ pub struct VerifyArgs {
     /// the paper's saturation level; OVERFLOW pixels always are].
     #[arg(long)]
     pub event_fluence_e: Option<f64>,
-    /// Reject a track's sample that rises more than this many noise standard deviations
-    /// above its last accepted one (a source in the pixel).
+    /// Reject a track's sample that rises more than this many standard deviations of the
+    /// difference above its last accepted one floored at zero (a source in the pixel).
     #[arg(long, default_value_t = 3.0)]
     pub spike_nsigma: f64,
     /// Inner and outer Chebyshev radii of the sky annulus, pixels.
@@ -199,6 +199,17 @@ pub struct VerifyArgs {
     /// Seed of the bootstrap over events.
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
+    /// Also learn each pixel's response from the tracks and write it as a per-pixel map
+    /// (HDF5, the laboratory map's format; one detector: the first found). Needs
+    /// `--map-model`.
+    #[arg(long)]
+    pub flight_map: Option<PathBuf>,
+    /// The model the stage ran with, without a map: the flight map is measured against it.
+    #[arg(long)]
+    pub map_model: Option<PathBuf>,
+    /// A laboratory map of the same detector to start the flight map from.
+    #[arg(long)]
+    pub prior_map: Option<PathBuf>,
 }
 
 #[derive(Subcommand, Debug)]
@@ -880,7 +891,17 @@ fn verify(a: &VerifyArgs) -> persist::Result<ExitCode> {
         p.track.annulus_inner_px = inner;
         p.track.annulus_outer_px = outer;
     }
-    let r = persist::verify::run(&a.input, &a.output, &p)?;
+    let r = match &a.flight_map {
+        None => persist::verify::run(&a.input, &a.output, &p)?,
+        Some(out) => persist::pixmap::flight::learn_and_write(
+            &a.input,
+            &a.output,
+            &p,
+            out,
+            a.map_model.as_deref(),
+            a.prior_map.as_deref(),
+        )?,
+    };
     persist::verify::write_report(&r, &a.report)?;
     let c = &r.checks;
     out!(

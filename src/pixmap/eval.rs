@@ -206,25 +206,40 @@ pub fn lab_campaign() -> Vec<crate::sim::lab::Illumination> {
     vec![i(1.0, 30), i(5.0, 10), i(20.0, 10)]
 }
 
+/// The laboratory half of the measurement: [`lab_campaign`] on the simulated detector
+/// `(size, seed)`, the global model calibrated on it (`persist fit`'s calibration) and
+/// the per-pixel map measured against that model.
+pub fn lab_model_and_map(
+    size: usize,
+    seed: u64,
+) -> crate::Result<(
+    crate::sim::lab::LabConfig,
+    crate::model::ModelParams,
+    super::PixelMap,
+)> {
+    use crate::sim::lab;
+    let cfg = lab::LabConfig {
+        size,
+        seed,
+        campaign: Some(lab_campaign()),
+        paper_pattern: Some(lab::PaperPattern { dark_pixels: false }),
+        ..lab::LabConfig::default()
+    };
+    let mut exposures = Vec::new();
+    lab::run(&cfg, |s| {
+        exposures.push(s.exposure);
+        Ok(())
+    })?;
+    let seq = crate::measure::data::Sequence::from_exposures(exposures)?;
+    let (params, _) = crate::calib::calibrate(&seq, &crate::calib::CalibConfig::default())?;
+    let map = super::build(&seq, &params, &super::MapConfig::default())?;
+    Ok((cfg, params, map))
+}
+
 impl Experiment {
     pub fn run(&self) -> crate::Result<ExperimentResult> {
-        use crate::sim::{lab, sky};
-        let cfg = lab::LabConfig {
-            size: self.size,
-            seed: self.seed,
-            campaign: Some(lab_campaign()),
-            paper_pattern: Some(lab::PaperPattern { dark_pixels: false }),
-            ..lab::LabConfig::default()
-        };
-        let mut exposures = Vec::new();
-        lab::run(&cfg, |s| {
-            exposures.push(s.exposure);
-            Ok(())
-        })?;
-        let seq = crate::measure::data::Sequence::from_exposures(exposures)?;
-        let (params, _) = crate::calib::calibrate(&seq, &crate::calib::CalibConfig::default())?;
-        let map = super::build(&seq, &params, &super::MapConfig::default())?;
-        drop(seq);
+        use crate::sim::sky;
+        let (cfg, params, map) = lab_model_and_map(self.size, self.seed)?;
         let global = Model::new(params.clone())?;
         let mut trackers = vec![Tracker::new(global, self.t_skip_s)];
         for &m in &self.margins {
@@ -286,5 +301,191 @@ impl Experiment {
                 .collect(),
             saturated_ratio_by_population: by_pop,
         })
+    }
+}
+
+/// The flight map's measurement (docs/validation/pixel_map.md, "Learned in flight"): one
+/// simulated detector's laboratory sequence gives the global model and the laboratory
+/// map ([`lab_model_and_map`]); its sky is flagged by the global model and followed by
+/// `verify`'s tracker, whose samples a [`super::flight::FlightLearner`] accumulates; after
+/// each of `learn_days` a flight map is built (alone, and starting from the laboratory
+/// map). From the last learning day on, the global model, the laboratory map and every
+/// flight map flag the next `eval_days` of sky (sky none of them learned from), each
+/// started there, tallied from `t_skip_s` after that start against the truth.
+#[derive(Debug, Clone)]
+pub struct FlightExperiment {
+    pub size: usize,
+    pub seed: u64,
+    /// Days of sky learned from, ascending.
+    pub learn_days: Vec<f64>,
+    pub eval_days: f64,
+    pub t_skip_s: f64,
+    /// The margin of every map model.
+    pub margin: f64,
+}
+
+/// Mean ratio per true population: (name, mean, pixels).
+pub type ByPopulation = Vec<(String, f64, usize)>;
+
+/// One model of a [`FlightExperiment`].
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct FlightRow {
+    pub name: String,
+    /// Pixels with a flight (or laboratory) observation in the saturated range.
+    pub observed_pixels: usize,
+    /// Flight observations used.
+    pub observations: usize,
+    pub high: FlagTally,
+    pub low: FlagTally,
+    /// Mean posterior ratio (saturated range) of the observed pixels per true population
+    /// of the simulator: (name, mean, pixels).
+    pub ratio_by_population: Vec<(String, f64, usize)>,
+}
+
+/// Every pixel's true population index, `[ny, nx]`.
+pub fn true_populations(
+    lab: &crate::sim::lab::LabConfig,
+    size: usize,
+    seed: u64,
+) -> (Array2<u8>, Vec<String>) {
+    let truth = crate::sim::traps::draw_pixels(&lab.traps, &lab.detector, size, size, seed, 1);
+    let names = lab
+        .traps
+        .populations
+        .iter()
+        .map(|p| p.name.clone())
+        .collect();
+    (truth.population, names)
+}
+
+/// Mean of `map`'s saturated-range ratio per true population over the pixels it
+/// observed.
+pub fn ratio_by_population(
+    map: &super::PixelMap,
+    pop: &Array2<u8>,
+    names: &[String],
+) -> Vec<(String, f64, usize)> {
+    names
+        .iter()
+        .enumerate()
+        .map(|(k, name)| {
+            let v: Vec<f64> = pop
+                .indexed_iter()
+                .filter(|((y, x), q)| usize::from(**q) == k && map.n_obs[[1, *y, *x]] > 0)
+                .map(|((y, x), _)| f64::from(map.ratio[[1, y, x]]))
+                .collect();
+            (
+                name.clone(),
+                v.iter().sum::<f64>() / v.len().max(1) as f64,
+                v.len(),
+            )
+        })
+        .collect()
+}
+
+impl FlightExperiment {
+    pub fn run(&self) -> crate::Result<Vec<FlightRow>> {
+        use crate::sim::sky;
+        use crate::verify::track::{Frame, TrackParams, Tracker as Follow};
+        const DAY_S: f64 = 86_400.0;
+        let (lab, params, lab_map) = lab_model_and_map(self.size, self.seed)?;
+        let (pop, names) = true_populations(&lab, self.size, self.seed);
+        let cfg = super::MapConfig::default();
+        let last = self.learn_days.iter().copied().fold(0.0, f64::max);
+        let mut sky_cfg = sky::SkyConfig {
+            size: self.size,
+            detectors: 1,
+            seed: self.seed,
+            ..sky::SkyConfig::default()
+        };
+        // 1143 exposures in the simulator's two days
+        sky_cfg.exposures = ((last + self.eval_days) * 1143.0 / 2.0).ceil() as u64 + 1;
+        let global = Model::new(params.clone())?;
+        let mut state = global.new_state(self.size, self.size);
+        let mut follow = Follow::new(TrackParams::default(), self.size, self.size);
+        let mut learner = super::flight::FlightLearner::new(self.size, self.size, &cfg);
+        let mut maps: Vec<(String, super::PixelMap, usize)> = Vec::new();
+        let mut pending: Vec<f64> = self.learn_days.clone();
+        let mut eval: Vec<(String, Tracker, usize, usize, ByPopulation)> = Vec::new();
+        let mut t0 = None;
+        let mut cur = Array2::<f32>::zeros((self.size, self.size));
+        let mut pf = Array2::<u8>::zeros((self.size, self.size));
+        let with_map = |map: &super::PixelMap| -> crate::Result<Model> {
+            let r = super::file::response(map, self.margin)
+                .map_err(|e| crate::Error::invalid("margin", e))?;
+            Model::new(params.clone())?
+                .with_pixel_maps([(1u8, r)].into_iter().collect())
+                .for_detector(1)
+        };
+        sky::run(&sky_cfg, |s| {
+            let e = &s.exposure;
+            let t = e.meta.t_start.0 - *t0.get_or_insert(e.meta.t_start.0);
+            while pending.first().is_some_and(|d| t >= d * DAY_S) {
+                let d = pending.remove(0);
+                let n = learner.observations();
+                let src = format!("simulated sky, seed {}, first {d} days", self.seed);
+                let m = learner.build(1, &params, &cfg, None, &format!("flight: {src}"))?;
+                maps.push((format!("flight map, {d} days"), m, n));
+                let m = learner.build(
+                    1,
+                    &params,
+                    &cfg,
+                    Some(&lab_map),
+                    &format!("flight: {src}; prior: laboratory map"),
+                )?;
+                maps.push((format!("laboratory map + flight, {d} days"), m, n));
+            }
+            if t < last * DAY_S {
+                super::step_exposure(&global, &mut state, e, None, &mut cur, &mut pf)?;
+                let frame = Frame::of(e, cur.view(), pf.view(), None);
+                for sample in follow.observe(&frame) {
+                    learner.add(&sample);
+                }
+                return Ok(());
+            }
+            if eval.is_empty() {
+                let obs = |m: &super::PixelMap| super::file::observed(m)[1];
+                eval.push((
+                    "global (95th percentile x 1.2)".into(),
+                    Tracker::new(Model::new(params.clone())?, self.t_skip_s),
+                    0,
+                    0,
+                    Vec::new(),
+                ));
+                eval.push((
+                    "laboratory map".into(),
+                    Tracker::new(with_map(&lab_map)?, self.t_skip_s),
+                    obs(&lab_map),
+                    0,
+                    ratio_by_population(&lab_map, &pop, &names),
+                ));
+                for (name, m, n) in &maps {
+                    eval.push((
+                        name.clone(),
+                        Tracker::new(with_map(m)?, self.t_skip_s),
+                        obs(m),
+                        *n,
+                        ratio_by_population(m, &pop, &names),
+                    ));
+                }
+            }
+            for (_, tr, ..) in eval.iter_mut() {
+                tr.step(&s)?;
+            }
+            Ok(())
+        })?;
+        Ok(eval
+            .into_iter()
+            .map(
+                |(name, tr, observed_pixels, observations, ratio_by_population)| FlightRow {
+                    name,
+                    observed_pixels,
+                    observations,
+                    high: tr.high,
+                    low: tr.low,
+                    ratio_by_population,
+                },
+            )
+            .collect())
     }
 }

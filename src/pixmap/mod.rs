@@ -52,6 +52,7 @@
 pub mod command;
 pub mod eval;
 pub mod file;
+pub mod flight;
 
 use crate::error::{Error, Result};
 use crate::flags::bits;
@@ -334,6 +335,53 @@ pub fn build(seq: &Sequence, params: &ModelParams, cfg: &MapConfig) -> Result<Pi
             o.n = o.n.saturating_add(1);
         }
     }
+    let sh = shrink(&obs, ny, nx, cfg);
+    Ok(sh.into_map(
+        seq.exposures[0].meta.detector.0,
+        base_identity(params),
+        cfg,
+        String::new(),
+    ))
+}
+
+impl Shrunk {
+    fn into_map(
+        self,
+        detector: u8,
+        model_identity: String,
+        cfg: &MapConfig,
+        source: String,
+    ) -> PixelMap {
+        PixelMap {
+            detector,
+            model_identity,
+            config: cfg.clone(),
+            ratio: self.ratio,
+            ratio_sigma: self.ratio_sigma,
+            ratio_upper: self.ratio_upper,
+            n_obs: self.n_obs,
+            prior_grid: self.prior_grid,
+            prior_weight: self.prior_weight,
+            range_measured: self.range_measured,
+            source,
+        }
+    }
+}
+
+/// A map's arrays from per-pixel combined observations.
+struct Shrunk {
+    ratio: Array3<f32>,
+    ratio_sigma: Array3<f32>,
+    ratio_upper: Array3<f32>,
+    n_obs: Array3<u8>,
+    prior_grid: Array2<f64>,
+    prior_weight: Array2<f64>,
+    range_measured: [bool; 2],
+}
+
+/// Per range: the prior (NPMLE on the observed pixels), then every pixel's posterior,
+/// relative to the prior's [`REFERENCE_QUANTILE`] (module docs). `obs[y * nx + x]`.
+fn shrink(obs: &[[Obs; 2]], ny: usize, nx: usize, cfg: &MapConfig) -> Shrunk {
     // per range: the prior, then every pixel's posterior
     let all: Vec<(f64, f64)> = obs
         .iter()
@@ -409,10 +457,7 @@ pub fn build(seq: &Sequence, params: &ModelParams, cfg: &MapConfig) -> Result<Pi
             }
         }
     }
-    Ok(PixelMap {
-        detector: seq.exposures[0].meta.detector.0,
-        model_identity: base_identity(params),
-        config: cfg.clone(),
+    Shrunk {
         ratio,
         ratio_sigma,
         ratio_upper,
@@ -420,10 +465,8 @@ pub fn build(seq: &Sequence, params: &ModelParams, cfg: &MapConfig) -> Result<Pi
         prior_grid,
         prior_weight,
         range_measured,
-        source: String::new(),
-    })
+    }
 }
-
 /// The `q` quantile of `v` (nearest rank; 0 when empty).
 fn quantile_of(mut v: Vec<f64>, q: f64) -> f64 {
     v.retain(|x| x.is_finite());

@@ -68,6 +68,14 @@ pub struct VerifyParams {
     /// this (or by less than two standard errors). Over the two decades of time the check
     /// spans, 0.05 in slope is 26 % in current.
     pub slope_tolerance: f64,
+    /// The decay's slope is fitted over the time bins whose measured mean is at least
+    /// this fraction of the threshold (and above three standard errors): the decay
+    /// where the flag is decided. Further down, the flight data measure what the flag
+    /// does not depend on: a model fitted on a laboratory sequence of 30 darks (1.5 h)
+    /// has no time constant for the tail beyond a few hours, and its prediction falls
+    /// away there (on the simulated sky, from 0.05 e-/s measured to 0.003 predicted at
+    /// 3 to 4 h), which says nothing about its flags at 0.1 e-/s.
+    pub slope_floor_fraction: f64,
     /// Seed of the bootstraps.
     pub seed: u64,
 }
@@ -85,6 +93,7 @@ impl Default for VerifyParams {
             design_margin: 1.2,
             margin_factor: std::f64::consts::SQRT_2,
             slope_tolerance: 0.05,
+            slope_floor_fraction: 1.0,
             seed: 1,
         }
     }
@@ -217,15 +226,18 @@ impl Acc {
         self.samples += 1;
         let measured = s.excess_e_per_s - s.control_e_per_s;
         let pred = s.predicted_excess_e_per_s;
-        self.decay
-            .entry((fb, tb))
-            .or_default()
-            .add(cluster, [measured, pred, truth, s.time_s]);
+        let w = sample_weight(s.sigma_e_per_s);
+        self.decay.entry((fb, tb)).or_default().add_weighted(
+            cluster,
+            w,
+            [measured, pred, truth, s.time_s],
+        );
         let above = s.excess_e_per_s > p.threshold_e_per_s + 2.0 * s.sigma_e_per_s;
-        self.flags
-            .entry((tb, s.flagged))
-            .or_default()
-            .add(cluster, [measured, truth, f64::from(u8::from(above))]);
+        self.flags.entry((tb, s.flagged)).or_default().add_weighted(
+            cluster,
+            w,
+            [measured, truth, f64::from(u8::from(above))],
+        );
         if s.first && pred > 0.0 {
             let m = self.margin.entry(fb).or_default();
             m.0.add(cluster, measured / pred);
@@ -234,6 +246,21 @@ impl Acc {
         }
     }
 }
+
+/// A sample's weight in the stacks: inverse variance, from the noise of its annulus
+/// (not of the pixel itself, so the weight does not depend on the sample's own noise
+/// draw), with the noise floored at [`SIGMA_FLOOR_E_PER_S`]. A crowded field's annulus
+/// (a Galactic-plane field, a bright star's halo) is a far worse sky estimate than a
+/// quiet one: 8 % of the samples of the two-day simulated sky have a noise above
+/// 0.25 e-/s, ten times the variance of the others; unweighted they dominate the
+/// means' scatter. The prediction and the truth are stacked with the same weights.
+pub fn sample_weight(sigma_e_per_s: f64) -> f64 {
+    1.0 / sigma_e_per_s.max(SIGMA_FLOOR_E_PER_S).powi(2)
+}
+
+/// The noise below which samples are not weighted up further, e-/s: a line fit over a
+/// 112 s exposure reads its sky with about this noise at least (read noise alone).
+pub const SIGMA_FLOOR_E_PER_S: f64 = 0.02;
 
 /// The (detector, exposure index) of an output product, from its root attributes only.
 fn peek(path: &Path) -> Result<(u8, u64)> {
@@ -275,6 +302,18 @@ fn read_truth(input: &Path, det: u8, idx: u64) -> Option<Array2<f32>> {
 /// image and flags unchanged); `input` is the stage's input directory, whose `truth/` is
 /// used when present.
 pub fn run(input: &Path, output: &Path, params: &VerifyParams) -> Result<Report> {
+    run_observing(input, output, params, &mut |_, _| {})
+}
+
+/// [`run`], handing every sample (with its detector) to `observe` as well, in the order
+/// they are measured (detector, exposure, pixel): what [`crate::pixmap::flight`] learns
+/// each pixel's response from.
+pub fn run_observing(
+    input: &Path,
+    output: &Path,
+    params: &VerifyParams,
+    observe: &mut dyn FnMut(u8, &Sample),
+) -> Result<Report> {
     if !input.is_dir() {
         return Err(Error::new(ErrorKind::Usage, "input is not a directory").path(input));
     }
@@ -322,21 +361,17 @@ pub fn run(input: &Path, output: &Path, params: &VerifyParams) -> Result<Report>
                 continue;
             }
             let truth = read_truth(input, det, *idx);
-            let start = e.meta.t_start.0;
-            let frame = Frame {
-                image: e.image.view(),
-                flags: e.flags.view(),
-                predicted: planes.current_e_per_s.view(),
-                pflags: planes.flags.view(),
-                truth: truth.as_ref().map(|a| a.view()),
-                t_illuminated_s: e.meta.t_illuminated_s(),
-                t_mid_s: start + 0.5 * e.meta.t_exposure_s,
-                t_reset_s: start + e.meta.t_exposure_s,
-            };
+            let frame = Frame::of(
+                &e,
+                planes.current_e_per_s.view(),
+                planes.flags.view(),
+                truth.as_ref().map(|a| a.view()),
+            );
             let before = t.clusters_started();
             for s in t.observe(&frame) {
                 let cluster = (u64::from(det) << 48) | s.cluster;
                 acc.add(params, &s, cluster);
+                observe(det, &s);
             }
             events += t.clusters_started() - before;
             exposures += 1;
@@ -485,11 +520,14 @@ fn slope(x: &[f64], y: &[f64], sigma_y: &[f64]) -> Mean {
 }
 
 /// Per fluence bin, the log-log slopes of the measured and predicted decay over the time
-/// bins where the measurement stands above three standard errors.
-fn slopes(decay: &[DecayBin]) -> Vec<SlopeBin> {
+/// bins where the measurement stands above three standard errors and above `floor_e_per_s`.
+fn slopes(decay: &[DecayBin], floor_e_per_s: f64) -> Vec<SlopeBin> {
     let mut by_f: BTreeMap<u64, Vec<&DecayBin>> = BTreeMap::new();
     for b in decay {
-        if b.measured.mean > 3.0 * b.measured.se && b.predicted.mean > 0.0 {
+        if b.measured.mean > 3.0 * b.measured.se
+            && b.measured.mean >= floor_e_per_s
+            && b.predicted.mean > 0.0
+        {
             by_f.entry(b.fluence_lo_e.to_bits()).or_default().push(b);
         }
     }
@@ -523,7 +561,7 @@ fn slopes(decay: &[DecayBin]) -> Vec<SlopeBin> {
 
 /// The decay and margin checks (module docs).
 fn checks(p: &VerifyParams, decay: &[DecayBin], acc: &Acc) -> Checks {
-    let slopes = slopes(decay);
+    let slopes = slopes(decay, p.slope_floor_fraction * p.threshold_e_per_s);
     let (mut sw, mut s) = (0.0, 0.0);
     for b in &slopes {
         let w = 1.0 / b.measured.se.powi(2);

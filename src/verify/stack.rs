@@ -19,7 +19,10 @@ pub const MIN_CLUSTERS: usize = 5;
 /// Sums of `N` columns and a count, per cluster.
 #[derive(Debug, Clone)]
 pub struct Sums<const N: usize> {
+    /// Sum of the weights.
     pub n: f64,
+    /// Samples.
+    pub count: usize,
     pub s: [f64; N],
 }
 
@@ -27,6 +30,7 @@ impl<const N: usize> Default for Sums<N> {
     fn default() -> Self {
         Sums {
             n: 0.0,
+            count: 0,
             s: [0.0; N],
         }
     }
@@ -55,22 +59,28 @@ pub struct Mean {
 
 impl<const N: usize> Bin<N> {
     pub fn add(&mut self, cluster: u64, values: [f64; N]) {
+        self.add_weighted(cluster, 1.0, values);
+    }
+
+    /// Add one sample of weight `w` (> 0, finite): the means become weighted means.
+    pub fn add_weighted(&mut self, cluster: u64, w: f64, values: [f64; N]) {
         let c = self.clusters.entry(cluster).or_default();
-        c.n += 1.0;
+        c.n += w;
+        c.count += 1;
         for (a, v) in c.s.iter_mut().zip(values) {
-            *a += v;
+            *a += w * v;
         }
     }
 
     pub fn samples(&self) -> usize {
-        self.clusters.values().map(|c| c.n as usize).sum()
+        self.clusters.values().map(|c| c.count).sum()
     }
 
     pub fn clusters(&self) -> usize {
         self.clusters.len()
     }
 
-    /// Means of `f(column sums) / count` for each requested linear combination of
+    /// Means of `f(column sums) / (sum of weights)` for each requested linear combination of
     /// columns, with bootstrap standard errors; `None` with too few clusters.
     pub fn means<const K: usize>(&self, weights: [[f64; N]; K], seed: u64) -> Option<[Mean; K]> {
         if self.clusters.len() < MIN_CLUSTERS {

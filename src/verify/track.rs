@@ -29,13 +29,15 @@
 //! # Stars in the measured pixel
 //! A star that falls on the measured pixel in a later exposure adds to its excess. Charge
 //! released from one event only decays, so a track's excess cannot rise by more than noise:
-//! a sample more than [`TrackParams::spike_nsigma`] noise standard deviations (the
-//! annulus's, from its median absolute deviation) above the last accepted sample of its
-//! track is rejected as a source and counted. Fainter sources pass that screen, and on
-//! average add to the excess. Sources fall where they fall whether or not a pixel saw an
-//! event, so **control pixels** (a grid of pixels with no track, every
-//! [`CONTROL_STRIDE`]-th in each direction) are measured the same way, screened against
-//! their own last value; their mean excess in each exposure ([`Control`]) is what the
+//! a sample more than [`TrackParams::spike_nsigma`] standard deviations of the difference
+//! (its and the last accepted sample's annulus noise) above the last accepted excess
+//! floored at zero is rejected as a source and counted ([`passes_screen`]: why floored).
+//! Fainter sources pass that screen, and on average add to the excess. Sources fall where
+//! they fall whether or not a pixel saw an event, so **control pixels** (a grid of pixels
+//! with no track and no fluence above [`TrackParams::control_lit_fluence_e`] within
+//! [`TrackParams::control_quiet_s`], every [`CONTROL_STRIDE`]-th in each direction) are
+//! measured and screened the same way; their weighted mean excess in each exposure
+//! ([`Control`]) is what the
 //! sources add, and the stacked means subtract it. A new event at the pixel ends the
 //! track and starts another; a cosmic ray (`TRANSIENT`) ends it (the fluence is unknown).
 //!
@@ -63,6 +65,12 @@ pub struct TrackParams {
     pub spike_nsigma: f64,
     /// Tracks end this long after their event, s.
     pub max_time_s: f64,
+    /// A control pixel must not have seen this fluence (e-) within the last
+    /// `control_quiet_s`: its own persistence would otherwise be subtracted with the
+    /// sources' excess (module docs).
+    pub control_lit_fluence_e: f64,
+    /// How long a control pixel must have stayed below `control_lit_fluence_e`, s.
+    pub control_quiet_s: f64,
 }
 
 impl Default for TrackParams {
@@ -74,6 +82,8 @@ impl Default for TrackParams {
             annulus_min_pixels: 12,
             spike_nsigma: 3.0,
             max_time_s: 2.0e5,
+            control_lit_fluence_e: 2.0e4,
+            control_quiet_s: 2.0e4,
         }
     }
 }
@@ -99,6 +109,28 @@ pub struct Frame<'a> {
     pub t_reset_s: f64,
 }
 
+impl<'a> Frame<'a> {
+    /// The frame of exposure `e` with the stage's predicted current and flags for it.
+    pub fn of(
+        e: &'a crate::product::Exposure,
+        predicted: ArrayView2<'a, f32>,
+        pflags: ArrayView2<'a, u8>,
+        truth: Option<ArrayView2<'a, f32>>,
+    ) -> Frame<'a> {
+        let start = e.meta.t_start.0;
+        Frame {
+            image: e.image.view(),
+            flags: e.flags.view(),
+            predicted,
+            pflags,
+            truth,
+            t_illuminated_s: e.meta.t_illuminated_s(),
+            t_mid_s: start + 0.5 * e.meta.t_exposure_s,
+            t_reset_s: start + e.meta.t_exposure_s,
+        }
+    }
+}
+
 /// One measured point of a track.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Sample {
@@ -119,6 +151,9 @@ pub struct Sample {
     /// fall in rather than shift every bin (the unscreened control mean, dominated by the
     /// rare brightest sources, would).
     pub control_e_per_s: f64,
+    /// In simulations, the control pixels' mean true persistence above their annuli's
+    /// in the same exposure ([`Control::truth`]).
+    pub control_true_e_per_s: f64,
     pub predicted_e_per_s: f64,
     /// The prediction minus its median over the same annulus pixels.
     pub predicted_excess_e_per_s: f64,
@@ -137,6 +172,7 @@ struct Track {
     fluence_e: f64,
     cluster: u64,
     last_excess: f64,
+    last_sigma: f64,
     samples: u32,
 }
 
@@ -146,7 +182,10 @@ pub struct Tracker {
     params: TrackParams,
     tracks: Array2<Option<Track>>,
     next_cluster: u64,
-    control_last: Array2<f64>,
+    /// Each control pixel's last screened excess and its noise.
+    control_last: Array2<(f64, f64)>,
+    /// Reset ending the last exposure in which the pixel saw `control_lit_fluence_e`.
+    lit_s: Array2<f64>,
     last_control: Control,
     /// Samples rejected as sources in the measured pixel.
     pub rejected: u64,
@@ -162,10 +201,31 @@ pub struct Control {
     /// Control pixels that pass the source screening against their own last value.
     pub screened: f64,
     pub pixels: usize,
+    /// In simulations, the control pixels' true persistence above their annuli's
+    /// (what the control would wrongly subtract; 0 without a truth).
+    pub truth: f64,
 }
 
 /// One control pixel every this many pixels in each direction.
 pub const CONTROL_STRIDE: usize = 4;
+
+/// The source screen (module docs): a sample passes unless it rises above the level
+/// its track can still hold, the last accepted excess floored at zero, by more than
+/// `nsigma` standard deviations of the difference of the two samples. `last`: the last
+/// accepted excess and its noise (`None`: nothing to compare with, the sample passes).
+///
+/// Why floored and why both noises: a screen against the last noisy sample alone is a
+/// ratchet. After a sample drawn low (a crowded field's sky estimate can be 1 e-/s too
+/// high), every later sample of a quiet field sits more than `nsigma` above it and is
+/// rejected until another low one comes: the track keeps only its low draws and its
+/// mean is biased low. Persistence is never negative and only decays, so zero and the
+/// last accepted level bound what the track can hold.
+pub fn passes_screen(last: Option<(f64, f64)>, excess: f64, sigma: f64, nsigma: f64) -> bool {
+    match last {
+        None => true,
+        Some((l, ls)) => excess <= l.max(0.0) + nsigma * (sigma * sigma + ls * ls).sqrt(),
+    }
+}
 
 const UNUSABLE: u32 = bits::TRANSIENT | bits::SUR_ERROR | bits::NONFUNC;
 
@@ -175,7 +235,8 @@ impl Tracker {
             params,
             tracks: Array2::from_elem((ny, nx), None),
             next_cluster: 0,
-            control_last: Array2::from_elem((ny, nx), f64::NAN),
+            control_last: Array2::from_elem((ny, nx), (f64::NAN, f64::NAN)),
+            lit_s: Array2::from_elem((ny, nx), f64::NEG_INFINITY),
             last_control: Control::default(),
             rejected: 0,
             no_sky: 0,
@@ -245,7 +306,8 @@ impl Tracker {
                 };
                 let excess = v - sky;
                 let first = tr.samples == 0;
-                if !first && excess > tr.last_excess + self.params.spike_nsigma * sigma {
+                let last = (!first).then_some((tr.last_excess, tr.last_sigma));
+                if !passes_screen(last, excess, sigma, self.params.spike_nsigma) {
                     self.rejected += 1;
                     continue;
                 }
@@ -265,6 +327,7 @@ impl Tracker {
                     excess_e_per_s: excess,
                     sigma_e_per_s: sigma,
                     control_e_per_s: control.screened,
+                    control_true_e_per_s: control.truth,
                     predicted_e_per_s: pred,
                     predicted_excess_e_per_s: around(frame.predicted),
                     flagged: frame.pflags[[y, x]] & pbits::HIGH != 0,
@@ -272,11 +335,19 @@ impl Tracker {
                     first,
                 });
                 tr.last_excess = excess;
+                tr.last_sigma = sigma;
                 tr.samples += 1;
                 self.tracks[[y, x]] = Some(tr);
             }
         }
         self.start_events(frame.t_reset_s, &fluence, &event);
+        let lit = self.params.control_lit_fluence_e;
+        for ((y, x), t) in self.lit_s.indexed_iter_mut() {
+            let f = fluence[[y, x]];
+            if f >= lit || f.is_nan() || frame.flags[[y, x]] & bits::OVERFLOW != 0 {
+                *t = frame.t_reset_s;
+            }
+        }
         self.last_control = control;
         samples
     }
@@ -291,13 +362,15 @@ impl Tracker {
     fn controls(&mut self, frame: &Frame, event: &Array2<bool>) -> Control {
         let (ny, nx) = frame.image.dim();
         let mut ring = Vec::new();
-        let (mut raw, mut screened) = ((0.0, 0usize), (0.0, 0usize));
+        let (mut raw, mut truth) = ((0.0, 0usize), (0.0, 0usize));
+        let mut screened = (0.0, 0.0);
         for y in (CONTROL_STRIDE / 2..ny).step_by(CONTROL_STRIDE) {
             for x in (CONTROL_STRIDE / 2..nx).step_by(CONTROL_STRIDE) {
                 let v = f64::from(frame.image[[y, x]]);
                 let f = frame.flags[[y, x]];
                 if self.tracks[[y, x]].is_some()
                     || event[[y, x]]
+                    || frame.t_mid_s - self.lit_s[[y, x]] < self.params.control_quiet_s
                     || f & (UNUSABLE | bits::OVERFLOW) != 0
                     || !v.is_finite()
                 {
@@ -309,19 +382,32 @@ impl Tracker {
                 let excess = v - sky;
                 raw.0 += excess;
                 raw.1 += 1;
+                if let Some(tp) = frame.truth {
+                    let r: Vec<f64> = ring.iter().map(|&(a, b)| f64::from(tp[[a, b]])).collect();
+                    truth.0 += f64::from(tp[[y, x]]) - median(&r);
+                    truth.1 += 1;
+                }
                 let last = &mut self.control_last[[y, x]];
-                if last.is_nan() || excess <= *last + self.params.spike_nsigma * sigma {
-                    screened.0 += excess;
-                    screened.1 += 1;
-                    *last = excess;
+                let prev = (!last.0.is_nan()).then_some(*last);
+                if passes_screen(prev, excess, sigma, self.params.spike_nsigma) {
+                    let w = crate::verify::sample_weight(sigma);
+                    screened.0 += w * excess;
+                    screened.1 += w;
+                    *last = (excess, sigma);
                 }
             }
         }
         let mean = |(s, n): (f64, usize)| if n > 0 { s / n as f64 } else { 0.0 };
+        let screened = if screened.1 > 0.0 {
+            screened.0 / screened.1
+        } else {
+            0.0
+        };
         Control {
             raw: mean(raw),
-            screened: mean(screened),
+            screened,
             pixels: raw.1,
+            truth: mean(truth),
         }
     }
 
@@ -405,6 +491,7 @@ impl Tracker {
                     },
                     cluster,
                     last_excess: f64::NAN,
+                    last_sigma: f64::NAN,
                     samples: 0,
                 });
             }
