@@ -252,7 +252,18 @@ fn diagnose_with(m: &ModelParams, seq: &Sequence, seed: u64, cfg: &Config) -> di
         seed,
         ..cfg.clone()
     };
-    diagnose::diagnose(m, seq, &c, Path::new("lab"), Path::new("m0.json")).expect("diagnose")
+    // as `persist diagnose` does with its defaults: a flagging model is tested against
+    // the measurements' description fitted from the same data
+    persist::diag::reference::diagnose_with(
+        m,
+        seq,
+        &c,
+        persist::diag::reference::Reference::default(),
+        Path::new("lab"),
+        Path::new("m0.json"),
+    )
+    .expect("diagnose")
+    .diagnosis
 }
 
 /// The effect ranked first, when it is significant.
