@@ -19,7 +19,7 @@
 //! median of its group: fluence bin ([`super::BINS_PER_DECADE`] per decade) and time bin
 //! (four per decade), over all pixels (groups of fewer than [`super::MIN_PIXELS`]
 //! observations give none). A pixel's observations combine by inverse variance, then the
-//! shrinkage is the laboratory map's ([`super::shrink`]): a nonparametric prior fitted on
+//! shrinkage is the laboratory map's (`shrink` in [`super`]): a nonparametric prior fitted on
 //! the observed pixels, each pixel's posterior, ratios relative to the prior's 95th
 //! percentile.
 //!
