@@ -3,15 +3,15 @@
 //! and compared. Writes a Markdown table (and JSON lines beside it).
 //!
 //! ```sh
-//! cargo run --release --example diagnose_matrix -- --size 128 --out docs/diagnose_matrix.md
+//! cargo run --release --example diagnose_matrix -- --size 128 --out docs/validation/diagnose_matrix.md
 //! ```
 //! Options: `--size N` (default 128), `--baseline-seeds K` (10), `--seeds K` (3),
 //! `--effects a,b,...` (default: every simulator effect; each `NAME` or
 //! `NAME:param=value`, a truth effect with a non-default parameter), `--pair a,b` (two hidden
 //! effects, default `short_tau_boost,soak`: found one per round at 3 of 3 seeds at 64 x 64,
-//! docs/diagnose_matrix.md, "round 12"; `soak,temperature` is not), `--pixels N`, `--bootstrap B`,
+//! measured with examples/diagnose_matrix; `soak,temperature` is not), `--pixels N`, `--bootstrap B`,
 //! `--statistic within|pooled`, `--preset paper|readout` (`persist fit --preset`: the
-//! reference's starting point; `readout` is R14), `--reference a,b` (default none: the
+//! reference's starting point; `readout` is the readout reference), `--reference a,b` (default none: the
 //! paper's model; with `--preset`, added to its effects as `persist fit --with` is),
 //! `--reference-fit-cn` (the reference also fits the `C_n`, `persist fit --fit-cn`; then
 //! every `fit --with` of the matrix refits them jointly too, from the reference's),
@@ -43,7 +43,7 @@
 //! differ most where the 0.01 e-/s floor binds: below 0.1 e-/s a sample is touched only
 //! if its current is high enough for the effect's relative change to pass the floor, so
 //! the per-sample set leans to the pixels above the predicted 95th percentile
-//! (docs/diagnose_matrix.md, "round 24").
+//! (measured with examples/diagnose_matrix).
 
 use persist::calib::{self, effects as ceffects, CalibConfig};
 use persist::diag::data::{Background, Sequence};
@@ -318,7 +318,7 @@ const FLAGS: &[&str] = &[
 ];
 
 /// `--help` prints the options; an unknown option is refused before anything runs (the
-/// matrix takes up to hours and writes `--out`, by default docs/diagnose_matrix.md: a
+/// matrix takes up to hours and writes `--out`, by default docs/validation/diagnose_matrix.md: a
 /// mistyped option, or `--help`, once ran the whole default matrix and overwrote it).
 fn check_args(args: &[String]) {
     let mut i = 1;
@@ -366,7 +366,7 @@ fn main() {
     let campaign = options.illuminations();
     // the campaign's `persist simulate lab` flags beyond `--campaign`
     let campaign_flags = options.flags();
-    let out = arg(&args, "--out").unwrap_or_else(|| "docs/diagnose_matrix.md".into());
+    let out = arg(&args, "--out").unwrap_or_else(|| "docs/validation/diagnose_matrix.md".into());
     let effects_arg = arg(&args, "--effects");
     let all: Vec<&str> = persist::sim::effects::NAMES.to_vec();
     let effects: Vec<String> = effects_arg

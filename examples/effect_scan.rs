@@ -13,7 +13,7 @@ fn main() {
     let seq = Sequence::load(Path::new(&a[1])).unwrap();
     let m = persist::model_file::load(Path::new(&a[2])).unwrap();
     let (eff, par) = (a[3].clone(), a[4].clone());
-    // the cells of the figures measured with this example (docs/diagnose_matrix.md),
+    // the cells of the figures measured with this example (docs/validation/diagnose_matrix.md),
     // the library's defaults then; the defaults are now per illumination and paired
     let s2 = Samples::new(&seq, 2)
         .with_cells(eval::Cells::Pooled)

@@ -28,7 +28,7 @@ fn main() {
         .iter()
         .filter(|p| p.fitted)
         .count();
-    // the cells of the figures measured with this example (docs/diagnose_matrix.md),
+    // the cells of the figures measured with this example (docs/validation/diagnose_matrix.md),
     // the library's defaults then; the defaults are now per illumination and paired
     let s = Samples::new(&seq, 2)
         .with_cells(persist::diag::eval::Cells::Pooled)

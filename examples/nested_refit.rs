@@ -19,7 +19,7 @@ fn main() {
     let seq = Sequence::load(Path::new(&a[1])).expect("sequence");
     let reference = persist::model_file::load(Path::new(&a[2])).expect("model");
     let (ea, eb) = (a[3].clone(), a[4].clone());
-    // the cells of the figures measured with this example (docs/diagnose_matrix.md),
+    // the cells of the figures measured with this example (docs/validation/diagnose_matrix.md),
     // the library's defaults then; the defaults are now per illumination and paired
     let s = Samples::random(&seq, DEFAULT_PIXELS, Config::default().seed)
         .with_cells(persist::diag::eval::Cells::Pooled)

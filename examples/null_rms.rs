@@ -18,7 +18,7 @@ fn main() {
     let model = persist::model_file::load(Path::new(&a[2])).expect("model");
     let stride: usize = a.get(3).map_or(2, |s| s.parse().expect("stride"));
     let seed: u64 = a.get(4).map_or(1, |s| s.parse().expect("seed"));
-    // the cells of the figures measured with this example (docs/diagnose_matrix.md),
+    // the cells of the figures measured with this example (docs/validation/diagnose_matrix.md),
     // the library's defaults then; the defaults are now per illumination and paired
     let mut s = Samples::new(&seq, stride)
         .with_cells(eval::Cells::Pooled)

@@ -354,7 +354,7 @@ pub struct SkyArgs {
 }
 
 /// Sky and detector parameters of the sky survey (defaults: `persist::sim::sky::SkyConfig`
-/// and `persist::sim::detector::DetectorParams`; docs/floor_scan.md scans them).
+/// and `persist::sim::detector::DetectorParams`; docs/validation/floor_scan.md scans them).
 #[derive(Args, Debug, Clone, Default)]
 pub struct SkyOptions {
     /// Stars brighter than magnitude 12 (the saturation magnitude) per 2040 x 2040 array
@@ -775,7 +775,7 @@ pub struct DiagnoseArgs {
     pub joint: bool,
     /// What chooses the candidates refitted: `contrast` (what the data can test and what
     /// a flexible base's residual depends on) or `score` (the score test alone, as the
-    /// matrix of docs/diagnose_matrix.md measured).
+    /// matrix of docs/validation/diagnose_matrix.md measured).
     #[arg(long, default_value_t = persist::diag::diagnose::Decide::default(), value_parser = parse_flag::<persist::diag::diagnose::Decide>)]
     pub decide: persist::diag::diagnose::Decide,
     /// What the effects are tested against: `auto` (a model calibrated for flagging,

@@ -2,7 +2,7 @@
 //! model. The paper's simulation reports "a minimum of 2%" of pixels above 0.1 e-/s at
 //! all times and a floor above 0.01 e-/s for every pixel; this checks the first (order of
 //! magnitude) and that the second is *not* reproduced, neither by the prediction nor by
-//! the simulator's truth (README, docs/floor_scan.md: no realistic star count or cosmic-ray
+//! the simulator's truth (README, docs/validation/floor_scan.md: no realistic star count or cosmic-ray
 //! rate gives both).
 
 use persist::demo::{run, DemoConfig};

@@ -1,10 +1,10 @@
-//! A fast subset of the `diagnose` proof matrix (docs/diagnose_matrix.md; the full
+//! A fast subset of the `diagnose` proof matrix (docs/validation/diagnose_matrix.md; the full
 //! matrix: `cargo run --release --example diagnose_matrix`). 64 x 64 laboratory
 //! campaigns, in memory.
 //!
 //! The test of data drawn from the fitted model was written with the defaults of then
 //! (pooled cells, levels statistic, candidate-only refit) and passes them
-//! ([`old_defaults`]); the round-9 tests pass theirs.
+//! ([`pooled_score_config`]); the paired-reference tests pass theirs.
 
 use persist::calib::{self, CalibConfig};
 use persist::diag::data::Sequence;
@@ -15,9 +15,10 @@ use std::path::Path;
 
 const SIZE: usize = 64;
 
-/// `diagnose`'s configuration as its defaults were until the cells became per
-/// illumination and paired and the refit full.
-fn old_defaults() -> Config {
+/// `diagnose` with pooled cells, the levels statistic, the candidate-only refit and the
+/// score decision (the library's defaults are per-illumination cells, paired, a full
+/// refit and the contrast decision).
+fn pooled_score_config() -> Config {
     use persist::diag::eval::{CellStatistic, Cells};
     Config {
         cells: Cells::Pooled,
@@ -101,7 +102,7 @@ fn data_from_the_fitted_model_declare_nothing() {
         seed: 3,
         bootstrap: 39,
         pixels: 1024,
-        ..old_defaults()
+        ..pooled_score_config()
     };
     let run = || {
         diagnose::diagnose(
@@ -143,7 +144,7 @@ fn cell_rms(
     (rss / n as f64).sqrt()
 }
 
-/// The round-9 reference (docs/diagnose_matrix.md, "round 9"): the
+/// The paired reference (measured with examples/diagnose_matrix): the
 /// paper's calibration with the knots' level at amplification 1.0 and thirteen terms
 /// 0.4 decade apart from 1 s, plus refill, chord and `extra`, fitted jointly on the
 /// stride-2 cells per illumination with the paired cell statistic (`persist fit
@@ -209,7 +210,7 @@ fn paired_diagnose() -> Config {
     }
 }
 
-/// A hidden `temperature` (seed 1) against the round-9 reference: the issue's
+/// A hidden `temperature` (seed 1) against the paired reference: the issue's
 /// three single-effect criteria. Declared first and significant; `fit --with` it lowers
 /// the residual RMS of the stride-2 cells by about half; the missed flags at 0.1 e-/s
 /// among the samples it touches are below 1 %. Measured here: score 304.9 against a
@@ -217,10 +218,10 @@ fn paired_diagnose() -> Config {
 /// significant (dBIC -521, held-out 0.37; with the rates rounded to 6 digits, as in the
 /// matrix, -616 and 0.15, not significant: its fit is that fragile; with the
 /// candidate-only refit it came first, dBIC -660 against temperature's -487,
-/// docs/diagnose_matrix.md); RMS 2.53 -> 1.21. Missed of touched after the fit: 1.4 %
+/// docs/validation/diagnose_matrix.md); RMS 2.53 -> 1.21. Missed of touched after the fit: 1.4 %
 /// with the image median as early release's background, 1.21 % with the quiet pixels
 /// when the pixels `compare` does not read counted as quiet, 0.80 % since they do not
-/// (round 11). Its specificity:
+/// . Its specificity:
 /// [`baseline_declares_nothing_against_the_paired_reference`].
 #[test]
 fn hidden_temperature_is_declared_against_the_paired_reference() {
@@ -248,7 +249,7 @@ fn hidden_temperature_is_declared_against_the_paired_reference() {
     assert!(q.missed_flag_fraction < 0.01, "{q:?}");
 }
 
-/// The baseline criterion at one seed against the round-9 reference.
+/// The baseline criterion at one seed against the paired reference.
 #[test]
 fn baseline_declares_nothing_against_the_paired_reference() {
     let seq = campaign(1, &[]);
@@ -262,9 +263,9 @@ fn baseline_declares_nothing_against_the_paired_reference() {
 
 /// Two hidden effects at once (the criterion: "both found, one per round, and the error falls
 /// at each round"): `short_tau_boost` and `soak` hidden together (seed 1) against the
-/// round-9 reference. Round 1 declares the boost; `fit --with` it; round 2, against
+/// paired reference. Round 1 declares the boost; `fit --with` it; round 2, against
 /// that model, declares soak; `fit --with` both. Measured by the matrix (199 bootstrap
-/// replicas, round 12, docs/diagnose_matrix.md): RMS 5.16 -> 1.80 -> 1.10, the
+/// replicas, measured with examples/diagnose_matrix): RMS 5.16 -> 1.80 -> 1.10, the
 /// same order at seeds 2 and 3. The pair soak + temperature is found one per round on
 /// the campaign with the temperatures apart
 /// ([`soak_and_temperature_apart_are_found_one_per_round`]).
@@ -296,8 +297,7 @@ fn two_hidden_effects_are_found_one_per_round() {
 /// illumination at 80 K with 3 h of darks, and the 481 s x1/4 one at 82 K and at 78 K):
 /// `soak` and `temperature` hidden together (seed 1) against [`readout_reference`].
 /// Round 1 declares soak; `fit --with` it; round 2 declares temperature; the RMS falls
-/// at each round. Measured by the matrix (199 replicas, round 18,
-/// docs/diagnose_matrix.md): 2.48 -> 1.46 -> 1.09, the same order at seeds 2 and 3. It
+/// at each round. Measured by the matrix (199 replicas, examples/diagnose_matrix): 2.48 -> 1.46 -> 1.09, the same order at seeds 2 and 3. It
 /// needs the model's soak to fill pixels with no slope and to follow the equilibrium at
 /// the exposure's temperature (src/model/effects/soak.rs): without them round 2 declared
 /// nothing (temperature's held-out gain 0.12).
@@ -332,8 +332,7 @@ fn soak_and_temperature_apart_are_found_one_per_round() {
 /// BIC change far past the gate against the model and against temperature alone.
 /// Measured at seed 1 (release, 49 replicas): dBIC -533 and -518, RMS 3.46 -> 2.15;
 /// its held-out gain is 0.02, so the pair is not declared (the model's soak and
-/// temperature do not carry the truth's interaction; docs/diagnose_matrix.md,
-/// round 13). Without `--joint` there is no joint check.
+/// temperature do not carry the truth's interaction; measured with examples/diagnose_matrix). Without `--joint` there is no joint check.
 #[test]
 fn interacting_soak_and_temperature_are_paired_by_the_joint_check() {
     let seq = campaign(1, &["soak", "temperature"]);
@@ -363,7 +362,7 @@ fn interacting_soak_and_temperature_are_paired_by_the_joint_check() {
     );
 }
 
-/// The round-14 reference (docs/diagnose_matrix.md, "round 14"):
+/// The readout reference (measured with examples/diagnose_matrix):
 /// [`paired_reference`]'s, with the `C_n` fitted to `1/(t + 0.2 s)` (Eq. (logfit)'s own
 /// offset on these data, `persist::calib` "Decay offset") and the readout pinned, not
 /// fitted: `chord` at strength 1 from the first read 1.5 s after the reset (`persist
@@ -448,7 +447,7 @@ fn meets_the_three_criteria(
 
 /// A hidden `linefit_bias` (the on-board least-squares slope instead of the chord) at
 /// seed 1 against [`readout_reference`]: the issue's three single-effect criteria.
-/// Against the round-9 reference it was not found (its fitted `chord` strength,
+/// Against the paired reference it was not found (its fitted `chord` strength,
 /// 0.86 on the baseline, fell to 0.24 and took the least-squares slope in). Measured
 /// here: score 189.7 against a threshold of 6.6, dBIC -1,732, held-out gain 0.77 (the
 /// CLI, 199 replicas); RMS of the stride-2 cells 4.53 -> ~1.0.
@@ -469,10 +468,10 @@ fn baseline_declares_nothing_against_the_readout_reference() {
 }
 
 /// A hidden `short_tau_boost` at seed 1 against [`readout_reference`]: the issue's three
-/// single-effect criteria. (Until 2026-11-24 this was pinned against the round-7 reference, the paper's calibration plus refill, capacity and chord with
+/// single-effect criteria. (Until 2026-11-24 this was pinned against the refill reference, the paper's calibration plus refill, capacity and chord with
 /// the pooled levels cells; the model's `capacity` then limited each term by its own
 /// held charge, and with the held-charge `capacity` that reference declares `soak` on
-/// the baseline: docs/diagnose_matrix.md, "round 16".) Measured when written:
+/// the baseline: measured with examples/diagnose_matrix.) Measured when written:
 /// score 347.2 against a threshold of 8.2 (49 replicas), dBIC -1,638, held-out gain
 /// 0.72; RMS of the stride-2 cells 3.47 -> 1.02; no missed flag among 462 touched
 /// samples.
@@ -503,7 +502,7 @@ fn hidden_blooming_is_declared_on_pinholes_against_the_readout_reference() {
 /// the same seed's without it. Before the calibration left neighbour-dominated pixels
 /// out, the pinholes' neighbours (a quarter of the pixels of the pinhole grid) raised
 /// the 95th percentile of the dim bins, the reference over-predicted every other pixel
-/// (docs/diagnose_matrix.md, round 17: at 128 x 128 the fitted `blooming`
+/// (measured with examples/diagnose_matrix: at 128 x 128 the fitted `blooming`
 /// then lowered the RMS 10.2 -> 10.1 only).
 fn neighbour_dominated_pixels_do_not_raise_the_knots(seq: &Sequence, without: &Sequence) {
     let cfg = readout_config();

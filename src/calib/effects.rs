@@ -50,7 +50,7 @@
 //! cells. Why: the simulator's decay after a first illumination is not
 //! `1/(t+1)` (256 x 256, 3e4-1e5 e-: predicted over measured medians 1.14 at 90 s, ~1.4
 //! from 270 s to 3,500 s), and that shape error, the same in every illumination,
-//! dominated the residual of every reference model. Measured (docs/diagnose_matrix.md): with `chord`, the residual RMS falls 37-38 % at 64 x 64 and 23 % at
+//! dominated the residual of every reference model. Measured (docs/validation/diagnose_matrix.md): with `chord`, the residual RMS falls 37-38 % at 64 x 64 and 23 % at
 //! 256 x 256, but the fitted slow terms differ between the two sizes (the truth's shape
 //! depends on fluence; one set of `C_n` is a compromise whose weights follow the cells'
 //! significance), so the fitted `C_n` describe the campaign they were fitted to.
@@ -90,7 +90,7 @@
 //! refilling after their first illumination (`examples/pixel_track.rs`: decays after a
 //! second illumination 1.5-2.3 times too fast at 25 min) while lowering the level
 //! elsewhere; at amplification 0.85 `capacity` fits to its null and the residual RMS of
-//! refill + chord is 5.62 against 7.57 (docs/diagnose_matrix.md). Not
+//! refill + chord is 5.62 against 7.57 (docs/validation/diagnose_matrix.md). Not
 //! with `--fit-cn`: a common factor of the `C_n` is nearly the same freedom (exactly
 //! in the paper's linear model; `capacity` and `refill` act in the knots' units).
 
@@ -448,7 +448,7 @@ fn minimize(problem: Problem<'_>) -> (Problem<'_>, String) {
 /// ended with `capture_ratio` at 0 at three of eight fits, because `refill`'s `beta` was
 /// still at its start of 0.5 when `soak` was scanned (seed 1 without a hidden effect:
 /// RMS 1.76; rescanned and refitted, `capture_ratio` 0.0079 and RMS 1.16;
-/// docs/diagnose_matrix.md).
+/// docs/validation/diagnose_matrix.md).
 fn rescan_nulls(problem: &mut Problem<'_>, initial: &[f64]) -> Vec<String> {
     let mut moved = Vec::new();
     for i in 0..problem.slots.len() {

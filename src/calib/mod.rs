@@ -9,7 +9,7 @@
 //!    (the report's `neighbour_dominated_left_out`): the paper's `A_k` is a pixel's
 //!    response to its own fluence, and what couples neighbours (blooming, inter-pixel
 //!    capacitance) would otherwise raise the 95th percentile of the dim bins, which the
-//!    model's spatial effects then cannot take back (docs/diagnose_matrix.md). A smooth illumination has no such pixel; one-pixel pinholes have four
+//!    model's spatial effects then cannot take back (docs/validation/diagnose_matrix.md). A smooth illumination has no such pixel; one-pixel pinholes have four
 //!    each.
 //! 2. Per bin, the measured current of the first dark integration (image minus the
 //!    dark level, [`dark`]: the background pixels' ([`crate::measure::data`]) when at
@@ -47,7 +47,7 @@
 //! the model's current over the first dark's reads (1.5 s to 180 s after the reset) is
 //! 11 % below a `1/t` decay's, which a readout effect measured over those reads
 //! ([`crate::model::effects::chord`], `first_read_s`) then shows as a first-dark
-//! deficit (docs/diagnose_matrix.md).
+//! deficit (docs/validation/diagnose_matrix.md).
 
 pub mod dark;
 pub mod effects;
@@ -139,7 +139,7 @@ impl Default for CalibConfig {
 ///   (amplification 1.2, the six rates of Eq. (bbdetexpsum), `C_n` to `1/(t + 1)` from
 ///   10 s), for flagging: the 1.2 is a margin.
 /// - [`Preset::Readout`]: the reference against which the hidden-effect matrix is
-///   measured (docs/diagnose_matrix.md, R14), for comparing a model
+///   measured (the readout reference), for comparing a model
 ///   with measurements: the knots at the measured level (amplification 1.0; the paper's
 ///   margin would otherwise be a residual that an effect takes in), thirteen rates 0.4
 ///   decade apart from 1/s (`10^(-0.4 k)`, k = 0..12), the `C_n` fitted to
@@ -727,7 +727,7 @@ pub fn p95(v: &[f64]) -> f64 {
 mod tests {
     use super::*;
 
-    /// The presets: `paper` is `fit`'s defaults; `readout` is R14 (docs/diagnose_matrix.md); a `--with` replaces the preset's entry of the same effect.
+    /// The presets: `paper` is `fit`'s defaults; `readout` is the readout reference (docs/validation/diagnose_matrix.md); a `--with` replaces the preset's entry of the same effect.
     #[test]
     fn presets_give_their_options_and_effects() {
         assert_eq!(
@@ -872,7 +872,7 @@ pub const FIT_CN_NOTE: &str = "; C_n then fitted to this campaign (--fit-cn)";
 
 /// Whether `params`' `C_n` were fitted to a campaign (`--fit-cn`: its calibration
 /// record, or its description for a model without one): such a model has already taken the decay-shape part of any effect in
-/// that campaign, which `diagnose` then cannot see (docs/diagnose_matrix.md).
+/// that campaign, which `diagnose` then cannot see (docs/validation/diagnose_matrix.md).
 pub fn cn_fitted_to_campaign(params: &ModelParams) -> bool {
     params
         .calibration
@@ -889,7 +889,7 @@ pub const FIT_AMPLIFICATION_NOTE: &str = "; knots then scaled by ";
 /// calibration record, or its description for a model without one): such a
 /// model has taken in the level part of any effect in that campaign (a hidden
 /// `short_tau_boost` was declared at 1 of 3 seeds against such a reference, 3 of 3
-/// against the level fixed at 0.85; docs/diagnose_matrix.md).
+/// against the level fixed at 0.85; docs/validation/diagnose_matrix.md).
 pub fn level_fitted_to_campaign(params: &ModelParams) -> bool {
     params.calibration.as_ref().map_or_else(
         || params.description.contains(FIT_AMPLIFICATION_NOTE),

@@ -64,8 +64,7 @@
 //! direction the data reject ranks high and its refit stays at the null (measured: the
 //! two-sided score ranked `temperature` at 33-97 on baseline campaigns whose refits ended
 //! at the null, delta BIC +5.1). An effect whose null lies inside its bounds keeps the
-//! two-sided score (`populations` did, with the surface's `gx` as its switch, until the
-//! round 26). The bootstrap uses the same statistic.
+//! two-sided score. The bootstrap uses the same statistic.
 //!
 //! - `pooled`: `r` = the fluence x time cells, `dof = m`.
 //! - `within` (default): cells split by illumination event; `r` and `j` are demeaned
@@ -93,7 +92,7 @@
 //! The bootstrap below does not recompute it on each replica (the pair loop is too slow
 //! for ~200 replicas); its replicas, independent samples, give it 0, so the family-wise
 //! threshold leaves out its null. Measured on 20 replicas per campaign at 128 and 256
-//! (docs/diagnose_matrix.md, "round 26"): `T` mean -0.2 to 0.3, sd 0.64-1.18,
+//! (measured with examples/diagnose_matrix): `T` mean -0.2 to 0.3, sd 0.64-1.18,
 //! largest 2.4, against thresholds of 4 and more. Its refit measures the correlation
 //! ([`crate::calib::effects`], "The pixels' spread correlation") and the refitted model's
 //! cells are widened by it, in the change in BIC and the held-out check alike.
@@ -122,7 +121,7 @@
 //! partly stood in for (the fitted `refill` leans on temperature's signature: `beta`
 //! 0.90 without it, at its bound 1 with it) is judged with that help undone in
 //! neither direction. `--refit full` (the default since the baseline declared nothing
-//! with it at 10 of 10 seeds, docs/diagnose_matrix.md, round 9, where every
+//! with it at 10 of 10 seeds, measured with examples/diagnose_matrix, where every
 //! earlier configuration gave 9 of 10) frees the candidate's parameters and those of the
 //! model's own effects jointly, and `RSS_0` is then the model's own effects refitted
 //! alone on the same samples (nested, so only the candidate's parameters count in
@@ -141,7 +140,7 @@
 //! not gated: an effect confined to a few cells (the boost of the fast terms lives in
 //! the first-dark cells of three fluence bins out of ~170) gains little over all cells
 //! although it removes much of the residual where it acts. Gating on the moved cells
-//! was measured (round 6, docs/diagnose_matrix.md) and rejected: it declared
+//! was measured (measured with examples/diagnose_matrix) and rejected: it declared
 //! `short_tau_boost` hidden at one seed of three, but `blooming` in its place at the two
 //! others, and `populations` on a baseline campaign (8 of 10 clean instead of 9).
 //! Significant = `LM > threshold`, `delta_BIC <` [`DBIC_MAX`] and held-out
@@ -287,7 +286,7 @@ pub enum Decide {
     Contrast,
     /// The score test alone, as before the contrasts: every library effect is scored
     /// and the [`REFIT_BY_SCORE`] leading candidates above the bootstrap threshold are
-    /// refitted (what the matrix of docs/diagnose_matrix.md measured).
+    /// refitted (what the matrix of docs/validation/diagnose_matrix.md measured).
     Score,
 }
 
@@ -473,7 +472,7 @@ pub(super) fn fit_command(
 /// carry it ([`crate::calib::knots_held_off_level`]; a model without a calibration
 /// record has `fit`'s defaults, the paper's 1.2), [`fit_command`] would fit the
 /// candidates against that margin, and their parameters would take it in (`persist
-/// fit` warns; round 24: `temperature` fitted 1.20 eV for the truth's
+/// fit` warns; measured: `temperature` fitted 1.20 eV for the truth's
 /// 0.25 under the paper's preset, 0.250 under `--preset readout`). Then: the same
 /// effects and cells calibrated with `--preset readout`, which measures them, written
 /// beside the model as `MODEL.readout+NAMES.json`. `None` otherwise.
@@ -560,8 +559,7 @@ fn calibration_args(c: Option<&crate::model::params::Calibration>) -> String {
 /// Whether an effect whose evidence is in `covariate` may be declared given the
 /// residuals' spatial coherence (module docs, "Spatial coherence"): an effect of
 /// position only where the residuals carry a field shared by neighbouring pixels, or
-/// where that cannot be measured (one illumination). Measured (docs/diagnose_matrix.md,
-/// round 15): with the spot centred, radius and fluence go together and the
+/// where that cannot be measured (one illumination). Measured with examples/diagnose_matrix: with the spot centred, radius and fluence go together and the
 /// model's `populations` (a quadratic surface, `u^2 + v^2` the radius) was declared for
 /// a hidden linefit_bias + temperature at 128 x 128 (seeds 2 and 3) on residuals with
 /// no field (R^2 0.04); the field it then put into the residuals had R^2 0.55-0.66.
@@ -1780,7 +1778,7 @@ fn cautions(params: &ModelParams) -> Vec<String> {
             "the model's C_n were fitted to this campaign (persist fit --fit-cn): they have \
              taken in the decay-shape part of any missing effect (a hidden short_tau_boost \
              was found at 3 of 3 seeds against a model without --fit-cn, at none with it \
-             before the capacity fix; docs/diagnose_matrix.md); diagnose against a model \
+             before the capacity fix; docs/validation/diagnose_matrix.md); diagnose against a model \
              fitted without --fit-cn too"
                 .to_string(),
         );
@@ -1790,7 +1788,7 @@ fn cautions(params: &ModelParams) -> Vec<String> {
             "the model's knot level was fitted to this campaign (persist fit \
              --fit-amplification): it has taken in the level part of any missing effect (a \
              hidden short_tau_boost was declared at 1 of 3 seeds against such a model, at 3 \
-             of 3 with the level fixed; docs/diagnose_matrix.md, round 8); diagnose \
+             of 3 with the level fixed; measured with examples/diagnose_matrix); diagnose \
              against a model with a fixed --amplification too"
                 .to_string(),
         );
@@ -2042,7 +2040,7 @@ mod tests {
         assert!(neg[1] > 1.0);
         // which effects are one-sided
         // (populations: its switch is `spread_corr`, null 0 at its lower bound, since the
-        // round 26; it was the surface's `gx`, null inside its bounds)
+        // it was the surface's `gx`, null inside its bounds)
         for (name, want) in [("capacity", true), ("soak", true), ("populations", true)] {
             let def = crate::model::effects::lookup(name).expect("registered");
             let (p, null) = def.switch().expect("has a switch");

@@ -30,7 +30,7 @@
 //! `coherent` when the largest `r2_smoothed` over the lengths is at least
 //! [`COHERENT_R2`]. It is an effect size, not a test: `diagnose`'s bootstrap replicas are
 //! the model plus white noise and hold no spatial structure, so they would call any real
-//! campaign coherent. Measured (docs/diagnose_matrix.md, round 15): 64 x 64
+//! campaign coherent. Measured (measured with examples/diagnose_matrix): 64 x 64
 //! laboratory campaigns, the readout reference fitted to each, length 8 px: no hidden
 //! effect 0.035, 0.048, 0.049 (seeds 1-3); hidden `populations` (its defaults) 0.51,
 //! 0.69, 0.51.

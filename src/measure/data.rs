@@ -22,7 +22,7 @@
 //! 0.012 e-/s (128 x 128, seed 1). The measured current of a pixel at 4e3 e- is then
 //! low by 14 % more after the first illumination than after the others, and the
 //! calibration, which uses the first, sets the low knots that much too low
-//! (docs/diagnose_matrix.md, "round 22").
+//! (measured with examples/diagnose_matrix).
 //! [`Background::Line`] (`--background line`) measures instead, in a laboratory
 //! sequence, the intercept at zero fluence of a line through the background pixels'
 //! values against their fluence in the last illumination ([`background_line`]: the
@@ -343,7 +343,7 @@ impl Sequence {
 /// percentile with the noise removed in quadrature ([`signal_p95`]): the exposure noise
 /// and the shot noise of the bin's median current ([`shot_noise_added`]), which the
 /// statistic adds back sample by sample, so that `r` is the spread of the pixels'
-/// currents themselves (round 23: with the shot noise left in, the
+/// currents themselves (measured: with the shot noise left in, the
 /// statistic counted it twice). A bin is kept when it
 /// holds at least [`PopulationSpread::MIN_PIXELS`] pixels and its 95th percentile is at
 /// least [`PopulationSpread::MIN_SNR`] times the noise: removing the noise in quadrature
@@ -356,7 +356,7 @@ impl Sequence {
 /// first dark at every time and in every later illumination (true of the simulator's
 /// truth below saturation, where a pixel's current is its trap density, lognormal
 /// with 8 % scatter, times a history; above saturation its three-population mixture
-/// is not Gaussian, docs/diagnose_matrix.md, "round 21").
+/// is not Gaussian, measured with examples/diagnose_matrix).
 #[derive(Debug, Clone, Default, PartialEq)]
 pub struct PopulationSpread {
     /// `(log10 F, r)` per kept bin, `log10 F` the mean over the bin's pixels, increasing.
@@ -717,7 +717,7 @@ mod tests {
     /// variance 1.2 / 180 per e-/s, [`super::super::eval::SHOT_VAR_LINE_FIT`]) on top of
     /// the exposure noise: told the shot noise, `r` is the 8 % lognormal's 0.075 within
     /// 15 % at 1e4.3-1e5 e-, where the shot noise is 1-2.6 times the spread below the
-    /// 95th percentile; told only the exposure noise (as before the round 23), `r` counts the shot noise as spread and stands more than 30 % high at
+    /// 95th percentile; told only the exposure noise (as it once was), `r` counts the shot noise as spread and stands more than 30 % high at
     /// 1e4.3-1e4.5 e-.
     #[test]
     fn population_spread_leaves_out_the_shot_noise() {

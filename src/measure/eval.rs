@@ -50,7 +50,7 @@
 //! 5 % of the pooled population spread, the predicted side (no population spread) the
 //! level of the brightest illumination, so a pooled cell compares different quantiles
 //! and its `z` depends on the mixing fractions. Measured (64 x 64 campaign, seed 1,
-//! hidden `temperature` at 0.25 eV; docs/diagnose_matrix.md, round 8): the model
+//! hidden `temperature` at 0.25 eV; measured with examples/diagnose_matrix): the model
 //! fitted on the same campaign without the hidden effect, with the model's
 //! `temperature` at the truth's 0.25 eV, scores 12.85 on pooled cells against 4.58 for
 //! the baseline campaign, but 2.48 against 2.44 per illumination. On one illumination
@@ -80,9 +80,9 @@
 //! predicted current. The knots are the 95th percentile of a population; for a Gaussian
 //! spread `s` below it, `P95(d) = 1.645 (sqrt(s^2 + sigma^2) - s)`, lower. Where `s` and
 //! the noise are alike (the first dark at 1e4-1e4.6 e-, 128 x 128) `z` is biased low by
-//! 3.4-5.0 in the calibration's own illumination (docs/diagnose_matrix.md, round 19; `examples/cell_parts`). And `sigma_k` is the noise of the background
+//! 3.4-5.0 in the calibration's own illumination (measured with examples/diagnose_matrix; `examples/cell_parts`). And `sigma_k` is the noise of the background
 //! pixels: it leaves out the shot noise of the sample's own persistence current, which
-//! above 1e4.6 e- is most of the noise after the first dark (round 21;
+//! above 1e4.6 e- is most of the noise after the first dark (
 //! `examples/noise_check`), so there `z` is biased high. The two biases have opposite
 //! signs and partly cancel.
 //!
@@ -95,7 +95,7 @@
 //!   relative spread at the sample's fluence, measured once per sequence in the first
 //!   dark after the first illumination with the exposure noise and the pixels' own shot
 //!   noise removed ([`super::data::PopulationSpread`]; both are added back below, and
-//!   until the round 23 the shot noise stayed in `r` as well, so it was
+//!   when the shot noise stayed in `r` as well, it was
 //!   counted twice); the predictions stand for noise-free 95th percentiles, so `fit
 //!   --cell-statistic population` removes the shot noise from the knots too
 //!   ([`crate::calib`], step 2);
@@ -111,7 +111,7 @@
 //! dark's at every time and in every illumination; the population is Gaussian below
 //! its 95th percentile (above saturation the simulator's truth is a mixture of three
 //! populations; the cells there come out at `z` ~ 0 all the same,
-//! docs/diagnose_matrix.md, "round 21"). On sky data (no laboratory
+//! measured with examples/diagnose_matrix). On sky data (no laboratory
 //! illumination) `r` is 0: only the shot noise is added.
 //!
 //! # Flag quality (per threshold `thr`)
@@ -1571,7 +1571,7 @@ mod tests {
     /// percentile 3 e-/s) and a quarter above it (21 e-/s), each with a 30 % lognormal population spread, and the
     /// model predicts each pixel its own history's 95th percentile exactly. The cell's
     /// measured 95th percentile falls inside the bright population's spread, below the
-    /// predictions' (the "saturation step" cells of the round 8, z -10 to -14 on
+    /// predictions' (the "saturation step" cells, z -10 to -14 on
     /// baseline campaigns); the 95th percentile of measured - predicted is that of each
     /// population's own residuals, ~0.
     #[test]

@@ -1,6 +1,5 @@
 //! The pixels' spread about the model, correlated between neighbours: what the
-//! simulator's hidden `populations` leaves (docs/diagnose_matrix.md,
-//! "round 25" and "round 26").
+//! simulator's hidden `populations` leaves (measured with examples/diagnose_matrix).
 //!
 //! The cell statistic ([`super::eval`], `--cell-statistic population`) compares each
 //! cell's 95th percentile with its reference as if the cell's pixels were independent.
@@ -58,7 +57,7 @@
 //! same-exposure pairs) are merged. The work is linear in a cell's exposures. Visiting
 //! every pair of samples instead made `compare` on the 256 x 256 14 h lab
 //! sequence, whose cells hold hundreds of exposures, take 88.9 s against 11.9 s
-//! (medians of three runs each, in turns; docs/diagnose_matrix.md, "round 27").
+//! (medians of three runs each, in turns; measured with examples/diagnose_matrix).
 
 use super::eval::{self, Samples};
 use levenberg_marquardt::{LeastSquaresProblem, LevenbergMarquardt};

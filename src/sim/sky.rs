@@ -23,7 +23,7 @@
 //!   `n12` is the number of stars that fill a pixel's well in one integration: a photon
 //!   budget for SPHEREx (20 cm, lambda/41 channels) puts that at AB ~ 9 (Ks ~ 7.2), where
 //!   2MASS counts extrapolated with their 0.32 dex/mag slope give 30 to 60 per array;
-//!   `docs/floor_scan.md` gives the derivation and scans `--n12`, `--count-slope`,
+//!   `docs/validation/floor_scan.md` gives the derivation and scans `--n12`, `--count-slope`,
 //!   `--plane-fraction`, `--plane-density` and `--cosmic-rate`. Total flux
 //!   `F(m) = F12 10^(-0.4 (m - 12))` with `F12` set so that a star of magnitude 12
 //!   centred on a pixel just fills the well in one integration (paper section 5: "sources
