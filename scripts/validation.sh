@@ -14,6 +14,9 @@
 #   matrix  docs/validation/diagnose_matrix.md  examples/diagnose_matrix $MATRIX_ARGS
 #                                               (default --size 128: hours)
 #   verify  docs/validation/verify.md           scripts/validate_verify.sh (minutes)
+#   family  docs/validation/diagnostics_family.md  examples/family_matrix $FAMILY_ARGS
+#                                               (default --size 64 --seeds 5: about an hour
+#                                               on a quiet machine; not in the default set)
 # Without arguments every page is regenerated. Release builds (PERSIST_BIN=path skips the
 # build of the binary); run it on a quiet machine
 # (the header records the load average at the start).
@@ -29,8 +32,8 @@ if [[ ${#pages[@]} -eq 0 ]]; then
 fi
 for p in "${pages[@]}"; do
     case $p in
-        floor|bench|matrix|verify) ;;
-        *) echo "validation.sh: unknown page '$p' (floor, bench, matrix, verify)" >&2; exit 2 ;;
+        floor|bench|matrix|verify|family) ;;
+        *) echo "validation.sh: unknown page '$p' (floor, bench, matrix, verify, family)" >&2; exit 2 ;;
     esac
 done
 
@@ -171,6 +174,25 @@ TEXT
     if [[ -f "$tmp/matrix.jsonl" ]]; then
         cp "$tmp/matrix.jsonl" "$out_dir/diagnose_matrix.jsonl"
     fi
+    echo "wrote $page" >&2
+}
+
+# family: the diagnostics on the second truth generator, default commands only.
+page_family() {
+    local page=$out_dir/diagnostics_family.md
+    local family_args=${FAMILY_ARGS:---size 64 --seeds 5}
+    echo "family: cargo run --release --example family_matrix -- $family_args" >&2
+    # shellcheck disable=SC2086
+    cargo run --release --quiet --example family_matrix -- $family_args \
+        --persist "$persist" --work "$tmp/family" --out "$tmp/family.md" >&2
+    {
+        scripts/validation_header.sh "Diagnostics on the family of the second truth generator" \
+            "make validation PAGES=family FAMILY_ARGS='$family_args' (cargo run --release --example family_matrix -- $family_args)"
+        # the example's own title and date line are replaced by the header above
+        sed -n '/^Data: /,$p' "$tmp/family.md"
+    } > "$page.tmp"
+    mv "$page.tmp" "$page"
+    cp "$tmp/family.jsonl" "$out_dir/diagnostics_family.jsonl"
     echo "wrote $page" >&2
 }
 
