@@ -30,7 +30,10 @@ fn spatial(extra: &[&str]) -> (serde_json::Value, String) {
         "--log-level",
         "warn",
     ]);
-    let (d, text) = common::diagnose_quick(&lab, &model, &path("d.json"));
+    // the model file itself (not the measurements' description `diagnose` would fit
+    // for a flagging model), so that `compare` of the same file can be set beside it
+    let (d, text) =
+        common::diagnose_quick_with(&lab, &model, &path("d.json"), &["--reference", "model"]);
     // compare reports the same for the model (its summary and its report's table)
     let report = path("cmp");
     persist_ok(&[

@@ -1,6 +1,7 @@
 //! Crash safety of the real binary: SIGKILL at random moments, SIGTERM mid-run.
 //!
-//! A 50-exposure stream (2 detectors x 25, 24 x 24 pixels) processed without
+//! A 50-exposure stream (2 detectors x 25, 64 x 64 pixels: enough work per exposure that most kills land while
+//! outputs are being published, not while the processes start) processed without
 //! interruption is the reference. Twenty runs are each killed with SIGKILL at a moment
 //! drawn from a seeded RNG (once or twice), then restarted until one completes: every
 //! output file and every checkpoint file (the final one included) must be byte-identical
@@ -13,7 +14,7 @@ use rand::{Rng, SeedableRng};
 use std::process::Stdio;
 use std::time::{Duration, Instant};
 
-const N: usize = 24;
+const N: usize = 64;
 
 fn reference(tmp: &std::path::Path, input: &std::path::Path) -> (std::path::PathBuf, Duration) {
     let root = tmp.join("reference");

@@ -258,7 +258,17 @@ pub fn persist_status(args: &[&str]) -> (Option<i32>, String) {
 /// only): the JSON written and the printed text. 19 replicas: a quick threshold for the
 /// tests that read the ranking's other fields.
 pub fn diagnose_quick(lab: &str, model: &str, json: &str) -> (serde_json::Value, String) {
-    let text = persist_ok(&[
+    diagnose_quick_with(lab, model, json, &[])
+}
+
+/// [`diagnose_quick`] with `extra` options.
+pub fn diagnose_quick_with(
+    lab: &str,
+    model: &str,
+    json: &str,
+    extra: &[&str],
+) -> (serde_json::Value, String) {
+    let mut a = vec![
         "diagnose",
         "--input",
         lab,
@@ -270,7 +280,9 @@ pub fn diagnose_quick(lab: &str, model: &str, json: &str) -> (serde_json::Value,
         json,
         "--log-level",
         "warn",
-    ]);
+    ];
+    a.extend(extra);
+    let text = persist_ok(&a);
     (read_json(json), text)
 }
 
