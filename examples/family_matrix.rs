@@ -561,13 +561,9 @@ fn one(ctx: &Ctx, row: &Row, seed: u64, cache: &mut BTreeMap<(PathBuf, bool), Op
     // step 5: the error, of the measurements' description when `diagnose` tested
     // against one, else of the model
     let measured = suggested.reference_fit.is_some();
-    let described = match (&suggested.reference_fit, &suggested.measure_command) {
-        (Some(f), Some(mc)) => run_printed(ctx, f)
-            .ok()
-            .map(|a| (a, run_printed(ctx, mc).ok())),
-        (Some(f), None) => run_printed(ctx, f).ok().map(|a| (a, None)),
-        _ => None,
-    };
+    let printed = |line: &Option<String>| line.as_ref().and_then(|l| run_printed(ctx, l).ok());
+    let described =
+        printed(&suggested.reference_fit).map(|a| (a, printed(&suggested.measure_command)));
     let models: Vec<&Path> = match &described {
         Some((a, b)) => std::iter::once(a.as_path()).chain(b.as_deref()).collect(),
         None => std::iter::once(m.as_path()).chain(m2.as_deref()).collect(),

@@ -431,14 +431,13 @@ pub(super) fn fit_command(
     cfg: &Config,
 ) -> String {
     let mut s = format!(
-        "persist fit --input {} --out {}+{}.json",
+        "persist fit --input {} --out {}{}.json",
         input.display(),
         model_path.with_extension("").display(),
         names
             .iter()
-            .map(|n| n.split(':').next().unwrap_or(n))
-            .collect::<Vec<_>>()
-            .join("+")
+            .map(|n| format!("+{}", n.split(':').next().unwrap_or(n)))
+            .collect::<String>()
     );
     let preset = params.calibration.as_ref().and_then(preset_of);
     if let Some(p) = preset {
@@ -496,7 +495,9 @@ fn measure_command(
 
 /// The calibration the model records, or `fit`'s defaults (the paper's) for a model
 /// without the record.
-fn calibration_or_fit_default(params: &ModelParams) -> crate::model::params::Calibration {
+pub(super) fn calibration_or_fit_default(
+    params: &ModelParams,
+) -> crate::model::params::Calibration {
     params
         .calibration
         .clone()

@@ -79,10 +79,7 @@ pub struct Diagnosed {
 
 /// The reference `choice` resolves to for the model `params`, and why.
 pub fn resolve(choice: Reference, params: &ModelParams) -> (Reference, String) {
-    let c = params
-        .calibration
-        .clone()
-        .unwrap_or_else(|| CalibConfig::default().record());
+    let c = diagnose::calibration_or_fit_default(params);
     let off = crate::calib::knots_held_off_level(c.amplification, c.fit_cn, c.fit_amplification);
     match choice {
         Reference::Model => (
@@ -179,10 +176,13 @@ pub fn diagnose_with(
         reference: ReferenceUsed {
             kind,
             why,
-            fit_command: Some(
-                diagnose::fit_command(input, &described_path, &described, &[], cfg)
-                    .replacen("+.json", ".json", 1),
-            ),
+            fit_command: Some(diagnose::fit_command(
+                input,
+                &described_path,
+                &described,
+                &[],
+                cfg,
+            )),
             effects: described
                 .effects
                 .iter()
