@@ -209,7 +209,8 @@ fn read_json(p: &Path) -> Option<serde_json::Value> {
 }
 
 /// What `diagnose` printed to run next: the declared effect's `fit` command (for the
-/// model as given), the one that measures it, and the fit of the measurements'
+/// model as given; with nothing declared, the data-driven term's when it offered one),
+/// the one that measures it, and the fit of the measurements'
 /// description it tested against (absent when it tested the model itself).
 #[derive(Debug, Default)]
 struct Suggested {
@@ -224,6 +225,11 @@ fn read_suggested(v: &serde_json::Value) -> Suggested {
         r.iter()
             .find(|c| c.get("significant") == Some(&true.into()))
     });
+    // no library effect declared: the data-driven term, when `diagnose` offered one
+    let term = v
+        .get("data_term")
+        .filter(|t| t.get("offered") == Some(&true.into()));
+    let first = first.or(term);
     Suggested {
         command: text(first.and_then(|c| c.get("command"))),
         measure_command: text(first.and_then(|c| c.get("measure_command"))),

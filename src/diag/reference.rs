@@ -154,24 +154,37 @@ pub fn diagnose_with(
     })?;
     let described_path = model_path.with_extension("measured.json");
     let mut d = diagnose::diagnose(&described, seq, cfg, input, &described_path)?;
-    for c in d.ranking.iter_mut().filter(|c| c.measured_with.is_some()) {
-        let held = c.measured_with.clone().expect("filtered");
+    let mut verdict = std::mem::take(&mut d.verdict);
+    let mut hold = |command: &mut String, measured_with: &Option<String>| {
+        let Some(held) = measured_with else {
+            return None;
+        };
         let measure = std::mem::replace(
-            &mut c.command,
+            command,
             diagnose::fit_command(input, model_path, params, &[held.as_str()], cfg),
         );
-        d.verdict = d.verdict.replacen(
+        verdict = verdict.replacen(
             &measure,
             &format!(
-                "{} (the effect at the values measured against the measurements' \
+                "{command} (the effect at the values measured against the measurements' \
                  description, held, so the model keeps its flagging calibration; to measure \
-                 it: {measure})",
-                c.command
+                 it: {measure})"
             ),
             1,
         );
-        c.measure_command = Some(measure);
+        Some(measure)
+    };
+    for c in d.ranking.iter_mut() {
+        if let Some(m) = hold(&mut c.command, &c.measured_with) {
+            c.measure_command = Some(m);
+        }
     }
+    if let Some(t) = d.data_term.as_mut() {
+        if let Some(m) = hold(&mut t.command, &t.measured_with) {
+            t.measure_command = Some(m);
+        }
+    }
+    d.verdict = verdict;
     Ok(Diagnosed {
         reference: ReferenceUsed {
             kind,

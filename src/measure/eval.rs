@@ -359,6 +359,28 @@ impl Samples {
             .collect()
     }
 
+    /// The same rows at the pixels `cols` (indices into `pixels`), in their order.
+    pub fn columns(&self, cols: &[usize]) -> Samples {
+        Samples {
+            pixels: cols.iter().map(|&c| self.pixels[c]).collect(),
+            measured: self.columns_of(&self.measured, cols),
+            spread_rel: self.columns_of(&self.spread_rel, cols),
+            fluence_e: self.columns_of(&self.fluence_e, cols),
+            neighbour_excess_e: self.columns_of(&self.neighbour_excess_e, cols),
+            radius: cols.iter().map(|&c| self.radius[c]).collect(),
+            ..self.clone()
+        }
+    }
+
+    /// Per-sample values `v` (the layout of `measured`) at the pixels `cols`: what
+    /// [`Samples::columns`] keeps of them.
+    pub fn columns_of(&self, v: &[f64], cols: &[usize]) -> Vec<f64> {
+        let np = self.npix();
+        (0..self.exposures.len())
+            .flat_map(|r| cols.iter().map(move |&c| v[r * np + c]))
+            .collect()
+    }
+
     /// Samples at the given pixels (every row).
     pub fn with_pixels(seq: &Sequence, pixels: Vec<(usize, usize)>, stride: usize) -> Samples {
         Samples::with_pixels_where(seq, pixels, stride, |_| true)

@@ -13,6 +13,7 @@ pub mod linefit_bias;
 pub mod populations;
 pub mod refill;
 pub mod short_tau_boost;
+pub mod smooth;
 pub mod soak;
 pub mod temperature;
 
@@ -21,7 +22,7 @@ use super::params::EffectSpec;
 use std::collections::BTreeMap;
 
 /// Every effect this build knows, sorted by name.
-pub const REGISTRY: [EffectDef; 10] = [
+pub const REGISTRY: [EffectDef; 14] = [
     blooming::DEF,
     capacity::DEF,
     chord::DEF,
@@ -30,6 +31,10 @@ pub const REGISTRY: [EffectDef; 10] = [
     populations::DEF,
     refill::DEF,
     short_tau_boost::DEF,
+    smooth::DURATION,
+    smooth::HISTORY,
+    smooth::NEIGHBOUR,
+    smooth::TEMPERATURE,
     soak::DEF,
     temperature::DEF,
 ];

@@ -1,0 +1,130 @@
+//! The data-driven term `diagnose` offers when the base's residual depends on a
+//! covariate and no library effect acting on it predicts held-out data.
+//!
+//! The term is the covariate's smooth function ([`crate::model::effects::smooth`]):
+//! three knots over the range of the covariate the data hold, their values fitted
+//! jointly with the model's own effects on the same samples and cells as the library
+//! candidates, judged by the same held-out check. It is offered (its `fit` command in the
+//! verdict and in `data_term`) when it predicts held-out data better than the model
+//! (held-out gain above 0) and its `delta_BIC` is below [`super::diagnose::DBIC_MAX`];
+//! it is never declared a missing *effect*: it names no physics, only where the data
+//! want more or less than the model gives, along the covariate that was found.
+//! Knot ranges from the data: illumination durations and focal-plane temperatures
+//! from the sampled events (a single value gives no term: the class is then
+//! untestable); the held charge and the neighbours' excess keep the term's defaults
+//! (10 e- to 3e4 e- held; neighbours' excess 1 to 1000 times the own fluence).
+
+use super::data::Sequence;
+use super::diagnose::{
+    delta_bic, fit_candidate, fit_command, held_out, held_with_arg, measure_command,
+    own_effects, Config, HeldOut, DBIC_MAX,
+};
+use super::eval::Samples;
+use crate::error::Result;
+use crate::model::effects::smooth;
+use crate::model::params::ModelParams;
+use serde::Serialize;
+use std::path::Path;
+
+/// The offered term and what its fit gave.
+#[derive(Debug, Clone, Serialize)]
+pub struct DataTerm {
+    /// The contrast class whose covariate it follows.
+    pub class: String,
+    pub effect: String,
+    /// Its `--with` argument as fitted here: the knot range pinned.
+    pub with: String,
+    pub delta_bic: f64,
+    pub rms_before: f64,
+    pub rms_after: f64,
+    pub held_out: Option<HeldOut>,
+    /// Whether the verdict offers it (module docs).
+    pub offered: bool,
+    /// The term at the values fitted here, every value held (`fit --with` form).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub measured_with: Option<String>,
+    /// The `persist fit` command that adds it to the model.
+    pub command: String,
+    /// As [`super::diagnose::Candidate::measure_command`].
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub measure_command: Option<String>,
+}
+
+/// `v` to four decimals, as a `--with` value.
+fn short(v: f64) -> String {
+    format!("{}", (v * 1e4).round() / 1e4)
+}
+
+/// The `--with` argument of the term following `class`'s covariate, its knots over
+/// the range the samples hold; None when no term follows it or the range is one value.
+pub fn with_arg(class: &str, seq: &Sequence, samples: &Samples) -> Option<String> {
+    let def = smooth::for_covariate(class)?;
+    let range = |v: &mut dyn Iterator<Item = f64>| {
+        v.filter(|x| x.is_finite())
+            .fold(None, |a: Option<(f64, f64)>, x| {
+                Some(a.map_or((x, x), |(lo, hi)| (lo.min(x), hi.max(x))))
+            })
+            .filter(|(lo, hi)| hi > lo)
+    };
+    let (lo, hi) = match def.covariate {
+        "illumination_time" => range(&mut samples.event.iter().map(|&a| {
+            let t = seq.exposures[a].meta.t_illuminated_s();
+            if t > 0.0 {
+                t.log10()
+            } else {
+                f64::NAN
+            }
+        }))?,
+        "temperature" => range(&mut samples.temperature_k.iter().copied())?,
+        _ => return Some(def.name.to_string()),
+    };
+    Some(format!("{}:u_lo={},u_hi={}", def.name, short(lo), short(hi)))
+}
+
+/// Fit and hold out the term following `class` against `params` (its own effects
+/// refitted as `cfg.refit` says, `own_refit` those fitted on all samples);
+/// None when no term follows that class's covariate.
+#[allow(clippy::too_many_arguments)] // the diagnosis' own context, passed through
+pub fn offer(
+    class: &str,
+    params: &ModelParams,
+    own_refit: &ModelParams,
+    base_current: &[f64],
+    seq: &Sequence,
+    samples: &Samples,
+    cfg: &Config,
+    (input, model_path): (&Path, &Path),
+) -> Result<Option<DataTerm>> {
+    let Some(with) = with_arg(class, seq, samples) else {
+        return Ok(None);
+    };
+    let name = with.split(':').next().unwrap_or(&with).to_string();
+    let own = own_effects(params, cfg.refit);
+    let (fitted, f) = fit_candidate(own_refit, &own, None, &[with.as_str()], seq, samples)?;
+    let (rss0, rss1) = f.rss_before_after();
+    let k = f.params.iter().filter(|p| p.effect == name).count();
+    let dbic = delta_bic(rss0, rss1, k, f.cells);
+    let ho = held_out(
+        params,
+        base_current,
+        Some(&fitted),
+        &[with.as_str()],
+        seq,
+        samples,
+        cfg.refit,
+    )?;
+    let offered = dbic < DBIC_MAX && ho.as_ref().is_none_or(|h| h.gain > 0.0);
+    Ok(Some(DataTerm {
+        class: class.to_string(),
+        effect: name.clone(),
+        command: fit_command(input, model_path, params, &[with.as_str()], cfg),
+        measure_command: measure_command(input, model_path, params, &[with.as_str()], cfg),
+        with,
+        delta_bic: dbic,
+        rms_before: f.residual_rms_normalised_before,
+        rms_after: f.residual_rms_normalised_after,
+        held_out: ho,
+        offered,
+        measured_with: held_with_arg(&fitted, &name),
+    }))
+}

@@ -1,0 +1,480 @@
+//! Data-driven terms: a smooth function of one covariate, fitted from the data, where no
+//! library form carries the physics that `persist diagnose` finds along it.
+//!
+//! Physics: none assumed. A detector's response to illumination time, temperature,
+//! earlier illuminations or its neighbours' charge need not follow any of the library's
+//! forms (`soak`'s capture, `temperature`'s Arrhenius law, `capacity`'s Langmuir
+//! filling, `blooming`'s spill). Each term here acts on the same quantity as the
+//! library effect of its covariate, through a piecewise-linear function `g(u)` of the
+//! covariate `u` with three knots, at `u_lo`, `(u_lo + u_hi) / 2` and `u_hi`, whose
+//! values `at_lo`, `at_mid`, `at_hi` are fitted (`persist fit --with NAME:u_lo=..,
+//! u_hi=..`). Outside `[u_lo, u_hi]` `g` is constant at its end value, so the term never
+//! extrapolates a slope beyond the data it was fitted on. All values 0 is no change.
+//!
+//! | effect | covariate `u` | what `g` acts on |
+//! |---|---|---|
+//! | `smooth_duration` | `log10(t_illuminated / 1 s)` | every term's new response, `A_k,n *= exp(g)` (response hook) |
+//! | `smooth_temperature` | focal-plane temperature, K | every term's emission rate, `1/tau_n *= exp(g)`, `C_n *= exp(g)` (the charge `A_n C_n tau_n` kept; rates hook) |
+//! | `smooth_history` | `log10(H / 1 e-)`, `H` the charge the pixel still holds | the capacity of the exposed traps, factor `exp(g)` in (0, 1] (limit hook) |
+//! | `smooth_neighbour` | `log10(E_nb / max(F, 1 e-))` | the pixel's fluence, `F += g E_nb` (at least 0; fluence hook) |
+//!
+//! `E_nb` is `blooming`'s mean excess of the four nearest neighbours over `f_sat_e`, `F`
+//! the pixel's own extrapolated fluence: `g` is the share of the neighbours' excess
+//! that the pixel's traps see (positive: charge spills in; negative: the measured
+//! fluence holds the neighbours' signal, which the traps did not see).
+//!
+//! Anchors, held at 0 and not fitted: `smooth_duration`'s `at_hi` (the longest
+//! illumination, as a calibration's own usually is: the knots are rescaled for the
+//! calibration illumination anyway, [`Effect::response_is_per_pixel`]) and
+//! `smooth_history`'s `at_lo` (a pixel holding little charge keeps its capacity).
+//! Invariants: factors finite and > 0 (capacity factor <= 1), fluence finite and >= 0
+//! where it was, unknown (NaN) fluence stays unknown, unknown temperature changes
+//! nothing; all values at 0 leaves the step unchanged.
+
+use super::blooming::neighbour_excess;
+use super::get;
+use crate::model::effect::{
+    AccumulateRole, Effect, EffectDef, IntervalCtx, ParamSpec, ResponseCtx,
+};
+use ndarray::{Array2, Array3};
+use std::collections::BTreeMap;
+
+/// What a data-driven term acts on (module docs).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Axis {
+    Duration,
+    Temperature,
+    History,
+    Neighbour,
+}
+
+/// The knot positions and values of one term.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Smooth {
+    pub axis: Axis,
+    pub u_lo: f64,
+    pub u_hi: f64,
+    /// Values at `u_lo`, the midpoint and `u_hi`.
+    pub at: [f64; 3],
+    /// `smooth_neighbour`'s saturation fluence, e-.
+    pub f_sat_e: f64,
+}
+
+impl Smooth {
+    /// `g(u)`: piecewise linear through the three knots, constant outside them; the
+    /// first knot's value when `u_hi <= u_lo`, 0 for a non-finite `u`.
+    pub fn g(&self, u: f64) -> f64 {
+        if !u.is_finite() {
+            return 0.0;
+        }
+        let [a, m, b] = self.at;
+        let span = self.u_hi - self.u_lo;
+        if span.is_nan() || span <= 0.0 || u <= self.u_lo {
+            return a;
+        }
+        if u >= self.u_hi {
+            return b;
+        }
+        let x = 2.0 * (u - self.u_lo) / span; // 0..2
+        if x <= 1.0 {
+            a + (m - a) * x
+        } else {
+            m + (b - m) * (x - 1.0)
+        }
+    }
+
+    fn is_null(&self) -> bool {
+        self.at.iter().all(|v| *v == 0.0)
+    }
+}
+
+const fn knot(name: &'static str, lo: f64, hi: f64, fitted: bool, doc: &'static str) -> ParamSpec {
+    ParamSpec {
+        name,
+        default: 0.0,
+        lo,
+        hi,
+        null: None,
+        fitted,
+        doc,
+    }
+}
+
+const fn position(
+    name: &'static str,
+    default: f64,
+    lo: f64,
+    hi: f64,
+    doc: &'static str,
+) -> ParamSpec {
+    ParamSpec {
+        name,
+        default,
+        lo,
+        hi,
+        null: None,
+        fitted: false,
+        doc,
+    }
+}
+
+fn build(axis: Axis, p: &BTreeMap<String, f64>) -> Box<dyn Effect> {
+    Box::new(Smooth {
+        axis,
+        u_lo: get(p, "u_lo"),
+        u_hi: get(p, "u_hi"),
+        at: [get(p, "at_lo"), get(p, "at_mid"), get(p, "at_hi")],
+        f_sat_e: p.get("f_sat_e").copied().unwrap_or(2e5),
+    })
+}
+
+const DURATION_PARAMS: &[ParamSpec] = &[
+    position(
+        "u_lo",
+        1.5,
+        -3.0,
+        6.0,
+        "log10 of the shortest illumination, s",
+    ),
+    position(
+        "u_hi",
+        2.7,
+        -3.0,
+        6.0,
+        "log10 of the longest illumination, s",
+    ),
+    knot(
+        "at_lo",
+        -5.0,
+        2.0,
+        true,
+        "log of the response factor at u_lo",
+    ),
+    knot(
+        "at_mid",
+        -5.0,
+        2.0,
+        true,
+        "log of the response factor at the midpoint",
+    ),
+    knot(
+        "at_hi",
+        -5.0,
+        2.0,
+        false,
+        "log of the response factor at u_hi (the anchor)",
+    ),
+];
+
+pub const DURATION: EffectDef = EffectDef {
+    name: "smooth_duration",
+    summary: "data-driven: A_k,n *= exp(g(log10 t_ill)), g piecewise linear, fitted",
+    params: DURATION_PARAMS,
+    build: |p| build(Axis::Duration, p),
+    covariate: "illumination_time",
+};
+
+const TEMPERATURE_PARAMS: &[ParamSpec] = &[
+    position("u_lo", 78.0, 10.0, 300.0, "lowest temperature, K"),
+    position("u_hi", 82.0, 10.0, 300.0, "highest temperature, K"),
+    knot(
+        "at_lo",
+        -3.0,
+        3.0,
+        true,
+        "log of the emission-rate factor at u_lo",
+    ),
+    knot(
+        "at_mid",
+        -3.0,
+        3.0,
+        true,
+        "log of the emission-rate factor at the midpoint",
+    ),
+    knot(
+        "at_hi",
+        -3.0,
+        3.0,
+        true,
+        "log of the emission-rate factor at u_hi",
+    ),
+];
+
+pub const TEMPERATURE: EffectDef = EffectDef {
+    name: "smooth_temperature",
+    summary: "data-driven: 1/tau_n and C_n *= exp(g(T)), g piecewise linear, fitted",
+    params: TEMPERATURE_PARAMS,
+    build: |p| build(Axis::Temperature, p),
+    covariate: "temperature",
+};
+
+const HISTORY_PARAMS: &[ParamSpec] = &[
+    position(
+        "u_lo",
+        1.0,
+        -3.0,
+        9.0,
+        "log10 of the held charge below which nothing changes, e-",
+    ),
+    position(
+        "u_hi",
+        4.5,
+        -3.0,
+        9.0,
+        "log10 of the largest held charge, e-",
+    ),
+    knot(
+        "at_lo",
+        -5.0,
+        0.0,
+        false,
+        "log of the capacity factor at u_lo (the anchor)",
+    ),
+    knot(
+        "at_mid",
+        -5.0,
+        0.0,
+        true,
+        "log of the capacity factor at the midpoint",
+    ),
+    knot(
+        "at_hi",
+        -5.0,
+        0.0,
+        true,
+        "log of the capacity factor at u_hi",
+    ),
+];
+
+pub const HISTORY: EffectDef = EffectDef {
+    name: "smooth_history",
+    summary: "data-driven: exposed capacity *= exp(g(log10 held charge)), g piecewise linear",
+    params: HISTORY_PARAMS,
+    build: |p| build(Axis::History, p),
+    covariate: "earlier_illuminations",
+};
+
+const NEIGHBOUR_PARAMS: &[ParamSpec] = &[
+    position(
+        "u_lo",
+        0.0,
+        -6.0,
+        9.0,
+        "log10 of the neighbours' excess over the own fluence, low knot",
+    ),
+    position(
+        "u_hi",
+        3.0,
+        -6.0,
+        9.0,
+        "log10 of the neighbours' excess over the own fluence, high knot",
+    ),
+    knot(
+        "at_lo",
+        -1.0,
+        1.0,
+        true,
+        "share of the neighbours' excess fluence at u_lo",
+    ),
+    knot(
+        "at_mid",
+        -1.0,
+        1.0,
+        true,
+        "share of the neighbours' excess fluence at the midpoint",
+    ),
+    knot(
+        "at_hi",
+        -1.0,
+        1.0,
+        true,
+        "share of the neighbours' excess fluence at u_hi",
+    ),
+    position("f_sat_e", 2e5, 1.0, 1e9, "saturation fluence, e-"),
+];
+
+pub const NEIGHBOUR: EffectDef = EffectDef {
+    name: "smooth_neighbour",
+    summary: "data-driven: F += g(log10 E_nb/F) E_nb, g piecewise linear, fitted",
+    params: NEIGHBOUR_PARAMS,
+    build: |p| build(Axis::Neighbour, p),
+    covariate: "neighbour_excess_fluence",
+};
+
+/// The data-driven term acting on a contrast class's covariate
+/// (`crate::diag::contrast::class_of`), if there is one.
+pub fn for_covariate(covariate: &str) -> Option<&'static EffectDef> {
+    [&DURATION, &TEMPERATURE, &HISTORY, &NEIGHBOUR]
+        .into_iter()
+        .find(|d| d.covariate == covariate)
+}
+
+impl Effect for Smooth {
+    fn name(&self) -> &'static str {
+        match self.axis {
+            Axis::Duration => DURATION.name,
+            Axis::Temperature => TEMPERATURE.name,
+            Axis::History => HISTORY.name,
+            Axis::Neighbour => NEIGHBOUR.name,
+        }
+    }
+    fn is_pixel_local(&self) -> bool {
+        self.axis != Axis::Neighbour || self.is_null()
+    }
+    fn response_reach_px(&self) -> Option<usize> {
+        Some(0)
+    }
+    fn response_is_per_pixel(&self) -> bool {
+        self.axis == Axis::Duration
+    }
+    fn rates(&self, ctx: &IntervalCtx, c_per_s: &mut [f64], rate_per_s: &mut [f64]) {
+        if self.axis != Axis::Temperature {
+            return;
+        }
+        let Some(t) = ctx.focal_plane_temp_k.filter(|t| t.is_finite()) else {
+            return;
+        };
+        let f = self.g(t).exp();
+        for (c, r) in c_per_s.iter_mut().zip(rate_per_s.iter_mut()) {
+            *c *= f;
+            *r *= f;
+        }
+    }
+    fn has_fluence(&self) -> bool {
+        self.axis == Axis::Neighbour && !self.is_null()
+    }
+    fn fluence(&self, fluence_e: &mut Array2<f64>) {
+        if !self.has_fluence() {
+            return;
+        }
+        let e_nb = neighbour_excess(fluence_e, self.f_sat_e);
+        ndarray::Zip::from(fluence_e).and(&e_nb).for_each(|f, &e| {
+            if !f.is_finite() || e.is_nan() || e <= 0.0 {
+                return;
+            }
+            let u = (e / f.max(1.0)).log10();
+            let v = *f + self.g(u) * e;
+            *f = if v.is_finite() { v.max(0.0) } else { *f };
+        });
+    }
+    fn response(&self, ctx: &ResponseCtx<'_>, ak: &mut Array3<f64>) {
+        if self.axis != Axis::Duration || ctx.t_illuminated_s <= 0.0 {
+            return;
+        }
+        let f = self.g(ctx.t_illuminated_s.log10()).exp();
+        if f != 1.0 && f.is_finite() {
+            ak.mapv_inplace(|a| a * f);
+        }
+    }
+    fn has_accumulate(&self) -> bool {
+        self.axis == Axis::History
+    }
+    fn accumulate_role(&self) -> AccumulateRole {
+        AccumulateRole::Limit
+    }
+    fn limit(&self, held_e: f64, _capacity_e: f64) -> f64 {
+        if self.axis != Axis::History || held_e.is_nan() || held_e <= 0.0 {
+            return 1.0;
+        }
+        let k = self.g(held_e.log10()).exp();
+        if k.is_finite() {
+            k.clamp(0.0, 1.0)
+        } else {
+            1.0
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn term(axis: Axis, at: [f64; 3]) -> Smooth {
+        Smooth {
+            axis,
+            u_lo: 2.0,
+            u_hi: 3.0,
+            at,
+            f_sat_e: 100.0,
+        }
+    }
+
+    #[test]
+    fn g_is_piecewise_linear_and_flat_outside_the_knots() {
+        let s = term(Axis::Duration, [-1.0, 0.5, 0.0]);
+        assert_eq!(s.g(1.0), -1.0);
+        assert_eq!(s.g(2.0), -1.0);
+        assert!((s.g(2.25) - (-0.25)).abs() < 1e-12);
+        assert!((s.g(2.5) - 0.5).abs() < 1e-12);
+        assert!((s.g(2.75) - 0.25).abs() < 1e-12);
+        assert_eq!(s.g(4.0), 0.0);
+        assert_eq!(s.g(f64::NAN), 0.0);
+    }
+
+    #[test]
+    fn the_history_factor_is_a_limit_in_zero_one() {
+        let s = term(Axis::History, [0.0, -0.5, -2.0]);
+        assert_eq!(s.limit(0.0, 10.0), 1.0);
+        assert_eq!(s.limit(50.0, 10.0), 1.0); // below u_lo: the anchor
+        assert!((s.limit(1e3, 10.0) - (-2.0f64).exp()).abs() < 1e-12);
+        assert!((s.limit(10f64.powf(2.5), 10.0) - (-0.5f64).exp()).abs() < 1e-12);
+    }
+
+    #[test]
+    fn the_neighbour_term_moves_fluence_by_a_share_of_the_excess() {
+        // one pixel of 10 e- next to a saturated one of 500 e- (f_sat 100): E_nb = 100
+        // e-, u = log10(100 / 10) = 1 (below u_lo = 2): share at_lo = 0.5 -> 10 + 50
+        let s = term(Axis::Neighbour, [0.5, 0.0, 0.0]);
+        let mut f = ndarray::array![[10.0, 500.0], [f64::NAN, 0.0]];
+        s.fluence(&mut f);
+        assert!((f[[0, 0]] - 60.0).abs() < 1e-9, "{}", f[[0, 0]]);
+        assert_eq!(f[[0, 1]], 500.0); // no neighbour above saturation
+        assert!(f[[1, 0]].is_nan());
+        // a negative share cannot make the fluence negative
+        let s = term(Axis::Neighbour, [-1.0, -1.0, -1.0]);
+        let mut f = ndarray::array![[10.0, 500.0]];
+        s.fluence(&mut f);
+        assert_eq!(f[[0, 0]], 0.0);
+    }
+
+    #[test]
+    fn the_temperature_term_keeps_each_term_s_charge() {
+        let s = term(Axis::Temperature, [0.0, 0.0, 0.0]);
+        let mut s = s;
+        s.u_lo = 78.0;
+        s.u_hi = 82.0;
+        s.at = [0.2, 0.0, -0.2];
+        let ctx = IntervalCtx {
+            t_slew_s: 0.0,
+            t_exposure_s: 100.0,
+            t_meas_s: 50.0,
+            t_elapsed_s: 100.0,
+            focal_plane_temp_k: Some(78.0),
+        };
+        let (mut c, mut r) = (vec![2.0, 3.0], vec![0.1, 0.01]);
+        s.rates(&ctx, &mut c, &mut r);
+        assert!((r[0] - 0.1 * 0.2f64.exp()).abs() < 1e-12);
+        assert!((c[1] / r[1] - 300.0).abs() < 1e-9);
+        let unknown = IntervalCtx {
+            focal_plane_temp_k: None,
+            ..ctx
+        };
+        let (mut c, mut r) = (vec![2.0], vec![0.1]);
+        s.rates(&unknown, &mut c, &mut r);
+        assert_eq!((c[0], r[0]), (2.0, 0.1));
+    }
+
+    #[test]
+    fn every_term_resolves_with_its_defaults_to_no_change() {
+        for def in [&DURATION, &TEMPERATURE, &HISTORY, &NEIGHBOUR] {
+            let p = def
+                .resolve(&serde_json::Map::new())
+                .expect("defaults resolve");
+            let e = (def.build)(&p);
+            assert_eq!(e.name(), def.name);
+            assert!(e.is_pixel_local(), "{}", def.name);
+            assert_eq!(e.limit(1e4, 1e3), 1.0);
+            assert!(def.switch().is_none(), "{} is not scored", def.name);
+        }
+    }
+}
