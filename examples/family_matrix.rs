@@ -214,6 +214,8 @@ fn read_json(p: &Path) -> Option<serde_json::Value> {
 /// description it tested against (absent when it tested the model itself).
 #[derive(Debug, Default)]
 struct Suggested {
+    /// The effect or term its command adds.
+    effect: Option<String>,
     command: Option<String>,
     measure_command: Option<String>,
     reference_fit: Option<String>,
@@ -231,6 +233,7 @@ fn read_suggested(v: &serde_json::Value) -> Suggested {
         .filter(|t| t.get("offered") == Some(&true.into()));
     let first = first.or(term);
     Suggested {
+        effect: text(first.and_then(|c| c.get("effect"))),
         command: text(first.and_then(|c| c.get("command"))),
         measure_command: text(first.and_then(|c| c.get("measure_command"))),
         reference_fit: text(v.get("reference").and_then(|r| r.get("fit_command"))),
@@ -355,7 +358,9 @@ fn truths(dir: &Path) -> Result<Vec<ndarray::Array2<f32>>, String> {
         .collect()
 }
 
-/// `persist run` with `model`; the missed-flag fraction over the touched pixels.
+/// `persist run` with `model`; over the touched pixels' samples after the first
+/// exposure, the fraction of those truly at or above 0.1 e-/s left unflagged (missed)
+/// and of those truly below it flagged (over-flagged).
 fn run_missed(
     ctx: &Ctx,
     data: &Path,
@@ -363,7 +368,7 @@ fn run_missed(
     tag: &str,
     truth: &[ndarray::Array2<f32>],
     touched: &ndarray::Array2<bool>,
-) -> Result<f64, String> {
+) -> Result<(f64, f64), String> {
     let out = data.with_extension(format!("run_{tag}"));
     let ck = data.with_extension(format!("ck_{tag}"));
     let _ = std::fs::remove_dir_all(&out);
@@ -392,25 +397,33 @@ fn run_missed(
             truth.len()
         ));
     }
-    let (mut missed, mut above) = (0usize, 0usize);
+    let (mut missed, mut above, mut over, mut below) = (0usize, 0usize, 0usize, 0usize);
     for (k, p) in outs.iter().enumerate().skip(1) {
         let (e, _, _) = persist::product::read_output(p).map_err(|e| e.to_string())?;
         for ((t, f), &tp) in truth[k].iter().zip(e.flags.iter()).zip(touched.iter()) {
-            if tp && *t >= 0.1 {
+            if !tp {
+                continue;
+            }
+            let flagged = f & bits::PERSIST != 0;
+            if *t >= 0.1 {
                 above += 1;
-                if f & bits::PERSIST == 0 {
-                    missed += 1;
-                }
+                missed += usize::from(!flagged);
+            } else {
+                below += 1;
+                over += usize::from(flagged);
             }
         }
     }
     let _ = std::fs::remove_dir_all(&out);
     let _ = std::fs::remove_dir_all(&ck);
-    Ok(if above == 0 {
-        f64::NAN
-    } else {
-        missed as f64 / above as f64
-    })
+    let frac = |a: usize, n: usize| {
+        if n == 0 {
+            f64::NAN
+        } else {
+            a as f64 / n as f64
+        }
+    };
+    Ok((frac(missed, above), frac(over, below)))
 }
 
 fn walk_h5(dir: &Path) -> Vec<PathBuf> {
@@ -451,6 +464,10 @@ struct Run {
     touched_pixels: Option<usize>,
     missed_before: Option<f64>,
     missed_after: Option<f64>,
+    over_before: Option<f64>,
+    over_after: Option<f64>,
+    /// What the fit that followed added: the declared effect or the data-driven term.
+    suggested: Option<String>,
     seconds: f64,
 }
 
@@ -551,6 +568,7 @@ fn one(ctx: &Ctx, row: &Row, seed: u64, cache: &mut BTreeMap<(PathBuf, bool), Op
                 r.declared = declared;
                 r.untestable = untestable;
                 suggested = read_suggested(&v);
+                r.suggested = suggested.effect.clone();
                 r.kind_named = read_kind(&v);
             }
         }
@@ -597,9 +615,13 @@ fn one(ctx: &Ctx, row: &Row, seed: u64, cache: &mut BTreeMap<(PathBuf, bool), Op
                         .for_each(|t, a, b| *t |= (a - b).abs() > 0.01);
                 }
                 r.touched_pixels = Some(touched.iter().filter(|t| **t).count());
-                r.missed_before = run_missed(ctx, &d, &m, "before", &td, &touched).ok();
+                let before = run_missed(ctx, &d, &m, "before", &td, &touched).ok();
+                r.missed_before = before.map(|v| v.0);
+                r.over_before = before.map(|v| v.1);
                 if let Some(m2) = m2.as_deref().filter(|_| with_ok) {
-                    r.missed_after = run_missed(ctx, &d, m2, "after", &td, &touched).ok();
+                    let after = run_missed(ctx, &d, m2, "after", &td, &touched).ok();
+                    r.missed_after = after.map(|v| v.0);
+                    r.over_after = after.map(|v| v.1);
                 }
             }
         }
@@ -781,13 +803,13 @@ fn write_table(
     .unwrap();
     writeln!(
         md,
-        "Data: `persist simulate family` ({size} x {size}, seeds {first}..{}, see `persist::trapgen` for the physics and the forms). Every run uses the default commands only (`examples/family_matrix.rs` docs): `fit`, `diagnose`, then the `fit` commands `diagnose` prints for the effect declared first. Kind named: the declared effect's contrast class, or else the covariate the verdict says the residual depends on (\"of this kind in another form\"). Excess RMS: the normalised residual RMS (`compare`) minus the baseline's (same seed, nothing hidden, its own fit), of the measurements' description `diagnose` tested against when it fitted one. Missed: the fraction of samples of touched pixels with a true persistence current of at least 0.1 e-/s that `persist run` did not flag.\n",
+        "Data: `persist simulate family` ({size} x {size}, seeds {first}..{}, see `persist::trapgen` for the physics and the forms). Every run uses the default commands only (`examples/family_matrix.rs` docs): `fit`, `diagnose`, then the `fit` commands `diagnose` prints for the effect declared first, or, with nothing declared, for the data-driven term it offers (column \"added\"). Kind named: the declared effect's contrast class, or else the covariate the verdict says the residual depends on (\"of this kind in another form\"). Excess RMS: the normalised residual RMS (`compare`) minus the baseline's (same seed, nothing hidden, its own fit), of the measurements' description `diagnose` tested against when it fitted one. Missed: the fraction of samples of touched pixels with a true persistence current of at least 0.1 e-/s that `persist run` did not flag; over-flagged: of those truly below it, the fraction flagged.\n",
         first + seeds - 1
     )
     .unwrap();
     writeln!(
         md,
-        "| row | runs | fit ok | diagnose ran | class named first | kind named first | kind (each run) | declared first (each run) | untestable answers | excess RMS before -> after (median) | halved | missed@0.1 touched before -> after (median) |\n|---|---|---|---|---|---|---|---|---|---|---|---|"
+        "| row | runs | fit ok | diagnose ran | class named first | kind named first | kind (each run) | declared first (each run) | untestable answers | added (each run) | excess RMS before -> after (median) | halved | missed@0.1 touched before -> after (median) | over-flagged@0.1 touched before -> after (median) |\n|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"
     )
     .unwrap();
     for row in rows {
@@ -844,7 +866,7 @@ fn write_table(
         let halved_of = rs.iter().filter(|r| r.halved.is_some()).count();
         writeln!(
             md,
-            "| {} | {n} | {} | {} | {} | {} | {} | {} | {} | {} -> {} | {} | {} -> {} |",
+            "| {} | {n} | {} | {} | {} | {} | {} | {} | {} | {} | {} -> {} | {} | {} -> {} | {} -> {} |",
             row.name(),
             rs.iter().filter(|r| r.fit_ok).count(),
             rs.iter()
@@ -866,6 +888,10 @@ fn write_table(
             } else {
                 unt.join(", ")
             },
+            rs.iter()
+                .map(|r| r.suggested.clone().unwrap_or("nothing".into()))
+                .collect::<Vec<_>>()
+                .join(", "),
             f3(med(&|r| r.excess_before)),
             f3(med(&|r| r.excess_after)),
             if halved_of == 0 {
@@ -875,6 +901,8 @@ fn write_table(
             },
             f3(med(&|r| r.missed_before)),
             f3(med(&|r| r.missed_after)),
+            f3(med(&|r| r.over_before)),
+            f3(med(&|r| r.over_after)),
         )
         .unwrap();
     }

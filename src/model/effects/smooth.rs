@@ -7,8 +7,9 @@
 //! filling, `blooming`'s spill). Each term here acts on the same quantity as the
 //! library effect of its covariate, through a piecewise-linear function `g(u)` of the
 //! covariate `u` with three knots, at `u_lo`, `(u_lo + u_hi) / 2` and `u_hi`, whose
-//! values `at_lo`, `at_mid`, `at_hi` are fitted (`persist fit --with NAME:u_lo=..,
-//! u_hi=..`). Outside `[u_lo, u_hi]` `g` is constant at its end value, so the term never
+//! values `at_lo`, `at_mid`, `at_hi` are fitted (`persist fit --with
+//! smooth_duration:log10_t_lo_s=2.08,log10_t_hi_s=2.68`; the knot positions of each term
+//! are named with their units, [`range_names`]). Outside `[u_lo, u_hi]` `g` is constant at its end value, so the term never
 //! extrapolates a slope beyond the data it was fitted on. All values 0 is no change.
 //!
 //! | effect | covariate `u` | what `g` acts on |
@@ -118,11 +119,22 @@ const fn position(
     }
 }
 
+/// The names of the two knot-position parameters of an axis (units in the names).
+pub fn range_names(axis: Axis) -> (&'static str, &'static str) {
+    match axis {
+        Axis::Duration => ("log10_t_lo_s", "log10_t_hi_s"),
+        Axis::Temperature => ("t_lo_k", "t_hi_k"),
+        Axis::History => ("log10_held_lo_e", "log10_held_hi_e"),
+        Axis::Neighbour => ("log10_ratio_lo", "log10_ratio_hi"),
+    }
+}
+
 fn build(axis: Axis, p: &BTreeMap<String, f64>) -> Box<dyn Effect> {
+    let (lo, hi) = range_names(axis);
     Box::new(Smooth {
         axis,
-        u_lo: get(p, "u_lo"),
-        u_hi: get(p, "u_hi"),
+        u_lo: get(p, lo),
+        u_hi: get(p, hi),
         at: [get(p, "at_lo"), get(p, "at_mid"), get(p, "at_hi")],
         f_sat_e: p.get("f_sat_e").copied().unwrap_or(2e5),
     })
@@ -130,14 +142,14 @@ fn build(axis: Axis, p: &BTreeMap<String, f64>) -> Box<dyn Effect> {
 
 const DURATION_PARAMS: &[ParamSpec] = &[
     position(
-        "u_lo",
+        "log10_t_lo_s",
         1.5,
         -3.0,
         6.0,
         "log10 of the shortest illumination, s",
     ),
     position(
-        "u_hi",
+        "log10_t_hi_s",
         2.7,
         -3.0,
         6.0,
@@ -175,8 +187,8 @@ pub const DURATION: EffectDef = EffectDef {
 };
 
 const TEMPERATURE_PARAMS: &[ParamSpec] = &[
-    position("u_lo", 78.0, 10.0, 300.0, "lowest temperature, K"),
-    position("u_hi", 82.0, 10.0, 300.0, "highest temperature, K"),
+    position("t_lo_k", 78.0, 10.0, 300.0, "lowest temperature, K"),
+    position("t_hi_k", 82.0, 10.0, 300.0, "highest temperature, K"),
     knot(
         "at_lo",
         -3.0,
@@ -210,14 +222,14 @@ pub const TEMPERATURE: EffectDef = EffectDef {
 
 const HISTORY_PARAMS: &[ParamSpec] = &[
     position(
-        "u_lo",
+        "log10_held_lo_e",
         1.0,
         -3.0,
         9.0,
         "log10 of the held charge below which nothing changes, e-",
     ),
     position(
-        "u_hi",
+        "log10_held_hi_e",
         4.5,
         -3.0,
         9.0,
@@ -256,14 +268,14 @@ pub const HISTORY: EffectDef = EffectDef {
 
 const NEIGHBOUR_PARAMS: &[ParamSpec] = &[
     position(
-        "u_lo",
+        "log10_ratio_lo",
         0.0,
         -6.0,
         9.0,
         "log10 of the neighbours' excess over the own fluence, low knot",
     ),
     position(
-        "u_hi",
+        "log10_ratio_hi",
         3.0,
         -6.0,
         9.0,
@@ -300,6 +312,18 @@ pub const NEIGHBOUR: EffectDef = EffectDef {
     build: |p| build(Axis::Neighbour, p),
     covariate: "neighbour_excess_fluence",
 };
+
+/// The axis of a data-driven term, by effect name.
+pub fn axis_of(name: &str) -> Option<Axis> {
+    [
+        (DURATION.name, Axis::Duration),
+        (TEMPERATURE.name, Axis::Temperature),
+        (HISTORY.name, Axis::History),
+        (NEIGHBOUR.name, Axis::Neighbour),
+    ]
+    .into_iter()
+    .find_map(|(n, a)| (n == name).then_some(a))
+}
 
 /// The data-driven term acting on a contrast class's covariate
 /// (`crate::diag::contrast::class_of`), if there is one.
