@@ -80,21 +80,46 @@ pub fn with_arg(class: &str, seq: &Sequence, samples: &Samples) -> Option<String
         _ => return Some(def.name.to_string()),
     };
     let (lo_name, hi_name) = smooth::range_names(smooth::axis_of(def.name)?);
-    Some(format!(
+    let mut arg = format!(
         "{}:{lo_name}={},{hi_name}={}",
         def.name,
         short(lo),
         short(hi)
-    ))
+    );
+    // a midpoint knot with no measured value between the ends is not fitted: held at 0
+    let inner = |x: f64| x > lo + 1e-3 * (hi - lo) && x < hi - 1e-3 * (hi - lo);
+    let values: Vec<f64> = match def.covariate {
+        "illumination_time" => samples
+            .event
+            .iter()
+            .map(|&a| seq.exposures[a].meta.t_illuminated_s().log10())
+            .collect(),
+        _ => samples.temperature_k.clone(),
+    };
+    let mid_fitted = def.params.iter().any(|p| p.name == "at_mid" && p.fitted);
+    if mid_fitted && !values.iter().any(|&x| inner(x)) {
+        arg.push_str(",at_mid=0");
+    }
+    Some(arg)
 }
 
-/// Values every fitted knot of the term starts from, all at once, before the fit: the
-/// best of them (least cell RSS; 0, the model's own prediction, among them) is where
-/// Levenberg-Marquardt starts. At all-zero knots a forward difference of the knots
+/// Values the fitted knots of the term start from before the fit, each as a level (every
+/// knot at it) and as a ramp (the low knot at minus it, the midpoint at 0, the high knot
+/// at it): the best of them (least cell RSS; 0, the model's own prediction, among them)
+/// is where Levenberg-Marquardt starts. At all-zero knots a forward difference of the knots
 /// moves the prediction too little to show a gradient on every axis (measured: the
 /// emission-rate term stayed at its start on a family campaign with hidden
 /// temperature dependence, where a direct `persist fit` from another start moved it).
 pub const START_VALUES: [f64; 7] = [0.0, -2.0, -1.0, -0.3, 0.3, 1.0, 2.0];
+
+/// The knot values of one start: `v` at every knot (`ramp` false) or `-v, 0, v`.
+fn start_knot(name: &str, v: f64, ramp: bool) -> f64 {
+    match (ramp, name) {
+        (false, _) | (true, "at_hi") => v,
+        (true, "at_lo") => -v,
+        _ => 0.0,
+    }
+}
 
 /// The model `own_refit` with the term `with` at its best start ([`START_VALUES`]).
 fn start(
@@ -108,8 +133,8 @@ fn start(
     let Some(def) = crate::model::effects::lookup(&name) else {
         return Ok(own_refit.clone());
     };
-    let ramp = crate::calib::knots::scale_of(own_refit, seq)?;
-    let at = |v: f64| -> Result<(f64, ModelParams)> {
+    let scale = crate::calib::knots::scale_of(own_refit, seq)?;
+    let at = |(v, ramp): (f64, bool)| -> Result<(f64, ModelParams)> {
         let mut m = own_refit.clone();
         let mut spec = crate::model::params::EffectSpec::named(name.clone());
         for (k, x) in &pins {
@@ -118,20 +143,24 @@ fn start(
         }
         for p in def.params.iter().filter(|p| p.fitted) {
             if !spec.fixed.iter().any(|f| f == p.name) {
-                spec.params
-                    .insert(p.name.into(), serde_json::json!(v.clamp(p.lo, p.hi)));
+                spec.params.insert(
+                    p.name.into(),
+                    serde_json::json!(start_knot(p.name, v, ramp).clamp(p.lo, p.hi)),
+                );
             }
         }
         m.push_effect(spec);
-        if let Some((s_from, r)) = &ramp {
+        if let Some((s_from, r)) = &scale {
             crate::calib::knots::rescale(s_from, &mut m, r)?;
         }
         Ok((crate::measure::eval::rss_cells(&m, seq, samples)?.0, m))
     };
-    let tried: Vec<(f64, ModelParams)> = START_VALUES
-        .par_iter()
-        .map(|&v| at(v))
-        .collect::<Result<_>>()?;
+    let starts: Vec<(f64, bool)> = START_VALUES
+        .iter()
+        .flat_map(|&v| [(v, false), (v, true)])
+        .filter(|&(v, ramp)| !(ramp && v == 0.0))
+        .collect();
+    let tried: Vec<(f64, ModelParams)> = starts.into_par_iter().map(at).collect::<Result<_>>()?;
     Ok(tried
         .into_iter()
         .filter(|(r, _)| r.is_finite())
@@ -167,7 +196,9 @@ pub fn offer(
         seq,
         samples,
     )?;
-    let (rss0, rss1) = f.rss_before_after();
+    // against the model without the term (the fit's own "before" is its start)
+    let (rss0, m) = crate::measure::eval::rss_cells(own_refit, seq, samples)?;
+    let rss1 = f.rss_before_after().1;
     let k = f.params.iter().filter(|p| p.effect == name).count();
     let dbic = delta_bic(rss0, rss1, k, f.cells);
     let ho = held_out(
@@ -187,7 +218,7 @@ pub fn offer(
         measure_command: measure_command(input, model_path, params, &[with.as_str()], cfg),
         with,
         delta_bic: dbic,
-        rms_before: f.residual_rms_normalised_before,
+        rms_before: (rss0 / m.max(1) as f64).sqrt(),
         rms_after: f.residual_rms_normalised_after,
         held_out: ho,
         offered,

@@ -389,7 +389,7 @@ fn refit_own(
 }
 
 /// `base` (the model, its own effects refitted as [`Refit`] says) with the candidate
-/// effects `names` (one, or a pair in the joint check) fitted on `samples` together
+/// effects `names` (`--with` arguments: one, or a pair in the joint check) fitted on `samples` together
 /// with `own`; `start` holds the candidates at the values to start from (else their
 /// defaults).
 pub(super) fn fit_candidate(
@@ -405,7 +405,11 @@ pub(super) fn fit_candidate(
         .map(|s| {
             s.effects
                 .iter()
-                .filter(|e| names.contains(&e.name.as_str()))
+                .filter(|e| {
+                    names
+                        .iter()
+                        .any(|n| n.split(':').next() == Some(e.name.as_str()))
+                })
                 .cloned()
                 .collect()
         })

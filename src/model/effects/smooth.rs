@@ -24,10 +24,15 @@
 //! that the pixel's traps see (positive: charge spills in; negative: the measured
 //! fluence holds the neighbours' signal, which the traps did not see).
 //!
-//! Anchors, held at 0 and not fitted: `smooth_duration`'s `at_hi` (the longest
+//! Anchors, held at 0 and not fitted, so that a term cannot act as a change of the whole
+//! model (a common factor on every response or every rate is a misfit of the base, not
+//! a dependence on the covariate): `smooth_duration`'s `at_hi` (the longest
 //! illumination, as a calibration's own usually is: the knots are rescaled for the
-//! calibration illumination anyway, [`Effect::response_is_per_pixel`]) and
-//! `smooth_history`'s `at_lo` (a pixel holding little charge keeps its capacity).
+//! calibration illumination anyway, [`Effect::response_is_per_pixel`]),
+//! `smooth_temperature`'s `at_mid` (the middle of the temperatures measured; measured
+//! without it on a family campaign at 78, 80 and 82 K: the three values fitted to
+//! -3.66, -3.71, -3.77, a common slowing of every rate) and `smooth_history`'s `at_lo`
+//! (a pixel holding little charge keeps its capacity).
 //! Invariants: factors finite and > 0 (capacity factor <= 1), fluence finite and >= 0
 //! where it was, unknown (NaN) fluence stays unknown, unknown temperature changes
 //! nothing; all values at 0 leaves the step unchanged.
@@ -191,22 +196,22 @@ const TEMPERATURE_PARAMS: &[ParamSpec] = &[
     position("t_hi_k", 82.0, 10.0, 300.0, "highest temperature, K"),
     knot(
         "at_lo",
-        -3.0,
-        3.0,
+        -5.0,
+        5.0,
         true,
         "log of the emission-rate factor at u_lo",
     ),
     knot(
         "at_mid",
-        -3.0,
-        3.0,
-        true,
-        "log of the emission-rate factor at the midpoint",
+        -5.0,
+        5.0,
+        false,
+        "log of the emission-rate factor at the midpoint (the anchor)",
     ),
     knot(
         "at_hi",
-        -3.0,
-        3.0,
+        -5.0,
+        5.0,
         true,
         "log of the emission-rate factor at u_hi",
     ),
