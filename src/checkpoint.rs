@@ -379,7 +379,8 @@ const AMPLITUDE_BLOCK_BYTES: usize = 4 << 20;
 /// state per checkpoint are not copied into the page cache (on this machine that
 /// kernel copy cost more CPU time than the rest of a checkpoint), and the later
 /// `fsync` has little left to do. Where the file system refuses direct I/O (tmpfs),
-/// and for the last bytes that do not fill an aligned block, ordinary writes are used;
+/// for states under 1 MiB (not aligned), and for the last bytes that do not fill an
+/// aligned block, ordinary writes are used;
 /// the file's bytes are the same either way.
 fn write_amplitudes(tmp: &Path, offset: u64, a: &ndarray::Array3<f64>) -> Result<()> {
     use crate::model::state::amplitudes_ok;
@@ -388,21 +389,20 @@ fn write_amplitudes(tmp: &Path, offset: u64, a: &ndarray::Array3<f64>) -> Result
     let values = a.as_slice().ok_or_else(|| {
         Error::invalid("/amplitudes_e", "state amplitudes not in standard layout")
     })?;
-    if offset % DIRECT_ALIGN as u64 != 0 {
-        return Err(Error::invalid(
-            "/amplitudes_e",
-            format!("allocated at offset {offset}, not a multiple of {DIRECT_ALIGN}"),
-        ));
-    }
     let buffered = std::fs::OpenOptions::new()
         .write(true)
         .open(tmp)
         .map_err(io)?;
-    let mut direct = std::fs::OpenOptions::new()
-        .write(true)
-        .custom_flags(libc::O_DIRECT)
-        .open(tmp)
-        .ok();
+    // Objects under 1 MiB are not aligned (small states): ordinary writes only.
+    let mut direct = if offset % DIRECT_ALIGN as u64 == 0 {
+        std::fs::OpenOptions::new()
+            .write(true)
+            .custom_flags(libc::O_DIRECT)
+            .open(tmp)
+            .ok()
+    } else {
+        None
+    };
     let mut storage = vec![0u8; AMPLITUDE_BLOCK_BYTES + DIRECT_ALIGN];
     let start = storage.as_ptr().align_offset(DIRECT_ALIGN);
     let buf = &mut storage[start..start + AMPLITUDE_BLOCK_BYTES];
