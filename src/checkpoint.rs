@@ -394,7 +394,7 @@ fn write_amplitudes(tmp: &Path, offset: u64, a: &ndarray::Array3<f64>) -> Result
         .open(tmp)
         .map_err(io)?;
     // Objects under 1 MiB are not aligned (small states): ordinary writes only.
-    let mut direct = if offset % DIRECT_ALIGN as u64 == 0 {
+    let mut direct = if offset.is_multiple_of(DIRECT_ALIGN as u64) {
         std::fs::OpenOptions::new()
             .write(true)
             .custom_flags(libc::O_DIRECT)
