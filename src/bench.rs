@@ -21,7 +21,8 @@
 //!   (the output product's four planes, flag planes compressed as the stage does, and
 //!   the checkpoint's state), each file `fsync`ed as the stage does, and the same files
 //!   left on disk (every output, the two newest checkpoints); no validation, no model,
-//!   no rename.
+//!   no rename. The checkpoint goes through HDF5 and the page cache, every exposure;
+//!   the stage writes its amplitudes with direct I/O, at its cadence.
 //!
 //! - **(e) `copy`**: a plain copy of the bytes (c) moves through files: read each input
 //!   file, write the bytes of its output product (as the `stage` case published them,
