@@ -334,48 +334,60 @@ pub fn run_observing(
     for (&det, files) in by_det.iter_mut() {
         files.sort();
         let mut tracker: Option<Tracker> = None;
-        for (idx, path) in files.iter() {
-            let (e, planes, attrs) = match read_output(path) {
-                Ok(v) => v,
-                Err(err) => {
+        // The next file is read on its own thread while this one is measured.
+        std::thread::scope(|scope| {
+            let (send, receive) = std::sync::mpsc::sync_channel(1);
+            let files = &*files;
+            scope.spawn(move || {
+                for (idx, path) in files {
+                    let read = read_output(path).map(|v| (v, read_truth(input, det, *idx)));
+                    if send.send((path, read)).is_err() {
+                        return;
+                    }
+                }
+            });
+            for (path, read) in receive {
+                let ((e, planes, attrs), truth) = match read {
+                    Ok(v) => v,
+                    Err(err) => {
+                        errors.push(FileError {
+                            file: path.clone(),
+                            reason: err.to_string(),
+                        });
+                        continue;
+                    }
+                };
+                if !model_ids.contains(&attrs.model_id) {
+                    model_ids.push(attrs.model_id.clone());
+                }
+                let (ny, nx) = e.image.dim();
+                let t = tracker.get_or_insert_with(|| Tracker::new(params.track.clone(), ny, nx));
+                if t.shape() != (ny, nx) {
                     errors.push(FileError {
                         file: path.clone(),
-                        reason: err.to_string(),
+                        reason: format!(
+                            "image is {ny} x {nx}, the detector's earlier ones {:?}",
+                            t.shape()
+                        ),
                     });
                     continue;
                 }
-            };
-            if !model_ids.contains(&attrs.model_id) {
-                model_ids.push(attrs.model_id.clone());
+                let frame = Frame::of(
+                    &e,
+                    planes.current_e_per_s.view(),
+                    planes.flags.view(),
+                    truth.as_ref().map(|a| a.view()),
+                );
+                let before = t.clusters_started();
+                for s in t.observe(&frame) {
+                    let cluster = (u64::from(det) << 48) | s.cluster;
+                    acc.add(params, &s, cluster);
+                    observe(det, &s);
+                }
+                events += t.clusters_started() - before;
+                exposures += 1;
             }
-            let (ny, nx) = e.image.dim();
-            let t = tracker.get_or_insert_with(|| Tracker::new(params.track.clone(), ny, nx));
-            if t.shape() != (ny, nx) {
-                errors.push(FileError {
-                    file: path.clone(),
-                    reason: format!(
-                        "image is {ny} x {nx}, the detector's earlier ones {:?}",
-                        t.shape()
-                    ),
-                });
-                continue;
-            }
-            let truth = read_truth(input, det, *idx);
-            let frame = Frame::of(
-                &e,
-                planes.current_e_per_s.view(),
-                planes.flags.view(),
-                truth.as_ref().map(|a| a.view()),
-            );
-            let before = t.clusters_started();
-            for s in t.observe(&frame) {
-                let cluster = (u64::from(det) << 48) | s.cluster;
-                acc.add(params, &s, cluster);
-                observe(det, &s);
-            }
-            events += t.clusters_started() - before;
-            exposures += 1;
-        }
+        });
         if let Some(t) = tracker {
             rejected += t.rejected;
             no_sky += t.no_sky;
