@@ -209,7 +209,10 @@ struct Acc {
     flags: BTreeMap<(usize, bool), Bin<3>>,
     margin: BTreeMap<usize, (QuantileBin, QuantileBin)>,
     margin_all: QuantileBin,
+    /// Every sample so far had a truth (and there was one).
     has_truth: bool,
+    /// A sample without a truth was seen.
+    truth_missing: bool,
     samples: usize,
 }
 
@@ -221,8 +224,12 @@ impl Acc {
         let Some(fb) = bin_of(&p.fluence_edges_e, s.event_fluence_e) else {
             return;
         };
-        let truth = s.true_excess_e_per_s.unwrap_or(f64::NAN);
-        self.has_truth |= s.true_excess_e_per_s.is_some();
+        // Without a truth (flight data) its column holds 0, not NaN: the means are
+        // linear combinations of all the columns' sums, and 0 x NaN would make every
+        // mean NaN. The truth's means are reported only when every sample had one.
+        let truth = s.true_excess_e_per_s.unwrap_or(0.0);
+        self.truth_missing |= s.true_excess_e_per_s.is_none();
+        self.has_truth = !self.truth_missing;
         self.samples += 1;
         let measured = s.excess_e_per_s - s.control_e_per_s;
         let pred = s.predicted_excess_e_per_s;
