@@ -636,3 +636,74 @@ pub fn write_report(report: &Report, dir: &Path) -> Result<()> {
     std::fs::write(&p, report::html(report)?).map_err(|e| Error::io(&p, e))?;
     Ok(())
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn sample(cluster: u64, excess: f64, truth: Option<f64>) -> Sample {
+        Sample {
+            y: 0,
+            x: 0,
+            cluster,
+            event_fluence_e: 3e5,
+            time_s: 100.0,
+            excess_e_per_s: excess,
+            sigma_e_per_s: 0.05,
+            control_e_per_s: 0.0,
+            control_true_e_per_s: 0.0,
+            predicted_e_per_s: 1.0,
+            predicted_excess_e_per_s: 1.0,
+            flagged: true,
+            true_excess_e_per_s: truth,
+            first: true,
+        }
+    }
+
+    fn summary() -> Summary {
+        Summary {
+            model_ids: vec![],
+            detectors: vec![1],
+            exposures: 1,
+            errors: vec![],
+            events: 8,
+            rejected: 0,
+            no_sky: 0,
+        }
+    }
+
+    /// Flight data have no truth: the measured and predicted means must still be the
+    /// samples' (they were NaN when the missing truth entered the sums as NaN), and the
+    /// page must be written.
+    #[test]
+    fn without_a_truth_the_means_are_measured_and_no_truth_is_reported() {
+        let p = VerifyParams::default();
+        let mut acc = Acc::default();
+        for c in 0..8 {
+            acc.add(&p, &sample(c, 0.5 + 0.1 * c as f64, None), c);
+        }
+        let r = summarise(&p, acc, summary());
+        assert_eq!(r.decay.len(), 1);
+        let b = &r.decay[0];
+        assert!((b.measured.mean - 0.85).abs() < 1e-9, "{b:?}");
+        assert!((b.predicted.mean - 1.0).abs() < 1e-9, "{b:?}");
+        assert!(b.truth.is_none() && b.truth_inside.is_none());
+        assert!(r.checks.truth_inside.is_none());
+        assert!(report::html(&r).unwrap().contains("Decay by fluence"));
+    }
+
+    /// One exposure without its truth file: the truth is not reported rather than
+    /// averaged with zeros.
+    #[test]
+    fn a_truth_missing_for_some_samples_is_not_reported() {
+        let p = VerifyParams::default();
+        let mut acc = Acc::default();
+        for c in 0..8 {
+            let truth = (c != 3).then_some(0.4);
+            acc.add(&p, &sample(c, 0.5, truth), c);
+        }
+        let r = summarise(&p, acc, summary());
+        assert!(r.decay[0].truth.is_none());
+        assert!((r.decay[0].measured.mean - 0.5).abs() < 1e-9);
+    }
+}
