@@ -16,7 +16,7 @@
 #   verify  docs/validation/verify.md           scripts/validate_verify.sh (minutes)
 #   verify_bench  docs/validation/verify_bench.md (+ .json)  `persist bench --verify-only
 #                                               $VERIFY_BENCH_ARGS`: `persist verify` on full
-#                                               frames and one detector-day (about 15 minutes)
+#                                               frames and one detector-day (about 8 minutes)
 #   family  docs/validation/diagnostics_family.md  examples/family_matrix $FAMILY_ARGS
 #                                               (default --size 64 --seeds 5: about an hour
 #                                               on a quiet machine; not in the default set)
