@@ -14,6 +14,9 @@
 #   matrix  docs/validation/diagnose_matrix.md  examples/diagnose_matrix $MATRIX_ARGS
 #                                               (default --size 128: hours)
 #   verify  docs/validation/verify.md           scripts/validate_verify.sh (minutes)
+#   verify_bench  docs/validation/verify_bench.md (+ .json)  `persist bench --verify-only
+#                                               $VERIFY_BENCH_ARGS`: `persist verify` on full
+#                                               frames and one detector-day (about 8 minutes)
 #   family  docs/validation/diagnostics_family.md  examples/family_matrix $FAMILY_ARGS
 #                                               (default --size 64 --seeds 5: about an hour
 #                                               on a quiet machine; not in the default set)
@@ -28,12 +31,12 @@ mkdir -p "$out_dir"
 
 pages=("$@")
 if [[ ${#pages[@]} -eq 0 ]]; then
-    pages=(floor bench matrix verify)
+    pages=(floor bench matrix verify verify_bench)
 fi
 for p in "${pages[@]}"; do
     case $p in
-        floor|bench|matrix|verify|family) ;;
-        *) echo "validation.sh: unknown page '$p' (floor, bench, matrix, verify, family)" >&2; exit 2 ;;
+        floor|bench|matrix|verify|verify_bench|family) ;;
+        *) echo "validation.sh: unknown page '$p' (floor, bench, matrix, verify, verify_bench, family)" >&2; exit 2 ;;
     esac
 done
 
@@ -147,6 +150,36 @@ TEXT
     } > "$page.tmp"
     mv "$page.tmp" "$page"
     cp "$tmp/bench.json" "$out_dir/bench.json"
+    echo "wrote $page" >&2
+}
+
+# ---------------------------------------------------------------------------------
+# verify_bench: `persist bench --verify-only` (docs/performance.md explains the case).
+page_verify_bench() {
+    local page=$out_dir/verify_bench.md
+    local args=${VERIFY_BENCH_ARGS:-}
+    echo "verify_bench: persist bench --verify-only $args" >&2
+    # shellcheck disable=SC2086
+    "$persist" --log-level warn bench --verify-only $args --json "$tmp/verify_bench.json" > "$tmp/verify_bench.txt"
+    {
+        scripts/validation_header.sh "Validation: how long persist verify takes on a detector-day" \
+            "make validation PAGES=verify_bench VERIFY_BENCH_ARGS='$args' (persist bench --verify-only $args)"
+        cat <<'TEXT'
+The case (f) of `persist bench` ([docs/performance.md](../performance.md#persist-verify-on-a-full-frame)):
+`persist verify` (tracking, stacking and its report) over the stage's outputs of the
+simulator's default sky survey (seed 1, one detector, the default model, the truth
+removed as in flight), timed whole in a child process. The full frame is run for a few
+exposures; one detector-day (571 exposures of 112 s) is run at a smaller frame with the
+same density of stars per pixel, and so are its first exposures, which give the measured
+ratio of the two sizes. "track samples" are the pixel-exposures followed after an
+event; "peak" the child's peak resident memory. The raw numbers are in
+[verify_bench.json](verify_bench.json).
+
+TEXT
+        cat "$tmp/verify_bench.txt"
+    } > "$page.tmp"
+    mv "$page.tmp" "$page"
+    cp "$tmp/verify_bench.json" "$out_dir/verify_bench.json"
     echo "wrote $page" >&2
 }
 

@@ -21,11 +21,20 @@
 //!   (the output product's four planes, flag planes compressed as the stage does, and
 //!   the checkpoint's state), each file `fsync`ed as the stage does, and the same files
 //!   left on disk (every output, the two newest checkpoints); no validation, no model,
-//!   no rename.
+//!   no rename. The checkpoint goes through HDF5 and the page cache, every exposure;
+//!   the stage writes its amplitudes with direct I/O, at its cadence.
 //!
 //! - **(e) `copy`**: a plain copy of the bytes (c) moves through files: read each input
 //!   file, write the bytes of its output product (as the `stage` case published them,
 //!   read beforehand, not timed) to a new file and `fsync` it. No HDF5, no checkpoint.
+//!
+//! - **(f) `verify`**: `persist verify` ([`crate::verify::run`] and its report) over
+//!   the stage's outputs of a simulated sky (the simulator's default survey, seed 1,
+//!   one detector; its truth removed, as in flight), timed whole. Run on a few
+//!   exposures of the full frame and on one detector-day (571 exposures) of a smaller
+//!   frame at the same density of stars per pixel, and on that day's first few
+//!   exposures; a day of the full frame is projected from these ([`VerifyProjection`]:
+//!   the rule).
 //!
 //! (c) runs at the stage's default checkpoint cadence
 //! ([`crate::checkpoint::DEFAULT_CADENCE`]); its samples are means over whole cadence
@@ -67,6 +76,7 @@ pub enum Case {
     Stage,
     Io,
     Copy,
+    Verify,
 }
 
 impl Case {
@@ -77,13 +87,21 @@ impl Case {
             Case::Stage => "stage",
             Case::Io => "io",
             Case::Copy => "copy",
+            Case::Verify => "verify",
         }
     }
 
     pub fn parse(s: &str) -> Option<Case> {
-        [Case::Step, Case::Memory, Case::Stage, Case::Io, Case::Copy]
-            .into_iter()
-            .find(|c| c.name() == s)
+        [
+            Case::Step,
+            Case::Memory,
+            Case::Stage,
+            Case::Io,
+            Case::Copy,
+            Case::Verify,
+        ]
+        .into_iter()
+        .find(|c| c.name() == s)
     }
 }
 
@@ -113,6 +131,20 @@ pub struct CaseResult {
     pub median_s: f64,
     /// `VmHWM` of the child, bytes.
     pub peak_rss_bytes: u64,
+    /// For `verify`: what the run measured.
+    #[serde(default)]
+    pub verify: Option<VerifyCounts>,
+}
+
+/// What one timed `verify` run went through.
+#[derive(Debug, Clone, Copy, Serialize, Deserialize)]
+pub struct VerifyCounts {
+    pub exposures: usize,
+    /// Track samples measured (pixel-exposures followed after an event).
+    pub samples: usize,
+    pub events: u64,
+    /// Wall time of the whole run (reading, tracking, stacking, report), s.
+    pub total_s: f64,
 }
 
 /// The whole run (`persist bench`).
@@ -131,6 +163,44 @@ pub struct BenchConfig {
     pub scratch: PathBuf,
     /// The `persist` executable that runs each case.
     pub exe: PathBuf,
+    /// The `verify` case (f), at each thread count; `None`: not run.
+    pub verify: Option<VerifyBenchConfig>,
+    /// Only the `verify` case.
+    pub verify_only: bool,
+}
+
+/// The sizes of the `verify` case (f).
+#[derive(Debug, Clone, Copy, Serialize, Deserialize)]
+pub struct VerifyBenchConfig {
+    /// The full frame (square) and how many exposures of it are verified.
+    pub size: usize,
+    pub exposures: usize,
+    /// The smaller frame whose whole day is verified, and the day's exposures.
+    pub day_size: usize,
+    pub day_exposures: usize,
+}
+
+impl VerifyBenchConfig {
+    /// A detector-day: 86,400 s at the survey's cadence (112 s exposures, 39 s mean slew).
+    pub const DAY_EXPOSURES: usize = 571;
+
+    pub fn full() -> Self {
+        VerifyBenchConfig {
+            size: 2040,
+            exposures: 6,
+            day_size: 512,
+            day_exposures: Self::DAY_EXPOSURES,
+        }
+    }
+
+    pub fn quick() -> Self {
+        VerifyBenchConfig {
+            size: 64,
+            exposures: 4,
+            day_size: 32,
+            day_exposures: 30,
+        }
+    }
 }
 
 impl BenchConfig {
@@ -145,6 +215,8 @@ impl BenchConfig {
             checkpoint_every: vec![4],
             scratch,
             exe,
+            verify: Some(VerifyBenchConfig::full()),
+            verify_only: false,
         }
     }
 
@@ -159,6 +231,8 @@ impl BenchConfig {
             checkpoint_every: vec![2],
             scratch,
             exe,
+            verify: Some(VerifyBenchConfig::quick()),
+            verify_only: false,
         }
     }
 }
@@ -171,6 +245,53 @@ pub struct BenchReport {
     pub markdown: String,
     pub machine: String,
     pub date_utc: String,
+    /// The `verify` case's runs, one row each.
+    #[serde(default)]
+    pub verify_rows: Vec<VerifyRow>,
+    /// A detector-day of the full frame, one per thread count.
+    #[serde(default)]
+    pub verify_projections: Vec<VerifyProjection>,
+}
+
+/// One timed `verify` run.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct VerifyRow {
+    pub size: usize,
+    pub exposures: usize,
+    pub threads: usize,
+    pub total_s: f64,
+    pub s_per_exposure: f64,
+    pub samples: usize,
+    pub events: u64,
+    /// Wall time per pixel-exposure, microseconds.
+    pub us_per_pixel_exposure: f64,
+    pub peak_bytes: u64,
+}
+
+/// One detector-day of the full frame, projected from the measured day of the smaller
+/// frame. The rule: at the same density of stars per pixel (the simulator's `n12` is
+/// per 2040 x 2040 array, so a smaller frame sees the same density), events, tracks and
+/// control pixels, hence every cost of `verify`, scale with the pixel count; the day's
+/// time at the smaller size is multiplied by the larger of the pixel ratio and the
+/// measured ratio of the same first exposures at the two sizes (which holds what the
+/// pixel count does not: caches, the files' fixed costs).
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct VerifyProjection {
+    pub size: usize,
+    pub day_size: usize,
+    pub day_exposures: usize,
+    pub threads: usize,
+    /// The measured day at `day_size`, s.
+    pub day_s: f64,
+    /// `(size / day_size)^2`.
+    pub pixel_ratio: f64,
+    /// Time of the first `exposures` at `size` over the same at `day_size`.
+    pub measured_ratio: f64,
+    pub exposures: usize,
+    /// `day_s * max(pixel_ratio, measured_ratio)`, s.
+    pub projected_day_s: f64,
+    /// Full-frame exposures per second over the projected day.
+    pub projected_s_per_exposure: f64,
 }
 
 /// One line of the table: one size, one thread count.
@@ -311,12 +432,13 @@ pub fn run_case(spec: &CaseSpec) -> Result<CaseResult> {
         .num_threads(spec.threads.max(1))
         .build()
         .map_err(|e| bench_error(format!("rayon pool: {e}")))?;
-    let samples = pool.install(|| match spec.case {
-        Case::Step => case_step(spec),
-        Case::Memory => Ok(case_memory(spec)),
-        Case::Stage => case_stage(spec),
-        Case::Io => case_io(spec),
-        Case::Copy => case_copy(spec),
+    let (samples, verify) = pool.install(|| match spec.case {
+        Case::Step => case_step(spec).map(|s| (s, None)),
+        Case::Memory => Ok((case_memory(spec), None)),
+        Case::Stage => case_stage(spec).map(|s| (s, None)),
+        Case::Io => case_io(spec).map(|s| (s, None)),
+        Case::Copy => case_copy(spec).map(|s| (s, None)),
+        Case::Verify => case_verify(spec).map(|c| (vec![c.total_s / c.exposures as f64], Some(c))),
     })?;
     Ok(CaseResult {
         case: spec.case,
@@ -326,6 +448,7 @@ pub fn run_case(spec: &CaseSpec) -> Result<CaseResult> {
         median_s: median(&samples),
         samples_s: samples,
         peak_rss_bytes: peak_rss_bytes(),
+        verify,
     })
 }
 
@@ -635,7 +758,12 @@ pub fn run(cfg: &BenchConfig, progress: &dyn Fn(&CaseResult)) -> Result<BenchRep
     for &e in &cfg.checkpoint_every {
         stage_exposures = stage_exposures.max(e as usize * 3 + 1);
     }
-    for &size in &cfg.sizes {
+    let sizes = if cfg.verify_only {
+        &[][..]
+    } else {
+        &cfg.sizes[..]
+    };
+    for &size in sizes {
         let _ = prepare_inputs(&cfg.scratch, size, stage_exposures)?;
         for &threads in &cfg.threads {
             let spec = |case, reps, every| CaseSpec {
@@ -708,14 +836,255 @@ pub fn run(cfg: &BenchConfig, progress: &dyn Fn(&CaseResult)) -> Result<BenchRep
         let dir = input_dir(&cfg.scratch, size);
         let _ = std::fs::remove_dir_all(&dir);
     }
-    let markdown = table(&rows);
+    let (mut verify_rows, mut verify_projections) = (Vec::new(), Vec::new());
+    if let Some(v) = &cfg.verify {
+        run_verify(cfg, v, progress, &mut verify_rows, &mut verify_projections)?;
+    }
+    let mut markdown = if rows.is_empty() {
+        String::new()
+    } else {
+        table(&rows)
+    };
+    if !verify_rows.is_empty() {
+        if !markdown.is_empty() {
+            markdown.push('\n');
+        }
+        markdown.push_str(&verify_table(&verify_rows, &verify_projections));
+    }
     Ok(BenchReport {
         results,
         rows,
         markdown,
         machine: machine(),
         date_utc: chrono::Utc::now().to_rfc3339_opts(chrono::SecondsFormat::Secs, true),
+        verify_rows,
+        verify_projections,
     })
+}
+
+/// Where the `verify` case's data of `exposures` exposures of `size^2` are.
+fn verify_root(scratch: &Path, size: usize, exposures: usize) -> PathBuf {
+    scratch.join(format!("verify_{size}_{exposures}"))
+}
+
+/// Simulate `exposures` sky exposures of `size^2` (the default survey, seed 1, one
+/// detector), run the stage on them with the default model, and remove the truth: the
+/// `verify` case's data (not timed).
+pub fn prepare_verify(scratch: &Path, size: usize, exposures: usize) -> Result<PathBuf> {
+    use crate::sim::{output::Writer, sky};
+    let root = verify_root(scratch, size, exposures);
+    if root.exists() {
+        std::fs::remove_dir_all(&root).map_err(|e| Error::io(&root, e))?;
+    }
+    let sky_dir = root.join("sky");
+    let cfg = sky::SkyConfig {
+        size,
+        detectors: 1,
+        exposures: exposures as u64,
+        seed: 1,
+        ..sky::SkyConfig::default()
+    };
+    let mut w = Writer::new(&sky_dir)?;
+    let desc = sky::run(&cfg, |e| w.write(&e))?;
+    w.finish(desc)?;
+    let truth = sky_dir.join("truth");
+    std::fs::remove_dir_all(&truth).map_err(|e| Error::io(&truth, e))?;
+    let run = RunConfig {
+        input: sky_dir,
+        output: root.join("out"),
+        checkpoints: root.join("ckpt"),
+        model: model(),
+        from_checkpoint: None,
+        allow_model_change: false,
+        checkpoint_every: DEFAULT_CADENCE,
+        checkpoint_idle: std::time::Duration::ZERO,
+        retention: Retention {
+            keep_latest: 1,
+            ..Retention::default()
+        },
+        processed_utc: "2026-03-02T00:00:00.000000Z".into(),
+    };
+    let report = stage::run(&run, &|_| {});
+    if let Some(e) = report.errors.into_iter().next() {
+        return Err(e);
+    }
+    let _ = std::fs::remove_dir_all(&run.checkpoints);
+    Ok(root)
+}
+
+/// The first `k` exposures of the data at `from` (inputs and outputs copied), as the
+/// data of a run of `k` exposures.
+fn verify_subset(scratch: &Path, from: &Path, size: usize, k: usize) -> Result<PathBuf> {
+    let root = verify_root(scratch, size, k);
+    if root.exists() {
+        std::fs::remove_dir_all(&root).map_err(|e| Error::io(&root, e))?;
+    }
+    for sub in ["sky", "out"] {
+        let src = from.join(sub);
+        let dst = root.join(sub);
+        std::fs::create_dir_all(&dst).map_err(|e| Error::io(&dst, e))?;
+        let mut names: Vec<PathBuf> = std::fs::read_dir(&src)
+            .map_err(|e| Error::io(&src, e))?
+            .filter_map(|e| e.ok().map(|e| e.path()))
+            .filter(|p| p.is_file() && p.extension().is_some_and(|x| x == "h5"))
+            .collect();
+        // the simulator's names, `d{det}_e{index:06}.h5`, sort in exposure order
+        names.sort();
+        for p in names.iter().take(k) {
+            let to = dst.join(p.file_name().unwrap_or_default());
+            std::fs::copy(p, &to).map_err(|e| Error::io(&to, e))?;
+        }
+    }
+    Ok(root)
+}
+
+/// (f) `verify` over the prepared data of `spec.reps` exposures of `spec.size^2`.
+fn case_verify(spec: &CaseSpec) -> Result<VerifyCounts> {
+    let root = verify_root(&spec.scratch, spec.size, spec.reps);
+    let t = Instant::now();
+    let r = crate::verify::run(
+        &root.join("sky"),
+        &root.join("out"),
+        &crate::verify::VerifyParams::default(),
+    )?;
+    crate::verify::write_report(&r, &root.join(format!("report_{}", spec.threads)))?;
+    let total_s = t.elapsed().as_secs_f64();
+    if let Some(e) = r.errors.first() {
+        return Err(bench_error(format!(
+            "verify: {}: {}",
+            e.file.display(),
+            e.reason
+        )));
+    }
+    if r.exposures == 0 {
+        return Err(bench_error(format!(
+            "verify: no exposures under {}",
+            root.display()
+        )));
+    }
+    Ok(VerifyCounts {
+        exposures: r.exposures,
+        samples: r.samples,
+        events: r.events,
+        total_s,
+    })
+}
+
+/// (f) at every thread count: the full frame's first exposures, the smaller frame's day
+/// and its first exposures, and the projection.
+fn run_verify(
+    cfg: &BenchConfig,
+    v: &VerifyBenchConfig,
+    progress: &dyn Fn(&CaseResult),
+    rows: &mut Vec<VerifyRow>,
+    projections: &mut Vec<VerifyProjection>,
+) -> Result<()> {
+    if v.exposures == 0 || v.exposures > v.day_exposures || v.day_size == 0 || v.size == 0 {
+        return Err(Error::new(
+            ErrorKind::Usage,
+            format!(
+                "verify benchmark: need 0 < exposures {} <= day exposures {} and sizes > 0",
+                v.exposures, v.day_exposures
+            ),
+        ));
+    }
+    let full = prepare_verify(&cfg.scratch, v.size, v.exposures)?;
+    let day = prepare_verify(&cfg.scratch, v.day_size, v.day_exposures)?;
+    let first = verify_subset(&cfg.scratch, &day, v.day_size, v.exposures)?;
+    for &threads in &cfg.threads {
+        let mut time = |size: usize, exposures: usize| -> Result<f64> {
+            let r = spawn(
+                cfg,
+                &CaseSpec {
+                    case: Case::Verify,
+                    size,
+                    threads,
+                    reps: exposures,
+                    checkpoint_every: 1,
+                    scratch: cfg.scratch.clone(),
+                },
+            )?;
+            progress(&r);
+            let c = r
+                .verify
+                .ok_or_else(|| bench_error("verify case: no counts in the child's result"))?;
+            rows.push(VerifyRow {
+                size,
+                exposures: c.exposures,
+                threads,
+                total_s: c.total_s,
+                s_per_exposure: c.total_s / c.exposures as f64,
+                samples: c.samples,
+                events: c.events,
+                us_per_pixel_exposure: c.total_s * 1e6 / (c.exposures * size * size) as f64,
+                peak_bytes: r.peak_rss_bytes,
+            });
+            Ok(c.total_s)
+        };
+        let full_s = time(v.size, v.exposures)?;
+        let first_s = time(v.day_size, v.exposures)?;
+        let day_s = time(v.day_size, v.day_exposures)?;
+        let pixel_ratio = (v.size as f64 / v.day_size as f64).powi(2);
+        let measured_ratio = full_s / first_s;
+        let projected_day_s = day_s * pixel_ratio.max(measured_ratio);
+        projections.push(VerifyProjection {
+            size: v.size,
+            day_size: v.day_size,
+            day_exposures: v.day_exposures,
+            threads,
+            day_s,
+            pixel_ratio,
+            measured_ratio,
+            exposures: v.exposures,
+            projected_day_s,
+            projected_s_per_exposure: projected_day_s / v.day_exposures as f64,
+        });
+    }
+    for root in [full, day, first] {
+        let _ = std::fs::remove_dir_all(root);
+    }
+    Ok(())
+}
+
+/// The markdown of the `verify` case: its runs, then the projected day.
+pub fn verify_table(rows: &[VerifyRow], projections: &[VerifyProjection]) -> String {
+    let mut s = String::from(
+        "| (f) verify | exposures | threads | s | s/exposure | track samples | events | us/pixel-exposure | peak MiB |\n|---|---|---|---|---|---|---|---|---|\n",
+    );
+    for r in rows {
+        s.push_str(&format!(
+            "| {0}^2 | {1} | {2} | {3:.2} | {4:.3} | {5} | {6} | {7:.3} | {8:.0} |\n",
+            r.size,
+            r.exposures,
+            r.threads,
+            r.total_s,
+            r.s_per_exposure,
+            r.samples,
+            r.events,
+            r.us_per_pixel_exposure,
+            mib(r.peak_bytes)
+        ));
+    }
+    for p in projections {
+        s.push_str(&format!(
+            "\n{0} exposures (a detector-day at 571) of {1}^2 with {2} thread(s): **{3:.1} s** \
+             ({4:.2} s an exposure), projected from the measured day of {5}^2 ({6:.1} s) \
+             times {7:.2}, the larger of the pixel ratio ({8:.2}) and the measured ratio of \
+             the first {9} exposures at the two sizes ({10:.2}).\n",
+            p.day_exposures,
+            p.size,
+            p.threads,
+            p.projected_day_s,
+            p.projected_s_per_exposure,
+            p.day_size,
+            p.day_s,
+            p.pixel_ratio.max(p.measured_ratio),
+            p.pixel_ratio,
+            p.exposures,
+            p.measured_ratio
+        ));
+    }
+    s
 }
 
 fn mib(b: u64) -> f64 {

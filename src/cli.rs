@@ -421,6 +421,18 @@ pub struct BenchArgs {
     /// Write the whole report as JSON here.
     #[arg(long)]
     pub json: Option<PathBuf>,
+    /// Only the `verify` case: `persist verify` on a simulated sky, a few full frames
+    /// and one detector-day of a smaller frame, projected to a full-frame day.
+    #[arg(long)]
+    pub verify_only: bool,
+    /// The `verify` case's sizes: FULL,DAY (the full frame, the frame of the measured
+    /// day); default 2040,512 (quick: 64,32).
+    #[arg(long, value_delimiter = ',', num_args = 1)]
+    pub verify_sizes: Option<Vec<usize>>,
+    /// The `verify` case's exposures: FIRST,DAY (of the full frame, of the day);
+    /// default 6,571 (quick: 4,30).
+    #[arg(long, value_delimiter = ',', num_args = 1)]
+    pub verify_exposures: Option<Vec<usize>>,
     /// Child mode: run one case (`step`, `memory`, `stage`, `io`), print its JSON.
     #[arg(long, hide = true)]
     pub case: Option<String>,
@@ -1539,6 +1551,26 @@ fn bench(args: &BenchArgs) -> persist::Result<ExitCode> {
     }
     if let Some(r) = args.rounds {
         cfg.rounds = r;
+    }
+    cfg.verify_only = args.verify_only;
+    if let Some(v) = cfg.verify.as_mut() {
+        let pair =
+            |name: &str, a: &Option<Vec<usize>>| -> persist::Result<Option<(usize, usize)>> {
+                match a.as_deref() {
+                    None => Ok(None),
+                    Some(&[a, b]) => Ok(Some((a, b))),
+                    Some(other) => Err(Error::new(
+                        ErrorKind::Usage,
+                        format!("--{name}: need two numbers, got {other:?}"),
+                    )),
+                }
+            };
+        if let Some((a, b)) = pair("verify-sizes", &args.verify_sizes)? {
+            (v.size, v.day_size) = (a, b);
+        }
+        if let Some((a, b)) = pair("verify-exposures", &args.verify_exposures)? {
+            (v.exposures, v.day_exposures) = (a, b);
+        }
     }
     let result = bench::run(&cfg, &|r| {
         eprintln!(

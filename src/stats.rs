@@ -9,7 +9,13 @@
 
 /// Median of finite values (NaN when none).
 pub fn median(v: &[f64]) -> f64 {
-    let mut a: Vec<f64> = v.iter().copied().filter(|x| x.is_finite()).collect();
+    median_in_place(&mut v.to_vec())
+}
+
+/// [`median`] of `a`, reordering it (and dropping its values that are not finite)
+/// instead of copying it: the same value.
+pub fn median_in_place(a: &mut Vec<f64>) -> f64 {
+    a.retain(|x| x.is_finite());
     if a.is_empty() {
         return f64::NAN;
     }

@@ -45,4 +45,38 @@ fn quick_bench_runs_every_case_and_writes_the_table_and_json() {
     }
     // Every case ran: 5 cases + the checkpoint-cadence row, for each thread count.
     assert_eq!(report["results"].as_array().unwrap().len(), 12);
+    // (f) verify: the full frame's first exposures, the day and its first exposures,
+    // for each thread count, and one projected day per thread count.
+    let v = report["verify_rows"].as_array().unwrap();
+    assert_eq!(v.len(), 6, "{v:?}");
+    for r in v {
+        assert!(r["total_s"].as_f64().unwrap() > 0.0, "{r}");
+        assert!(r["peak_bytes"].as_u64().unwrap() > 0, "{r}");
+    }
+    assert_eq!(
+        (v[0]["size"].as_u64(), v[0]["exposures"].as_u64()),
+        (Some(64), Some(4))
+    );
+    assert_eq!(
+        (v[2]["size"].as_u64(), v[2]["exposures"].as_u64()),
+        (Some(32), Some(30))
+    );
+    let p = report["verify_projections"].as_array().unwrap();
+    assert_eq!(p.len(), 2);
+    for p in p {
+        let (day, ratio, projected) = (
+            p["day_s"].as_f64().unwrap(),
+            p["pixel_ratio"]
+                .as_f64()
+                .unwrap()
+                .max(p["measured_ratio"].as_f64().unwrap()),
+            p["projected_day_s"].as_f64().unwrap(),
+        );
+        assert_eq!(p["pixel_ratio"].as_f64(), Some(4.0));
+        assert!((projected - day * ratio).abs() <= 1e-9 * projected, "{p}");
+    }
+    assert!(
+        stdout.contains("| (f) verify |")
+            && stdout.contains("exposures (a detector-day at 571) of 64^2")
+    );
 }

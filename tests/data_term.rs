@@ -110,9 +110,11 @@ fn the_duration_term_stands_in_for_soak_and_changes_the_flags() {
     assert!(n0 > 0 && n1 != n0, "flags {n0} -> {n1}");
 }
 
-/// On a family campaign (the independent generator) where no library effect predicts
-/// held-out data, `diagnose` with its defaults offers the term along the covariate its
-/// residual depends on, and the command it prints adds it to the model file.
+/// On a family campaign (the independent generator) with a trap ceiling per pixel, which
+/// `capacity`'s Langmuir form does not predict on held-out illuminations, `diagnose`
+/// with its defaults finds the residual's dependence on earlier illuminations and
+/// offers the held-charge term along it (held-out gain 0.49 at 32 x 32, seed 1), and
+/// the command it prints adds it to the model file.
 #[test]
 fn diagnose_offers_the_term_and_its_command_writes_it() {
     let tmp = tempfile::tempdir().unwrap();
@@ -123,7 +125,7 @@ fn diagnose_offers_the_term_and_its_command_writes_it() {
         "--out",
         &p("fam"),
         "--seed",
-        "3",
+        "1",
         "--size",
         "32",
         "--sequence",
@@ -148,7 +150,9 @@ fn diagnose_offers_the_term_and_its_command_writes_it() {
     assert!(t.is_object(), "no data term: {text}");
     assert_eq!(t["offered"], true, "{text}");
     let name = t["effect"].as_str().unwrap();
-    assert!(name.starts_with("smooth_"), "{name}");
+    assert_eq!(t["class"], "earlier_illuminations", "{text}");
+    assert_eq!(name, "smooth_history", "{text}");
+    assert!(t["held_out"]["gain"].as_f64().unwrap() >= 0.2, "{text}");
     assert!(
         d["dependences"]
             .as_array()

@@ -2,7 +2,8 @@
 //!
 //! Both writers check the data in memory exactly as a reader would check them after
 //! reading ([`super::read`]'s data checks), then publish atomically
-//! ([`crate::h5io::publish`]): the file is written as `.NAME.part` in the destination
+//! ([`crate::h5io::publish`]; [`stage_output`] is its first half, for a caller that
+//! publishes on another thread): the file is written as `.NAME.part` in the destination
 //! directory, closed, re-opened and its layout validated as a reader would (schema,
 //! manifest checks, root attributes; the datasets are not read back, which would move
 //! every byte twice), synced, renamed into place, and the directory synced. On any
@@ -55,6 +56,18 @@ pub fn write_output(
     planes: &PersistencePlanes,
     attrs: &PersistenceAttrs,
 ) -> Result<()> {
+    stage_output(path, e, planes, attrs)?.commit()
+}
+
+/// The first half of [`write_output`]: every check, and the write and validation under
+/// the temporary name. [`h5io::Staged::commit`] publishes it (fsync, rename, directory
+/// fsync) and needs no HDF5 call and none of the data, so it can run on another thread.
+pub fn stage_output(
+    path: &Path,
+    e: &Exposure,
+    planes: &PersistencePlanes,
+    attrs: &PersistenceAttrs,
+) -> Result<h5io::Staged> {
     precheck(e).map_err(|err| err.path(path))?;
     let dim = e.image.dim();
     for (field, d) in [
@@ -76,7 +89,7 @@ pub fn write_output(
     ));
     errors.extend(check_stats(attrs.stats.as_ref(), &planes.flags));
     data_errors(path, errors)?;
-    h5io::publish(
+    h5io::write_temp(
         path,
         |tmp| {
             let file = h5io::create(tmp)?;

@@ -28,12 +28,20 @@
 //!
 //! # Checkpoint publication
 //!
-//! A checkpoint is checked and written (HDF5, straight from the state in memory) on the
+//! A checkpoint is checked and written (straight from the state in memory) on the
 //! detector's own thread; its publication (fsync, rename, directory fsync) and the
 //! pruning of old checkpoints then run on a helper thread while the next exposures are
 //! read, stepped and published. A detector's checkpoints are published in order (the
 //! next waits for the previous), always after the outputs they include, and every pass
 //! of the processor ends with its last checkpoint published.
+//!
+//! Outputs are published the same way: written and validated under their temporary
+//! name on the detector's thread, then synced and renamed on a helper thread while the
+//! next exposure is read and stepped. The next output's publication, and any
+//! checkpoint's, first waits for it, so outputs appear in exposure order and always
+//! before the checkpoint that includes them; every pass ends with its outputs
+//! published. A failed publication stops the detector as a failed write does, before
+//! any checkpoint that would include the exposure.
 //!
 //! # Ordering and the gap rule
 //!
@@ -636,6 +644,9 @@ struct Processor<'a> {
     /// The last checkpoint's publication (fsync, rename, prune), running on its own
     /// thread while the next exposures are processed.
     publishing: Option<std::thread::JoinHandle<Result<()>>>,
+    /// The last output's publication (fsync, rename, directory fsync), running on its
+    /// own thread while the next exposure is read and stepped.
+    committing: Option<std::thread::JoinHandle<Result<()>>>,
 }
 
 impl<'a> Processor<'a> {
@@ -672,6 +683,7 @@ impl<'a> Processor<'a> {
             refused_files: Vec::new(),
             forget: Vec::new(),
             publishing: None,
+            committing: None,
         }
     }
 
@@ -1002,16 +1014,16 @@ impl<'a> Processor<'a> {
                         .push((entry.path.clone(), e.detector(self.det).exposure(next)));
                 }
                 Err(Failure::Output(e)) => {
-                    // The state already holds this exposure but its output is not
-                    // published: stop this detector without a checkpoint, so that the
-                    // next run replays from the last checkpoint.
-                    tracing::error!(error = %e, detector = self.det.0, "output failed: detector stopped");
-                    self.errors.push(e.detector(self.det).exposure(next));
-                    self.dead = true;
-                    self.finish_publishing();
+                    self.output_failed(e.exposure(next));
                     return;
                 }
             }
+        }
+        // Every pass ends with its outputs published; a failed one stops the detector
+        // before any checkpoint that would include it.
+        if let Err(e) = self.finish_committing() {
+            self.output_failed(e);
+            return;
         }
         let idle = self
             .last_step
@@ -1037,6 +1049,12 @@ impl<'a> Processor<'a> {
         let Some(state) = &self.state else { return };
         match self.write_checkpoint(state) {
             Ok((staged, index)) => {
+                // The outputs this checkpoint includes are published first.
+                if let Err(e) = self.finish_committing() {
+                    drop(staged);
+                    self.output_failed(e);
+                    return;
+                }
                 self.unsaved = 0;
                 let (dir, det, retention) =
                     (self.cfg.checkpoints.clone(), self.det, self.cfg.retention());
@@ -1053,6 +1071,29 @@ impl<'a> Processor<'a> {
                 self.errors.push(e);
             }
         }
+    }
+
+    /// The state already holds an exposure whose output is not published: stop this
+    /// detector without a checkpoint, so that the next run replays from the last one.
+    fn output_failed(&mut self, e: Error) {
+        tracing::error!(error = %e, detector = self.det.0, "output failed: detector stopped");
+        self.errors.push(e.detector(self.det));
+        self.dead = true;
+        let _ = self.finish_committing();
+        self.finish_publishing();
+    }
+
+    /// Wait for the last output's publication.
+    fn finish_committing(&mut self) -> Result<()> {
+        let Some(handle) = self.committing.take() else {
+            return Ok(());
+        };
+        handle.join().unwrap_or_else(|_| {
+            Err(Error::new(
+                ErrorKind::Io,
+                "the thread publishing an output panicked",
+            ))
+        })
     }
 
     /// Wait for the last checkpoint's publication; false if it failed (recorded).
@@ -1185,7 +1226,7 @@ impl<'a> Processor<'a> {
                 stats: Some(product::FlagStats::of_plane(&planes.flags)),
                 warmup: None,
             };
-            match &fits {
+            let staged = match &fits {
                 Some(read) => crate::fits::write_output(
                     &entry.path,
                     &out_path,
@@ -1194,10 +1235,22 @@ impl<'a> Processor<'a> {
                     &attrs,
                     read,
                     &self.ops.fits.keywords,
-                ),
-                None => product::write::write_output(&out_path, &exposure, planes, &attrs),
+                )
+                .map(|()| None),
+                None => {
+                    product::write::stage_output(&out_path, &exposure, planes, &attrs).map(Some)
+                }
             }
             .map_err(Failure::Output)?;
+            // Outputs are published in order: the previous one's publication (started
+            // while this exposure was read and stepped) ends first.
+            self.finish_committing().map_err(Failure::Output)?;
+            if let Some(staged) = staged {
+                let index = meta.exposure_index;
+                self.committing = Some(std::thread::spawn(move || {
+                    staged.commit().map_err(|e| e.exposure(index))
+                }));
+            }
             true
         };
         Ok(ExposureReport {

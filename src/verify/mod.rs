@@ -209,7 +209,10 @@ struct Acc {
     flags: BTreeMap<(usize, bool), Bin<3>>,
     margin: BTreeMap<usize, (QuantileBin, QuantileBin)>,
     margin_all: QuantileBin,
+    /// Every sample so far had a truth (and there was one).
     has_truth: bool,
+    /// A sample without a truth was seen.
+    truth_missing: bool,
     samples: usize,
 }
 
@@ -221,8 +224,12 @@ impl Acc {
         let Some(fb) = bin_of(&p.fluence_edges_e, s.event_fluence_e) else {
             return;
         };
-        let truth = s.true_excess_e_per_s.unwrap_or(f64::NAN);
-        self.has_truth |= s.true_excess_e_per_s.is_some();
+        // Without a truth (flight data) its column holds 0, not NaN: the means are
+        // linear combinations of all the columns' sums, and 0 x NaN would make every
+        // mean NaN. The truth's means are reported only when every sample had one.
+        let truth = s.true_excess_e_per_s.unwrap_or(0.0);
+        self.truth_missing |= s.true_excess_e_per_s.is_none();
+        self.has_truth = !self.truth_missing;
         self.samples += 1;
         let measured = s.excess_e_per_s - s.control_e_per_s;
         let pred = s.predicted_excess_e_per_s;
@@ -334,48 +341,60 @@ pub fn run_observing(
     for (&det, files) in by_det.iter_mut() {
         files.sort();
         let mut tracker: Option<Tracker> = None;
-        for (idx, path) in files.iter() {
-            let (e, planes, attrs) = match read_output(path) {
-                Ok(v) => v,
-                Err(err) => {
+        // The next file is read on its own thread while this one is measured.
+        std::thread::scope(|scope| {
+            let (send, receive) = std::sync::mpsc::sync_channel(1);
+            let files = &*files;
+            scope.spawn(move || {
+                for (idx, path) in files {
+                    let read = read_output(path).map(|v| (v, read_truth(input, det, *idx)));
+                    if send.send((path, read)).is_err() {
+                        return;
+                    }
+                }
+            });
+            for (path, read) in receive {
+                let ((e, planes, attrs), truth) = match read {
+                    Ok(v) => v,
+                    Err(err) => {
+                        errors.push(FileError {
+                            file: path.clone(),
+                            reason: err.to_string(),
+                        });
+                        continue;
+                    }
+                };
+                if !model_ids.contains(&attrs.model_id) {
+                    model_ids.push(attrs.model_id.clone());
+                }
+                let (ny, nx) = e.image.dim();
+                let t = tracker.get_or_insert_with(|| Tracker::new(params.track.clone(), ny, nx));
+                if t.shape() != (ny, nx) {
                     errors.push(FileError {
                         file: path.clone(),
-                        reason: err.to_string(),
+                        reason: format!(
+                            "image is {ny} x {nx}, the detector's earlier ones {:?}",
+                            t.shape()
+                        ),
                     });
                     continue;
                 }
-            };
-            if !model_ids.contains(&attrs.model_id) {
-                model_ids.push(attrs.model_id.clone());
+                let frame = Frame::of(
+                    &e,
+                    planes.current_e_per_s.view(),
+                    planes.flags.view(),
+                    truth.as_ref().map(|a| a.view()),
+                );
+                let before = t.clusters_started();
+                for s in t.observe(&frame) {
+                    let cluster = (u64::from(det) << 48) | s.cluster;
+                    acc.add(params, &s, cluster);
+                    observe(det, &s);
+                }
+                events += t.clusters_started() - before;
+                exposures += 1;
             }
-            let (ny, nx) = e.image.dim();
-            let t = tracker.get_or_insert_with(|| Tracker::new(params.track.clone(), ny, nx));
-            if t.shape() != (ny, nx) {
-                errors.push(FileError {
-                    file: path.clone(),
-                    reason: format!(
-                        "image is {ny} x {nx}, the detector's earlier ones {:?}",
-                        t.shape()
-                    ),
-                });
-                continue;
-            }
-            let truth = read_truth(input, det, *idx);
-            let frame = Frame::of(
-                &e,
-                planes.current_e_per_s.view(),
-                planes.flags.view(),
-                truth.as_ref().map(|a| a.view()),
-            );
-            let before = t.clusters_started();
-            for s in t.observe(&frame) {
-                let cluster = (u64::from(det) << 48) | s.cluster;
-                acc.add(params, &s, cluster);
-                observe(det, &s);
-            }
-            events += t.clusters_started() - before;
-            exposures += 1;
-        }
+        });
         if let Some(t) = tracker {
             rejected += t.rejected;
             no_sky += t.no_sky;
@@ -616,4 +635,75 @@ pub fn write_report(report: &Report, dir: &Path) -> Result<()> {
     let p = dir.join("report.html");
     std::fs::write(&p, report::html(report)?).map_err(|e| Error::io(&p, e))?;
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn sample(cluster: u64, excess: f64, truth: Option<f64>) -> Sample {
+        Sample {
+            y: 0,
+            x: 0,
+            cluster,
+            event_fluence_e: 3e5,
+            time_s: 100.0,
+            excess_e_per_s: excess,
+            sigma_e_per_s: 0.05,
+            control_e_per_s: 0.0,
+            control_true_e_per_s: 0.0,
+            predicted_e_per_s: 1.0,
+            predicted_excess_e_per_s: 1.0,
+            flagged: true,
+            true_excess_e_per_s: truth,
+            first: true,
+        }
+    }
+
+    fn summary() -> Summary {
+        Summary {
+            model_ids: vec![],
+            detectors: vec![1],
+            exposures: 1,
+            errors: vec![],
+            events: 8,
+            rejected: 0,
+            no_sky: 0,
+        }
+    }
+
+    /// Flight data have no truth: the measured and predicted means must still be the
+    /// samples' (they were NaN when the missing truth entered the sums as NaN), and the
+    /// page must be written.
+    #[test]
+    fn without_a_truth_the_means_are_measured_and_no_truth_is_reported() {
+        let p = VerifyParams::default();
+        let mut acc = Acc::default();
+        for c in 0..8 {
+            acc.add(&p, &sample(c, 0.5 + 0.1 * c as f64, None), c);
+        }
+        let r = summarise(&p, acc, summary());
+        assert_eq!(r.decay.len(), 1);
+        let b = &r.decay[0];
+        assert!((b.measured.mean - 0.85).abs() < 1e-9, "{b:?}");
+        assert!((b.predicted.mean - 1.0).abs() < 1e-9, "{b:?}");
+        assert!(b.truth.is_none() && b.truth_inside.is_none());
+        assert!(r.checks.truth_inside.is_none());
+        assert!(report::html(&r).unwrap().contains("Decay by fluence"));
+    }
+
+    /// One exposure without its truth file: the truth is not reported rather than
+    /// averaged with zeros.
+    #[test]
+    fn a_truth_missing_for_some_samples_is_not_reported() {
+        let p = VerifyParams::default();
+        let mut acc = Acc::default();
+        for c in 0..8 {
+            let truth = (c != 3).then_some(0.4);
+            acc.add(&p, &sample(c, 0.5, truth), c);
+        }
+        let r = summarise(&p, acc, summary());
+        assert!(r.decay[0].truth.is_none());
+        assert!((r.decay[0].measured.mean - 0.5).abs() < 1e-9);
+    }
 }

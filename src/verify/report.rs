@@ -12,7 +12,8 @@ fn perr<E: std::fmt::Display>(e: E) -> Error {
     Error::new(ErrorKind::Io, format!("plot: {e}"))
 }
 
-fn decay_svg(bins: &[&DecayBin]) -> Result<String> {
+/// The decay plot of one fluence bin; `None` when its values give no finite axis range.
+fn decay_svg(bins: &[&DecayBin]) -> Result<Option<String>> {
     let lg = |v: f64| v.max(1e-4).log10();
     let xs: Vec<f64> = bins.iter().map(|b| b.mean_time_s.log10()).collect();
     let ys = bins.iter().flat_map(|b| {
@@ -28,6 +29,13 @@ fn decay_svg(bins: &[&DecayBin]) -> Result<String> {
     let (y0, y1) = ys.fold((f64::MAX, f64::MIN), |a, v| {
         (a.0.min(lg(v)), a.1.max(lg(v)))
     });
+    // (a NaN is skipped by min and max: all NaN leaves the folds' starting values)
+    let finite = [x0, x1, y0, y1]
+        .iter()
+        .all(|v| v.is_finite() && v.abs() < 1e6);
+    if !(finite && x0 <= x1 && y0 <= y1) {
+        return Ok(None);
+    }
     crate::plot::ensure_font();
     let mut s = String::new();
     {
@@ -98,7 +106,7 @@ fn decay_svg(bins: &[&DecayBin]) -> Result<String> {
             .map_err(perr)?;
         root.present().map_err(perr)?;
     }
-    Ok(s)
+    Ok(Some(s))
 }
 
 /// The page.
@@ -148,7 +156,15 @@ pub fn html(r: &Report) -> Result<String> {
             .take_while(|b| b.fluence_lo_e == f)
             .collect();
         i += group.len();
-        h.push_str(&decay_svg(&group)?);
+        match decay_svg(&group)? {
+            Some(svg) => h.push_str(&svg),
+            None => {
+                let _ = write!(
+                    h,
+                    "<p>fluence {f:.1e} e-: no finite measured means to plot.</p>"
+                );
+            }
+        }
     }
     h.push_str(
         "<h2>Flags</h2><table><tr><th>time since event, s</th><th>flagged</th><th>samples</th>\

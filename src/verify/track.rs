@@ -41,13 +41,20 @@
 //! sources add, and the stacked means subtract it. A new event at the pixel ends the
 //! track and starts another; a cosmic ray (`TRANSIENT`) ends it (the fluence is unknown).
 //!
+//! A track ends at its pixel's cosmic ray or when it grows older than
+//! [`TrackParams::max_time_s`], before any pixel of the exposure is measured: an ended
+//! track's pixel is sky for every annulus of that exposure.
+//!
 //! Invariants: every [`Sample`] has a finite excess, prediction and time; samples come out
-//! in pixel order, so the result does not depend on threads.
+//! in pixel order, and the control grid's sums are taken in pixel order, so the result
+//! does not depend on threads (rows are measured in parallel on the rayon pool, the
+//! state is updated after them in pixel order).
 
 use crate::flags::{bits, pbits};
 use crate::model::fluence::{fluence_map_e, FlagBits};
-use crate::stats::median;
-use ndarray::{Array2, ArrayView2};
+use crate::stats::median_in_place;
+use ndarray::{Array2, ArrayView2, Zip};
+use rayon::prelude::*;
 
 /// How events are found and tracks measured.
 #[derive(Debug, Clone, PartialEq, serde::Serialize)]
@@ -229,6 +236,44 @@ pub fn passes_screen(last: Option<(f64, f64)>, excess: f64, sigma: f64, nsigma: 
 
 const UNUSABLE: u32 = bits::TRANSIENT | bits::SUR_ERROR | bits::NONFUNC;
 
+/// What one tracked pixel gave in one exposure (a pixel it skips gives nothing).
+enum Measured {
+    Sample(Sample),
+    /// Too few usable annulus pixels.
+    NoSky,
+    /// Rejected by the source screen.
+    Source,
+}
+
+/// One control pixel measured in one exposure.
+struct ControlPixel {
+    y: usize,
+    x: usize,
+    excess: f64,
+    sigma: f64,
+    /// The truth minus its median over the same annulus.
+    truth: Option<f64>,
+    /// Passes the source screen against its own last value.
+    passes: bool,
+}
+
+/// Buffers of one worker: the annulus of the pixel last measured and its values.
+#[derive(Default)]
+struct Scratch {
+    ring: Vec<(usize, usize)>,
+    values: Vec<f64>,
+}
+
+impl Scratch {
+    /// `plane` at `(y, x)` minus its median over the annulus of the last sky estimate.
+    fn around(&mut self, plane: ArrayView2<f32>, y: usize, x: usize) -> f64 {
+        self.values.clear();
+        self.values
+            .extend(self.ring.iter().map(|&(a, b)| f64::from(plane[[a, b]])));
+        f64::from(plane[[y, x]]) - median_in_place(&mut self.values)
+    }
+}
+
 impl Tracker {
     pub fn new(params: TrackParams, ny: usize, nx: usize) -> Self {
         Tracker {
@@ -277,79 +322,111 @@ impl Tracker {
             frame.t_illuminated_s,
         );
         let threshold = self.params.event_fluence_e;
-        let event = Array2::from_shape_fn((ny, nx), |(y, x)| {
-            let f = frame.flags[[y, x]];
-            f & UNUSABLE == 0 && (f & bits::OVERFLOW != 0 || fluence[[y, x]] >= threshold)
-        });
+        let mut event = Array2::from_elem((ny, nx), false);
+        Zip::from(&mut event)
+            .and(frame.flags)
+            .and(&fluence)
+            .par_for_each(|e, &f, &fl| {
+                *e = f & UNUSABLE == 0 && (f & bits::OVERFLOW != 0 || fl >= threshold);
+            });
         let control = self.controls(frame, &event);
+        // Tracks end at their pixel's cosmic ray or when too old (module docs).
+        let max_time_s = self.params.max_time_s;
+        Zip::from(&mut self.tracks)
+            .and(frame.flags)
+            .par_for_each(|t, &f| {
+                if t.is_some_and(|tr| {
+                    f & bits::TRANSIENT != 0 || frame.t_mid_s - tr.reset_s > max_time_s
+                }) {
+                    *t = None;
+                }
+            });
+        let this = &*self;
+        let rows: Vec<Vec<Measured>> = (0..ny)
+            .into_par_iter()
+            .map_init(Scratch::default, |scratch, y| {
+                let mut out = Vec::new();
+                for x in 0..nx {
+                    if let Some(tr) = this.tracks[[y, x]] {
+                        if let Some(m) = this.measure(frame, &event, &control, (y, x), &tr, scratch)
+                        {
+                            out.push(m);
+                        }
+                    }
+                }
+                out
+            })
+            .collect();
         let mut samples = Vec::new();
-        let mut ring = Vec::new();
-        for y in 0..ny {
-            for x in 0..nx {
-                let Some(mut tr) = self.tracks[[y, x]] else {
-                    continue;
-                };
-                let f = frame.flags[[y, x]];
-                let time_s = frame.t_mid_s - tr.reset_s;
-                if f & bits::TRANSIENT != 0 || time_s > self.params.max_time_s {
-                    self.tracks[[y, x]] = None;
-                    continue;
+        for m in rows.into_iter().flatten() {
+            match m {
+                Measured::NoSky => self.no_sky += 1,
+                Measured::Source => self.rejected += 1,
+                Measured::Sample(s) => {
+                    if let Some(tr) = self.tracks[[s.y, s.x]].as_mut() {
+                        tr.last_excess = s.excess_e_per_s;
+                        tr.last_sigma = s.sigma_e_per_s;
+                        tr.samples += 1;
+                    }
+                    samples.push(s);
                 }
-                let v = f64::from(frame.image[[y, x]]);
-                let pred = f64::from(frame.predicted[[y, x]]);
-                if f & UNUSABLE != 0 || event[[y, x]] || !v.is_finite() || !pred.is_finite() {
-                    continue;
-                }
-                let Some((sky, sigma)) = self.sky(frame, y, x, &mut ring) else {
-                    self.no_sky += 1;
-                    continue;
-                };
-                let excess = v - sky;
-                let first = tr.samples == 0;
-                let last = (!first).then_some((tr.last_excess, tr.last_sigma));
-                if !passes_screen(last, excess, sigma, self.params.spike_nsigma) {
-                    self.rejected += 1;
-                    continue;
-                }
-                let around = |plane: ArrayView2<f32>| {
-                    let v: Vec<f64> = ring
-                        .iter()
-                        .map(|&(a, b)| f64::from(plane[[a, b]]))
-                        .collect();
-                    f64::from(plane[[y, x]]) - median(&v)
-                };
-                samples.push(Sample {
-                    y,
-                    x,
-                    cluster: tr.cluster,
-                    event_fluence_e: tr.fluence_e,
-                    time_s,
-                    excess_e_per_s: excess,
-                    sigma_e_per_s: sigma,
-                    control_e_per_s: control.screened,
-                    control_true_e_per_s: control.truth,
-                    predicted_e_per_s: pred,
-                    predicted_excess_e_per_s: around(frame.predicted),
-                    flagged: frame.pflags[[y, x]] & pbits::HIGH != 0,
-                    true_excess_e_per_s: frame.truth.map(around),
-                    first,
-                });
-                tr.last_excess = excess;
-                tr.last_sigma = sigma;
-                tr.samples += 1;
-                self.tracks[[y, x]] = Some(tr);
             }
         }
         self.start_events(frame.t_reset_s, &fluence, &event);
         let lit = self.params.control_lit_fluence_e;
-        for ((y, x), t) in self.lit_s.indexed_iter_mut() {
-            let f = fluence[[y, x]];
-            if f >= lit || f.is_nan() || frame.flags[[y, x]] & bits::OVERFLOW != 0 {
-                *t = frame.t_reset_s;
-            }
-        }
+        Zip::from(&mut self.lit_s)
+            .and(&fluence)
+            .and(frame.flags)
+            .par_for_each(|t, &f, &fl| {
+                if f >= lit || f.is_nan() || fl & bits::OVERFLOW != 0 {
+                    *t = frame.t_reset_s;
+                }
+            });
         self.last_control = control;
         samples
+    }
+
+    /// One tracked pixel in `frame` (the track not ended): its sample, or why none.
+    fn measure(
+        &self,
+        frame: &Frame,
+        event: &Array2<bool>,
+        control: &Control,
+        (y, x): (usize, usize),
+        tr: &Track,
+        scratch: &mut Scratch,
+    ) -> Option<Measured> {
+        let f = frame.flags[[y, x]];
+        let v = f64::from(frame.image[[y, x]]);
+        let pred = f64::from(frame.predicted[[y, x]]);
+        if f & UNUSABLE != 0 || event[[y, x]] || !v.is_finite() || !pred.is_finite() {
+            return None;
+        }
+        let Some((sky, sigma)) = self.sky(frame, y, x, scratch) else {
+            return Some(Measured::NoSky);
+        };
+        let excess = v - sky;
+        let first = tr.samples == 0;
+        let last = (!first).then_some((tr.last_excess, tr.last_sigma));
+        if !passes_screen(last, excess, sigma, self.params.spike_nsigma) {
+            return Some(Measured::Source);
+        }
+        Some(Measured::Sample(Sample {
+            y,
+            x,
+            cluster: tr.cluster,
+            event_fluence_e: tr.fluence_e,
+            time_s: frame.t_mid_s - tr.reset_s,
+            excess_e_per_s: excess,
+            sigma_e_per_s: sigma,
+            control_e_per_s: control.screened,
+            control_true_e_per_s: control.truth,
+            predicted_e_per_s: pred,
+            predicted_excess_e_per_s: scratch.around(frame.predicted, y, x),
+            flagged: frame.pflags[[y, x]] & pbits::HIGH != 0,
+            true_excess_e_per_s: frame.truth.map(|t| scratch.around(t, y, x)),
+            first,
+        }))
     }
 
     /// The control pixels' mean excess in this frame (see the module docs).
@@ -358,43 +435,59 @@ impl Tracker {
     }
 
     /// Measure the control grid: every [`CONTROL_STRIDE`]-th pixel in each direction that
-    /// carries no track and is no event, measured like a track's pixel.
+    /// carries no track and is no event, measured like a track's pixel. Rows in parallel;
+    /// the sums and each control pixel's last value in pixel order.
     fn controls(&mut self, frame: &Frame, event: &Array2<bool>) -> Control {
         let (ny, nx) = frame.image.dim();
-        let mut ring = Vec::new();
+        let this = &*self;
+        let ys: Vec<usize> = (CONTROL_STRIDE / 2..ny).step_by(CONTROL_STRIDE).collect();
+        let rows: Vec<Vec<ControlPixel>> = ys
+            .par_iter()
+            .map_init(Scratch::default, |scratch, &y| {
+                let mut out = Vec::new();
+                for x in (CONTROL_STRIDE / 2..nx).step_by(CONTROL_STRIDE) {
+                    let v = f64::from(frame.image[[y, x]]);
+                    let f = frame.flags[[y, x]];
+                    if this.tracks[[y, x]].is_some()
+                        || event[[y, x]]
+                        || frame.t_mid_s - this.lit_s[[y, x]] < this.params.control_quiet_s
+                        || f & (UNUSABLE | bits::OVERFLOW) != 0
+                        || !v.is_finite()
+                    {
+                        continue;
+                    }
+                    let Some((sky, sigma)) = this.sky(frame, y, x, scratch) else {
+                        continue;
+                    };
+                    let excess = v - sky;
+                    let last = this.control_last[[y, x]];
+                    let prev = (!last.0.is_nan()).then_some(last);
+                    out.push(ControlPixel {
+                        y,
+                        x,
+                        excess,
+                        sigma,
+                        truth: frame.truth.map(|t| scratch.around(t, y, x)),
+                        passes: passes_screen(prev, excess, sigma, this.params.spike_nsigma),
+                    });
+                }
+                out
+            })
+            .collect();
         let (mut raw, mut truth) = ((0.0, 0usize), (0.0, 0usize));
         let mut screened = (0.0, 0.0);
-        for y in (CONTROL_STRIDE / 2..ny).step_by(CONTROL_STRIDE) {
-            for x in (CONTROL_STRIDE / 2..nx).step_by(CONTROL_STRIDE) {
-                let v = f64::from(frame.image[[y, x]]);
-                let f = frame.flags[[y, x]];
-                if self.tracks[[y, x]].is_some()
-                    || event[[y, x]]
-                    || frame.t_mid_s - self.lit_s[[y, x]] < self.params.control_quiet_s
-                    || f & (UNUSABLE | bits::OVERFLOW) != 0
-                    || !v.is_finite()
-                {
-                    continue;
-                }
-                let Some((sky, sigma)) = self.sky(frame, y, x, &mut ring) else {
-                    continue;
-                };
-                let excess = v - sky;
-                raw.0 += excess;
-                raw.1 += 1;
-                if let Some(tp) = frame.truth {
-                    let r: Vec<f64> = ring.iter().map(|&(a, b)| f64::from(tp[[a, b]])).collect();
-                    truth.0 += f64::from(tp[[y, x]]) - median(&r);
-                    truth.1 += 1;
-                }
-                let last = &mut self.control_last[[y, x]];
-                let prev = (!last.0.is_nan()).then_some(*last);
-                if passes_screen(prev, excess, sigma, self.params.spike_nsigma) {
-                    let w = crate::verify::sample_weight(sigma);
-                    screened.0 += w * excess;
-                    screened.1 += w;
-                    *last = (excess, sigma);
-                }
+        for c in rows.iter().flatten() {
+            raw.0 += c.excess;
+            raw.1 += 1;
+            if let Some(t) = c.truth {
+                truth.0 += t;
+                truth.1 += 1;
+            }
+            if c.passes {
+                let w = crate::verify::sample_weight(c.sigma);
+                screened.0 += w * c.excess;
+                screened.1 += w;
+                self.control_last[[c.y, c.x]] = (c.excess, c.sigma);
             }
         }
         let mean = |(s, n): (f64, usize)| if n > 0 { s / n as f64 } else { 0.0 };
@@ -412,16 +505,11 @@ impl Tracker {
     }
 
     /// Median and robust standard deviation of the usable, track-free annulus pixels,
-    /// whose positions are left in `ring`.
-    fn sky(
-        &self,
-        frame: &Frame,
-        y: usize,
-        x: usize,
-        ring: &mut Vec<(usize, usize)>,
-    ) -> Option<(f64, f64)> {
+    /// whose positions are left in `scratch` (for [`Scratch::around`]).
+    fn sky(&self, frame: &Frame, y: usize, x: usize, scratch: &mut Scratch) -> Option<(f64, f64)> {
         let (ny, nx) = frame.image.dim();
         let (r0, r1) = (self.params.annulus_inner_px, self.params.annulus_outer_px);
+        let ring = &mut scratch.ring;
         ring.clear();
         for yy in y.saturating_sub(r1)..(y + r1 + 1).min(ny) {
             for xx in x.saturating_sub(r1)..(x + r1 + 1).min(nx) {
@@ -438,63 +526,77 @@ impl Tracker {
         if ring.len() < self.params.annulus_min_pixels {
             return None;
         }
-        let vals: Vec<f64> = ring
-            .iter()
-            .map(|&(a, b)| f64::from(frame.image[[a, b]]))
-            .collect();
-        let med = median(&vals);
-        let dev: Vec<f64> = vals.iter().map(|v| (v - med).abs()).collect();
-        Some((med, (1.4826 * median(&dev)).max(1e-6)))
+        let vals = &mut scratch.values;
+        vals.clear();
+        vals.extend(ring.iter().map(|&(a, b)| f64::from(frame.image[[a, b]])));
+        let med = median_in_place(vals);
+        for v in vals.iter_mut() {
+            *v = (*v - med).abs();
+        }
+        Some((med, (1.4826 * median_in_place(vals)).max(1e-6)))
     }
 
     /// New tracks at this frame's events; adjacent event pixels (4-connected) share a
     /// cluster, so that an event's pixels are resampled together.
     fn start_events(&mut self, t_reset_s: f64, fluence: &Array2<f64>, event: &Array2<bool>) {
         let (ny, nx) = event.dim();
-        let mut label: Array2<Option<u64>> = Array2::from_elem((ny, nx), None);
+        // Only the event pixels are labelled (a few thousand of millions), in pixel
+        // order: clusters are numbered by their first pixel.
+        let events: Vec<usize> = event
+            .as_slice()
+            .map(|e| {
+                e.par_iter()
+                    .enumerate()
+                    .filter_map(|(i, &b)| b.then_some(i))
+                    .collect()
+            })
+            .unwrap_or_else(|| {
+                event
+                    .indexed_iter()
+                    .filter_map(|((y, x), &b)| b.then_some(y * nx + x))
+                    .collect()
+            });
+        let mut label: std::collections::HashMap<usize, u64> =
+            std::collections::HashMap::with_capacity(events.len());
         let mut stack = Vec::new();
-        for y in 0..ny {
-            for x in 0..nx {
-                if label[[y, x]].is_some() || !event[[y, x]] {
-                    continue;
-                }
-                let id = self.next_cluster;
-                self.next_cluster += 1;
-                label[[y, x]] = Some(id);
-                stack.push((y, x));
-                while let Some((cy, cx)) = stack.pop() {
-                    let near = [
-                        (cy.wrapping_sub(1), cx),
-                        (cy + 1, cx),
-                        (cy, cx.wrapping_sub(1)),
-                        (cy, cx + 1),
-                    ];
-                    for (ny_, nx_) in near {
-                        if ny_ < ny && nx_ < nx && label[[ny_, nx_]].is_none() && event[[ny_, nx_]]
-                        {
-                            label[[ny_, nx_]] = Some(id);
-                            stack.push((ny_, nx_));
-                        }
+        for &i in &events {
+            if label.contains_key(&i) {
+                continue;
+            }
+            let id = self.next_cluster;
+            self.next_cluster += 1;
+            label.insert(i, id);
+            stack.push((i / nx, i % nx));
+            while let Some((cy, cx)) = stack.pop() {
+                let near = [
+                    (cy.wrapping_sub(1), cx),
+                    (cy + 1, cx),
+                    (cy, cx.wrapping_sub(1)),
+                    (cy, cx + 1),
+                ];
+                for (y, x) in near {
+                    if y < ny && x < nx && event[[y, x]] && !label.contains_key(&(y * nx + x)) {
+                        label.insert(y * nx + x, id);
+                        stack.push((y, x));
                     }
                 }
             }
         }
-        for ((y, x), l) in label.indexed_iter() {
-            if let Some(cluster) = *l {
-                let f = fluence[[y, x]];
-                self.tracks[[y, x]] = Some(Track {
-                    reset_s: t_reset_s,
-                    fluence_e: if f.is_finite() {
-                        f.max(self.params.event_fluence_e)
-                    } else {
-                        self.params.event_fluence_e
-                    },
-                    cluster,
-                    last_excess: f64::NAN,
-                    last_sigma: f64::NAN,
-                    samples: 0,
-                });
-            }
+        for (i, cluster) in label {
+            let (y, x) = (i / nx, i % nx);
+            let f = fluence[[y, x]];
+            self.tracks[[y, x]] = Some(Track {
+                reset_s: t_reset_s,
+                fluence_e: if f.is_finite() {
+                    f.max(self.params.event_fluence_e)
+                } else {
+                    self.params.event_fluence_e
+                },
+                cluster,
+                last_excess: f64::NAN,
+                last_sigma: f64::NAN,
+                samples: 0,
+            });
         }
     }
 }
