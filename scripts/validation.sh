@@ -222,7 +222,8 @@ page_family() {
         scripts/validation_header.sh "Diagnostics on the family of the second truth generator" \
             "make validation PAGES=family FAMILY_ARGS='$family_args' (cargo run --release --example family_matrix -- $family_args)"
         # the example's own title and date line are replaced by the header above
-        sed -n '/^Data: /,$p' "$tmp/family.md"
+        sed -n '/^Data: /,$p' "$tmp/family.md" |
+            sed "s|$tmp/family.jsonl|$out_dir/diagnostics_family.jsonl|"
     } > "$page.tmp"
     mv "$page.tmp" "$page"
     cp "$tmp/family.jsonl" "$out_dir/diagnostics_family.jsonl"
