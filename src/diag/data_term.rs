@@ -64,26 +64,23 @@ fn short(v: f64) -> String {
 /// the range the samples hold; None when no term follows it or the range is one value.
 pub fn with_arg(class: &str, seq: &Sequence, samples: &Samples) -> Option<String> {
     let def = smooth::for_covariate(class)?;
-    let range = |v: &mut dyn Iterator<Item = f64>| {
-        v.filter(|x| x.is_finite())
-            .fold(None, |a: Option<(f64, f64)>, x| {
-                Some(a.map_or((x, x), |(lo, hi)| (lo.min(x), hi.max(x))))
-            })
-            .filter(|(lo, hi)| hi > lo)
-    };
-    let (lo, hi) = match def.covariate {
-        "illumination_time" => range(&mut samples.event.iter().map(|&a| {
-            let t = seq.exposures[a].meta.t_illuminated_s();
-            if t > 0.0 {
-                t.log10()
-            } else {
-                f64::NAN
-            }
-        }))?,
-        "temperature" => range(&mut samples.temperature_k.iter().copied())?,
+    // the covariate's values at the samples' rows (finite only)
+    let values: Vec<f64> = match def.covariate {
+        "illumination_time" => samples
+            .event
+            .iter()
+            .map(|&a| seq.exposures[a].meta.t_illuminated_s().log10())
+            .collect(),
+        "temperature" => samples.temperature_k.clone(),
         _ => return Some(def.name.to_string()),
     };
-    let (lo_name, hi_name) = smooth::range_names(smooth::axis_of(def.name)?);
+    let values: Vec<f64> = values.into_iter().filter(|x| x.is_finite()).collect();
+    let lo = values.iter().copied().fold(f64::INFINITY, f64::min);
+    let hi = values.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+    if lo >= hi {
+        return None;
+    }
+    let (lo_name, hi_name) = smooth::axis_of(def.name)?.range_names();
     let mut arg = format!(
         "{}:{lo_name}={},{hi_name}={}",
         def.name,
@@ -92,14 +89,6 @@ pub fn with_arg(class: &str, seq: &Sequence, samples: &Samples) -> Option<String
     );
     // a midpoint knot with no measured value between the ends is not fitted: held at 0
     let inner = |x: f64| x > lo + 1e-3 * (hi - lo) && x < hi - 1e-3 * (hi - lo);
-    let values: Vec<f64> = match def.covariate {
-        "illumination_time" => samples
-            .event
-            .iter()
-            .map(|&a| seq.exposures[a].meta.t_illuminated_s().log10())
-            .collect(),
-        _ => samples.temperature_k.clone(),
-    };
     let mid_fitted = def.params.iter().any(|p| p.name == "at_mid" && p.fitted);
     if mid_fitted && !values.iter().any(|&x| inner(x)) {
         arg.push_str(",at_mid=0");

@@ -368,7 +368,19 @@ impl Samples {
             fluence_e: self.columns_of(&self.fluence_e, cols),
             neighbour_excess_e: self.columns_of(&self.neighbour_excess_e, cols),
             radius: cols.iter().map(|&c| self.radius[c]).collect(),
-            ..self.clone()
+            // the per-row columns as they are (not a clone of the whole, whose
+            // per-sample vectors would be copied only to be dropped)
+            cells: self.cells,
+            statistic: self.statistic,
+            stride: self.stride,
+            exposures: self.exposures.clone(),
+            noise: self.noise.clone(),
+            shot_var_per_e_per_s: self.shot_var_per_e_per_s.clone(),
+            t_since_s: self.t_since_s.clone(),
+            event: self.event.clone(),
+            illumination_time_s: self.illumination_time_s.clone(),
+            temperature_k: self.temperature_k.clone(),
+            earlier_illuminations: self.earlier_illuminations.clone(),
         }
     }
 

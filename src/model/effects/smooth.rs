@@ -9,7 +9,7 @@
 //! covariate `u` with three knots, at `u_lo`, `(u_lo + u_hi) / 2` and `u_hi`, whose
 //! values `at_lo`, `at_mid`, `at_hi` are fitted (`persist fit --with
 //! smooth_duration:log10_t_lo_s=2.08,log10_t_hi_s=2.68`; the knot positions of each term
-//! are named with their units, [`range_names`]). Outside `[u_lo, u_hi]` `g` is constant at its end value, so the term never
+//! are named with their units, [`Axis::range_names`]). Outside `[u_lo, u_hi]` `g` is constant at its end value, so the term never
 //! extrapolates a slope beyond the data it was fitted on. All values 0 is no change.
 //!
 //! | effect | covariate `u` | what `g` acts on |
@@ -94,48 +94,71 @@ impl Smooth {
     }
 }
 
-const fn knot(name: &'static str, lo: f64, hi: f64, fitted: bool, doc: &'static str) -> ParamSpec {
-    ParamSpec {
-        name,
-        default: 0.0,
-        lo,
-        hi,
-        null: None,
-        fitted,
-        doc,
+/// An axis' parameters: the two knot positions (`u_lo`, `u_hi`: names with their
+/// units, defaults and bounds; not fitted) and the three knot values (`at_lo`, `at_mid`,
+/// `at_hi`: default 0, bounds `at_bounds`, fitted unless an anchor; `what` they are, per
+/// knot).
+const fn axis_params(
+    positions: [(&'static str, f64, &'static str); 2],
+    position_bounds: (f64, f64),
+    at_bounds: (f64, f64),
+    fitted: [bool; 3],
+    what: [&'static str; 3],
+) -> [ParamSpec; 5] {
+    const fn spec(
+        name: &'static str,
+        default: f64,
+        (lo, hi): (f64, f64),
+        fitted: bool,
+        doc: &'static str,
+    ) -> ParamSpec {
+        ParamSpec {
+            name,
+            default,
+            lo,
+            hi,
+            null: None,
+            fitted,
+            doc,
+        }
     }
+    let [(lo_name, lo_default, lo_doc), (hi_name, hi_default, hi_doc)] = positions;
+    [
+        spec(lo_name, lo_default, position_bounds, false, lo_doc),
+        spec(hi_name, hi_default, position_bounds, false, hi_doc),
+        spec("at_lo", 0.0, at_bounds, fitted[0], what[0]),
+        spec("at_mid", 0.0, at_bounds, fitted[1], what[1]),
+        spec("at_hi", 0.0, at_bounds, fitted[2], what[2]),
+    ]
 }
 
-const fn position(
-    name: &'static str,
-    default: f64,
-    lo: f64,
-    hi: f64,
-    doc: &'static str,
-) -> ParamSpec {
-    ParamSpec {
-        name,
-        default,
-        lo,
-        hi,
-        null: None,
-        fitted: false,
-        doc,
-    }
-}
+impl Axis {
+    pub const ALL: [Axis; 4] = [
+        Axis::Duration,
+        Axis::Temperature,
+        Axis::History,
+        Axis::Neighbour,
+    ];
 
-/// The names of the two knot-position parameters of an axis (units in the names).
-pub fn range_names(axis: Axis) -> (&'static str, &'static str) {
-    match axis {
-        Axis::Duration => ("log10_t_lo_s", "log10_t_hi_s"),
-        Axis::Temperature => ("t_lo_k", "t_hi_k"),
-        Axis::History => ("log10_held_lo_e", "log10_held_hi_e"),
-        Axis::Neighbour => ("log10_ratio_lo", "log10_ratio_hi"),
+    /// The registered effect of this axis.
+    pub fn def(self) -> &'static EffectDef {
+        match self {
+            Axis::Duration => &DURATION,
+            Axis::Temperature => &TEMPERATURE,
+            Axis::History => &HISTORY,
+            Axis::Neighbour => &NEIGHBOUR,
+        }
+    }
+
+    /// The names of its two knot-position parameters (units in the names).
+    pub fn range_names(self) -> (&'static str, &'static str) {
+        let p = self.def().params;
+        (p[0].name, p[1].name)
     }
 }
 
 fn build(axis: Axis, p: &BTreeMap<String, f64>) -> Box<dyn Effect> {
-    let (lo, hi) = range_names(axis);
+    let (lo, hi) = axis.range_names();
     Box::new(Smooth {
         axis,
         u_lo: get(p, lo),
@@ -145,207 +168,149 @@ fn build(axis: Axis, p: &BTreeMap<String, f64>) -> Box<dyn Effect> {
     })
 }
 
-const DURATION_PARAMS: &[ParamSpec] = &[
-    position(
-        "log10_t_lo_s",
-        1.5,
-        -3.0,
-        6.0,
-        "log10 of the shortest illumination, s",
-    ),
-    position(
-        "log10_t_hi_s",
-        2.7,
-        -3.0,
-        6.0,
-        "log10 of the longest illumination, s",
-    ),
-    knot(
-        "at_lo",
-        -5.0,
-        2.0,
-        true,
+const DURATION_PARAMS: [ParamSpec; 5] = axis_params(
+    [
+        ("log10_t_lo_s", 1.5, "log10 of the shortest illumination, s"),
+        ("log10_t_hi_s", 2.7, "log10 of the longest illumination, s"),
+    ],
+    (-3.0, 6.0),
+    (-5.0, 2.0),
+    [true, true, false],
+    [
         "log of the response factor at u_lo",
-    ),
-    knot(
-        "at_mid",
-        -5.0,
-        2.0,
-        true,
         "log of the response factor at the midpoint",
-    ),
-    knot(
-        "at_hi",
-        -5.0,
-        2.0,
-        false,
         "log of the response factor at u_hi (the anchor)",
-    ),
-];
+    ],
+);
 
 pub const DURATION: EffectDef = EffectDef {
     name: "smooth_duration",
     summary: "data-driven: A_k,n *= exp(g(log10 t_ill)), g piecewise linear, fitted",
-    params: DURATION_PARAMS,
+    params: &DURATION_PARAMS,
     build: |p| build(Axis::Duration, p),
     covariate: "illumination_time",
 };
 
-const TEMPERATURE_PARAMS: &[ParamSpec] = &[
-    position("t_lo_k", 78.0, 10.0, 300.0, "lowest temperature, K"),
-    position("t_hi_k", 82.0, 10.0, 300.0, "highest temperature, K"),
-    knot(
-        "at_lo",
-        -5.0,
-        5.0,
-        true,
+const TEMPERATURE_PARAMS: [ParamSpec; 5] = axis_params(
+    [
+        ("t_lo_k", 78.0, "lowest temperature, K"),
+        ("t_hi_k", 82.0, "highest temperature, K"),
+    ],
+    (10.0, 300.0),
+    (-5.0, 5.0),
+    [true, false, true],
+    [
         "log of the emission-rate factor at u_lo",
-    ),
-    knot(
-        "at_mid",
-        -5.0,
-        5.0,
-        false,
         "log of the emission-rate factor at the midpoint (the anchor)",
-    ),
-    knot(
-        "at_hi",
-        -5.0,
-        5.0,
-        true,
         "log of the emission-rate factor at u_hi",
-    ),
-];
+    ],
+);
 
 pub const TEMPERATURE: EffectDef = EffectDef {
     name: "smooth_temperature",
     summary: "data-driven: 1/tau_n and C_n *= exp(g(T)), g piecewise linear, fitted",
-    params: TEMPERATURE_PARAMS,
+    params: &TEMPERATURE_PARAMS,
     build: |p| build(Axis::Temperature, p),
     covariate: "temperature",
 };
 
-const HISTORY_PARAMS: &[ParamSpec] = &[
-    position(
-        "log10_held_lo_e",
-        1.0,
-        -3.0,
-        9.0,
-        "log10 of the held charge below which nothing changes, e-",
-    ),
-    position(
-        "log10_held_hi_e",
-        4.5,
-        -3.0,
-        9.0,
-        "log10 of the largest held charge, e-",
-    ),
-    knot(
-        "at_lo",
-        -5.0,
-        0.0,
-        false,
+const HISTORY_PARAMS: [ParamSpec; 5] = axis_params(
+    [
+        (
+            "log10_held_lo_e",
+            1.0,
+            "log10 of the held charge below which nothing changes, e-",
+        ),
+        (
+            "log10_held_hi_e",
+            4.5,
+            "log10 of the largest held charge, e-",
+        ),
+    ],
+    (-3.0, 9.0),
+    (-5.0, 0.0),
+    [false, true, true],
+    [
         "log of the capacity factor at u_lo (the anchor)",
-    ),
-    knot(
-        "at_mid",
-        -5.0,
-        0.0,
-        true,
         "log of the capacity factor at the midpoint",
-    ),
-    knot(
-        "at_hi",
-        -5.0,
-        0.0,
-        true,
         "log of the capacity factor at u_hi",
-    ),
-];
+    ],
+);
 
 pub const HISTORY: EffectDef = EffectDef {
     name: "smooth_history",
     summary: "data-driven: exposed capacity *= exp(g(log10 held charge)), g piecewise linear",
-    params: HISTORY_PARAMS,
+    params: &HISTORY_PARAMS,
     build: |p| build(Axis::History, p),
     covariate: "earlier_illuminations",
 };
 
-const NEIGHBOUR_PARAMS: &[ParamSpec] = &[
-    position(
-        "log10_ratio_lo",
-        0.0,
-        -6.0,
-        9.0,
-        "log10 of the neighbours' excess over the own fluence, low knot",
-    ),
-    position(
-        "log10_ratio_hi",
-        3.0,
-        -6.0,
-        9.0,
-        "log10 of the neighbours' excess over the own fluence, high knot",
-    ),
-    knot(
-        "at_lo",
-        -1.0,
-        1.0,
-        true,
-        "share of the neighbours' excess fluence at u_lo",
-    ),
-    knot(
-        "at_mid",
-        -1.0,
-        1.0,
-        true,
-        "share of the neighbours' excess fluence at the midpoint",
-    ),
-    knot(
-        "at_hi",
-        -1.0,
-        1.0,
-        true,
-        "share of the neighbours' excess fluence at u_hi",
-    ),
-    position("f_sat_e", 2e5, 1.0, 1e9, "saturation fluence, e-"),
-];
+const NEIGHBOUR_PARAMS: [ParamSpec; 6] = {
+    let a = axis_params(
+        [
+            (
+                "log10_ratio_lo",
+                0.0,
+                "log10 of the neighbours' excess over the own fluence, low knot",
+            ),
+            (
+                "log10_ratio_hi",
+                3.0,
+                "log10 of the neighbours' excess over the own fluence, high knot",
+            ),
+        ],
+        (-6.0, 9.0),
+        (-1.0, 1.0),
+        [true, true, true],
+        [
+            "share of the neighbours' excess fluence at u_lo",
+            "share of the neighbours' excess fluence at the midpoint",
+            "share of the neighbours' excess fluence at u_hi",
+        ],
+    );
+    [
+        a[0],
+        a[1],
+        a[2],
+        a[3],
+        a[4],
+        ParamSpec {
+            name: "f_sat_e",
+            default: 2e5,
+            lo: 1.0,
+            hi: 1e9,
+            null: None,
+            fitted: false,
+            doc: "saturation fluence, e-",
+        },
+    ]
+};
 
 pub const NEIGHBOUR: EffectDef = EffectDef {
     name: "smooth_neighbour",
     summary: "data-driven: F += g(log10 E_nb/F) E_nb, g piecewise linear, fitted",
-    params: NEIGHBOUR_PARAMS,
+    params: &NEIGHBOUR_PARAMS,
     build: |p| build(Axis::Neighbour, p),
     covariate: "neighbour_excess_fluence",
 };
 
 /// The axis of a data-driven term, by effect name.
 pub fn axis_of(name: &str) -> Option<Axis> {
-    [
-        (DURATION.name, Axis::Duration),
-        (TEMPERATURE.name, Axis::Temperature),
-        (HISTORY.name, Axis::History),
-        (NEIGHBOUR.name, Axis::Neighbour),
-    ]
-    .into_iter()
-    .find_map(|(n, a)| (n == name).then_some(a))
+    Axis::ALL.into_iter().find(|a| a.def().name == name)
 }
 
 /// The data-driven term acting on a contrast class's covariate
 /// (`crate::diag::contrast::class_of`), if there is one.
 pub fn for_covariate(covariate: &str) -> Option<&'static EffectDef> {
-    [&DURATION, &TEMPERATURE, &HISTORY, &NEIGHBOUR]
+    Axis::ALL
         .into_iter()
+        .map(Axis::def)
         .find(|d| d.covariate == covariate)
 }
 
 impl Effect for Smooth {
     fn name(&self) -> &'static str {
-        match self.axis {
-            Axis::Duration => DURATION.name,
-            Axis::Temperature => TEMPERATURE.name,
-            Axis::History => HISTORY.name,
-            Axis::Neighbour => NEIGHBOUR.name,
-        }
+        self.axis.def().name
     }
     fn is_pixel_local(&self) -> bool {
         self.axis != Axis::Neighbour || self.is_null()
@@ -495,7 +460,7 @@ mod tests {
 
     #[test]
     fn every_term_resolves_with_its_defaults_to_no_change() {
-        for def in [&DURATION, &TEMPERATURE, &HISTORY, &NEIGHBOUR] {
+        for def in Axis::ALL.map(Axis::def) {
             let p = def
                 .resolve(&serde_json::Map::new())
                 .expect("defaults resolve");
