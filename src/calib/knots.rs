@@ -25,10 +25,23 @@
 //!
 //! Only effects whose response depends on a pixel's own fluence and the exposure
 //! ([`crate::model::effect::Effect::response_is_per_pixel`]: `short_tau_boost`,
-//! `soak`) enter; spatial responses (`ipc`, `populations`, `blooming`), rate hooks
-//! (`temperature`: the calibration illumination's temperature) and accumulation rules
-//! (which act only on charge carried from earlier illuminations, or saturate it) are
-//! left to the knots as the paper calibrates them.
+//! `soak`) enter this rule; rate hooks (`temperature`: the calibration illumination's
+//! temperature) and accumulation rules (which act only on charge carried from earlier
+//! illuminations, or saturate it) are left to the knots as the paper calibrates them.
+//!
+//! # Spatial effects
+//! An effect that scales a pixel's response by its place or its neighbours (`ipc`,
+//! `populations`, `blooming`, `smooth_neighbour`: fluence hooks and response hooks that
+//! are not per pixel) changes what one knot predicts from pixel to pixel. The knots'
+//! 95th percentile over a bin's pixels already holds that spread; with the effect in the
+//! model it would be counted twice, and where the effect lowers a pixel's response the
+//! pixel falls below the flagging margin. [`spatial_factor`] gives each pixel of the
+//! calibration illumination the ratio `w` of the first dark's charge the model predicts
+//! with these hooks to the charge without them, and the calibration
+//! ([`super::calibrate_with`]) measures the bins' median, 95th percentile and ramp on
+//! the pixels' values divided by `w`: the knot is the level at `w = 1`, and the margin
+//! is measured with the effect in place. Without such an effect (or at its null) every
+//! `w` is 1 and nothing changes.
 
 use super::logfit;
 use crate::error::{Error, Result};
@@ -168,6 +181,86 @@ pub fn scale(model: &ModelParams, ramp: &CalibRamp) -> Result<Vec<f64>> {
             }
         })
         .collect())
+}
+
+/// Per pixel of the calibration illumination, `w` of the module docs ("Spatial
+/// effects"): the first dark's charge per unit amplitude with the model's fluence hooks
+/// and its response hooks that are neither per pixel nor filling, over the charge
+/// without them. None when no effect has such a hook or every `w` is 1; pixels without
+/// a finite positive ratio get 1.
+pub fn spatial_factor(
+    model: &ModelParams,
+    seq: &Sequence,
+    ramp: &CalibRamp,
+) -> Result<Option<Array2<f64>>> {
+    let mut built = Vec::new();
+    for (i, spec) in model.effects.iter().enumerate() {
+        let e = effects::build(spec).map_err(|r| Error::invalid(format!("effects[{i}]"), r))?;
+        if !(e.response_is_per_pixel() || e.response_is_fill()) {
+            built.push(e);
+        }
+    }
+    if built.is_empty() || model.amplitude_knots.is_empty() {
+        return Ok(None);
+    }
+    let fluence = crate::measure::data::fluence(&seq.exposures[ramp.illumination]);
+    let fluence = fluence.mapv(|v| if v.is_finite() { v.max(0.0) } else { 0.0 });
+    let mut adjusted = fluence.clone();
+    for e in built.iter().filter(|e| e.has_fluence()) {
+        e.fluence(&mut adjusted);
+    }
+    let response = Response::new(&model.amplitude_knots);
+    let rates: Vec<f64> = model.terms.iter().map(|t| t.rate_per_s).collect();
+    let n = rates.len();
+    let (ny, nx) = fluence.dim();
+    let mut ak = Array3::<f64>::zeros((ny, nx, n));
+    for ((y, x), &g) in adjusted.indexed_iter() {
+        let a = response.amplitude_e(if g.is_finite() { g.max(0.0) } else { 0.0 });
+        for m in 0..n {
+            ak[[y, x, m]] = a;
+        }
+    }
+    let no_slope = Array2::from_elem((ny, nx), false);
+    let ctx = ResponseCtx {
+        needed: None,
+        fluence_e: &adjusted,
+        no_slope: &no_slope,
+        t_illuminated_s: ramp.t_illuminated_s,
+        t_exposure_s: ramp.t_exposure_s,
+        rate_per_s: &rates,
+        rate_held_per_s: &rates,
+        response: &response,
+    };
+    for e in &built {
+        e.response(&ctx, &mut ak);
+    }
+    // each term's charge over the first dark per unit amplitude
+    let t_end = ramp.t_s.last().copied().unwrap_or(ramp.t_reset_s);
+    let q: Vec<f64> = model
+        .terms
+        .iter()
+        .map(|t| {
+            let r = t.rate_per_s;
+            if r > 0.0 {
+                t.c_per_s / r * ((-ramp.t_reset_s * r).exp() - (-t_end * r).exp())
+            } else {
+                0.0
+            }
+        })
+        .collect();
+    let w = Array2::from_shape_fn((ny, nx), |(y, x)| {
+        // summed in the same order, so that an unchanged pixel gives exactly 1
+        let a = response.amplitude_e(fluence[[y, x]]);
+        let plain: f64 = (0..n).map(|m| a * q[m]).sum();
+        let with: f64 = (0..n).map(|m| ak[[y, x, m]] * q[m]).sum();
+        let r = with / plain;
+        if r.is_finite() && r > 0.0 {
+            r
+        } else {
+            1.0
+        }
+    });
+    Ok((!w.iter().all(|&v| v == 1.0)).then_some(w))
 }
 
 /// Rescale the knots of `to` (a copy of a model `from` with other effects or

@@ -288,6 +288,16 @@ pub struct CalibReport {
 
 /// Steps 1-5 of the module docs on the first illumination of `seq`.
 pub fn calibrate(seq: &Sequence, cfg: &CalibConfig) -> Result<(ModelParams, CalibReport)> {
+    calibrate_with(seq, cfg, None)
+}
+
+/// [`calibrate`], each pixel's first-dark current and ramp divided by its spatial
+/// factor `w` ([`knots::spatial_factor`]) when one is given.
+pub fn calibrate_with(
+    seq: &Sequence,
+    cfg: &CalibConfig,
+    w: Option<&ndarray::Array2<f64>>,
+) -> Result<(ModelParams, CalibReport)> {
     if !(cfg.amplification.is_finite() && cfg.amplification > 0.0) {
         return Err(Error::invalid("--amplification", "must be finite and > 0"));
     }
@@ -359,7 +369,7 @@ pub fn calibrate(seq: &Sequence, cfg: &CalibConfig) -> Result<(ModelParams, Cali
                 &f,
                 &members,
                 &BinDark::Background(&bg_px),
-                noise,
+                (noise, w),
             )
             .into_iter()
             .map(|b| b.1)
@@ -387,7 +397,7 @@ pub fn calibrate(seq: &Sequence, cfg: &CalibConfig) -> Result<(ModelParams, Cali
                     &f,
                     &members,
                     &BinDark::Late(l, &r),
-                    l.noise_e_per_s,
+                    (l.noise_e_per_s, w),
                 );
                 r.iter_mut().for_each(|v| *v = 0.0);
                 for (b, res) in &bins {
@@ -536,8 +546,9 @@ fn bin_results(
     f: &ndarray::Array2<f64>,
     members: &[Vec<(usize, usize)>],
     dark: &BinDark,
-    noise: f64,
+    (noise, w): (f64, Option<&ndarray::Array2<f64>>),
 ) -> Vec<(usize, BinResult)> {
+    let w_of = |p: (usize, usize)| w.map_or(1.0, |w| w[p]);
     let d = cr.dark;
     let ramp = seq.exposures[d]
         .ramp
@@ -579,10 +590,20 @@ fn bin_results(
         };
         let edge = |i: f64| 10f64.powf(lo_exp + i / cfg.bins_per_decade);
         let cur: Vec<f64> = match dark {
-            BinDark::Background(_) => px.iter().map(|p| meas[*p]).collect(),
-            BinDark::Late(l, _) => px.iter().map(|&p| l.first[p] - dark_of(p)).collect(),
+            BinDark::Background(_) => px.iter().map(|&p| meas[p] / w_of(p)).collect(),
+            BinDark::Late(l, _) => px
+                .iter()
+                .map(|&p| (l.first[p] - dark_of(p)) / w_of(p))
+                .collect(),
         };
         let (med, sd) = clipped_median(&cur, 3.0);
+        // the measurement noise in the same units as `cur` (the bin's median factor)
+        let noise = match w {
+            None => noise,
+            Some(_) => {
+                noise / crate::stats::median(&px.iter().map(|&p| w_of(p)).collect::<Vec<_>>())
+            }
+        };
         let p95 = match knot_shot_var {
             Some(g) => signal_p95(&cur, med, shot_noise_added(noise, g, med)),
             None => signal_p95(&cur, med, noise),
@@ -591,9 +612,21 @@ fn bin_results(
             .map(|s| {
                 let v: Vec<f64> = px
                     .iter()
-                    .map(|&(y, x)| f64::from(ramp[[s, y, x]]) - dark_of((y, x)) * t_since_reset[s])
+                    .map(|&(y, x)| {
+                        let q = f64::from(ramp[[s, y, x]]) - dark_of((y, x)) * t_since_reset[s];
+                        // with spatial factors, each pixel's own persistence ramp
+                        match w {
+                            None => q,
+                            Some(w) => (q - bg_ramp[s]) / w[(y, x)],
+                        }
+                    })
                     .collect();
-                clipped_median(&v, 3.0).0 - bg_ramp[s]
+                let m = clipped_median(&v, 3.0).0;
+                if w.is_some() {
+                    m
+                } else {
+                    m - bg_ramp[s]
+                }
             })
             .collect();
         let ok: Vec<usize> = (0..nsamp)
@@ -907,12 +940,21 @@ pub fn fit_params(
     with: &[String],
     free: effects::Free,
 ) -> Result<(ModelParams, CalibReport, Option<effects::EffectFit>)> {
-    let (mut params, cal) = calibrate(seq, cfg)?;
+    let (mut params, mut cal) = calibrate(seq, cfg)?;
     let samples = cfg.samples(seq);
     let mut ef = None;
     if !with.is_empty() || free != effects::Free::default() {
         let (p, f) = effects::fit_with(&params, with, free, seq, &samples)?;
         params = p;
+        // spatial effects: the knots measured with them in place (knots module docs,
+        // "Spatial effects")
+        let ramp = knots::CalibRamp::of(seq)?;
+        if let Some(w) = knots::spatial_factor(&params, seq, &ramp)? {
+            let (plain, c) = calibrate_with(seq, cfg, Some(&w))?;
+            params.amplitude_knots = plain.amplitude_knots;
+            knots::rescale(&vec![1.0; params.amplitude_knots.len()], &mut params, &ramp)?;
+            cal = c;
+        }
         if let Some(c) = params.calibration.as_mut() {
             c.fit_cn = free.c_n;
             c.fit_amplification = free.knot_scale;

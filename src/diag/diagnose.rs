@@ -1447,7 +1447,7 @@ pub fn diagnose(
     let refit: Vec<usize> = match cfg.decide {
         Decide::Contrast => dependences
             .iter()
-            .filter(|d| d.above_permutations)
+            .filter(|d| d.refits())
             .flat_map(|d| &d.effects)
             .filter_map(|name| ranking.iter().position(|c| &c.effect == name))
             .take(REFIT)
