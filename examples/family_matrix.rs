@@ -468,6 +468,8 @@ struct Run {
     over_after: Option<f64>,
     /// What the fit that followed added: the declared effect or the data-driven term.
     suggested: Option<String>,
+    /// Wall time of `diagnose` alone.
+    diagnose_seconds: Option<f64>,
     seconds: f64,
 }
 
@@ -548,7 +550,8 @@ fn one(ctx: &Ctx, row: &Row, seed: u64, cache: &mut BTreeMap<(PathBuf, bool), Op
     r.fit_ok = true;
     let dj = d.with_extension("diag.json");
     let mut suggested: Suggested = Suggested::default();
-    match persist(
+    let t_diagnose = Instant::now();
+    let diagnosed = persist(
         ctx,
         &[
             "diagnose",
@@ -559,7 +562,9 @@ fn one(ctx: &Ctx, row: &Row, seed: u64, cache: &mut BTreeMap<(PathBuf, bool), Op
             "--json",
             dj.to_str().unwrap_or_default(),
         ],
-    ) {
+    );
+    r.diagnose_seconds = Some(t_diagnose.elapsed().as_secs_f64());
+    match diagnosed {
         Err(e) => r.diagnose_error = Some(e),
         Ok(_) => {
             if let Some(v) = read_json(&dj) {
@@ -803,13 +808,13 @@ fn write_table(
     .unwrap();
     writeln!(
         md,
-        "Data: `persist simulate family` ({size} x {size}, seeds {first}..{}, see `persist::trapgen` for the physics and the forms). Every run uses the default commands only (`examples/family_matrix.rs` docs): `fit`, `diagnose`, then the `fit` commands `diagnose` prints for the effect declared first, or, with nothing declared, for the data-driven term it offers (column \"added\"). Kind named: the declared effect's contrast class, or else the covariate the verdict says the residual depends on (\"of this kind in another form\"). Excess RMS: the normalised residual RMS (`compare`) minus the baseline's (same seed, nothing hidden, its own fit), of the measurements' description `diagnose` tested against when it fitted one. Missed: the fraction of samples of touched pixels with a true persistence current of at least 0.1 e-/s that `persist run` did not flag; over-flagged: of those truly below it, the fraction flagged.\n",
+        "Data: `persist simulate family` ({size} x {size}, seeds {first}..{}, see `persist::trapgen` for the physics and the forms). Every run uses the default commands only (`examples/family_matrix.rs` docs): `fit`, `diagnose`, then the `fit` commands `diagnose` prints for the effect declared first, or, with nothing declared, for the data-driven term it offers (column \"added\"). Kind named: the declared effect's contrast class, or else the covariate the verdict says the residual depends on (\"of this kind in another form\"). Excess RMS: the normalised residual RMS (`compare`) minus the baseline's (same seed, nothing hidden, its own fit), of the measurements' description `diagnose` tested against when it fitted one. Missed: the fraction of samples of touched pixels with a true persistence current of at least 0.1 e-/s that `persist run` did not flag; over-flagged: of those truly below it, the fraction flagged. Diagnose s: the wall time of `diagnose` alone, with its defaults (this machine; other work may run beside it).\n",
         first + seeds - 1
     )
     .unwrap();
     writeln!(
         md,
-        "| row | runs | fit ok | diagnose ran | class named first | kind named first | kind (each run) | declared first (each run) | untestable answers | added (each run) | excess RMS before -> after (median) | halved | missed@0.1 touched before -> after (median) | over-flagged@0.1 touched before -> after (median) |\n|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"
+        "| row | runs | fit ok | diagnose ran | class named first | kind named first | kind (each run) | declared first (each run) | untestable answers | added (each run) | excess RMS before -> after (median) | halved | missed@0.1 touched before -> after (median) | over-flagged@0.1 touched before -> after (median) | diagnose s (median, max) |\n|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"
     )
     .unwrap();
     for row in rows {
@@ -866,7 +871,7 @@ fn write_table(
         let halved_of = rs.iter().filter(|r| r.halved.is_some()).count();
         writeln!(
             md,
-            "| {} | {n} | {} | {} | {} | {} | {} | {} | {} | {} | {} -> {} | {} | {} -> {} | {} -> {} |",
+            "| {} | {n} | {} | {} | {} | {} | {} | {} | {} | {} | {} -> {} | {} | {} -> {} | {} -> {} | {} |",
             row.name(),
             rs.iter().filter(|r| r.fit_ok).count(),
             rs.iter()
@@ -903,6 +908,13 @@ fn write_table(
             f3(med(&|r| r.missed_after)),
             f3(med(&|r| r.over_before)),
             f3(med(&|r| r.over_after)),
+            match (
+                med(&|r| r.diagnose_seconds),
+                rs.iter().filter_map(|r| r.diagnose_seconds).reduce(f64::max),
+            ) {
+                (Some(m), Some(x)) => format!("{m:.1}, {x:.1}"),
+                _ => "-".into(),
+            },
         )
         .unwrap();
     }

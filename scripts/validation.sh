@@ -20,6 +20,9 @@
 #   family  docs/validation/diagnostics_family.md  examples/family_matrix $FAMILY_ARGS
 #                                               (default --size 64 --seeds 5: about an hour
 #                                               on a quiet machine; not in the default set)
+#   family128  docs/validation/diagnostics_family_128.md  the same at 128 x 128, single
+#                                               illuminations with nothing hidden
+#                                               ($FAMILY128_ARGS; minutes; not in the default set)
 # Without arguments every page is regenerated. Release builds (PERSIST_BIN=path skips the
 # build of the binary); run it on a quiet machine
 # (the header records the load average at the start).
@@ -35,8 +38,8 @@ if [[ ${#pages[@]} -eq 0 ]]; then
 fi
 for p in "${pages[@]}"; do
     case $p in
-        floor|bench|matrix|verify|verify_bench|family) ;;
-        *) echo "validation.sh: unknown page '$p' (floor, bench, matrix, verify, verify_bench, family)" >&2; exit 2 ;;
+        floor|bench|matrix|verify|verify_bench|family|family128) ;;
+        *) echo "validation.sh: unknown page '$p' (floor, bench, matrix, verify, verify_bench, family, family128)" >&2; exit 2 ;;
     esac
 done
 
@@ -210,24 +213,39 @@ TEXT
     echo "wrote $page" >&2
 }
 
-# family: the diagnostics on the second truth generator, default commands only.
-page_family() {
-    local page=$out_dir/diagnostics_family.md
-    local family_args=${FAMILY_ARGS:---size 64 --seeds 5}
-    echo "family: cargo run --release --example family_matrix -- $family_args" >&2
+# One page of examples/family_matrix: family_page NAME TITLE MAKE_VAR ARGS.
+family_page() {
+    local name=$1 title=$2 var=$3 args=$4
+    local page=$out_dir/$name.md key=${var%_ARGS}
+    key=${key,,}
+    echo "$name: cargo run --release --example family_matrix -- $args" >&2
     # shellcheck disable=SC2086
-    cargo run --release --quiet --example family_matrix -- $family_args \
-        --persist "$persist" --work "$tmp/family" --out "$tmp/family.md" >&2
+    cargo run --release --quiet --example family_matrix -- $args \
+        --persist "$persist" --work "$tmp/$name" --out "$tmp/$name.md" >&2
     {
-        scripts/validation_header.sh "Diagnostics on the family of the second truth generator" \
-            "make validation PAGES=family FAMILY_ARGS='$family_args' (cargo run --release --example family_matrix -- $family_args)"
+        scripts/validation_header.sh "$title" \
+            "make validation PAGES=$key $var='$args' (cargo run --release --example family_matrix -- $args)"
         # the example's own title and date line are replaced by the header above
-        sed -n '/^Data: /,$p' "$tmp/family.md" |
-            sed "s|$tmp/family.jsonl|$out_dir/diagnostics_family.jsonl|"
+        sed -n '/^Data: /,$p' "$tmp/$name.md" |
+            sed "s|$tmp/$name.jsonl|$out_dir/$name.jsonl|"
     } > "$page.tmp"
     mv "$page.tmp" "$page"
-    cp "$tmp/family.jsonl" "$out_dir/diagnostics_family.jsonl"
+    cp "$tmp/$name.jsonl" "$out_dir/$name.jsonl"
     echo "wrote $page" >&2
+}
+
+# family: the diagnostics on the second truth generator, default commands only.
+page_family() {
+    family_page diagnostics_family "Diagnostics on the family of the second truth generator" \
+        FAMILY_ARGS "${FAMILY_ARGS:---size 64 --seeds 5}"
+}
+
+# family128: single illuminations of 128 x 128 with nothing hidden: what diagnose's
+# defaults declare there, and how long it takes.
+page_family128() {
+    family_page diagnostics_family_128 \
+        "Diagnostics on 128 x 128 single illuminations of the second truth generator" \
+        FAMILY128_ARGS "${FAMILY128_ARGS:---size 128 --seeds 5 --rows none@single,none@single+dark}"
 }
 
 # verify: persist verify against the simulator's truth (its own script).
