@@ -9,22 +9,17 @@
 
 use persist::diag::data::{Background, Sequence};
 use persist::sim::detector::DetectorParams;
-use persist::sim::lab::{self, Illumination, LabConfig};
+use persist::sim::lab::{Illumination, LabConfig};
+
+mod common;
 
 fn campaign(seed: u64) -> Sequence {
-    let cfg = LabConfig {
+    common::lab_sequence(&LabConfig {
         size: 64,
         seed,
         campaign: Some(Illumination::default_campaign()),
         ..LabConfig::default()
-    };
-    let mut ex = Vec::new();
-    lab::run(&cfg, |s| {
-        ex.push(s.exposure);
-        Ok(())
     })
-    .unwrap();
-    Sequence::from_exposures(ex).unwrap()
 }
 
 /// The exposures that are the first dark after an illumination.

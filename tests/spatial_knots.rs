@@ -5,21 +5,16 @@
 use persist::calib::{self, knots, CalibConfig};
 use persist::diag::data::Sequence;
 use persist::model::params::EffectSpec;
-use persist::sim::lab::{self, LabConfig};
+use persist::sim::lab::LabConfig;
+
+mod common;
 
 fn lab_single(size: usize) -> Sequence {
-    let cfg = LabConfig {
+    common::lab_sequence(&LabConfig {
         size,
         seed: 3,
         ..LabConfig::default()
-    };
-    let mut ex = Vec::new();
-    lab::run(&cfg, |s| {
-        ex.push(s.exposure);
-        Ok(())
     })
-    .unwrap();
-    Sequence::from_exposures(ex).unwrap()
 }
 
 fn populations(gx: f64) -> EffectSpec {

@@ -110,6 +110,32 @@ pub fn scale_of(model: &ModelParams, seq: &Sequence) -> Result<Option<(Vec<f64>,
     }
 }
 
+/// Run the response hooks of `built` on `planes` (`[y, x, term]`) for the calibration
+/// illumination of `ramp`, every pixel with a slope, the rates held as the model's.
+fn apply_responses(
+    built: &[Box<dyn crate::model::effect::Effect>],
+    fluence: &Array2<f64>,
+    ramp: &CalibRamp,
+    rates: &[f64],
+    response: &Response,
+    planes: &mut Array3<f64>,
+) {
+    let no_slope = Array2::from_elem(fluence.dim(), false);
+    let ctx = ResponseCtx {
+        needed: None,
+        fluence_e: fluence,
+        no_slope: &no_slope,
+        t_illuminated_s: ramp.t_illuminated_s,
+        t_exposure_s: ramp.t_exposure_s,
+        rate_per_s: rates,
+        rate_held_per_s: rates,
+        response,
+    };
+    for e in built {
+        e.response(&ctx, planes);
+    }
+}
+
 /// `s(F)` of the module docs for each knot of `model`; 1 where the effects leave the
 /// response unchanged. Errors name the effect entry that cannot be built.
 pub fn scale(model: &ModelParams, ramp: &CalibRamp) -> Result<Vec<f64>> {
@@ -129,20 +155,7 @@ pub fn scale(model: &ModelParams, ramp: &CalibRamp) -> Result<Vec<f64>> {
     let fluence = Array2::from_shape_fn((1, k), |(_, j)| model.amplitude_knots[j].fluence_e);
     let mut g = Array3::<f64>::ones((1, k, n));
     let response = Response::new(&model.amplitude_knots);
-    let no_slope = Array2::from_elem(fluence.dim(), false);
-    let ctx = ResponseCtx {
-        needed: None,
-        fluence_e: &fluence,
-        no_slope: &no_slope,
-        t_illuminated_s: ramp.t_illuminated_s,
-        t_exposure_s: ramp.t_exposure_s,
-        rate_per_s: &rates,
-        rate_held_per_s: &rates,
-        response: &response,
-    };
-    for e in &built {
-        e.response(&ctx, &mut g);
-    }
+    apply_responses(&built, &fluence, ramp, &rates, &response, &mut g);
     // the ramp of one unit of amplitude, term by term
     let unit: Vec<Vec<f64>> = model
         .terms
@@ -220,20 +233,7 @@ pub fn spatial_factor(
             ak[[y, x, m]] = a;
         }
     }
-    let no_slope = Array2::from_elem((ny, nx), false);
-    let ctx = ResponseCtx {
-        needed: None,
-        fluence_e: &adjusted,
-        no_slope: &no_slope,
-        t_illuminated_s: ramp.t_illuminated_s,
-        t_exposure_s: ramp.t_exposure_s,
-        rate_per_s: &rates,
-        rate_held_per_s: &rates,
-        response: &response,
-    };
-    for e in &built {
-        e.response(&ctx, &mut ak);
-    }
+    apply_responses(&built, &adjusted, ramp, &rates, &response, &mut ak);
     // each term's charge over the first dark per unit amplitude
     let t_end = ramp.t_s.last().copied().unwrap_or(ramp.t_reset_s);
     let q: Vec<f64> = model

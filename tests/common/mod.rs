@@ -349,3 +349,14 @@ pub fn a_bin_at(bins: &[persist::calib::BinResult], f: f64) -> f64 {
     let (x1, y1) = b[i];
     y0 + (y1 - y0) * (f - x0) / (x1 - x0)
 }
+
+/// A laboratory sequence of the simulator, in memory.
+pub fn lab_sequence(cfg: &persist::sim::lab::LabConfig) -> persist::diag::data::Sequence {
+    let mut ex = Vec::new();
+    persist::sim::lab::run(cfg, |s| {
+        ex.push(s.exposure);
+        Ok(())
+    })
+    .unwrap();
+    persist::diag::data::Sequence::from_exposures(ex).unwrap()
+}
