@@ -32,6 +32,18 @@ use super::get;
 use crate::model::effect::{Effect, EffectDef, ParamSpec, ResponseCtx};
 use ndarray::Array3;
 
+/// The saturation fluence above which a neighbour's excess counts, e- (shared with the
+/// data-driven neighbour term, `super::smooth`).
+pub const F_SAT: ParamSpec = ParamSpec {
+    name: "f_sat_e",
+    default: 2e5,
+    lo: 1.0,
+    hi: 1e9,
+    null: None,
+    fitted: false,
+    doc: "saturation fluence, e-",
+};
+
 pub const DEF: EffectDef = EffectDef {
     name: "blooming",
     summary: "neighbours' excess fluence above saturation fills a pixel's traps as its own fluence",
@@ -46,15 +58,7 @@ pub const DEF: EffectDef = EffectDef {
             doc:
                 "share of the neighbours' mean excess fluence the pixel's traps see as own fluence",
         },
-        ParamSpec {
-            name: "f_sat_e",
-            default: 2e5,
-            lo: 1.0,
-            hi: 1e9,
-            null: None,
-            fitted: false,
-            doc: "saturation fluence, e-",
-        },
+        F_SAT,
         ParamSpec {
             name: "no_slope_flux_e_per_s",
             default: 1e5 / 4.5,

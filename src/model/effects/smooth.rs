@@ -278,22 +278,7 @@ const NEIGHBOUR_PARAMS: [ParamSpec; 6] = {
             "share of the neighbours' excess fluence at u_hi",
         ],
     );
-    [
-        a[0],
-        a[1],
-        a[2],
-        a[3],
-        a[4],
-        ParamSpec {
-            name: "f_sat_e",
-            default: 2e5,
-            lo: 1.0,
-            hi: 1e9,
-            null: None,
-            fitted: false,
-            doc: "saturation fluence, e-",
-        },
-    ]
+    [a[0], a[1], a[2], a[3], a[4], super::blooming::F_SAT]
 };
 
 pub const NEIGHBOUR: EffectDef = EffectDef {
