@@ -53,7 +53,14 @@
 //! (half-decades): a repeat 15 min after a bright illumination meets traps still full,
 //! one after an hour meets them mostly empty, and only the time tells them apart from
 //! a change of the illumination's duration or flux.
-//! Classes are ranked by `z = (T - mean) / sd` of the permutations. The effects of every
+//! Classes that depend come first, ranked by `z = (T - mean) / sd` of the permutations;
+//! the event-level ones among them are then reordered, within the places they hold, by
+//! effect size (`T - mean` over the sum of squares). Their residuals share one
+//! denominator, so the effect size compares them directly, while `z` also follows how
+//! many events a covariate splits (measured on capacity:ceiling of the family: the
+//! duration at `z` 73.6 explaining 1.7 % beyond the permutations' mean, earlier
+//! illuminations at `z` 71.4 explaining 4.5 %). A pixel-level class's residual is standardised in cells split by event, so
+//! its effect size is on another scale and it keeps its place by `z`. The effects of every
 //! event-level class whose `T` exceeds every permutation, and of every pixel-level class
 //! that depends, are refitted ([`Dependence::refits`]), and held-out prediction
 //! chooses among them ([`super::diagnose`]): event-level classes are often confounded
@@ -671,13 +678,37 @@ pub fn dependences(
             }
         })
         .collect();
+    rank(&mut out);
+    out
+}
+
+/// The effect size of a dependence: the share of the residual's sum of squares the
+/// covariate explains beyond the permutations' mean.
+fn excess_r2(d: &Dependence) -> f64 {
+    d.r2 - d.r2_null_mean
+}
+
+/// Orders the dependences (module docs): those that depend first, by `z`; then the
+/// depending event-level classes are reordered among their own places by effect size.
+fn rank(out: &mut [Dependence]) {
     out.sort_by(|a, b| {
         b.depends
             .cmp(&a.depends)
             .then(b.z.total_cmp(&a.z))
             .then(a.class.cmp(&b.class))
     });
-    out
+    let slots: Vec<usize> = (0..out.len())
+        .filter(|&i| out[i].depends && !pixel_level(&out[i].class))
+        .collect();
+    let mut event: Vec<Dependence> = slots.iter().map(|&i| out[i].clone()).collect();
+    event.sort_by(|a, b| {
+        excess_r2(b)
+            .total_cmp(&excess_r2(a))
+            .then(a.class.cmp(&b.class))
+    });
+    for (&i, d) in slots.iter().zip(event) {
+        out[i] = d;
+    }
 }
 
 /// A readable label of a covariate bin of [`covariate_bins`].
@@ -723,6 +754,44 @@ mod tests {
         assert_eq!(
             class_of("capacity", "earlier_illuminations"),
             "earlier_illuminations"
+        );
+    }
+
+    fn dep(class: &str, depends: bool, z: f64, r2: f64) -> Dependence {
+        Dependence {
+            class: class.into(),
+            effects: vec![],
+            r2,
+            r2_null_mean: 0.001,
+            r2_null_max: 0.002,
+            z,
+            permutations: PERMUTATIONS,
+            depends,
+            above_permutations: depends,
+            by_bin: vec![],
+        }
+    }
+
+    #[test]
+    fn event_level_classes_rank_by_effect_size_in_their_places() {
+        let mut d = vec![
+            dep("temperature", false, 90.0, 0.5),
+            dep("illumination_time", true, 73.6, 0.018),
+            dep("position", true, 80.0, 0.2),
+            dep("earlier_illuminations", true, 71.4, 0.046),
+        ];
+        rank(&mut d);
+        let order: Vec<&str> = d.iter().map(|x| x.class.as_str()).collect();
+        // position keeps its place by z; the event-level pair swaps by effect size;
+        // a class that does not depend comes last whatever its z
+        assert_eq!(
+            order,
+            [
+                "position",
+                "earlier_illuminations",
+                "illumination_time",
+                "temperature"
+            ]
         );
     }
 

@@ -12,7 +12,8 @@
 //!    cells, is what an effect must explain.
 //! 4. **What the residual depends on** ([`super::contrast::dependences`]): the share of
 //!    it each testable covariate explains inside the cells, calibrated by permuting the
-//!    covariate among whole pixel-events of one fluence bin; ranked by `z`.
+//!    covariate among whole pixel-events of one fluence bin; ranked by `z`, the
+//!    event-level classes among themselves by effect size (module docs there).
 //! 5. **Identify**: the library effects acting on every covariate above all its
 //!    permutations are refitted (at most [`REFIT`]); an effect is significant when its
 //!    refit passes the change in BIC and the held-out check (below); among significant
