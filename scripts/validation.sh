@@ -23,6 +23,11 @@
 #   family128  docs/validation/diagnostics_family_128.md  the same at 128 x 128, single
 #                                               illuminations with nothing hidden
 #                                               ($FAMILY128_ARGS; minutes; not in the default set)
+#   family_heldout  docs/validation/diagnostics_family_heldout.md  the forms and seeds held
+#                                               aside while the diagnostics were developed,
+#                                               with the nothing-hidden rows
+#                                               ($FAMILY_HELDOUT_ARGS; under an hour; not in
+#                                               the default set)
 # Without arguments every page is regenerated. Release builds (PERSIST_BIN=path skips the
 # build of the binary); run it on a quiet machine
 # (the header records the load average at the start).
@@ -38,8 +43,8 @@ if [[ ${#pages[@]} -eq 0 ]]; then
 fi
 for p in "${pages[@]}"; do
     case $p in
-        floor|bench|matrix|verify|verify_bench|family|family128) ;;
-        *) echo "validation.sh: unknown page '$p' (floor, bench, matrix, verify, verify_bench, family, family128)" >&2; exit 2 ;;
+        floor|bench|matrix|verify|verify_bench|family|family128|family_heldout) ;;
+        *) echo "validation.sh: unknown page '$p' (floor, bench, matrix, verify, verify_bench, family, family128, family_heldout)" >&2; exit 2 ;;
     esac
 done
 
@@ -246,6 +251,15 @@ page_family128() {
     family_page diagnostics_family_128 \
         "Diagnostics on 128 x 128 single illuminations of the second truth generator" \
         FAMILY128_ARGS "${FAMILY128_ARGS:---size 128 --seeds 5 --rows none@single,none@single+dark}"
+}
+
+# family_heldout: the forms (trapgen::hidden::HELD_ASIDE) and seeds (from
+# HELD_ASIDE_FIRST_SEED on) nobody looked at while developing the diagnostics, beside the
+# nothing-hidden rows at the same seeds.
+page_family_heldout() {
+    family_page diagnostics_family_heldout \
+        "Diagnostics on the held-aside forms and seeds of the second truth generator" \
+        FAMILY_HELDOUT_ARGS "${FAMILY_HELDOUT_ARGS:---held-out --size 64 --seeds 5 --first-seed 100 --rows none@single,none@single+dark,none@campaign,none@campaign+dark,temperature:weight,populations:patches,shape:fast_ceiling}"
 }
 
 # verify: persist verify against the simulator's truth (its own script).

@@ -6,8 +6,8 @@
 //! jointly with the model's own effects on the same samples and cells as the library
 //! candidates, judged by the same held-out check. It is offered (its `fit` command in the
 //! verdict and in `data_term`) when it passes the gates a library effect must pass: a
-//! held-out gain of at least [`super::diagnose::HELD_OUT_MIN_GAIN`] and a `delta_BIC`
-//! below [`super::diagnose::DBIC_MAX`] (measured with examples/family_matrix at 64 x 64:
+//! held-out gain of at least [`super::refit::HELD_OUT_MIN_GAIN`] and a `delta_BIC`
+//! below [`super::refit::DBIC_MAX`] (measured with examples/family_matrix at 64 x 64:
 //! with any positive gain accepted, a term was offered on a campaign with nothing hidden,
 //! gain 0.065, and on the weak soak form, 0.056; the capacity and capture forms gave
 //! 0.37 to 0.51);
@@ -20,12 +20,13 @@
 //! 1 to 1000 times the own fluence). The
 //! fit starts from the best of a few common knot values ([`START_VALUES`]).
 
+use super::command::{fit_command, measure_command};
+use super::config::Config;
 use super::data::Sequence;
-use super::diagnose::{
-    delta_bic, fit_candidate, fit_command, held_out, held_with_arg, measure_command, own_effects,
-    Config, HeldOut, DBIC_MAX,
-};
 use super::eval::Samples;
+use super::refit::{
+    delta_bic, fit_candidate, held_out, held_with_arg, own_effects, HeldOut, DBIC_MAX,
+};
 use crate::error::Result;
 use crate::model::effects::smooth;
 use crate::model::params::ModelParams;

@@ -1,19 +1,31 @@
 //! Comparing the model with measurements: residuals by covariate and flag quality
-//! ([`compare`]), the search for missing effects ([`diagnose`], against the model or a description
-//! of the measurements fitted from the input, [`reference`](mod@reference): what the data can test
-//! and what a flexible base's residual depends on, [`contrast`] and [`base`]; the
-//! data-driven term offered along it, [`data_term`]), the
-//! spatial check ([`spatial`]) and the HTML report ([`report`]). The measurements
+//! ([`compare`]), the search for missing effects ([`diagnose`], against the model or a
+//! description of the measurements fitted from the input, [`reference`](mod@reference)),
+//! the spatial check ([`spatial`]) and the HTML report ([`report`]). The measurements
 //! themselves ([`data`], [`eval`], [`spread`]) live in [`crate::measure`], which the
 //! calibration shares; they are re-exported here under their former paths.
+//!
+//! `diagnose` is built from parts that import downwards only:
+//! - [`config`]: what it is asked (statistic, refit, cells) and the defaults;
+//! - [`command`]: the `persist fit` commands it prints;
+//! - [`refit`]: a candidate refitted with the model's own effects, the change in BIC,
+//!   the held-out check;
+//! - [`score`]: the score test and its bootstrap threshold;
+//! - [`contrast`] and [`base`]: what the data can test, and what a flexible base's
+//!   residual depends on;
+//! - [`data_term`]: the data-driven term offered along that covariate.
 
 pub use crate::measure::{data, eval, spread};
 
 pub mod base;
+pub mod command;
 pub mod compare;
+pub mod config;
 pub mod contrast;
 pub mod data_term;
 pub mod diagnose;
 pub mod reference;
+pub mod refit;
 pub mod report;
+pub mod score;
 pub mod spatial;

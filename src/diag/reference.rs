@@ -33,6 +33,7 @@
 
 use super::data::Sequence;
 use super::diagnose::{self, Config, Diagnosis};
+use super::{command, refit};
 use crate::calib::{effects, CalibConfig, Preset};
 use crate::error::{Error, ErrorKind, Result};
 use crate::model::params::ModelParams;
@@ -79,7 +80,7 @@ pub struct Diagnosed {
 
 /// The reference `choice` resolves to for the model `params`, and why.
 pub fn resolve(choice: Reference, params: &ModelParams) -> (Reference, String) {
-    let c = diagnose::calibration_or_fit_default(params);
+    let c = command::calibration_or_fit_default(params);
     let off = crate::calib::knots_held_off_level(c.amplification, c.fit_cn, c.fit_amplification);
     match choice {
         Reference::Model => (
@@ -161,7 +162,7 @@ pub fn diagnose_with(
         };
         let measure = std::mem::replace(
             command,
-            diagnose::fit_command(input, model_path, params, &[held.as_str()], cfg),
+            command::fit_command(input, model_path, params, &[held.as_str()], cfg),
         );
         verdict = verdict.replacen(
             &measure,
@@ -189,7 +190,7 @@ pub fn diagnose_with(
         reference: ReferenceUsed {
             kind,
             why,
-            fit_command: Some(diagnose::fit_command(
+            fit_command: Some(command::fit_command(
                 input,
                 &described_path,
                 &described,
@@ -199,7 +200,7 @@ pub fn diagnose_with(
             effects: described
                 .effects
                 .iter()
-                .filter_map(|e| diagnose::held_with_arg(&described, &e.name))
+                .filter_map(|e| refit::held_with_arg(&described, &e.name))
                 .collect(),
         },
         diagnosis: d,

@@ -1,0 +1,440 @@
+//! Refitting candidate effects and holding them out ([`super::diagnose`] module docs,
+//! "Refit" and "Held-out check"): the model's own effects refitted alone, a candidate
+//! fitted with them, the change in BIC, and the held-out split by illumination events
+//! or, with one event, by pixels.
+//!
+//! Invariant: a candidate is compared with the model's own effects refitted on the
+//! same samples ([`Refit::Full`]) or with the model as it is ([`Refit::Candidate`]),
+//! never with a fit on other samples.
+
+use super::config::Refit;
+use super::data::Sequence;
+use super::eval::{self, Samples};
+use super::spread;
+use crate::error::Result;
+use crate::model::params::ModelParams;
+use serde::Serialize;
+
+/// The refit must lower the BIC by more than this ("very strong" evidence).
+pub const DBIC_MAX: f64 = -10.0;
+
+/// The effect fitted on some illuminations must remove this fraction of the
+/// normalised residual RMS of the others.
+pub const HELD_OUT_MIN_GAIN: f64 = 0.2;
+
+/// `delta_BIC = m ln(RSS_1/RSS_0) + k ln m` of adding `k` parameters (module docs) over
+/// `m` cells.
+pub fn delta_bic(rss0: f64, rss1: f64, k: usize, m: usize) -> f64 {
+    let m = m as f64;
+    m * (rss1 / rss0).ln() + k as f64 * m.ln()
+}
+
+/// A held-out test cell is "moved" by the candidate when its normalised residual
+/// changes by at least this much (one unit of the cell's own sampling error).
+pub const MOVED_Z: f64 = 1.0;
+
+/// The fewest sampled pixels in each half of a held-out split by pixels (one
+/// illumination event).
+pub const MIN_HELD_OUT_PIXELS: usize = 50;
+
+/// The model's own effects that a [`Refit::Full`] refits (those with fitted
+/// parameters); none for [`Refit::Candidate`].
+pub(super) fn own_effects(params: &ModelParams, refit: Refit) -> Vec<String> {
+    if refit == Refit::Candidate {
+        return Vec::new();
+    }
+    params
+        .effects
+        .iter()
+        .filter(|e| {
+            crate::model::effects::lookup(&e.name)
+                .is_some_and(|d| d.params.iter().any(|p| e.fits(p)))
+        })
+        .map(|e| e.name.clone())
+        .collect()
+}
+
+/// The model's own effects (`own`) refitted on `samples`, or the model itself when
+/// there are none.
+pub(super) fn refit_own(
+    params: &ModelParams,
+    own: &[String],
+    seq: &Sequence,
+    samples: &Samples,
+) -> Result<ModelParams> {
+    if own.is_empty() {
+        return Ok(params.clone());
+    }
+    Ok(crate::calib::effects::fit(params, own, seq, samples)?.0)
+}
+
+/// `base` (the model, its own effects refitted as [`Refit`] says) with the candidate
+/// effects `names` (`--with` arguments: one, or a pair in the joint check) fitted on `samples` together
+/// with `own`; `start` holds the candidates at the values to start from (else their
+/// defaults).
+pub(super) fn fit_candidate(
+    base: &ModelParams,
+    own: &[String],
+    start: Option<&ModelParams>,
+    names: &[&str],
+    seq: &Sequence,
+    samples: &Samples,
+) -> Result<(ModelParams, crate::calib::effects::EffectFit)> {
+    let mut m = base.clone();
+    let started: Vec<_> = start
+        .map(|s| {
+            s.effects
+                .iter()
+                .filter(|e| {
+                    names
+                        .iter()
+                        .any(|n| n.split(':').next() == Some(e.name.as_str()))
+                })
+                .cloned()
+                .collect()
+        })
+        .unwrap_or_default();
+    if !started.is_empty() {
+        // `base`'s knots were calibrated without the candidates: rescale them for
+        // their start values, as the fit does for every value it tries
+        let from = crate::calib::knots::scale_of(base, seq)?;
+        m.effects.extend(started);
+        if let Some((s_from, ramp)) = from {
+            crate::calib::knots::rescale(&s_from, &mut m, &ramp)?;
+        }
+    }
+    let mut all = own.to_vec();
+    all.extend(names.iter().map(|n| n.to_string()));
+    crate::calib::effects::fit(&m, &all, seq, samples)
+}
+
+/// The `--with` argument that adds effect `name` of `fitted` with every fitted
+/// or pinned parameter held at its value (four significant digits).
+pub(super) fn held_with_arg(fitted: &ModelParams, name: &str) -> Option<String> {
+    let e = fitted.effects.iter().find(|e| e.name == name)?;
+    let def = crate::model::effects::lookup(name)?;
+    let held: Vec<String> = def
+        .params
+        .iter()
+        .filter(|p| p.fitted || e.fixed.iter().any(|f| f == p.name))
+        .filter_map(|p| {
+            let v = e.params.get(p.name)?.as_f64()?;
+            Some(format!("{}={}", p.name, significant(v, 4)))
+        })
+        .collect();
+    Some(if held.is_empty() {
+        name.to_string()
+    } else {
+        format!("{name}:{}", held.join(","))
+    })
+}
+
+/// `v` rounded to `digits` significant digits.
+fn significant(v: f64, digits: i32) -> f64 {
+    if v == 0.0 || !v.is_finite() {
+        return v;
+    }
+    let scale = 10f64.powi(digits - 1 - v.abs().log10().floor() as i32);
+    (v * scale).round() / scale
+}
+
+/// One half of the held-out check.
+#[derive(Debug, Clone, Serialize)]
+pub struct Fold {
+    /// What the halves split: `events` (illumination events alternately) or `pixels`
+    /// (one event: its sampled pixels alternately).
+    pub split: &'static str,
+    pub fit_events: Vec<u64>,
+    pub test_events: Vec<u64>,
+    pub test_cells: usize,
+    pub rms_before: f64,
+    pub rms_after: f64,
+    /// Test cells whose `z` the fitted effect moves by at least [`MOVED_Z`].
+    pub moved_cells: usize,
+    pub rms_before_moved: f64,
+    pub rms_after_moved: f64,
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct HeldOut {
+    pub folds: Vec<Fold>,
+    /// Pooled over the folds' test cells.
+    pub rms_before: f64,
+    pub rms_after: f64,
+    /// The gated gain: `1 - rms_after / rms_before` over all test cells.
+    pub gain: f64,
+    pub passes: bool,
+    /// Pooled over the folds' moved cells (NaN when there are none); reported, not
+    /// gated (module docs).
+    pub moved_cells: usize,
+    pub rms_before_moved: f64,
+    pub rms_after_moved: f64,
+    pub gain_moved_cells: f64,
+}
+
+/// Held-out check of the effects `names` (one candidate, or a pair in the joint check;
+/// module docs): the halves are the events alternately, or with one event its sampled
+/// pixels alternately; None with one event and fewer than `2 MIN_HELD_OUT_PIXELS` pixels.
+/// `start`: a model holding the effect at the values to start the fits from (the
+/// full refit), else its defaults. `base_current`: `params`' prediction at `samples`
+/// (early release off, [`eval::predict`]), which the test halves' "before" reuse when
+/// `refit` is [`Refit::Candidate`] (with [`Refit::Full`] "before" is the model's own
+/// effects refitted on the fit half).
+pub fn held_out(
+    params: &ModelParams,
+    base_current: &[f64],
+    start: Option<&ModelParams>,
+    names: &[&str],
+    seq: &Sequence,
+    samples: &Samples,
+    refit: Refit,
+) -> Result<Option<HeldOut>> {
+    let own = own_effects(params, refit);
+    let mut events: Vec<usize> = samples.event.clone();
+    events.sort_unstable();
+    events.dedup();
+    // the two halves: illumination events alternately, or, with one event, the
+    // sampled pixels alternately (in raster order)
+    let by_pixels = events.len() < 2;
+    if by_pixels && samples.npix() < 2 * MIN_HELD_OUT_PIXELS {
+        return Ok(None);
+    }
+    let half: Vec<Vec<usize>> = (0..2)
+        .map(|h| {
+            let all: Vec<usize> = if by_pixels {
+                (0..samples.npix()).collect()
+            } else {
+                events.clone()
+            };
+            all.into_iter().skip(h).step_by(2).collect()
+        })
+        .collect();
+    let idx = |v: &[usize]| -> Vec<u64> {
+        v.iter()
+            .map(|&e| seq.exposures[e].meta.exposure_index)
+            .collect()
+    };
+    let split = |h: usize| -> (Samples, Samples, Vec<f64>) {
+        let (fit, test) = (&half[h], &half[1 - h]);
+        if by_pixels {
+            (
+                samples.columns(fit),
+                samples.columns(test),
+                samples.columns_of(base_current, test),
+            )
+        } else {
+            let test_rows = samples.row_indices(|e| test.contains(&e));
+            (
+                samples.rows_where(|e| fit.contains(&e)),
+                samples.rows(&test_rows),
+                samples.rows_of(base_current, &test_rows),
+            )
+        }
+    };
+    // the two folds in parallel, combined in fold order
+    let fold = |h: usize| -> Result<Option<HeldOutSums>> {
+        let (fs, ts, ts_base) = split(h);
+        let (fitted, before) = if own.is_empty() {
+            let names: Vec<String> = names.iter().map(|n| n.to_string()).collect();
+            let (fitted, _) =
+                crate::calib::effects::fit(start.unwrap_or(params), &names, seq, &fs)?;
+            // `params`' own prediction of the test samples: already computed
+            let before = spread::model_cell_z(params, &ts, &ts_base);
+            (fitted, before)
+        } else {
+            // the model's own effects refitted on the fit half's samples, alone and
+            // with the candidate (both fits start from values fitted on all samples)
+            let base = refit_own(params, &own, seq, &fs)?;
+            let (fitted, _) = fit_candidate(&base, &own, start, names, seq, &fs)?;
+            let before =
+                spread::model_cell_z(&base, &ts, &eval::predict(&base, seq, &ts, false)?.current);
+            (fitted, before)
+        };
+        let after = spread::model_cell_z(
+            &fitted,
+            &ts,
+            &eval::predict(&fitted, seq, &ts, false)?.current,
+        );
+        Ok(HeldOutSums::of(&before, &after))
+    };
+    let (f0, f1) = rayon::join(|| fold(0), || fold(1));
+    let mut folds = Vec::new();
+    let mut all = HeldOutSums::default();
+    for (h, r) in [f0?, f1?].into_iter().enumerate() {
+        let Some(r) = r else { continue };
+        let (fit_ev, test_ev) = if by_pixels {
+            (&events, &events)
+        } else {
+            (&half[h], &half[1 - h])
+        };
+        all.add(&r);
+        folds.push(Fold {
+            split: if by_pixels { "pixels" } else { "events" },
+            fit_events: idx(fit_ev),
+            test_events: idx(test_ev),
+            test_cells: r.cells,
+            rms_before: r.rms_all().0,
+            rms_after: r.rms_all().1,
+            moved_cells: r.moved,
+            rms_before_moved: r.rms_moved().0,
+            rms_after_moved: r.rms_moved().1,
+        });
+    }
+    if all.cells == 0 {
+        return Ok(None);
+    }
+    let ((rb, ra), (rbm, ram)) = (all.rms_all(), all.rms_moved());
+    let gain = 1.0 - ra / rb;
+    Ok(Some(HeldOut {
+        folds,
+        rms_before: rb,
+        rms_after: ra,
+        gain,
+        passes: gain >= HELD_OUT_MIN_GAIN,
+        moved_cells: all.moved,
+        rms_before_moved: rbm,
+        rms_after_moved: ram,
+        gain_moved_cells: 1.0 - ram / rbm,
+    }))
+}
+
+/// Sums of squared normalised residuals of one held-out test half, before and after
+/// the candidate, over all its cells and over the cells the candidate moves.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+struct HeldOutSums {
+    cells: usize,
+    before: f64,
+    after: f64,
+    moved: usize,
+    before_moved: f64,
+    after_moved: f64,
+}
+
+impl HeldOutSums {
+    /// None when the two cell lists differ (a prediction not finite somewhere changed a
+    /// cell's membership) or are empty.
+    fn of(
+        before: &[(Vec<i64>, eval::GroupStat)],
+        after: &[(Vec<i64>, eval::GroupStat)],
+    ) -> Option<Self> {
+        if before.is_empty()
+            || before.len() != after.len()
+            || before.iter().zip(after).any(|(b, a)| b.0 != a.0)
+        {
+            return None;
+        }
+        let mut s = HeldOutSums::default();
+        for ((_, b), (_, a)) in before.iter().zip(after) {
+            let (b2, a2) = (b.z * b.z, a.z * a.z);
+            s.cells += 1;
+            s.before += b2;
+            s.after += a2;
+            if (a.z - b.z).abs() >= MOVED_Z {
+                s.moved += 1;
+                s.before_moved += b2;
+                s.after_moved += a2;
+            }
+        }
+        Some(s)
+    }
+
+    fn add(&mut self, o: &HeldOutSums) {
+        self.cells += o.cells;
+        self.before += o.before;
+        self.after += o.after;
+        self.moved += o.moved;
+        self.before_moved += o.before_moved;
+        self.after_moved += o.after_moved;
+    }
+
+    /// `(before, after)` RMS over all cells.
+    fn rms_all(&self) -> (f64, f64) {
+        (
+            Self::rms(self.before, self.cells),
+            Self::rms(self.after, self.cells),
+        )
+    }
+
+    /// `(before, after)` RMS over the moved cells (NaN when none moved).
+    fn rms_moved(&self) -> (f64, f64) {
+        (
+            Self::rms(self.before_moved, self.moved),
+            Self::rms(self.after_moved, self.moved),
+        )
+    }
+
+    fn rms(sum: f64, n: usize) -> f64 {
+        if n == 0 {
+            f64::NAN
+        } else {
+            (sum / n as f64).sqrt()
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::model::params::EffectSpec;
+
+    fn cell(key: i64, z: f64) -> (Vec<i64>, eval::GroupStat) {
+        let g = eval::GroupStat {
+            n: 10,
+            measured_p95_e_per_s: 0.0,
+            predicted_p95_e_per_s: 0.0,
+            measured_median_e_per_s: 0.0,
+            sigma_e_per_s: 1.0,
+            z,
+        };
+        (vec![key, 0], g)
+    }
+
+    /// The held-out gain over moved cells: a candidate that removes a large residual in
+    /// 2 of 10 cells and leaves the rest alone gains 0.8 there but 0.14 over all cells
+    /// (what the gate sees); a cell moved by less than `MOVED_Z` is not moved.
+    #[test]
+    fn held_out_sums_count_only_the_cells_the_candidate_moves() {
+        let before: Vec<_> = (0..10)
+            .map(|k| cell(k, if k < 2 { 10.0 } else { 8.0 }))
+            .collect();
+        let mut after = before.clone();
+        after[0].1.z = 2.0;
+        after[1].1.z = -2.0;
+        after[5].1.z = 8.0 + 0.5 * MOVED_Z;
+        let s = HeldOutSums::of(&before, &after).unwrap();
+        assert_eq!((s.cells, s.moved), (10, 2));
+        assert_eq!((s.before_moved, s.after_moved), (200.0, 8.0));
+        let moved = 1.0
+            - HeldOutSums::rms(s.after_moved, s.moved) / HeldOutSums::rms(s.before_moved, s.moved);
+        assert!((moved - 0.8).abs() < 1e-12, "{moved}");
+        let all = 1.0 - HeldOutSums::rms(s.after, s.cells) / HeldOutSums::rms(s.before, s.cells);
+        assert!(
+            (all - (1.0 - (528.25f64 / 712.0).sqrt())).abs() < 1e-12,
+            "{all}"
+        );
+        assert!(all < HELD_OUT_MIN_GAIN);
+        // a cell missing on one side (a prediction not finite) voids the fold
+        assert!(HeldOutSums::of(&before, &after[1..]).is_none());
+        let mut other = after.clone();
+        other[3].0 = vec![99, 0];
+        assert!(HeldOutSums::of(&before, &other).is_none());
+        assert!(HeldOutSums::of(&[], &[]).is_none());
+    }
+
+    /// `--refit full` frees the model's own effects that have fitted parameters (with
+    /// the candidate's); `--refit candidate` none of them. Unknown modes name the flag.
+    #[test]
+    fn a_full_refit_frees_the_model_s_own_fitted_effects() {
+        let mut p = ModelParams::default();
+        for name in ["refill", "chord"] {
+            p.effects.push(EffectSpec::named(name));
+        }
+        assert_eq!(own_effects(&p, Refit::Full), ["refill", "chord"]);
+        assert!(own_effects(&p, Refit::Candidate).is_empty());
+        // a chord whose only fitted parameter is pinned is not freed
+        p.effects[1].fixed = vec!["strength".into()];
+        assert_eq!(own_effects(&p, Refit::Full), ["refill"]);
+        let e = "both".parse::<Refit>().unwrap_err().to_string();
+        assert!(e.contains("--refit") && e.contains("both"), "{e}");
+    }
+}
