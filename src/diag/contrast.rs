@@ -153,14 +153,6 @@ fn list_s(v: &[f64]) -> String {
         .join(", ")
 }
 
-/// The events (illumination exposure indices into the sequence) the samples follow.
-fn events(s: &Samples) -> Vec<usize> {
-    let mut e = s.event.clone();
-    e.sort_unstable();
-    e.dedup();
-    e
-}
-
 /// The 4 x 4 tile of a pixel.
 fn tile(seq: &Sequence, (y, x): (usize, usize)) -> i64 {
     ((y * 4 / seq.ny.max(1)) * 4 + x * 4 / seq.nx.max(1)) as i64
@@ -188,7 +180,7 @@ type Contrast = (bool, String, Option<String>);
 /// Which classes the data can test (module docs), for the library effects `effects`
 /// (name, covariate of the registry).
 pub fn testability(seq: &Sequence, s: &Samples, effects: &[(&str, &str)]) -> Vec<Testability> {
-    let ev = events(s);
+    let ev = s.events();
     let mut classes: Vec<(&'static str, Vec<String>)> = Vec::new();
     for &(name, cov) in effects {
         let c = class_of(name, cov);
@@ -512,6 +504,8 @@ fn covariate_bins(
     for (r, &e) in s.event.iter().enumerate() {
         first_row.entry(e).or_insert(r);
     }
+    // per event: the median dark integration's bin, computed once
+    let mut integration: BTreeMap<usize, Option<i64>> = BTreeMap::new();
     // per event: the fluence map of the illumination before it, for capacity
     let mut prev: BTreeMap<usize, (Option<ndarray::Array2<f64>>, i64)> = BTreeMap::new();
     blocks
@@ -528,7 +522,7 @@ fn covariate_bins(
                     let t = seq.exposures[e].meta.focal_plane_temp_k?;
                     Some((t * 2.0).round() as i64)
                 }
-                "integration_length" => {
+                "integration_length" => *integration.entry(e).or_insert_with(|| {
                     let rows: Vec<f64> = s
                         .exposures
                         .iter()
@@ -538,7 +532,7 @@ fn covariate_bins(
                         .collect();
                     let m = median(&rows);
                     (m > 0.0).then(|| (m.log10() * 20.0).round() as i64)
-                }
+                }),
                 "earlier_illuminations" => {
                     let (f, gap) = prev.entry(e).or_insert_with(|| {
                         seq.illuminations

@@ -344,7 +344,7 @@ pub fn diagnose(
         .with_cells(cfg.cells)
         .with_statistic(cfg.cell_statistic);
     let base = eval::predict(params, seq, &samples, false)?;
-    let events = count_events(&samples);
+    let events = samples.events().len();
     let (statistic, statistic_reason) = cfg.statistic.resolve(events);
     let cells = make_cells(&samples, &base.current, statistic);
     enough_cells(&cells, statistic, events, input)?;
@@ -353,8 +353,6 @@ pub fn diagnose(
     let flexible = super::base::predict(seq, &samples, &base.current);
     let dependences = contrast::dependences(seq, &samples, &flexible, &contrasts, cfg.seed);
     let winner = dependences.iter().find(|d| d.depends);
-    // the knots of each stepped model carry its effects, as in the refit
-    let calib_ramp = crate::calib::knots::scale_of(params, seq)?;
     let scored = score_tests(
         params,
         seq,
@@ -363,7 +361,6 @@ pub fn diagnose(
         &cells,
         statistic,
         &tests,
-        calib_ramp.as_ref(),
         cfg.bootstrap,
         cfg.seed,
     )?;
@@ -513,14 +510,6 @@ fn check_config(cfg: &Config) -> Result<()> {
         return Err(Error::invalid("--pixels", "0: at least one pixel"));
     }
     Ok(())
-}
-
-/// The illumination events the samples come from.
-fn count_events(samples: &Samples) -> usize {
-    let mut e = samples.event.clone();
-    e.sort_unstable();
-    e.dedup();
-    e.len()
 }
 
 /// Refuses cells too few for the score test's degrees of freedom, saying why when the

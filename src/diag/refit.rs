@@ -190,9 +190,7 @@ pub fn held_out(
     refit: Refit,
 ) -> Result<Option<HeldOut>> {
     let own = own_effects(params, refit);
-    let mut events: Vec<usize> = samples.event.clone();
-    events.sort_unstable();
-    events.dedup();
+    let events = samples.events();
     // the two halves: illumination events alternately, or, with one event, the
     // sampled pixels alternately (in raster order)
     let by_pixels = events.len() < 2;

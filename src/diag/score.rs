@@ -9,7 +9,6 @@ use super::config::Statistic;
 use super::data::{noisy_quantile, quantile, quantile_in_place, Sequence};
 use super::eval::{self, Samples};
 use super::spread;
-use crate::calib::knots::CalibRamp;
 use crate::error::Result;
 use crate::model::params::{EffectSpec, ModelParams};
 use crate::stats::median;
@@ -403,8 +402,8 @@ pub(super) struct Scored {
 }
 
 /// Scores `tests` on `cells` of `samples` (module docs): each effect's model at its
-/// step predicted (its knots rescaled with `calib_ramp`, the model's knot scale and
-/// ramp, as in the refits), the scores at the measurements, and `bootstrap` replicas
+/// step predicted (its knots rescaled for the effect on the calibration ramp, as in the
+/// refits), the scores at the measurements, and `bootstrap` replicas
 /// from `base_current` (the model's prediction) seeded by `seed`.
 #[allow(clippy::too_many_arguments)]
 pub(super) fn score_tests(
@@ -415,10 +414,11 @@ pub(super) fn score_tests(
     cells: &Cells,
     statistic: Statistic,
     tests: &[Test],
-    calib_ramp: Option<&(Vec<f64>, CalibRamp)>,
     bootstrap: usize,
     seed: u64,
 ) -> Result<Scored> {
+    // the knots of each stepped model carry its effect, as in the refit
+    let calib_ramp = crate::calib::knots::scale_of(params, seq)?;
     let at_step: Vec<(f64, Vec<f64>)> = tests
         .par_iter()
         .map(|&(def, p, null, h)| {
@@ -429,7 +429,7 @@ pub(super) fn score_tests(
                 params: map,
                 ..EffectSpec::named(def.name)
             });
-            if let Some((s_from, r)) = calib_ramp {
+            if let Some((s_from, r)) = &calib_ramp {
                 crate::calib::knots::rescale(s_from, &mut q, r)?;
             }
             Ok((h, eval::predict(&q, seq, samples, false)?.current))

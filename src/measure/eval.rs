@@ -481,6 +481,15 @@ impl Samples {
         self.pixels.len()
     }
 
+    /// The illumination events the samples follow ([`Samples::event`]), sorted, once
+    /// each.
+    pub fn events(&self) -> Vec<usize> {
+        let mut e = self.event.clone();
+        e.sort_unstable();
+        e.dedup();
+        e
+    }
+
     /// What `measured - predicted` of sample `i` is under the model when its prediction
     /// is `pred` (e-/s): `(mean, standard deviation, measurement noise)` of a Gaussian.
     /// With [`CellStatistic::Population`] (module docs, "Population statistic"): the
