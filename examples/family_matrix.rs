@@ -36,7 +36,8 @@
 //! 5. `persist compare --input D --model M.json [--model M2.json]`: each model's
 //!    normalised residual RMS; the excess is that minus the RMS of the baseline's own
 //!    fit on the baseline (same seed, nothing hidden); "halved" when the excess after
-//!    `fit --with` is at most half the excess before;
+//!    `fit --with` is at most half the excess before (not counted, either way, when the
+//!    excess before is not positive);
 //! 6. `persist run` with each model; the missed-flag fraction at 0.1 e-/s over the
 //!    touched pixels: a pixel is touched when its true persistence differs from the
 //!    baseline's by more than 0.01 e-/s at any exposure; a sample (touched pixel, any
@@ -608,7 +609,8 @@ fn one(ctx: &Ctx, row: &Row, seed: u64, cache: &mut BTreeMap<(PathBuf, bool), Op
                 r.excess_before = Some(x - b0);
                 if let Some(y) = r.rms_after {
                     r.excess_after = Some(y - b0);
-                    r.halved = Some(y - b0 <= 0.5 * (x - b0));
+                    // no excess to halve: not counted either way
+                    r.halved = (x > b0).then_some(y - b0 <= 0.5 * (x - b0));
                 }
             }
             if let (Ok(td), Ok(tb)) = (truths(&d), truths(&b)) {

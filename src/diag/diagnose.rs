@@ -133,7 +133,7 @@
 //! -963) and populations' held-out gain falls from 0.46 to 0.15.
 //!
 //! Held-out check: illumination events are
-//! split alternately into two halves; the effect is fitted on one half and the
+//! split alternately into two halves (or their pixels, below); the effect is fitted on one half and the
 //! normalised residual RMS of the other half is compared with the model's, both ways;
 //! `gain = 1 - RMS_after/RMS_before` over the pooled held-out cells.
 //! The same gain over the held-out cells the candidate *moves* (its fitted effect
@@ -149,7 +149,11 @@
 //! sampled pixels, alternately in raster order (each half at least
 //! [`MIN_HELD_OUT_PIXELS`]; with fewer the gate is not applied and the output says so):
 //! an effect that only absorbs the misfit of the pixels it was fitted on does not
-//! predict the others. Measured on the independent generator's single illumination
+//! predict the others. The pixels are also the halves when the effect acts on an
+//! event-level covariate ([`super::refit::EVENT_LEVEL`]: illumination duration,
+//! temperature) and one half of the events lacks a value of it: a campaign with one
+//! illumination at 78 K and one at 82 K would otherwise fit a temperature effect at
+//! 78 K and 80 K and judge it only at 82 K, where any smooth term extrapolates. Measured on the independent generator's single illumination
 //! with dark pixels and nothing hidden (examples/family_matrix): without this gate
 //! `ipc` was declared there.
 //!

@@ -1,7 +1,7 @@
 //! Refitting candidate effects and holding them out ([`super::diagnose`] module docs,
 //! "Refit" and "Held-out check"): the model's own effects refitted alone, a candidate
 //! fitted with them, the change in BIC, and the held-out split by illumination events
-//! or, with one event, by pixels.
+//! or by pixels.
 //!
 //! Invariant: a candidate is compared with the model's own effects refitted on the
 //! same samples ([`Refit::Full`]) or with the model as it is ([`Refit::Candidate`]),
@@ -142,7 +142,8 @@ fn significant(v: f64, digits: i32) -> f64 {
 #[derive(Debug, Clone, Serialize)]
 pub struct Fold {
     /// What the halves split: `events` (illumination events alternately) or `pixels`
-    /// (one event: its sampled pixels alternately).
+    /// (their sampled pixels alternately: one event, or an event-level covariate whose
+    /// values the event halves do not both hold).
     pub split: &'static str,
     pub fit_events: Vec<u64>,
     pub test_events: Vec<u64>,
@@ -173,8 +174,10 @@ pub struct HeldOut {
 }
 
 /// Held-out check of the effects `names` (one candidate, or a pair in the joint check;
-/// module docs): the halves are the events alternately, or with one event its sampled
-/// pixels alternately; None with one event and fewer than `2 MIN_HELD_OUT_PIXELS` pixels.
+/// module docs): the halves are the events alternately, or the sampled pixels
+/// alternately with one event or when an event half lacks a value of the effects'
+/// event-level covariate ([`halves_span`]); None when split by pixels with fewer than
+/// `2 MIN_HELD_OUT_PIXELS` pixels.
 /// `start`: a model holding the effect at the values to start the fits from (the
 /// full refit), else its defaults. `base_current`: `params`' prediction at `samples`
 /// (early release off, [`eval::predict`]), which the test halves' "before" reuse when
@@ -191,22 +194,21 @@ pub fn held_out(
 ) -> Result<Option<HeldOut>> {
     let own = own_effects(params, refit);
     let events = samples.events();
-    // the two halves: illumination events alternately, or, with one event, the
-    // sampled pixels alternately (in raster order)
-    let by_pixels = events.len() < 2;
+    // the two halves: illumination events alternately when each half holds every value
+    // of the candidates' event-level covariates, else (one event, or a value that only
+    // some events hold) the sampled pixels alternately (in raster order)
+    let alternate = |all: Vec<usize>| -> [Vec<usize>; 2] {
+        [0, 1].map(|h| all.iter().copied().skip(h).step_by(2).collect())
+    };
+    let by_pixels = events.len() < 2 || !halves_span(names, samples, &alternate(events.clone()));
     if by_pixels && samples.npix() < 2 * MIN_HELD_OUT_PIXELS {
         return Ok(None);
     }
-    let half: Vec<Vec<usize>> = (0..2)
-        .map(|h| {
-            let all: Vec<usize> = if by_pixels {
-                (0..samples.npix()).collect()
-            } else {
-                events.clone()
-            };
-            all.into_iter().skip(h).step_by(2).collect()
-        })
-        .collect();
+    let half = alternate(if by_pixels {
+        (0..samples.npix()).collect()
+    } else {
+        events.clone()
+    });
     let idx = |v: &[usize]| -> Vec<u64> {
         v.iter()
             .map(|&e| seq.exposures[e].meta.exposure_index)
@@ -296,6 +298,33 @@ pub fn held_out(
     }))
 }
 
+/// The covariates that take one value per illumination event (its cells' bins,
+/// [`eval::bin_of`]).
+pub const EVENT_LEVEL: [&str; 2] = ["illumination_time", "temperature"];
+
+/// Whether each half of the events (`halves`) holds every value (binned as the cells
+/// bin it) that the samples hold of the event-level covariates the effects `names`
+/// act on (`--with` arguments allowed); true when none acts on one. A half without
+/// some value would test the effect only where it extrapolates: fitted at 78 K and
+/// 80 K, judged at 82 K.
+fn halves_span(names: &[&str], samples: &Samples, halves: &[Vec<usize>; 2]) -> bool {
+    let covariates = names.iter().filter_map(|n| {
+        let def = crate::model::effects::lookup(n.split(':').next().unwrap_or(n))?;
+        EVENT_LEVEL
+            .contains(&def.covariate)
+            .then_some(def.covariate)
+    });
+    let values = |c: &str, of: Option<&[usize]>| -> std::collections::BTreeSet<i64> {
+        (0..samples.exposures.len())
+            .filter(|&r| of.is_none_or(|ev| ev.contains(&samples.event[r])))
+            .filter_map(|r| eval::bin_of(samples, c, r * samples.npix()))
+            .collect()
+    };
+    covariates
+        .into_iter()
+        .all(|c| halves.iter().all(|h| values(c, Some(h)) == values(c, None)))
+}
+
 /// Sums of squared normalised residuals of one held-out test half, before and after
 /// the candidate, over all its cells and over the cells the candidate moves.
 #[derive(Debug, Clone, Copy, Default, PartialEq)]
@@ -374,6 +403,56 @@ impl HeldOutSums {
 mod tests {
     use super::*;
     use crate::model::params::EffectSpec;
+
+    /// One sampled pixel, one row per illumination event of the campaign in the family
+    /// generator (`src/trapgen/scene.rs`): 481 s at 80 K except the second (120 s) and
+    /// the last two (78 K, 82 K).
+    fn campaign_rows() -> Samples {
+        let rows = 6;
+        let v = |x: f64| vec![x; rows];
+        Samples {
+            cells: eval::Cells::Pooled,
+            statistic: eval::CellStatistic::Levels,
+            stride: 0,
+            pixels: vec![(0, 0)],
+            exposures: (0..rows).collect(),
+            measured: v(1.0),
+            noise: v(0.01),
+            shot_var_per_e_per_s: v(0.0),
+            spread_rel: v(0.0),
+            fluence_e: v(1e5),
+            neighbour_excess_e: v(0.0),
+            t_since_s: v(100.0),
+            event: (0..rows).collect(),
+            illumination_time_s: vec![481.0, 120.0, 481.0, 481.0, 481.0, 481.0],
+            temperature_k: vec![80.0, 80.0, 80.0, 80.0, 78.0, 82.0],
+            earlier_illuminations: (0..rows).map(|r| r as f64).collect(),
+            radius: vec![0.5],
+        }
+    }
+
+    /// Alternate events hold 120 s in one half only and 78 K and 82 K in one half each:
+    /// an effect on duration or temperature is split by pixels; one on earlier
+    /// illuminations, or on nothing event-level, by events. A temperature split that
+    /// puts 78 K and 82 K in both halves is kept.
+    #[test]
+    fn event_halves_must_hold_every_value_of_an_event_level_covariate() {
+        let s = campaign_rows();
+        let alternate = [vec![0, 2, 4], vec![1, 3, 5]];
+        assert!(!halves_span(&["soak"], &s, &alternate));
+        assert!(!halves_span(&["temperature"], &s, &alternate));
+        assert!(!halves_span(
+            &["smooth_temperature:temp_lo=78,temp_hi=82"],
+            &s,
+            &alternate
+        ));
+        assert!(!halves_span(&["capacity", "temperature"], &s, &alternate));
+        assert!(halves_span(&["capacity"], &s, &alternate));
+        assert!(halves_span(&["populations"], &s, &alternate));
+        let spanning = [vec![0, 2, 4, 5], vec![1, 3, 4, 5]];
+        assert!(halves_span(&["temperature"], &s, &spanning));
+        assert!(!halves_span(&["soak"], &s, &spanning));
+    }
 
     fn cell(key: i64, z: f64) -> (Vec<i64>, eval::GroupStat) {
         let g = eval::GroupStat {
