@@ -132,9 +132,9 @@
 //! BIC than `temperature` (-660 against -487), the full refit reverses it (-616 against
 //! -963) and populations' held-out gain falls from 0.46 to 0.15.
 //!
-//! Held-out check: illumination events are
-//! split alternately into two halves (or their pixels, below); the effect is fitted on one half and the
-//! normalised residual RMS of the other half is compared with the model's, both ways;
+//! Held-out check: illumination events are split alternately into two halves (or
+//! their pixels, below); the effect is fitted on one half and the normalised residual
+//! RMS of the other half is compared with the model's, both ways;
 //! `gain = 1 - RMS_after/RMS_before` over the pooled held-out cells.
 //! The same gain over the held-out cells the candidate *moves* (its fitted effect
 //! changes the cell's `z` by at least [`MOVED_Z`]) is reported as `gain_moved_cells`,
@@ -733,7 +733,7 @@ fn candidate_sentence(c: &Candidate, params: &ModelParams) -> String {
         c.effect,
         c.covariate,
         if c.held_out.is_none() {
-            "; no held-out check: a single illumination event with too few sampled pixels to split"
+            "; no held-out check: too few sampled pixels to split into halves"
         } else {
             ""
         },
