@@ -176,8 +176,8 @@ pub struct HeldOut {
 /// Held-out check of the effects `names` (one candidate, or a pair in the joint check;
 /// module docs): the halves are the events alternately, or the sampled pixels
 /// alternately with one event or when an event half lacks a value of the effects'
-/// event-level covariate ([`halves_span`]); None when split by pixels with fewer than
-/// `2 MIN_HELD_OUT_PIXELS` pixels.
+/// event-level covariate (`halves_span`, over [`EVENT_LEVEL`]); None when split by
+/// pixels with fewer than `2 MIN_HELD_OUT_PIXELS` pixels.
 /// `start`: a model holding the effect at the values to start the fits from (the
 /// full refit), else its defaults. `base_current`: `params`' prediction at `samples`
 /// (early release off, [`eval::predict`]), which the test halves' "before" reuse when
