@@ -114,7 +114,8 @@ fn the_duration_term_stands_in_for_soak_and_changes_the_flags() {
 /// `capacity`'s Langmuir form does not predict on held-out illuminations, `diagnose`
 /// with its defaults finds the residual's dependence on earlier illuminations and
 /// offers the held-charge term along it (held-out gain 0.49 at 32 x 32, seed 1), and
-/// the command it prints adds it to the model file.
+/// the command it prints adds it to the model file. Diagnosed again with that model
+/// file, it does not offer the term the model already holds.
 #[test]
 fn diagnose_offers_the_term_and_its_command_writes_it() {
     let tmp = tempfile::tempdir().unwrap();
@@ -177,4 +178,17 @@ fn diagnose_offers_the_term_and_its_command_writes_it() {
             .any(|e| e["name"] == name),
         "{m}"
     );
+    let again = persist_ok(&[
+        "diagnose",
+        "--input",
+        &p("fam"),
+        "--model",
+        out,
+        "--json",
+        &p("d2.json"),
+        "--log-level",
+        "warn",
+    ]);
+    let t2 = &read_json(p("d2.json"))["data_term"];
+    assert!(t2.is_null() || t2["effect"] != name, "{again}");
 }

@@ -165,7 +165,8 @@ fn start(
 
 /// Fit and hold out the term following `class` against `params` (its own effects
 /// refitted as `cfg.refit` says, `own_refit` those fitted on all samples);
-/// None when no term follows that class's covariate.
+/// None when no term follows that class's covariate, or the model already holds it
+/// (its own effects are refitted with every candidate).
 #[allow(clippy::too_many_arguments)] // the diagnosis' own context, passed through
 pub fn offer(
     class: &str,
@@ -181,6 +182,9 @@ pub fn offer(
         return Ok(None);
     };
     let name = with.split(':').next().unwrap_or(&with).to_string();
+    if params.effects.iter().any(|e| e.name == name) {
+        return Ok(None);
+    }
     let own = own_effects(params, cfg.refit);
     let begin = start(own_refit, &with, seq, samples)?;
     let (fitted, f) = fit_candidate(
