@@ -459,8 +459,8 @@ pub fn diagnose(
         None if joint.first().is_some_and(|j| j.significant) => joint_sentence(&joint[0], params),
         Some(c) => candidate_sentence(c, params),
         None if winner.is_some() && cfg.decide == Decide::Contrast => {
-            dependence_sentence(winner.expect("checked"))
-                + &data_term_sentence(data_term.as_ref(), params)
+            let w = winner.expect("checked");
+            dependence_sentence(w) + &data_term_sentence(data_term.as_ref(), &w.class, params)
         }
         None => format!(
             "no library effect is significant; the residual RMS is {rms:.2}, largest at: {}{}",
@@ -816,9 +816,23 @@ fn field_sentence(spatial: Option<&super::spatial::Coherence>) -> String {
 }
 
 /// The verdict's sentence on the data-driven term: offered with its command, or why not.
-fn data_term_sentence(t: Option<&super::data_term::DataTerm>, params: &ModelParams) -> String {
+/// `class`: the covariate's class.
+fn data_term_sentence(
+    t: Option<&super::data_term::DataTerm>,
+    class: &str,
+    params: &ModelParams,
+) -> String {
     let Some(t) = t else {
-        return ". No data-driven term follows this covariate".into();
+        let held = crate::model::effects::smooth::for_covariate(class)
+            .filter(|d| params.effects.iter().any(|e| e.name == d.name));
+        return match held {
+            Some(d) => format!(
+                ". The model already holds the data-driven term along it ({}): the \
+                 residual it leaves still depends on this covariate",
+                d.name
+            ),
+            None => ". No data-driven term follows this covariate".into(),
+        };
     };
     let gain = t
         .held_out
