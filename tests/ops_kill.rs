@@ -2,7 +2,8 @@
 //!
 //! A 50-exposure stream (2 detectors x 25, 64 x 64 pixels: enough work per exposure that most kills land while
 //! outputs are being published, not while the processes start) processed without
-//! interruption is the reference. Twenty runs are each killed with SIGKILL at a moment
+//! interruption is the reference. Twenty runs (more, up to sixty, until ten kills have
+//! landed mid-processing) are each killed with SIGKILL at a moment
 //! drawn from a seeded RNG (once or twice), then restarted until one completes: every
 //! output file and every checkpoint file (the final one included) must be byte-identical
 //! to the reference, and no temporary file may remain.
@@ -43,7 +44,12 @@ fn sigkill_at_random_moments_then_restart_gives_identical_bytes() {
     let mut killed_mid_run = 0;
     // Kills that left some but not all outputs published (mid-processing).
     let mut partial_kills = 0;
-    for trial in 0..20 {
+    // twenty trials, and more (up to sixty) until ten kills have landed mid-processing:
+    // where a kill lands depends on the machine's timing
+    let mut trials = 0;
+    while trials < 20 || (partial_kills < 10 && trials < 60) {
+        let trial = trials;
+        trials += 1;
         let root = tmp.path().join(format!("trial{trial:02}"));
         let kills_wanted = rng.random_range(1..=2);
         let mut span = span_ms;
@@ -130,7 +136,7 @@ fn sigkill_at_random_moments_then_restart_gives_identical_bytes() {
         std::fs::remove_dir_all(&root).unwrap();
     }
     eprintln!(
-        "reference run {took:?}; {killed_mid_run} of 20 trials killed mid-run, \
+        "reference run {took:?}; {killed_mid_run} of {trials} trials killed mid-run, \
          {partial_kills} kills with part of the outputs published"
     );
     assert!(
@@ -139,8 +145,8 @@ fn sigkill_at_random_moments_then_restart_gives_identical_bytes() {
     );
     // Most trials must really have been interrupted (the kill came before the end).
     assert!(
-        killed_mid_run >= 15,
-        "only {killed_mid_run} trials were killed mid-run"
+        4 * killed_mid_run >= 3 * trials,
+        "only {killed_mid_run} of {trials} trials were killed mid-run"
     );
 }
 
