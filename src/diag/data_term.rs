@@ -28,6 +28,7 @@ use super::refit::{
     delta_bic, fit_candidate, held_out, held_with_arg, own_effects, HeldOut, DBIC_MAX,
 };
 use crate::error::Result;
+use crate::model::effect::EffectDef;
 use crate::model::effects::smooth;
 use crate::model::params::ModelParams;
 use serde::Serialize;
@@ -163,6 +164,11 @@ fn start(
         .map_or_else(|| own_refit.clone(), |(_, m)| m))
 }
 
+/// The term following `class`'s covariate when the model `params` already holds it.
+pub fn held(class: &str, params: &ModelParams) -> Option<&'static EffectDef> {
+    smooth::for_covariate(class).filter(|d| params.effects.iter().any(|e| e.name == d.name))
+}
+
 /// Fit and hold out the term following `class` against `params` (its own effects
 /// refitted as `cfg.refit` says, `own_refit` those fitted on all samples);
 /// None when no term follows that class's covariate, or the model already holds it
@@ -178,13 +184,13 @@ pub fn offer(
     cfg: &Config,
     (input, model_path): (&Path, &Path),
 ) -> Result<Option<DataTerm>> {
+    if held(class, params).is_some() {
+        return Ok(None);
+    }
     let Some(with) = with_arg(class, seq, samples) else {
         return Ok(None);
     };
     let name = with.split(':').next().unwrap_or(&with).to_string();
-    if params.effects.iter().any(|e| e.name == name) {
-        return Ok(None);
-    }
     let own = own_effects(params, cfg.refit);
     let begin = start(own_refit, &with, seq, samples)?;
     let (fitted, f) = fit_candidate(

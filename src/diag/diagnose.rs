@@ -153,8 +153,9 @@
 //! event-level covariate ([`super::refit::EVENT_LEVEL`]: illumination duration,
 //! temperature) and one half of the events lacks a value of it: a campaign with one
 //! illumination at 78 K and one at 82 K would otherwise fit a temperature effect at
-//! 78 K and 80 K and judge it only at 82 K, where any smooth term extrapolates. Measured on the independent generator's single illumination
-//! with dark pixels and nothing hidden (examples/family_matrix): without this gate
+//! 78 K and 80 K and judge it only at 82 K, where any smooth term extrapolates.
+//! Measured on the independent generator's single illumination with dark pixels and
+//! nothing hidden (examples/family_matrix): without this gate
 //! `ipc` was declared there.
 //!
 //! The ranking lists significant effects first (most negative `delta_BIC` first), then
@@ -823,9 +824,7 @@ fn data_term_sentence(
     params: &ModelParams,
 ) -> String {
     let Some(t) = t else {
-        let held = crate::model::effects::smooth::for_covariate(class)
-            .filter(|d| params.effects.iter().any(|e| e.name == d.name));
-        return match held {
+        return match super::data_term::held(class, params) {
             Some(d) => format!(
                 ". The model already holds the data-driven term along it ({}): the \
                  residual it leaves still depends on this covariate",

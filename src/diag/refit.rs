@@ -320,9 +320,10 @@ fn halves_span(names: &[&str], samples: &Samples, halves: &[Vec<usize>; 2]) -> b
             .filter_map(|r| eval::bin_of(samples, c, r * samples.npix()))
             .collect()
     };
-    covariates
-        .into_iter()
-        .all(|c| halves.iter().all(|h| values(c, Some(h)) == values(c, None)))
+    covariates.into_iter().all(|c| {
+        let all = values(c, None);
+        halves.iter().all(|h| values(c, Some(h)) == all)
+    })
 }
 
 /// Sums of squared normalised residuals of one held-out test half, before and after
