@@ -110,6 +110,65 @@ fn the_duration_term_stands_in_for_soak_and_changes_the_flags() {
     assert!(n0 > 0 && n1 != n0, "flags {n0} -> {n1}");
 }
 
+/// The `fit` line `diagnose` prints to measure a data-driven term (`--preset readout
+/// --with smooth_temperature:...`, knots not given) fits the term from the best of a
+/// few knot values (`persist::calib::effects::SMOOTH_START_VALUES`), not from its
+/// all-zero defaults, where the knots show no gradient and stay. On a family campaign
+/// with hidden Arrhenius emission (32 x 32, seed 2) the fit moves both knots (to about
+/// -4.4 and -3.9) and ends below the same fit with the knots held at 0 (RMS 7.43
+/// against 8.83).
+#[test]
+fn a_data_driven_term_fitted_from_its_defaults_leaves_them() {
+    let tmp = tempfile::tempdir().unwrap();
+    let p = |s: &str| tmp.path().join(s).to_str().unwrap().to_string();
+    persist_ok(&[
+        "simulate",
+        "family",
+        "--out",
+        &p("fam"),
+        "--seed",
+        "2",
+        "--size",
+        "32",
+        "--sequence",
+        "campaign",
+        "--hidden",
+        "temperature:arrhenius",
+    ]);
+    let fit = |out: &str, with: &str| {
+        let text = persist_ok(&[
+            "fit",
+            "--input",
+            &p("fam"),
+            "--out",
+            &p(out),
+            "--preset",
+            "readout",
+            "--with",
+            with,
+            "--log-level",
+            "warn",
+        ]);
+        (rms_line(&text).1, read_json(p(out)))
+    };
+    let term = "smooth_temperature:t_lo_k=78,t_hi_k=82";
+    let (rms, m) = fit("m.json", term);
+    let (rms0, _) = fit("m0.json", &format!("{term},at_lo=0,at_hi=0"));
+    let e = m["effects"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|e| e["name"] == "smooth_temperature")
+        .unwrap();
+    for k in ["at_lo", "at_hi"] {
+        assert!(e["params"][k].as_f64().unwrap() < -1.0, "{e}");
+    }
+    assert!(
+        rms < rms0 - 0.5,
+        "RMS {rms} with the term fitted, {rms0} with it at 0"
+    );
+}
+
 /// On a family campaign (the independent generator) with a trap ceiling per pixel, which
 /// `capacity`'s Langmuir form does not predict on held-out illuminations, `diagnose`
 /// with its defaults finds the residual's dependence on earlier illuminations and

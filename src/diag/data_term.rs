@@ -18,7 +18,8 @@
 //! untestable); the held charge and the neighbours' excess keep the term's defaults
 //! (held charge 1 % to 3 times what the exposure's traps could hold; neighbours' excess
 //! 1 to 1000 times the own fluence). The
-//! fit starts from the best of a few common knot values ([`START_VALUES`]).
+//! fit starts from the best of a few common knot values
+//! ([`crate::calib::effects::SMOOTH_START_VALUES`]).
 
 use super::command::{fit_command, measure_command};
 use super::config::Config;
@@ -99,69 +100,27 @@ pub fn with_arg(class: &str, seq: &Sequence, samples: &Samples) -> Option<String
     Some(arg)
 }
 
-/// Values the fitted knots of the term start from before the fit, each as a level (every
-/// knot at it) and as a ramp (the low knot at minus it, the midpoint at 0, the high knot
-/// at it): the best of them (least cell RSS; 0, the model's own prediction, among them)
-/// is where Levenberg-Marquardt starts. At all-zero knots a forward difference of the knots
-/// moves the prediction too little to show a gradient on every axis (measured: the
-/// emission-rate term stayed at its start on a family campaign with hidden
-/// temperature dependence, where a direct `persist fit` from another start moved it).
-pub const START_VALUES: [f64; 7] = [0.0, -2.0, -1.0, -0.3, 0.3, 1.0, 2.0];
-
-/// The knot values of one start: `v` at every knot (`ramp` false) or `-v, 0, v`.
-fn start_knot(name: &str, v: f64, ramp: bool) -> f64 {
-    match (ramp, name) {
-        (false, _) | (true, "at_hi") => v,
-        (true, "at_lo") => -v,
-        _ => 0.0,
-    }
-}
-
-/// The model `own_refit` with the term `with` at its best start ([`START_VALUES`]).
+/// The model `own_refit` with the term `with` at its best start
+/// ([`crate::calib::effects::smooth_start`]).
 fn start(
     own_refit: &ModelParams,
     with: &str,
     seq: &Sequence,
     samples: &Samples,
 ) -> Result<ModelParams> {
-    use rayon::prelude::*;
     let (name, pins) = crate::calib::effects::parse_with(with)?;
-    let Some(def) = crate::model::effects::lookup(&name) else {
+    if crate::model::effects::lookup(&name).is_none() {
         return Ok(own_refit.clone());
-    };
-    let scale = crate::calib::knots::scale_of(own_refit, seq)?;
-    let at = |(v, ramp): (f64, bool)| -> Result<(f64, ModelParams)> {
-        let mut m = own_refit.clone();
-        let mut spec = crate::model::params::EffectSpec::named(name.clone());
-        for (k, x) in &pins {
-            spec.params.insert(k.clone(), serde_json::json!(x));
-            spec.fixed.push(k.clone());
-        }
-        for p in def.params.iter().filter(|p| p.fitted) {
-            if !spec.fixed.iter().any(|f| f == p.name) {
-                spec.params.insert(
-                    p.name.into(),
-                    serde_json::json!(start_knot(p.name, v, ramp).clamp(p.lo, p.hi)),
-                );
-            }
-        }
-        m.push_effect(spec);
-        if let Some((s_from, r)) = &scale {
-            crate::calib::knots::rescale(s_from, &mut m, r)?;
-        }
-        Ok((crate::measure::eval::rss_cells(&m, seq, samples)?.0, m))
-    };
-    let starts: Vec<(f64, bool)> = START_VALUES
-        .iter()
-        .flat_map(|&v| [(v, false), (v, true)])
-        .filter(|&(v, ramp)| !(ramp && v == 0.0))
-        .collect();
-    let tried: Vec<(f64, ModelParams)> = starts.into_par_iter().map(at).collect::<Result<_>>()?;
-    Ok(tried
-        .into_iter()
-        .filter(|(r, _)| r.is_finite())
-        .min_by(|a, b| a.0.total_cmp(&b.0))
-        .map_or_else(|| own_refit.clone(), |(_, m)| m))
+    }
+    let mut m = own_refit.clone();
+    let mut spec = crate::model::params::EffectSpec::named(name);
+    for (k, x) in &pins {
+        spec.params.insert(k.clone(), serde_json::json!(x));
+        spec.fixed.push(k.clone());
+    }
+    m.push_effect(spec);
+    let i = m.effects.len() - 1;
+    crate::calib::effects::smooth_start(&m, i, seq, samples)
 }
 
 /// The term following `class`'s covariate when the model `params` already holds it.
