@@ -576,6 +576,9 @@ pub fn smooth_start(
         .filter(|p| e.fits(p))
         .map(|p| p.name)
         .collect();
+    if free.is_empty() {
+        return Ok(model.clone());
+    }
     let at_values = |v: f64, ramp: bool| -> ModelParams {
         let mut m = model.clone();
         for p in def.params.iter().filter(|p| free.contains(&p.name)) {
