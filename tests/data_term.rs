@@ -22,6 +22,25 @@ fn rms_line(out: &str) -> (f64, f64) {
     (v[0], v[1])
 }
 
+/// `persist simulate family --sequence campaign` at 32 x 32 with one hidden effect.
+fn family_campaign(out: &str, seed: u64, hidden: &str) {
+    let seed = seed.to_string();
+    persist_ok(&[
+        "simulate",
+        "family",
+        "--out",
+        out,
+        "--seed",
+        &seed,
+        "--size",
+        "32",
+        "--sequence",
+        "campaign",
+        "--hidden",
+        hidden,
+    ]);
+}
+
 /// Pixel-exposures flagged PERSIST by `persist run` with `model` on `input`.
 fn flagged(input: &Path, model: &Path, root: &Path) -> usize {
     let (out, ck) = (root.join("out"), root.join("ck"));
@@ -121,20 +140,7 @@ fn the_duration_term_stands_in_for_soak_and_changes_the_flags() {
 fn a_data_driven_term_fitted_from_its_defaults_leaves_them() {
     let tmp = tempfile::tempdir().unwrap();
     let p = |s: &str| tmp.path().join(s).to_str().unwrap().to_string();
-    persist_ok(&[
-        "simulate",
-        "family",
-        "--out",
-        &p("fam"),
-        "--seed",
-        "2",
-        "--size",
-        "32",
-        "--sequence",
-        "campaign",
-        "--hidden",
-        "temperature:arrhenius",
-    ]);
+    family_campaign(&p("fam"), 2, "temperature:arrhenius");
     let fit = |out: &str, with: &str| {
         let text = persist_ok(&[
             "fit",
@@ -179,20 +185,7 @@ fn a_data_driven_term_fitted_from_its_defaults_leaves_them() {
 fn diagnose_offers_the_term_and_its_command_writes_it() {
     let tmp = tempfile::tempdir().unwrap();
     let p = |s: &str| tmp.path().join(s).to_str().unwrap().to_string();
-    persist_ok(&[
-        "simulate",
-        "family",
-        "--out",
-        &p("fam"),
-        "--seed",
-        "1",
-        "--size",
-        "32",
-        "--sequence",
-        "campaign",
-        "--hidden",
-        "capacity:ceiling",
-    ]);
+    family_campaign(&p("fam"), 1, "capacity:ceiling");
     persist_ok(&["fit", "--input", &p("fam"), "--out", &p("m.json")]);
     let text = persist_ok(&[
         "diagnose",
