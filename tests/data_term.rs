@@ -187,18 +187,22 @@ fn diagnose_offers_the_term_and_its_command_writes_it() {
     let p = |s: &str| tmp.path().join(s).to_str().unwrap().to_string();
     family_campaign(&p("fam"), 1, "capacity:ceiling");
     persist_ok(&["fit", "--input", &p("fam"), "--out", &p("m.json")]);
-    let text = persist_ok(&[
-        "diagnose",
-        "--input",
-        &p("fam"),
-        "--model",
-        &p("m.json"),
-        "--json",
-        &p("d.json"),
-        "--log-level",
-        "warn",
-    ]);
-    let d = read_json(p("d.json"));
+    // `diagnose` of `model` with its defaults: its JSON and its text
+    let diagnose = |model: &str, json: &str| {
+        let text = persist_ok(&[
+            "diagnose",
+            "--input",
+            &p("fam"),
+            "--model",
+            model,
+            "--json",
+            &p(json),
+            "--log-level",
+            "warn",
+        ]);
+        (read_json(p(json)), text)
+    };
+    let (d, text) = diagnose(&p("m.json"), "d.json");
     let t = &d["data_term"];
     assert!(t.is_object(), "no data term: {text}");
     assert_eq!(t["offered"], true, "{text}");
@@ -230,18 +234,7 @@ fn diagnose_offers_the_term_and_its_command_writes_it() {
             .any(|e| e["name"] == name),
         "{m}"
     );
-    let again = persist_ok(&[
-        "diagnose",
-        "--input",
-        &p("fam"),
-        "--model",
-        out,
-        "--json",
-        &p("d2.json"),
-        "--log-level",
-        "warn",
-    ]);
-    let d2 = read_json(p("d2.json"));
+    let (d2, again) = diagnose(out, "d2.json");
     let t2 = &d2["data_term"];
     assert!(t2.is_null() || t2["effect"] != name, "{again}");
     // where the residual still depends on the covariate, the verdict says the model

@@ -552,23 +552,22 @@ fn start_knot(name: &str, v: f64, ramp: bool) -> f64 {
     }
 }
 
-/// `model` with its effect `i`, a data-driven term, at the best of the starts of
-/// [`SMOOTH_START_VALUES`] for its fitted knots that are not pinned (`fixed`); the knots
-/// rescaled for each start from the model with the term at 0 (its null), as the fit
-/// rescales them for every value it tries; the model unchanged when `i` is not a
-/// data-driven term or no start predicts finite values.
+/// `model`'s effect `i`, a data-driven term, at the best of the starts of
+/// [`SMOOTH_START_VALUES`] for its fitted knots that are not pinned (`fixed`), each
+/// start judged with the knots rescaled for it from the model with the term at 0 (its
+/// null), as the fit rescales them for every value it tries; the effect as it is when it
+/// is not a data-driven term, has no free knot, or no start predicts finite values.
+/// Only the effect is returned: `model`'s knots stay those the fit rescales from.
 pub fn smooth_start(
     model: &ModelParams,
     i: usize,
     seq: &Sequence,
     samples: &Samples,
-) -> Result<ModelParams> {
+) -> Result<EffectSpec> {
     use rayon::prelude::*;
-    let Some(e) = model.effects.get(i) else {
-        return Ok(model.clone());
-    };
+    let e = &model.effects[i];
     let Some(def) = effects::smooth::axis_of(&e.name).map(|a| a.def()) else {
-        return Ok(model.clone());
+        return Ok(e.clone());
     };
     let free: Vec<&str> = def
         .params
@@ -577,7 +576,7 @@ pub fn smooth_start(
         .map(|p| p.name)
         .collect();
     if free.is_empty() {
-        return Ok(model.clone());
+        return Ok(e.clone());
     }
     let at_values = |v: f64, ramp: bool| -> ModelParams {
         let mut m = model.clone();
@@ -607,7 +606,7 @@ pub fn smooth_start(
         .into_iter()
         .filter(|(r, _)| r.is_finite())
         .min_by(|a, b| a.0.total_cmp(&b.0))
-        .map_or_else(|| model.clone(), |(_, m)| m))
+        .map_or_else(|| e.clone(), |(_, mut m)| m.effects.swap_remove(i)))
 }
 
 /// Add the effects `names` (each a `--with` argument, [`parse_with`]; defaults as start,
@@ -659,7 +658,7 @@ pub fn fit_with(
     let names: Vec<&str> = specs.iter().map(|(n, _)| n.as_str()).collect();
     // a data-driven term added here starts from the best of a few knot values
     for i in n_base..m.effects.len() {
-        m = smooth_start(&m, i, seq, samples)?;
+        m.effects[i] = smooth_start(&m, i, seq, samples)?;
     }
     // fill defaults so every parameter is explicit in the model file
     let mut slots = Vec::new();

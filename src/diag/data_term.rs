@@ -101,7 +101,7 @@ pub fn with_arg(class: &str, seq: &Sequence, samples: &Samples) -> Option<String
 }
 
 /// The model `own_refit` with the term `with` at its best start
-/// ([`crate::calib::effects::smooth_start`]).
+/// ([`crate::calib::effects::smooth_start`]; `fit_candidate` rescales the knots for it).
 fn start(
     own_refit: &ModelParams,
     with: &str,
@@ -120,7 +120,8 @@ fn start(
     }
     m.push_effect(spec);
     let i = m.effects.len() - 1;
-    crate::calib::effects::smooth_start(&m, i, seq, samples)
+    m.effects[i] = crate::calib::effects::smooth_start(&m, i, seq, samples)?;
+    Ok(m)
 }
 
 /// The term following `class`'s covariate when the model `params` already holds it.
