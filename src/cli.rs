@@ -659,14 +659,21 @@ pub struct FitArgs {
     /// effects. Not with --fit-cn.
     #[arg(long)]
     pub fit_amplification: bool,
+    /// Also fit the exponent p of the decay law the C_n follow, (t + t0)^-p instead of
+    /// the paper's 1/(t + t0), the first dark's level held (`persist::calib::exponent`;
+    /// `--preset readout` fits it). Not with --fit-cn.
+    #[arg(long)]
+    pub fit_decay_exponent: bool,
     /// Fit report (JSON); default: OUT with extension `.fit.json`.
     #[arg(long)]
     pub report: Option<PathBuf>,
     /// Starting point: `paper` (the paper's calibration, for flagging: the options'
     /// defaults below) or `readout` (for comparing with measurements, the reference of
     /// the hidden-effect matrix: `--amplification 1 --t-min-s 1 --decay-offset-s 0.2`,
-    /// thirteen rates 10^(-0.4 k) 1/s, `--with refill --with
-    /// chord:strength=1,first_read_s=1.5`; `persist::calib::Preset`). Options given
+    /// thirteen rates 10^(-0.4 k) 1/s, `--fit-decay-exponent`, `--with refill` and the
+    /// on-board slope measured on the first dark: `--with
+    /// chord:strength=1,first_read_s=1.5`, plus `--with linefit_bias:strength=S` where
+    /// the image is a least-squares line; `persist::calib::Preset`). Options given
     /// alongside override the preset's, a `--with` of an effect it has replaces that one.
     #[arg(long, default_value_t = Preset::Paper, value_parser = parse_flag::<Preset>)]
     pub preset: Preset,
@@ -1451,7 +1458,6 @@ fn fit(a: &FitArgs) -> persist::Result<ExitCode> {
         background: a.cells.background,
         ..p
     };
-    let with = a.preset.with(&a.with);
     let report_path = a
         .report
         .clone()
@@ -1460,9 +1466,17 @@ fn fit(a: &FitArgs) -> persist::Result<ExitCode> {
     let free = persist::calib::effects::Free {
         c_n: a.fit_cn,
         knot_scale: a.fit_amplification,
+        decay_exponent: a.fit_decay_exponent || a.preset.free().decay_exponent,
     }
     .check()?;
-    let r = persist::calib::run(&a.input, &cfg, &with, free, &a.out, &report_path)?;
+    let r = persist::calib::run(
+        &a.input,
+        &cfg,
+        (a.preset, &a.with),
+        free,
+        &a.out,
+        &report_path,
+    )?;
     out!("{r}");
     Ok(ExitCode::SUCCESS)
 }

@@ -199,12 +199,21 @@ pub struct Free {
     pub c_n: bool,
     /// One common factor of every `A_k` knot (`--fit-amplification`, module docs).
     pub knot_scale: bool,
+    /// The exponent of the decay law the `C_n` follow (`--fit-decay-exponent`,
+    /// [`super::exponent`]).
+    pub decay_exponent: bool,
 }
 
 impl Free {
     /// Refuse `--fit-cn` with `--fit-amplification`: a common factor of the `C_n` is
     /// nearly a factor of the knots (module docs).
     pub fn check(self) -> Result<Free> {
+        if self.c_n && self.decay_exponent {
+            return Err(Error::invalid(
+                "--fit-decay-exponent",
+                "not with --fit-cn: the C_n fitted freely already hold the decay law",
+            ));
+        }
         if self.c_n && self.knot_scale {
             return Err(Error::invalid(
                 "--fit-amplification",
@@ -228,6 +237,8 @@ enum Target {
     LnC(usize),
     /// Every knot's amplitude times `exp(value)` (`--fit-amplification`).
     LnKnotScale,
+    /// The terms' `C_n` of the decay law with this exponent (`--fit-decay-exponent`).
+    DecayExponent,
 }
 
 struct Slot {
@@ -251,6 +262,8 @@ struct Problem<'a> {
     /// calibration ramp, for the knots of each trial model ([`super::knots`]); None
     /// without a ramp (sky data).
     knots_from: Option<(Vec<f64>, super::knots::CalibRamp)>,
+    /// The decay law whose exponent is fitted (`--fit-decay-exponent`).
+    law: Option<super::exponent::DecayLaw>,
     seq: &'a Sequence,
     samples: &'a Samples,
     cells: eval::CellIndex,
@@ -270,10 +283,12 @@ impl Problem<'_> {
             Target::Effect(e, name) => format!("{}.{name}", self.base.effects[e].name),
             Target::LnC(n) => format!("terms.c_per_s[{n}]"),
             Target::LnKnotScale => "knots.scale".into(),
+            Target::DecayExponent => "terms.exponent".into(),
         }
     }
 
-    fn params_at(&self, p: &[f64]) -> ModelParams {
+    /// The model at `p`; None where the decay law has no `C_n` for the exponent.
+    fn params_at(&self, p: &[f64]) -> Option<ModelParams> {
         let mut m = self.base.clone();
         let mut knot_scale = 1.0;
         for (s, v) in self.slots.iter().zip(p) {
@@ -286,6 +301,9 @@ impl Problem<'_> {
                 }
                 Target::LnC(n) => m.terms[n].c_per_s = v.exp(),
                 Target::LnKnotScale => knot_scale = v.exp(),
+                Target::DecayExponent => {
+                    m.terms = self.law.as_ref()?.terms(v).ok()?;
+                }
             }
         }
         if let Some((s_from, ramp)) = &self.knots_from {
@@ -297,7 +315,7 @@ impl Problem<'_> {
                 .iter_mut()
                 .for_each(|k| k.amplitude_e *= knot_scale);
         }
-        m
+        Some(m)
     }
 
     fn z_at(&self, p: &[f64]) -> Option<DVector<f64>> {
@@ -305,9 +323,9 @@ impl Problem<'_> {
             return z.clone();
         }
         *self.evals.borrow_mut() += 1;
-        let m = self.params_at(p);
-        let z = eval::predict(&m, self.seq, self.samples, false)
-            .ok()
+        let z = self
+            .params_at(p)
+            .and_then(|m| eval::predict(&m, self.seq, self.samples, false).ok())
             .map(|pr| {
                 let mut c = self.cells.z(self.samples, &pr.current);
                 if let Some(d) = &self.deff {
@@ -358,7 +376,7 @@ impl LeastSquaresProblem<f64, Dyn, Dyn> for Problem<'_> {
             let mut q = self.p.as_slice().to_vec();
             let mut h = match s.target {
                 // 1 % in C_n or in the knots, whatever their magnitude
-                Target::LnC(_) | Target::LnKnotScale => 1e-2,
+                Target::LnC(_) | Target::LnKnotScale | Target::DecayExponent => 1e-2,
                 Target::Effect(..) => 1e-3 * (q[i].abs() + 1e-3 * (s.hi - s.lo).min(1.0)),
             };
             if q[i] + h > s.hi {
@@ -714,6 +732,23 @@ pub fn fit_with(
             c_start.push(c0);
         }
     }
+    let law = if free.decay_exponent {
+        let ramp = super::knots::CalibRamp::of(seq)?;
+        let law = super::exponent::DecayLaw::of(base, &ramp)?;
+        let (lo, hi) = super::exponent::EXPONENT_RANGE;
+        slots.push(Slot {
+            target: Target::DecayExponent,
+            lo,
+            hi,
+            null: None,
+            added: false,
+        });
+        let p0 = base.calibration.as_ref().and_then(|c| c.decay_exponent);
+        start.push(p0.unwrap_or(1.0).clamp(lo, hi));
+        Some(law)
+    } else {
+        None
+    };
     if free.knot_scale {
         slots.push(Slot {
             target: Target::LnKnotScale,
@@ -737,6 +772,7 @@ pub fn fit_with(
     let mut problem = Problem {
         base: m.clone(),
         knots_from,
+        law,
         seq,
         samples,
         cells,
@@ -759,7 +795,12 @@ pub fn fit_with(
         );
     }
     let p = problem.p.as_slice().to_vec();
-    let mut fitted = problem.params_at(&p);
+    let mut fitted = problem.params_at(&p).ok_or_else(|| {
+        Error::invalid(
+            "--fit-decay-exponent",
+            "the decay law has no C_n at the fitted exponent",
+        )
+    })?;
     let r = problem.z_at(&p).unwrap_or_else(|| DVector::zeros(0));
     let cells = r.len();
     let mut after = if cells == 0 {
@@ -800,6 +841,14 @@ pub fn fit_with(
                 sigma: p[i].clamp(s.lo, s.hi).exp() * sigma(i),
                 lo: s.lo.exp(),
                 hi: s.hi.exp(),
+            },
+            Target::DecayExponent => FittedParam {
+                effect: "terms".into(),
+                name: "exponent".into(),
+                value: p[i].clamp(s.lo, s.hi),
+                sigma: sigma(i),
+                lo: s.lo,
+                hi: s.hi,
             },
             Target::LnKnotScale => FittedParam {
                 effect: "knots".into(),

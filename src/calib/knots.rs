@@ -156,20 +156,7 @@ pub fn scale(model: &ModelParams, ramp: &CalibRamp) -> Result<Vec<f64>> {
     let mut g = Array3::<f64>::ones((1, k, n));
     let response = Response::new(&model.amplitude_knots);
     apply_responses(&built, &fluence, ramp, &rates, &response, &mut g);
-    // the ramp of one unit of amplitude, term by term
-    let unit: Vec<Vec<f64>> = model
-        .terms
-        .iter()
-        .map(|t| {
-            let r = t.rate_per_s;
-            let tau = if r > 0.0 { 1.0 / r } else { 0.0 };
-            let e0 = (-ramp.t_reset_s * r).exp();
-            ramp.t_s
-                .iter()
-                .map(|ts| t.c_per_s * tau * (e0 - (-ts * r).exp()))
-                .collect()
-        })
-        .collect();
+    let unit = term_ramps(&model.terms, ramp);
     let ramp_of = |w: &dyn Fn(usize) -> f64| -> Vec<f64> {
         (0..ramp.t_s.len())
             .map(|s| (0..n).map(|m| w(m) * unit[m][s]).sum())
@@ -194,6 +181,35 @@ pub fn scale(model: &ModelParams, ramp: &CalibRamp) -> Result<Vec<f64>> {
             }
         })
         .collect())
+}
+
+/// The first dark's ramp (charge at each read of `ramp`) of one unit of amplitude,
+/// term by term: `C_n tau_n (exp(-t_0/tau_n) - exp(-t/tau_n))`.
+pub fn term_ramps(terms: &[crate::model::params::Term], ramp: &CalibRamp) -> Vec<Vec<f64>> {
+    terms
+        .iter()
+        .map(|t| {
+            let r = t.rate_per_s;
+            let tau = if r > 0.0 { 1.0 / r } else { 0.0 };
+            let e0 = (-ramp.t_reset_s * r).exp();
+            ramp.t_s
+                .iter()
+                .map(|ts| t.c_per_s * tau * (e0 - (-ts * r).exp()))
+                .collect()
+        })
+        .collect()
+}
+
+/// Eq. (logfit)'s `A_0` of the first dark's ramp that one unit of amplitude gives
+/// with `terms` (what a knot of 1 e- reads as); None where the log fit fails.
+pub fn unit_a0(terms: &[crate::model::params::Term], ramp: &CalibRamp) -> Option<f64> {
+    let per_term = term_ramps(terms, ramp);
+    let q: Vec<f64> = (0..ramp.t_s.len())
+        .map(|s| per_term.iter().map(|u| u[s]).sum())
+        .collect();
+    logfit::fit(&ramp.t_s, &q)
+        .map(|f| f.a0_e)
+        .filter(|a| a.is_finite() && *a > 0.0)
 }
 
 /// Per pixel of the calibration illumination, `w` of the module docs ("Spatial

@@ -51,8 +51,10 @@
 
 pub mod dark;
 pub mod effects;
+pub mod exponent;
 pub mod knots;
 pub mod logfit;
+pub mod readout;
 
 use crate::error::{Error, Result};
 use crate::measure::data::{
@@ -95,6 +97,7 @@ impl CalibConfig {
             rates_per_s: self.rates_per_s.clone(),
             fit_cn: false,
             fit_amplification: false,
+            decay_exponent: None,
             knots_shot_noise_removed: self.knots_shot_noise_removed(),
             late_plateau_dark: false,
         }
@@ -144,7 +147,8 @@ impl Default for CalibConfig {
 ///   margin would otherwise be a residual that an effect takes in), thirteen rates 0.4
 ///   decade apart from 1/s (`10^(-0.4 k)`, k = 0..12), the `C_n` fitted to
 ///   `1/(t + 0.2 s)` from 1 s (Eq. (logfit)'s own offset on the simulator's campaign,
-///   module docs "Decay offset"), and the effects `refill` (fitted) and `chord` held at
+///   module docs "Decay offset") with their exponent fitted ([`exponent`]: the decay
+///   law of a real detector is not `1/t`), and the effects `refill` (fitted) and `chord` held at
 ///   strength 1 from the first read 1.5 s after the reset (the SPHEREx readout: the
 ///   on-board slope is the chord between the first and last sample used).
 ///
@@ -181,6 +185,15 @@ impl Preset {
         }
     }
 
+    /// What it frees besides the effects: the readout's decay exponent
+    /// ([`exponent`]).
+    pub fn free(self) -> effects::Free {
+        effects::Free {
+            decay_exponent: self == Preset::Readout,
+            ..effects::Free::default()
+        }
+    }
+
     /// The effects fitted with it, each as `persist fit --with` takes it.
     pub fn effects(self) -> &'static [&'static str] {
         match self {
@@ -193,14 +206,31 @@ impl Preset {
     /// preset has replaces the preset's (`--with chord:strength=0.9` holds another
     /// strength).
     pub fn with(self, with: &[String]) -> Vec<String> {
-        let name = |s: &str| s.split(':').next().unwrap_or(s).trim().to_string();
-        let given: Vec<String> = with.iter().map(|w| name(w)).collect();
-        self.effects()
+        let own: Vec<String> = self.effects().iter().map(|e| e.to_string()).collect();
+        merge_with(&own, with)
+    }
+
+    /// [`Preset::with`] for the sequence `seq`: the readout preset's on-board slope as
+    /// `seq`'s first dark shows it ([`readout`]; its [`Preset::effects`] when the first
+    /// dark cannot tell), and that measurement.
+    pub fn with_for(self, seq: &Sequence, with: &[String]) -> (Vec<String>, Option<readout::Readout>) {
+        let measured = match self {
+            Preset::Paper => None,
+            Preset::Readout => knots::CalibRamp::of(seq)
+                .ok()
+                .and_then(|r| readout::measure(seq, &r)),
+        };
+        let Some(r) = measured else {
+            return (self.with(with), None);
+        };
+        let own: Vec<String> = self
+            .effects()
             .iter()
-            .filter(|e| !given.contains(&name(e)))
+            .filter(|e| !e.starts_with("chord"))
             .map(|e| e.to_string())
-            .chain(with.iter().cloned())
-            .collect()
+            .chain(r.with_args())
+            .collect();
+        (merge_with(&own, with), Some(r))
     }
 
     /// True if calibration record `c` has this preset's options (before anything was
@@ -210,12 +240,24 @@ impl Preset {
         let before_freeing = Calibration {
             fit_cn: false,
             fit_amplification: false,
+            decay_exponent: None,
             knots_shot_noise_removed: false,
             late_plateau_dark: false,
             ..c.clone()
         };
         before_freeing == self.config().record()
     }
+}
+
+/// `own`, less the effects `with` names, then `with`.
+fn merge_with(own: &[String], with: &[String]) -> Vec<String> {
+    let name = |s: &str| s.split(':').next().unwrap_or(s).trim().to_string();
+    let given: Vec<String> = with.iter().map(|w| name(w)).collect();
+    own.iter()
+        .filter(|e| !given.contains(&name(e)))
+        .cloned()
+        .chain(with.iter().cloned())
+        .collect()
 }
 
 impl std::fmt::Display for Preset {
@@ -260,10 +302,12 @@ pub struct BinResult {
 pub struct CnFit {
     pub t_min_s: f64,
     pub t_max_s: f64,
-    /// The offset `t_0` of the target `1/(t + t_0)` (the paper: 1 s).
+    /// The offset `t_0` of the target `(t + t_0)^-p` (the paper: 1 s).
     pub offset_s: f64,
+    /// The exponent `p` of that target (the paper: 1; [`exponent`]).
+    pub exponent: f64,
     pub terms: Vec<Term>,
-    /// Largest and RMS `|sum_n C_n e^{-t/tau_n} (t + t_0) - 1|` over the span.
+    /// Largest and RMS `|sum_n C_n e^{-t/tau_n} (t + t_0)^p - 1|` over the span.
     pub max_relative_error: f64,
     pub rms_relative_error: f64,
 }
@@ -484,14 +528,8 @@ pub fn calibrate_with(
         ));
     }
     let base = ModelParams::default();
-    let a_max = knots.iter().map(|k| k.amplitude_e).fold(0.0, f64::max);
-    let t_max = a_max / base.thresholds.low_e_per_s - cfg.decay_offset_s;
-    let c_n = fit_cn(
-        &cfg.rates_per_s,
-        cfg.t_min_s,
-        t_max.max(cfg.t_min_s * 10.0),
-        cfg.decay_offset_s,
-    )?;
+    let (t_min, t_max) = cn_span_s(&knots, base.thresholds.low_e_per_s, cfg.t_min_s, cfg.decay_offset_s);
+    let c_n = fit_cn(&cfg.rates_per_s, t_min, t_max, cfg.decay_offset_s)?;
     let target = if cfg.decay_offset_s == 1.0 {
         String::new()
     } else {
@@ -528,6 +566,14 @@ pub fn calibrate_with(
             c_n,
         },
     ))
+}
+
+/// The span of step 5 (module docs): from `t_min_s` to the time the largest knot
+/// amplitude crosses `low_e_per_s` under `1/(t + offset_s)`, at least `10 t_min_s`.
+pub fn cn_span_s(knots: &[Knot], low_e_per_s: f64, t_min_s: f64, offset_s: f64) -> (f64, f64) {
+    let a_max = knots.iter().map(|k| k.amplitude_e).fold(0.0, f64::max);
+    let t_max = a_max / low_e_per_s - offset_s;
+    (t_min_s, t_max.max(t_min_s * 10.0))
 }
 
 /// The dark level under the first dark ([`dark`]): the background pixels, or each
@@ -664,6 +710,25 @@ fn bin_results(
 
 /// Step 5 of the module docs.
 pub fn fit_cn(rates: &[f64], t_min_s: f64, t_max_s: f64, offset_s: f64) -> Result<CnFit> {
+    fit_cn_power(rates, t_min_s, t_max_s, offset_s, 1.0)
+}
+
+/// Step 5 of the module docs with the target `(t + offset_s)^-exponent` instead of
+/// `1/(t + offset_s)` ([`exponent`]): least squares of the relative error
+/// `sum_n C_n exp(-t/tau_n) (t + t_0)^p - 1`.
+pub fn fit_cn_power(
+    rates: &[f64],
+    t_min_s: f64,
+    t_max_s: f64,
+    offset_s: f64,
+    exponent: f64,
+) -> Result<CnFit> {
+    if !(exponent.is_finite() && exponent > 0.0) {
+        return Err(Error::invalid(
+            "decay exponent",
+            format!("{exponent}: must be finite and > 0"),
+        ));
+    }
     if rates.is_empty() || rates.iter().any(|r| !(r.is_finite() && *r > 0.0)) {
         return Err(Error::invalid(
             "--rates-per-s",
@@ -697,7 +762,7 @@ pub fn fit_cn(rates: &[f64], t_min_s: f64, t_max_s: f64, offset_s: f64) -> Resul
     for _ in 0..rates.len() {
         let idx: Vec<usize> = (0..rates.len()).filter(|&i| active[i]).collect();
         let a = DMatrix::from_fn(m, idx.len(), |j, k| {
-            (-rates[idx[k]] * ts[j]).exp() * (ts[j] + offset_s)
+            (-rates[idx[k]] * ts[j]).exp() * (ts[j] + offset_s).powf(exponent)
         });
         let b = DVector::from_element(m, 1.0);
         let sol = a.svd(true, true).solve(&b, 1e-14).map_err(|e| {
@@ -721,7 +786,7 @@ pub fn fit_cn(rates: &[f64], t_min_s: f64, t_max_s: f64, offset_s: f64) -> Resul
         return Err(Error::invalid(
             "--t-min-s",
             format!(
-                "no term follows 1/(t + {offset_s}) over [{t_min_s}, {t_max_s}] s: every \
+                "no term follows (t + {offset_s})^-{exponent} over [{t_min_s}, {t_max_s}] s: every \
                  C_n came out 0 (the slowest rate, {} 1/s, has decayed by then)",
                 rates.iter().copied().fold(f64::INFINITY, f64::min)
             ),
@@ -731,13 +796,14 @@ pub fn fit_cn(rates: &[f64], t_min_s: f64, t_max_s: f64, offset_s: f64) -> Resul
         .iter()
         .map(|t| {
             let s: f64 = c.iter().zip(rates).map(|(ci, r)| ci * (-r * t).exp()).sum();
-            s * (t + offset_s) - 1.0
+            s * (t + offset_s).powf(exponent) - 1.0
         })
         .collect();
     Ok(CnFit {
         t_min_s,
         t_max_s,
         offset_s,
+        exponent,
         terms: c
             .iter()
             .zip(rates)
@@ -888,6 +954,9 @@ mod tests {
 pub struct FitReport {
     pub input: String,
     pub calibration: CalibReport,
+    /// The on-board slope measured on the first dark (`--preset readout`, [`readout`]).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub readout: Option<readout::Readout>,
     pub effects: Option<effects::EffectFit>,
     /// RMS of the normalised cell residuals of the written model (diag::eval docs).
     pub residual_rms_normalised: f64,
@@ -958,6 +1027,11 @@ pub fn fit_params(
         if let Some(c) = params.calibration.as_mut() {
             c.fit_cn = free.c_n;
             c.fit_amplification = free.knot_scale;
+            c.decay_exponent = f
+                .params
+                .iter()
+                .find(|q| q.effect == "terms" && q.name == "exponent")
+                .map(|q| q.value);
         }
         if free.c_n {
             params.description += FIT_CN_NOTE;
@@ -991,19 +1065,21 @@ pub fn fit_params(
 pub fn run(
     input: &std::path::Path,
     cfg: &CalibConfig,
-    with: &[String],
+    (preset, with): (Preset, &[String]),
     free: effects::Free,
     out: &std::path::Path,
     report_path: &std::path::Path,
 ) -> Result<String> {
     let seq = Sequence::load_with(input, cfg.background)?;
-    let (params, cal, ef) = fit_params(&seq, cfg, with, free).map_err(|e| e.path(input))?;
+    let (with, readout) = preset.with_for(&seq, with);
+    let (params, cal, ef) = fit_params(&seq, cfg, &with, free).map_err(|e| e.path(input))?;
     let samples = cfg.samples(&seq);
     let pr = crate::measure::eval::predict(&params, &seq, &samples, false)?;
     let cells = crate::measure::spread::model_cell_z(&params, &samples, &pr.current);
     let rep = FitReport {
         input: input.display().to_string(),
         calibration: cal,
+        readout,
         effects: ef,
         residual_rms_normalised: crate::measure::eval::rms(&cells),
         cells: cells.len(),
@@ -1045,6 +1121,13 @@ pub fn run(
         s += &format!(
             "  residual RMS {:.2} -> {:.2} ({} evaluations)\n",
             f.residual_rms_normalised_before, f.residual_rms_normalised_after, f.evaluations
+        );
+    }
+    if let Some(r) = &rep.readout {
+        s += &format!(
+            "  readout measured on the first dark: least-squares line share {:.3} against the \
+             chord over {} pixels, first read {} s after the reset\n",
+            r.line_fraction, r.pixels, r.first_read_s
         );
     }
     s += &format!("model {} , report {}", out.display(), report_path.display());

@@ -18,7 +18,8 @@
 //! `diagnose` fits the *measurement description* from the input first, `persist fit
 //! --preset readout` with the model's own effects ([`crate::calib::Preset::Readout`]:
 //! knots at the measured level, thirteen decay rates 0.4 decade apart from 1/s, the
-//! `C_n` fitted to `1/(t + 0.2 s)` from 1 s, `refill` fitted and the on-board chord),
+//! `C_n` fitted to `(t + 0.2 s)^-p` from 1 s with the exponent `p` fitted
+//! ([`crate::calib::exponent`]), `refill` fitted and the on-board chord),
 //! and tests the effects against it. A model already at the measured level is tested as
 //! it is. The flagging model is not changed: what `diagnose` suggests for it adds the
 //! missing effect at the values measured against the description, held
@@ -34,7 +35,7 @@
 use super::data::Sequence;
 use super::diagnose::{self, Config, Diagnosis};
 use super::{command, refit};
-use crate::calib::{effects, CalibConfig, Preset};
+use crate::calib::{CalibConfig, Preset};
 use crate::error::{Error, ErrorKind, Result};
 use crate::model::params::ModelParams;
 use serde::Serialize;
@@ -118,8 +119,8 @@ pub fn describe(params: &ModelParams, seq: &Sequence, cfg: &Config) -> Result<Mo
         ..Preset::Readout.config()
     };
     let own: Vec<String> = params.effects.iter().map(|e| e.name.clone()).collect();
-    let with = Preset::Readout.with(&own);
-    let (d, _, _) = crate::calib::fit_params(seq, &calib, &with, effects::Free::default())?;
+    let (with, _) = Preset::Readout.with_for(seq, &own);
+    let (d, _, _) = crate::calib::fit_params(seq, &calib, &with, Preset::Readout.free())?;
     Ok(d)
 }
 

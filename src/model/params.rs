@@ -267,6 +267,11 @@ pub struct Calibration {
     /// The knots' level was then fitted to the campaign (`--fit-amplification`).
     #[serde(default)]
     pub fit_amplification: bool,
+    /// The `C_n` were then refitted to `(t + decay_offset_s)^-p` with this exponent `p`
+    /// fitted to the campaign (`--fit-decay-exponent`, `persist::calib::exponent`).
+    /// Absent when the exponent is the paper's 1, so older files keep their identity.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub decay_exponent: Option<f64>,
     /// Each bin's 95th percentile had the shot noise of the pixels' own current removed
     /// in quadrature as well as the exposure noise (`fit --cell-statistic population`,
     /// whose reference takes the predictions for noise-free 95th percentiles;
