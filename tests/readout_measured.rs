@@ -60,7 +60,10 @@ fn the_readout_and_the_decay_exponent_are_measured_from_the_data() {
     common::simulate_lab(&chord, "32", &[]);
     let (line, names, _) = readout_fit(&chord);
     let line = line.expect("measured on the first dark");
-    assert!(line < 0.1, "the simulator's slope is the chord: share {line}");
+    assert!(
+        line < 0.1,
+        "the simulator's slope is the chord: share {line}"
+    );
     assert!(!names.contains(&"linefit_bias".to_string()), "{names:?}");
 
     let lsq = tmp.path().join("sim_line");

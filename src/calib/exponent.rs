@@ -150,7 +150,9 @@ mod tests {
         let law = DecayLaw::of(&m, &ramp()).unwrap();
         let c = m.calibration.as_ref().unwrap();
         let (t0, t1) = super::super::cn_span_s(&m.amplitude_knots, 0.1, c.t_min_s, 0.2);
-        let direct = super::super::fit_cn(&c.rates_per_s, t0, t1, 0.2).unwrap().terms;
+        let direct = super::super::fit_cn(&c.rates_per_s, t0, t1, 0.2)
+            .unwrap()
+            .terms;
         assert_eq!(law.terms(1.0).unwrap(), direct);
         let a0 = unit_a0(&direct, &ramp()).unwrap();
         for p in [0.85, 1.15] {

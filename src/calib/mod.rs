@@ -213,7 +213,11 @@ impl Preset {
     /// [`Preset::with`] for the sequence `seq`: the readout preset's on-board slope as
     /// `seq`'s first dark shows it ([`readout`]; its [`Preset::effects`] when the first
     /// dark cannot tell), and that measurement.
-    pub fn with_for(self, seq: &Sequence, with: &[String]) -> (Vec<String>, Option<readout::Readout>) {
+    pub fn with_for(
+        self,
+        seq: &Sequence,
+        with: &[String],
+    ) -> (Vec<String>, Option<readout::Readout>) {
         let measured = match self {
             Preset::Paper => None,
             Preset::Readout => knots::CalibRamp::of(seq)
@@ -528,7 +532,12 @@ pub fn calibrate_with(
         ));
     }
     let base = ModelParams::default();
-    let (t_min, t_max) = cn_span_s(&knots, base.thresholds.low_e_per_s, cfg.t_min_s, cfg.decay_offset_s);
+    let (t_min, t_max) = cn_span_s(
+        &knots,
+        base.thresholds.low_e_per_s,
+        cfg.t_min_s,
+        cfg.decay_offset_s,
+    );
     let c_n = fit_cn(&cfg.rates_per_s, t_min, t_max, cfg.decay_offset_s)?;
     let target = if cfg.decay_offset_s == 1.0 {
         String::new()
