@@ -149,7 +149,8 @@ mod tests {
         let m = model();
         let law = DecayLaw::of(&m, &ramp()).unwrap();
         let c = m.calibration.as_ref().unwrap();
-        let (t0, t1) = super::super::cn_span_s(&m.amplitude_knots, 0.1, c.t_min_s, 0.2);
+        let low = m.thresholds.low_e_per_s;
+        let (t0, t1) = super::super::cn_span_s(&m.amplitude_knots, low, c.t_min_s, 0.2);
         let direct = super::super::fit_cn(&c.rates_per_s, t0, t1, 0.2)
             .unwrap()
             .terms;

@@ -1033,14 +1033,22 @@ pub fn fit_params(
             knots::rescale(&vec![1.0; params.amplitude_knots.len()], &mut params, &ramp)?;
             cal = c;
         }
+        let exponent = f
+            .params
+            .iter()
+            .find(|q| q.effect == "terms" && q.name == "exponent")
+            .map(|q| q.value);
         if let Some(c) = params.calibration.as_mut() {
             c.fit_cn = free.c_n;
             c.fit_amplification = free.knot_scale;
-            c.decay_exponent = f
-                .params
-                .iter()
-                .find(|q| q.effect == "terms" && q.name == "exponent")
-                .map(|q| q.value);
+            c.decay_exponent = exponent;
+        }
+        if let Some(p) = exponent {
+            params.description += &format!(
+                "; C_n then refitted to (t + {} s)^-{p:.4}, the first dark's level held \
+                 (--fit-decay-exponent)",
+                cfg.decay_offset_s
+            );
         }
         if free.c_n {
             params.description += FIT_CN_NOTE;
