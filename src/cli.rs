@@ -660,8 +660,8 @@ pub struct FitArgs {
     #[arg(long)]
     pub fit_amplification: bool,
     /// Also fit the exponent p of the decay law the C_n follow, (t + t0)^-p instead of
-    /// the paper's 1/(t + t0), the first dark's level held (`persist::calib::exponent`;
-    /// `--preset readout` fits it). Not with --fit-cn.
+    /// the paper's 1/(t + t0), fitted on the first illumination, the first dark's level
+    /// held (`persist::calib::exponent`). Not with --fit-cn.
     #[arg(long)]
     pub fit_decay_exponent: bool,
     /// Fit report (JSON); default: OUT with extension `.fit.json`.
@@ -670,8 +670,8 @@ pub struct FitArgs {
     /// Starting point: `paper` (the paper's calibration, for flagging: the options'
     /// defaults below) or `readout` (for comparing with measurements, the reference of
     /// the hidden-effect matrix: `--amplification 1 --t-min-s 1 --decay-offset-s 0.2`,
-    /// thirteen rates 10^(-0.4 k) 1/s, `--fit-decay-exponent`, `--with refill` and the
-    /// on-board slope measured on the first dark: `--with
+    /// thirteen rates 10^(-0.4 k) 1/s, `--with refill` and the on-board slope measured on
+    /// the first dark: `--with
     /// chord:strength=1,first_read_s=1.5`, plus `--with linefit_bias:strength=S` where
     /// the image is a least-squares line; `persist::calib::Preset`). Options given
     /// alongside override the preset's, a `--with` of an effect it has replaces that one.

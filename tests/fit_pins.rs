@@ -205,10 +205,10 @@ fn bad_pins_are_refused_with_the_argument_and_the_reason() {
 }
 
 /// `persist fit --preset readout` (the reference model for comparisons with
-/// measurements: knots at the measured level, thirteen rates from 1/s, the decay
-/// exponent and `refill` fitted, and on the simulator's data, whose slope is the ramp's
-/// chord, `chord` held at the readout's `strength=1,first_read_s=1.5`) is the long form
-/// of those options: the same model file, byte for byte.
+/// measurements: knots at the measured level, thirteen rates from 1/s, `refill` fitted,
+/// and on the simulator's data, whose slope is the ramp's chord, `chord` held at the
+/// readout's `strength=1,first_read_s=1.5`) is the long form of those options: the same
+/// model file, byte for byte.
 /// `diagnose` names the preset in the command it suggests, and following that command
 /// calibrates the same; options given with the preset override its values; an unknown
 /// preset is refused, naming the flag.
@@ -239,7 +239,6 @@ fn the_readout_preset_is_the_long_form_and_is_suggested_back() {
             "0.2",
             "--rates-per-s",
             &rates,
-            "--fit-decay-exponent",
         ],
     );
     assert_eq!(preset, long);

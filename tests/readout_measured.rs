@@ -1,5 +1,6 @@
-//! `persist fit --preset readout` measures the on-board slope on the first dark and
-//! fits the decay law's exponent (`persist::calib::readout`, `persist::calib::exponent`):
+//! `persist fit --preset readout` measures the on-board slope on the first dark, and
+//! `--fit-decay-exponent` the decay law's exponent (`persist::calib::readout`,
+//! `persist::calib::exponent`):
 //! on the second truth generator, whose slope is a least-squares line, and on the
 //! simulator, whose slope is the chord of the ramp (and, with its `linefit_bias`, the
 //! line).
@@ -20,6 +21,7 @@ fn readout_fit(input: &Path) -> (Option<f64>, Vec<String>, f64) {
         out.to_str().unwrap(),
         "--preset",
         "readout",
+        "--fit-decay-exponent",
     ]);
     let rep = read_json(out.with_extension("fit.json"));
     let model = read_json(&out);

@@ -650,7 +650,22 @@ pub fn fit_with(
     seq: &Sequence,
     samples: &Samples,
 ) -> Result<(ModelParams, EffectFit)> {
-    let fit_cn = free.check()?.c_n;
+    let free = free.check()?;
+    if free.decay_exponent {
+        return fit_with_exponent(base, names, free, seq, samples);
+    }
+    fit_with_inner(base, names, free, seq, samples)
+}
+
+/// [`fit_with`] in one problem: every slot of `free` fitted jointly on `samples`.
+fn fit_with_inner(
+    base: &ModelParams,
+    names: &[String],
+    free: Free,
+    seq: &Sequence,
+    samples: &Samples,
+) -> Result<(ModelParams, EffectFit)> {
+    let fit_cn = free.c_n;
     let mut m = base.clone();
     let n_base = base.effects.len();
     let specs = names
@@ -918,6 +933,69 @@ pub fn fit_with(
             knots_rescaled,
         },
     ))
+}
+
+/// [`fit_with`] with the decay exponent free ([`super::exponent`], "Where it is
+/// fitted"): the exponent on the first illumination's samples with the effects of
+/// `names` that are held, then held while the rest is fitted on every sample. The fit
+/// reports the exponent among its parameters and the RMS before as the base's.
+fn fit_with_exponent(
+    base: &ModelParams,
+    names: &[String],
+    free: Free,
+    seq: &Sequence,
+    samples: &Samples,
+) -> Result<(ModelParams, EffectFit)> {
+    let &first = seq
+        .illuminations
+        .first()
+        .ok_or_else(|| Error::invalid("t_illuminated_s", "no illuminated exposure in the input"))?;
+    let first_samples = samples.rows_where(|e| e == first);
+    let held: Vec<String> = names
+        .iter()
+        .filter(|n| is_held(n).unwrap_or(false))
+        .cloned()
+        .collect();
+    let only_exponent = Free {
+        decay_exponent: true,
+        ..Free::default()
+    };
+    let (law, f1) = fit_with_inner(base, &held, only_exponent, seq, &first_samples)?;
+    let exponent = f1
+        .params
+        .into_iter()
+        .find(|p| p.effect == "terms" && p.name == "exponent")
+        .expect("the exponent's slot");
+    let mut b2 = base.clone();
+    b2.terms = law.terms;
+    if let Some(c) = b2.calibration.as_mut() {
+        c.decay_exponent = Some(exponent.value);
+    }
+    let rest = Free {
+        decay_exponent: false,
+        ..free
+    };
+    let (m, mut f) = fit_with_inner(&b2, names, rest, seq, samples)?;
+    f.params.insert(0, exponent);
+    let pred = eval::predict(base, seq, samples, false)?.current;
+    f.residual_rms_normalised_before = eval::rms(&spread::model_cell_z(base, samples, &pred));
+    f.termination = format!(
+        "exponent on the first illumination's {} cells, then: {}",
+        f1.cells, f.termination
+    );
+    Ok((m, f))
+}
+
+/// Whether the `--with` argument `arg` holds every fitted parameter of its effect (the
+/// readout's `chord:strength=1,first_read_s=1.5`).
+fn is_held(arg: &str) -> Result<bool> {
+    let (name, pins) = parse_with(arg)?;
+    let def = effects::lookup(&name).expect("checked by parse_with");
+    Ok(def
+        .params
+        .iter()
+        .filter(|p| p.fitted)
+        .all(|p| pins.iter().any(|(k, _)| k == p.name)))
 }
 
 /// With `populations` among `names` and its spread parameters not pinned: measure the

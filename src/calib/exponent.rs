@@ -1,6 +1,5 @@
 //! The decay exponent: the `C_n` fitted to `(t + t_0)^-p` with `p` free
-//! (`persist fit --fit-decay-exponent`, and the measurement description of
-//! [`super::Preset::Readout`]).
+//! (`persist fit --fit-decay-exponent`).
 //!
 //! # Why
 //! The paper fits the `C_n` to `1/(t + 1)`. A real detector's decay is a power law
@@ -13,6 +12,23 @@
 //! late predictions were declared). One exponent is the least freedom that takes the
 //! decay law in: the thirteen `C_n` fitted freely (`--fit-cn`) take in the duration
 //! and capacity effects as well, which then cannot be found.
+//!
+//! # Where it is fitted
+//! On the first illumination's samples alone, with the `--with` effects that are held
+//! (the readout's), before the other effects are fitted on every sample with `p` held
+//! ([`super::effects::fit_with`]): like the knots, the law is measured on the
+//! calibration illumination, and what makes later illuminations differ (their
+//! duration, history, temperature) stays in the residual for the effects.
+//!
+//! # Not by default
+//! `--preset readout`, the description `diagnose` tests effects against, does not fit
+//! it. Measured on the simulator's laboratory campaign with a hidden `soak` (64 x 64,
+//! seed 1, the README's example): with the exponent fitted on the first illumination
+//! (1.18 on the generator's nothing-hidden campaign, seed 1, where it lowers the
+//! description's RMS from 9.35 to 6.96), the residual's share explained by the
+//! illumination's duration fell from 0.72 % to 0.53 %, below its permutations' 0.67 %,
+//! and `soak` was no longer refitted nor declared. A freer base takes in part of what
+//! the effects are tested for.
 //!
 //! # Rule
 //! For an exponent `p` the `C_n` are step 5 of [`super`] with the target
@@ -159,7 +175,8 @@ mod tests {
         for p in [0.85, 1.15] {
             let t = law.terms(p).unwrap();
             let a = unit_a0(&t, &ramp()).unwrap();
-            assert!((a / a0 - 1.0).abs() < 1e-9, "{p}: {a} vs {a0}");
+            // (to the log fit's own tolerance)
+            assert!((a / a0 - 1.0).abs() < 1e-6, "{p}: {a} vs {a0}");
             // 1e4 s against 100 s (the middle of the first dark)
             let (s1, sp) = (ExpSum::new(&direct), ExpSum::new(&t));
             let late = sp.unit_current_per_s(1e4) / s1.unit_current_per_s(1e4);

@@ -147,8 +147,7 @@ impl Default for CalibConfig {
 ///   margin would otherwise be a residual that an effect takes in), thirteen rates 0.4
 ///   decade apart from 1/s (`10^(-0.4 k)`, k = 0..12), the `C_n` fitted to
 ///   `1/(t + 0.2 s)` from 1 s (Eq. (logfit)'s own offset on the simulator's campaign,
-///   module docs "Decay offset") with their exponent fitted ([`exponent`]: the decay
-///   law of a real detector is not `1/t`), and the effects `refill` (fitted) and `chord` held at
+///   module docs "Decay offset"), and the effects `refill` (fitted) and `chord` held at
 ///   strength 1 from the first read 1.5 s after the reset (the SPHEREx readout: the
 ///   on-board slope is the chord between the first and last sample used).
 ///
@@ -185,13 +184,10 @@ impl Preset {
         }
     }
 
-    /// What it frees besides the effects: the readout's decay exponent
-    /// ([`exponent`]).
+    /// What it frees besides the effects: nothing (the decay exponent stays an
+    /// option, [`exponent`] "Not by default").
     pub fn free(self) -> effects::Free {
-        effects::Free {
-            decay_exponent: self == Preset::Readout,
-            ..effects::Free::default()
-        }
+        effects::Free::default()
     }
 
     /// The effects fitted with it, each as `persist fit --with` takes it.

@@ -18,8 +18,8 @@
 //! `diagnose` fits the *measurement description* from the input first, `persist fit
 //! --preset readout` with the model's own effects ([`crate::calib::Preset::Readout`]:
 //! knots at the measured level, thirteen decay rates 0.4 decade apart from 1/s, the
-//! `C_n` fitted to `(t + 0.2 s)^-p` from 1 s with the exponent `p` fitted
-//! ([`crate::calib::exponent`]), `refill` fitted and the on-board chord),
+//! `C_n` fitted to `1/(t + 0.2 s)` from 1 s, `refill` fitted and the on-board slope
+//! measured on the first dark, [`crate::calib::readout`]),
 //! and tests the effects against it. A model already at the measured level is tested as
 //! it is. The flagging model is not changed: what `diagnose` suggests for it adds the
 //! missing effect at the values measured against the description, held
