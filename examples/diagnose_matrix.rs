@@ -182,6 +182,7 @@ impl Reference {
         ceffects::Free {
             c_n: self.fit_cn,
             knot_scale: self.fit_amplification,
+            decay_exponent: false,
         }
     }
 }

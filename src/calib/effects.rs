@@ -642,7 +642,9 @@ pub fn fit(
 
 /// [`fit`], and what `free` frees, jointly: the terms' `C_n` (log-parameters; module
 /// docs, "`--fit-cn`") or the knots' common factor ("`--fit-amplification`"), not both
-/// (a common factor of the `C_n` is nearly a factor of the knots).
+/// (a common factor of the `C_n` is nearly a factor of the knots). The decay exponent
+/// (`--fit-decay-exponent`) is fitted first, on the first illumination
+/// ([`super::exponent`], "Where it is fitted").
 pub fn fit_with(
     base: &ModelParams,
     names: &[String],

@@ -129,21 +129,9 @@ impl DecayLaw {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::calib::knots::tests::ramp;
     use crate::model::decay::ExpSum;
     use crate::model::params::Knot;
-
-    fn ramp() -> CalibRamp {
-        // the laboratory timing of `persist simulate lab`: a 180 s dark read every 1.5 s
-        // from 10 s after the end of a 613 s integration lit 481 s
-        CalibRamp {
-            illumination: 0,
-            dark: 1,
-            t_reset_s: 10.0,
-            t_s: (1..=120).map(|i| 10.0 + 1.5 * i as f64).collect(),
-            t_illuminated_s: 481.0,
-            t_exposure_s: 613.0,
-        }
-    }
 
     fn model() -> ModelParams {
         let cfg = super::super::Preset::Readout.config();

@@ -295,11 +295,12 @@ pub fn rescale(s_from: &[f64], to: &mut ModelParams, ramp: &CalibRamp) -> Result
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
     use crate::model::params::{EffectSpec, Knot};
 
-    fn ramp() -> CalibRamp {
+    /// The first dark of `persist simulate lab`'s laboratory timing.
+    pub(crate) fn ramp() -> CalibRamp {
         // the laboratory timing: 613 s integration lit 481 s, a 10 s slew, then a 180 s
         // dark read every 1.5 s (times after the illuminated exposure's end, as
         // `Sequence::t_mid_after_s` counts them)
