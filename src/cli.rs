@@ -1466,7 +1466,7 @@ fn fit(a: &FitArgs) -> persist::Result<ExitCode> {
     let free = persist::calib::effects::Free {
         c_n: a.fit_cn,
         knot_scale: a.fit_amplification,
-        decay_exponent: a.fit_decay_exponent || a.preset.free().decay_exponent,
+        decay_exponent: a.fit_decay_exponent,
     }
     .check()?;
     let r = persist::calib::run(

@@ -184,12 +184,6 @@ impl Preset {
         }
     }
 
-    /// What it frees besides the effects: nothing (the decay exponent stays an
-    /// option, [`exponent`] "Not by default").
-    pub fn free(self) -> effects::Free {
-        effects::Free::default()
-    }
-
     /// The effects fitted with it, each as `persist fit --with` takes it.
     pub fn effects(self) -> &'static [&'static str] {
         match self {

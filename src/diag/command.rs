@@ -145,8 +145,7 @@ fn calibration_args(c: Option<&crate::model::params::Calibration>) -> String {
     if c.fit_amplification {
         s += " --fit-amplification";
     }
-    let preset_frees = preset_of(c).unwrap_or_default().free().decay_exponent;
-    if c.decay_exponent.is_some() && !preset_frees {
+    if c.decay_exponent.is_some() {
         s += " --fit-decay-exponent";
     }
     s

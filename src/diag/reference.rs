@@ -120,7 +120,7 @@ pub fn describe(params: &ModelParams, seq: &Sequence, cfg: &Config) -> Result<Mo
     };
     let own: Vec<String> = params.effects.iter().map(|e| e.name.clone()).collect();
     let (with, _) = Preset::Readout.with_for(seq, &own);
-    let (d, _, _) = crate::calib::fit_params(seq, &calib, &with, Preset::Readout.free())?;
+    let (d, _, _) = crate::calib::fit_params(seq, &calib, &with, Default::default())?;
     Ok(d)
 }
 
