@@ -659,6 +659,28 @@ pub fn fit_with(
     fit_with_inner(base, names, free, seq, samples)
 }
 
+/// An effect added to the flagging calibration whose response can be stated relative
+/// to the calibration illumination (`soak`'s `reference_lit_s`, `reference_exposure_s`:
+/// module docs of [`crate::model::effects::soak`], "Relative to the calibration
+/// illumination") gets that illumination's timing (the first illumination of `seq`)
+/// unless the effect names its own. Unchanged when `seq` has no illumination.
+fn anchor_to_calibration(e: &mut EffectSpec, seq: &Sequence) {
+    if e.name != crate::model::effects::soak::DEF.name || e.params.contains_key("reference_lit_s") {
+        return;
+    }
+    let Some(meta) = seq.illuminations.first().map(|&i| &seq.exposures[i].meta) else {
+        return;
+    };
+    e.params.insert(
+        "reference_lit_s".into(),
+        serde_json::json!(meta.t_illuminated_s()),
+    );
+    e.params.insert(
+        "reference_exposure_s".into(),
+        serde_json::json!(meta.t_exposure_s),
+    );
+}
+
 /// [`fit_with`] in one problem: every slot of `free` fitted jointly on `samples`.
 fn fit_with_inner(
     base: &ModelParams,
@@ -668,6 +690,15 @@ fn fit_with_inner(
     samples: &Samples,
 ) -> Result<(ModelParams, EffectFit)> {
     let fit_cn = free.c_n;
+    // the paper's flagging calibration (knots at its margin, nothing else carrying the
+    // level): an effect relative to the calibration illumination is anchored to it
+    let flagging = base.calibration.as_ref().is_some_and(|c| {
+        super::knots_held_off_level(
+            c.amplification,
+            c.fit_cn || free.c_n,
+            c.fit_amplification || free.knot_scale,
+        )
+    });
     let mut m = base.clone();
     let n_base = base.effects.len();
     let specs = names
@@ -678,7 +709,11 @@ fn fit_with_inner(
         let i = match m.effects.iter().position(|e| &e.name == n) {
             Some(i) => i,
             None => {
-                m.push_effect(EffectSpec::named(n.clone()));
+                let mut e = EffectSpec::named(n.clone());
+                if flagging {
+                    anchor_to_calibration(&mut e, seq);
+                }
+                m.push_effect(e);
                 m.effects.len() - 1
             }
         };
