@@ -268,7 +268,17 @@ fn hidden_soak_is_found_and_fitted() {
         .collect();
     assert_eq!(sig, vec!["soak"]);
     let m1 = d("m1.json");
-    let mut a = vec!["fit", "--input", &lab, "--out", &m1, "--with", "soak"];
+    // the absolute fill, as the simulator's truth (the flagging calibration would take
+    // it relative to the calibration illumination: src/model/effects/soak.rs)
+    let mut a = vec![
+        "fit",
+        "--input",
+        &lab,
+        "--out",
+        &m1,
+        "--with",
+        "soak:reference_lit_s=0",
+    ];
     a.extend(common::POOLED_LEVELS_CELLS);
     persist(&a);
     let r = |f: &str| {
