@@ -217,9 +217,7 @@ impl Soak {
             self.fill(rate_per_s, t_exp_s)
         }
     }
-}
 
-impl Soak {
     /// [`Soak::fill_at`] over the same pixel's fill in the reference illumination
     /// (module docs, "Relative to the calibration illumination"); the absolute fill
     /// without a reference. A NaN fluence takes the level-blind form in both.
