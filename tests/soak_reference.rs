@@ -11,7 +11,7 @@
 mod common;
 
 use common::{persist_ok, read_json};
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 /// The predicted persistence current of every output of `persist run` with `model`.
 fn run_currents(lab: &str, dir: &Path, model: &str) -> Vec<ndarray::Array2<f32>> {
@@ -28,25 +28,14 @@ fn run_currents(lab: &str, dir: &Path, model: &str) -> Vec<ndarray::Array2<f32>>
         model,
         "--quiet",
     ]);
-    let mut files: Vec<PathBuf> = walkdir(&out);
-    files.sort();
-    files
-        .iter()
-        .map(|p| persist::product::read_output(p).unwrap().1.current_e_per_s)
+    // the outputs in exposure order (their names carry the index)
+    walkdir::WalkDir::new(&out)
+        .sort_by_file_name()
+        .into_iter()
+        .map(|e| e.unwrap().into_path())
+        .filter(|p| p.extension().is_some_and(|x| x == "h5"))
+        .map(|p| persist::product::read_output(&p).unwrap().1.current_e_per_s)
         .collect()
-}
-
-fn walkdir(dir: &Path) -> Vec<PathBuf> {
-    let mut v = Vec::new();
-    for e in std::fs::read_dir(dir).unwrap() {
-        let p = e.unwrap().path();
-        if p.is_dir() {
-            v.extend(walkdir(&p));
-        } else if p.extension().is_some_and(|x| x == "h5") {
-            v.push(p);
-        }
-    }
-    v
 }
 
 /// Median over exposures `ks` and pixels predicted above 0.01 e-/s by `base` of

@@ -665,20 +665,19 @@ pub fn fit_with(
 /// illumination") gets that illumination's timing (the first illumination of `seq`)
 /// unless the effect names its own. Unchanged when `seq` has no illumination.
 fn anchor_to_calibration(e: &mut EffectSpec, seq: &Sequence) {
-    if e.name != crate::model::effects::soak::DEF.name || e.params.contains_key("reference_lit_s") {
+    use crate::model::effects::soak;
+    if e.name != soak::DEF.name || e.params.contains_key(soak::REFERENCE_LIT_S) {
         return;
     }
     let Some(meta) = seq.illuminations.first().map(|&i| &seq.exposures[i].meta) else {
         return;
     };
-    e.params.insert(
-        "reference_lit_s".into(),
-        serde_json::json!(meta.t_illuminated_s()),
-    );
-    e.params.insert(
-        "reference_exposure_s".into(),
-        serde_json::json!(meta.t_exposure_s),
-    );
+    for (k, v) in [
+        (soak::REFERENCE_LIT_S, meta.t_illuminated_s()),
+        (soak::REFERENCE_EXPOSURE_S, meta.t_exposure_s),
+    ] {
+        e.params.insert(k.into(), serde_json::json!(v));
+    }
 }
 
 /// [`fit_with`] in one problem: every slot of `free` fitted jointly on `samples`.

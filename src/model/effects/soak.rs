@@ -80,6 +80,11 @@ use crate::model::Response;
 use ndarray::parallel::prelude::*;
 use ndarray::{Array3, Axis};
 
+/// The parameters naming the reference illumination (module docs, "Relative to the
+/// calibration illumination"): its lit time and its integration, s.
+pub const REFERENCE_LIT_S: &str = "reference_lit_s";
+pub const REFERENCE_EXPOSURE_S: &str = "reference_exposure_s";
+
 pub const DEF: EffectDef = EffectDef {
     name: "soak",
     summary: "slow terms fill as 1 - exp(-t_ill / (ratio tau_n))",
@@ -94,7 +99,7 @@ pub const DEF: EffectDef = EffectDef {
             doc: "capture time constant / emission time constant",
         },
         ParamSpec {
-            name: "reference_lit_s",
+            name: REFERENCE_LIT_S,
             default: 0.0,
             lo: 0.0,
             hi: 1e6,
@@ -103,7 +108,7 @@ pub const DEF: EffectDef = EffectDef {
             doc: "the calibration illumination's lit time, s (0: absolute fill)",
         },
         ParamSpec {
-            name: "reference_exposure_s",
+            name: REFERENCE_EXPOSURE_S,
             default: 0.0,
             lo: 0.0,
             hi: 1e6,
@@ -115,7 +120,7 @@ pub const DEF: EffectDef = EffectDef {
     build: |p| {
         Box::new(Soak {
             capture_ratio: get(p, "capture_ratio"),
-            reference: Some((get(p, "reference_lit_s"), get(p, "reference_exposure_s")))
+            reference: Some((get(p, REFERENCE_LIT_S), get(p, REFERENCE_EXPOSURE_S)))
                 .filter(|(lit, _)| *lit > 0.0),
         })
     },
