@@ -3,9 +3,11 @@
 //! `persist fit --with soak` on the paper's calibration records the first
 //! illumination's timing as the reference; `persist run` then predicts the darks after
 //! that illumination as without `soak` (its calibrated response and margin kept), and
-//! lower after the shorter illumination. The absolute form (reference 0, as the
-//! measurements' description `--preset readout` keeps it) lowers the calibration
-//! illumination's darks too. 32 x 32 laboratory campaign, seed 1 (illuminations of
+//! lower after the shorter illumination. The absolute form (reference 0, as a fit
+//! whose decay law is given, `--preset readout`, keeps it) lowers the calibration
+//! illumination's darks too; a fit that measures the decay law on the first
+//! illumination (`--fit-decay-exponent`, as `diagnose`'s description does) is relative
+//! as well. 32 x 32 laboratory campaign, seed 1 (illuminations of
 //! 481 s at exposure 0, 240 s at 21 and 32, 120 s at 43, 481 s at 64).
 
 mod common;
@@ -70,11 +72,12 @@ fn the_flagging_model_keeps_the_calibration_illumination() {
     let fit = |out: &str, extra: &[&str]| {
         persist_ok(&[&["fit", "--input", &lab, "--out", out][..], extra, &quiet].concat());
     };
-    let (m0, rel, abs, md) = (
+    let (m0, rel, abs, md, mp) = (
         path("m0.json"),
         path("rel.json"),
         path("abs.json"),
         path("md.json"),
+        path("mp.json"),
     );
     fit(&m0, &[]);
     fit(&rel, &["--with", "soak:capture_ratio=0.05"]);
@@ -85,6 +88,16 @@ fn the_flagging_model_keeps_the_calibration_illumination() {
     fit(
         &md,
         &["--preset", "readout", "--with", "soak:capture_ratio=0.05"],
+    );
+    fit(
+        &mp,
+        &[
+            "--preset",
+            "readout",
+            "--fit-decay-exponent",
+            "--with",
+            "soak:capture_ratio=0.05",
+        ],
     );
     let soak = |m: &str| {
         read_json(m)["effects"]
@@ -99,8 +112,9 @@ fn the_flagging_model_keeps_the_calibration_illumination() {
     let p = &soak(&rel)["params"];
     assert_eq!(p["reference_lit_s"].as_f64(), Some(481.0), "{p}");
     assert_eq!(p["reference_exposure_s"].as_f64(), Some(613.0), "{p}");
-    // the measurements' description: absolute
+    // the decay law given: absolute; measured on the first illumination: relative
     assert_eq!(soak(&md)["params"]["reference_lit_s"].as_f64(), Some(0.0));
+    assert_eq!(soak(&mp)["params"]["reference_lit_s"].as_f64(), Some(481.0));
 
     let dir = |n: &str| {
         let d = tmp.path().join(n);

@@ -659,8 +659,8 @@ pub fn fit_with(
     fit_with_inner(base, names, free, seq, samples)
 }
 
-/// An effect added to the flagging calibration whose response can be stated relative
-/// to the calibration illumination (`soak`'s `reference_lit_s`, `reference_exposure_s`:
+/// An effect added to a base that holds the calibration illumination's response
+/// ([`anchored_base`]) whose response can be stated relative to that illumination (`soak`'s `reference_lit_s`, `reference_exposure_s`:
 /// module docs of [`crate::model::effects::soak`], "Relative to the calibration
 /// illumination") gets that illumination's timing (the first illumination of `seq`)
 /// unless the effect names its own. Unchanged when `seq` has no illumination.
@@ -680,6 +680,27 @@ fn anchor_to_calibration(e: &mut EffectSpec, seq: &Sequence) {
     }
 }
 
+/// Whether `base` (with `free` fitted beside the effects) already holds the
+/// calibration illumination's response, so that an effect added to it is stated
+/// relative to that illumination ([`anchor_to_calibration`]): the paper's flagging
+/// calibration (knots at its margin from that illumination's first dark, nothing else
+/// carrying the level), or a decay law measured on the data (the exponent fitted on
+/// the first illumination, [`super::exponent`], or the `C_n` fitted). Only a base whose
+/// decay law was given, not measured (`--preset readout`'s `1/(t + 0.2 s)`, like the
+/// simulator's full traps), takes the absolute form.
+fn anchored_base(base: &ModelParams, free: Free) -> bool {
+    base.calibration.as_ref().is_some_and(|c| {
+        let measured_law =
+            c.decay_exponent.is_some() || c.fit_cn || free.c_n || free.decay_exponent;
+        measured_law
+            || super::knots_held_off_level(
+                c.amplification,
+                c.fit_cn || free.c_n,
+                c.fit_amplification || free.knot_scale,
+            )
+    })
+}
+
 /// [`fit_with`] in one problem: every slot of `free` fitted jointly on `samples`.
 fn fit_with_inner(
     base: &ModelParams,
@@ -689,15 +710,9 @@ fn fit_with_inner(
     samples: &Samples,
 ) -> Result<(ModelParams, EffectFit)> {
     let fit_cn = free.c_n;
-    // the paper's flagging calibration (knots at its margin, nothing else carrying the
-    // level): an effect relative to the calibration illumination is anchored to it
-    let flagging = base.calibration.as_ref().is_some_and(|c| {
-        super::knots_held_off_level(
-            c.amplification,
-            c.fit_cn || free.c_n,
-            c.fit_amplification || free.knot_scale,
-        )
-    });
+    // an effect relative to the calibration illumination is anchored to it when the
+    // base already holds that illumination's response ([`anchored_base`])
+    let anchored = anchored_base(base, free);
     let mut m = base.clone();
     let n_base = base.effects.len();
     let specs = names
@@ -709,7 +724,7 @@ fn fit_with_inner(
             Some(i) => i,
             None => {
                 let mut e = EffectSpec::named(n.clone());
-                if flagging {
+                if anchored {
                     anchor_to_calibration(&mut e, seq);
                 }
                 m.push_effect(e);

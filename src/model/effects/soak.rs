@@ -53,10 +53,12 @@
 //! one more. `capture_ratio` means the same in both forms (the ratio of two absolute
 //! fills is the relative fill), so a value measured against the measurements'
 //! description carries over. `persist fit` sets the reference to the calibration
-//! illumination when it adds `soak` to the flagging calibration
-//! ([`crate::calib::effects`]).
-//! Without a reference (0, the default of a model file that names none, and of the
-//! measurements' description `persist fit --preset readout`) the fill is absolute, as in
+//! illumination when it adds `soak` to a calibration that already holds that
+//! illumination's response: the flagging calibration, or one whose decay law was
+//! measured on it (`--fit-decay-exponent`, as `diagnose`'s description of the
+//! measurements; [`crate::calib::effects`]).
+//! Without a reference (0, the default of a model file that names none, and of a fit
+//! whose decay law is given, `persist fit --preset readout`) the fill is absolute, as in
 //! the simulator's truth (`sim::effects::soak`), where the `C_n` are those of full
 //! traps; there it also lowers the calibration illumination's slow terms, i.e. it
 //! reshapes the decay law as well as the contrast between durations.
