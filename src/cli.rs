@@ -801,9 +801,8 @@ pub struct DiagnoseArgs {
     /// knots off the measured level as the paper's 1.2 margin puts them, is replaced by
     /// a description of the measurements fitted from the input: `persist fit --preset
     /// readout --fit-decay-exponent` with the model's own effects; a model at the
-    /// measured level is used as
-    /// it is), `model` (the model file as given) or `measured` (always the description;
-    /// `persist::diag::reference`).
+    /// measured level is used as it is), `model` (the model file as given) or
+    /// `measured` (always the description; `persist::diag::reference`).
     #[arg(long, default_value_t = persist::diag::reference::Reference::default(), value_parser = parse_flag::<persist::diag::reference::Reference>)]
     pub reference: persist::diag::reference::Reference,
 }

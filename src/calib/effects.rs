@@ -660,10 +660,11 @@ pub fn fit_with(
 }
 
 /// An effect added to a base that holds the calibration illumination's response
-/// ([`anchored_base`]) whose response can be stated relative to that illumination (`soak`'s `reference_lit_s`, `reference_exposure_s`:
-/// module docs of [`crate::model::effects::soak`], "Relative to the calibration
-/// illumination") gets that illumination's timing (the first illumination of `seq`)
-/// unless the effect names its own. Unchanged when `seq` has no illumination.
+/// ([`anchored_base`]) whose response can be stated relative to that illumination
+/// (`soak`'s `reference_lit_s`, `reference_exposure_s`: module docs of
+/// [`crate::model::effects::soak`], "Relative to the calibration illumination") gets
+/// that illumination's timing (the first illumination of `seq`) unless the effect names
+/// its own. Unchanged when `seq` has no illumination.
 fn anchor_to_calibration(e: &mut EffectSpec, seq: &Sequence) {
     use crate::model::effects::soak;
     if e.name != soak::DEF.name || e.params.contains_key(soak::REFERENCE_LIT_S) {
@@ -690,12 +691,12 @@ fn anchor_to_calibration(e: &mut EffectSpec, seq: &Sequence) {
 /// simulator's full traps), takes the absolute form.
 fn anchored_base(base: &ModelParams, free: Free) -> bool {
     base.calibration.as_ref().is_some_and(|c| {
-        let measured_law =
-            c.decay_exponent.is_some() || c.fit_cn || free.c_n || free.decay_exponent;
+        let fit_cn = c.fit_cn || free.c_n;
+        let measured_law = fit_cn || c.decay_exponent.is_some() || free.decay_exponent;
         measured_law
             || super::knots_held_off_level(
                 c.amplification,
-                c.fit_cn || free.c_n,
+                fit_cn,
                 c.fit_amplification || free.knot_scale,
             )
     })
