@@ -22,8 +22,9 @@
 //! measured on the first dark, [`crate::calib::readout`]) and the decay exponent
 //! measured on the first illumination (`--fit-decay-exponent`, [`DESCRIPTION_FREE`];
 //! "The decay law" below), and tests the effects against it. A model already at the
-//! measured level is tested as it is. The flagging model is not changed: what `diagnose` suggests for it adds the
-//! missing effect at the values measured against the description, held
+//! measured level is tested as it is. The flagging model is not changed: what
+//! `diagnose` suggests for it adds the missing effect at the values measured against
+//! the description, held
 //! (`--with NAME:param=value`), so the flags keep the paper's margin and gain the
 //! effect; the command that measures it (the description with the effect) is printed
 //! beside it.

@@ -189,10 +189,7 @@ fn ratios_after(
             let mut r: Vec<f64> = (0..np)
                 .map(|p| {
                     let (m, q) = (s.measured[at(p)], pr.current[at(p)]);
-                    let (y, x) = s.pixels[p];
-                    if near[[y, x]] {
-                        f64::NAN
-                    } else if q > MIN_PREDICTED_E_PER_S && m > 0.0 && m.is_finite() {
+                    if !near[s.pixels[p]] && q > MIN_PREDICTED_E_PER_S && m > 0.0 && m.is_finite() {
                         (m / q).ln()
                     } else {
                         f64::NAN
