@@ -35,9 +35,14 @@
 //! 4. if something is declared: `persist fit --input D --out M2.json --with EFFECT`;
 //! 5. `persist compare --input D --model M.json [--model M2.json]`: each model's
 //!    normalised residual RMS; the excess is that minus the RMS of the baseline's own
-//!    fit on the baseline (same seed, nothing hidden); "halved" when the excess after
-//!    `fit --with` is at most half the excess before (not counted, either way, when the
-//!    excess before is not positive);
+//!    fit on the baseline (same seed, nothing hidden; when `diagnose` tested against a
+//!    description of the measurements, the same printed `fit` command on the baseline's
+//!    data); "halved" when the excess after `fit --with` is at most half the excess
+//!    before (not counted, either way, when the excess before is not positive). The
+//!    hidden share, `1 - RMS(baseline) / RMS(before)`, is the share of the residual RMS
+//!    the hidden effect accounts for: about the most a candidate that captured it
+//!    exactly could gain, held out, over all cells; the runs where it reaches
+//!    `diagnose`'s held-out gate are counted apart;
 //! 6. `persist run` with each model; the missed-flag fraction at 0.1 e-/s over the
 //!    touched pixels: a pixel is touched when its true persistence differs from the
 //!    baseline's by more than 0.01 e-/s at any exposure; a sample (touched pixel, any
@@ -45,6 +50,7 @@
 //!    missed when the output's `PERSIST` flag bit is not set. Fraction = missed / such
 //!    samples.
 
+use persist::diag::refit::HELD_OUT_MIN_GAIN;
 use persist::flags::bits;
 use persist::trapgen::hidden::{self, Hidden};
 use std::collections::BTreeMap;
@@ -461,6 +467,9 @@ struct Run {
     rms_baseline: Option<f64>,
     excess_before: Option<f64>,
     excess_after: Option<f64>,
+    /// `1 - RMS(baseline) / RMS(before)`: the share of the description's residual RMS
+    /// that the hidden effect accounts for.
+    hidden_share: Option<f64>,
     halved: Option<bool>,
     touched_pixels: Option<usize>,
     missed_before: Option<f64>,
@@ -474,33 +483,60 @@ struct Run {
     seconds: f64,
 }
 
-/// The baseline's own fit and RMS (cached per baseline directory and kind): `fit`'s
-/// defaults, or with `measured` the measurements' description `diagnose` tests against
-/// (`fit --preset readout`, `persist::diag::reference`).
+/// The baseline's own fit and RMS (cached per baseline directory and fit): `fit`'s
+/// defaults, or with `reference` the very `fit` command `diagnose` printed for the
+/// measurements' description of the hidden row (`reference.fit_command`,
+/// `persist::diag::reference`) run on the baseline's data instead, so that both RMS
+/// come from the same description.
 fn baseline_rms(
     ctx: &Ctx,
     b: &Path,
-    measured: bool,
-    cache: &mut BTreeMap<(PathBuf, bool), Option<f64>>,
+    reference: Option<&str>,
+    cache: &mut BTreeMap<(PathBuf, Option<String>), Option<f64>>,
 ) -> Option<f64> {
-    if let Some(v) = cache.get(&(b.to_path_buf(), measured)) {
+    let key = (b.to_path_buf(), reference.map(str::to_string));
+    if let Some(v) = cache.get(&key) {
         return *v;
     }
-    let m = b.with_extension(if measured {
-        "measured.json"
-    } else {
-        "model.json"
+    let m = b.with_extension(match reference {
+        Some(_) => format!("measured{}.json", cache.len()),
+        None => "model.json".to_string(),
     });
-    let mut a = vec!["fit", "--input", b.to_str()?, "--out", m.to_str()?];
-    if measured {
-        a.extend(["--preset", "readout"]);
-    }
-    let v = persist(ctx, &a)
+    let (input, out) = (b.to_str()?.to_string(), m.to_str()?.to_string());
+    let a: Vec<String> = match reference {
+        Some(line) => on_other_data(line, &input, &out),
+        None => ["fit", "--input", &input, "--out", &out]
+            .iter()
+            .map(|w| w.to_string())
+            .collect(),
+    };
+    let refs: Vec<&str> = a.iter().map(String::as_str).collect();
+    let v = persist(ctx, &refs)
         .ok()
         .and_then(|_| compare(ctx, b, &[&m], &m.with_extension("compare")).ok())
         .map(|v| v[0]);
-    cache.insert((b.to_path_buf(), measured), v);
+    cache.insert(key, v);
     v
+}
+
+/// A printed `persist fit ...` line with its `--input` and `--out` values replaced.
+fn on_other_data(line: &str, input: &str, out: &str) -> Vec<String> {
+    let words: Vec<&str> = line
+        .split_whitespace()
+        .skip_while(|w| *w == "persist")
+        .collect();
+    let mut a = Vec::with_capacity(words.len());
+    let mut it = words.iter();
+    while let Some(w) = it.next() {
+        a.push(w.to_string());
+        match *w {
+            "--input" => a.push(input.to_string()),
+            "--out" => a.push(out.to_string()),
+            _ => continue,
+        }
+        it.next();
+    }
+    a
 }
 
 /// Run a `persist ...` command line as `diagnose` prints it; Ok(its `--out` path).
@@ -518,7 +554,12 @@ fn run_printed(ctx: &Ctx, line: &str) -> Result<PathBuf, String> {
     persist(ctx, &words).map(|_| out)
 }
 
-fn one(ctx: &Ctx, row: &Row, seed: u64, cache: &mut BTreeMap<(PathBuf, bool), Option<f64>>) -> Run {
+fn one(
+    ctx: &Ctx,
+    row: &Row,
+    seed: u64,
+    cache: &mut BTreeMap<(PathBuf, Option<String>), Option<f64>>,
+) -> Run {
     let t0 = Instant::now();
     let mut r = Run {
         row: row.name(),
@@ -590,7 +631,6 @@ fn one(ctx: &Ctx, row: &Row, seed: u64, cache: &mut BTreeMap<(PathBuf, bool), Op
     let with_ok = m2.is_some();
     // step 5: the error, of the measurements' description when `diagnose` tested
     // against one, else of the model
-    let measured = suggested.reference_fit.is_some();
     let printed = |line: &Option<String>| line.as_ref().and_then(|l| run_printed(ctx, l).ok());
     let described =
         printed(&suggested.reference_fit).map(|a| (a, printed(&suggested.measure_command)));
@@ -604,9 +644,10 @@ fn one(ctx: &Ctx, row: &Row, seed: u64, cache: &mut BTreeMap<(PathBuf, bool), Op
     }
     if row.hidden.is_some() {
         if let Ok(b) = simulate(ctx, &row.baseline(), pin, seed) {
-            r.rms_baseline = baseline_rms(ctx, &b, measured, cache);
+            r.rms_baseline = baseline_rms(ctx, &b, suggested.reference_fit.as_deref(), cache);
             if let (Some(x), Some(b0)) = (r.rms_before, r.rms_baseline) {
                 r.excess_before = Some(x - b0);
+                r.hidden_share = Some(1.0 - b0 / x);
                 if let Some(y) = r.rms_after {
                     r.excess_after = Some(y - b0);
                     // no excess to halve: not counted either way
@@ -810,13 +851,13 @@ fn write_table(
     .unwrap();
     writeln!(
         md,
-        "Data: `persist simulate family` ({size} x {size}, seeds {first}..{}, see `persist::trapgen` for the physics and the forms). Every run uses the default commands only (`examples/family_matrix.rs` docs): `fit`, `diagnose`, then the `fit` commands `diagnose` prints for the effect declared first, or, with nothing declared, for the data-driven term it offers (column \"added\"). Kind named: the declared effect's contrast class, or else the covariate the verdict says the residual depends on (\"of this kind in another form\"). Excess RMS: the normalised residual RMS (`compare`) minus the baseline's (same seed, nothing hidden, its own fit), of the measurements' description `diagnose` tested against when it fitted one. Missed: the fraction of samples of touched pixels with a true persistence current of at least 0.1 e-/s that `persist run` did not flag; over-flagged: of those truly below it, the fraction flagged. Diagnose s: the wall time of `diagnose` alone, with its defaults (this machine; other work may run beside it).\n",
+        "Data: `persist simulate family` ({size} x {size}, seeds {first}..{}, see `persist::trapgen` for the physics and the forms). Every run uses the default commands only (`examples/family_matrix.rs` docs): `fit`, `diagnose`, then the `fit` commands `diagnose` prints for the effect declared first, or, with nothing declared, for the data-driven term it offers (column \"added\"). Kind named: the declared effect's contrast class, or else the covariate the verdict says the residual depends on (\"of this kind in another form\"). Excess RMS: the normalised residual RMS (`compare`) minus the baseline's (same seed, nothing hidden, its own fit), of the measurements' description `diagnose` tested against when it fitted one (the baseline fitted with the same printed command). Hidden share: `1 - RMS(baseline) / RMS(before)`, the share of that RMS the hidden effect accounts for, about the most a candidate capturing it exactly could gain over all cells; \"declared where share >= gate\": the runs where it reaches `diagnose`'s held-out gate ({HELD_OUT_MIN_GAIN}), and in how many of them the class was declared first. Missed: the fraction of samples of touched pixels with a true persistence current of at least 0.1 e-/s that `persist run` did not flag; over-flagged: of those truly below it, the fraction flagged. Diagnose s: the wall time of `diagnose` alone, with its defaults (this machine; other work may run beside it).\n",
         first + seeds - 1
     )
     .unwrap();
     writeln!(
         md,
-        "| row | runs | fit ok | diagnose ran | class named first | kind named first | kind (each run) | declared first (each run) | untestable answers | added (each run) | excess RMS before -> after (median) | halved | missed@0.1 touched before -> after (median) | over-flagged@0.1 touched before -> after (median) | diagnose s (median, max) |\n|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"
+        "| row | runs | fit ok | diagnose ran | class named first | kind named first | kind (each run) | declared first (each run) | untestable answers | added (each run) | excess RMS before -> after (median) | hidden share of RMS (each run) | declared where share >= gate | halved | missed@0.1 touched before -> after (median) | over-flagged@0.1 touched before -> after (median) | diagnose s (median, max) |\n|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"
     )
     .unwrap();
     for row in rows {
@@ -870,10 +911,35 @@ fn write_table(
             (!v.is_empty()).then(|| v[v.len() / 2])
         };
         let halved = rs.iter().filter(|r| r.halved == Some(true)).count();
+        let shares = if class.is_none() {
+            "-".to_string()
+        } else {
+            rs.iter()
+                .map(|r| r.hidden_share.map_or("-".into(), |x| format!("{x:.2}")))
+                .collect::<Vec<_>>()
+                .join(", ")
+        };
+        // the runs where removing the hidden effect lowers the RMS by at least what the
+        // held-out gate asks of a candidate over all cells
+        let over_gate: Vec<&&Run> = rs
+            .iter()
+            .filter(|r| r.hidden_share.is_some_and(|x| x >= HELD_OUT_MIN_GAIN))
+            .collect();
+        let visible = match class {
+            Some(c) if !over_gate.is_empty() => format!(
+                "{} of {}",
+                over_gate
+                    .iter()
+                    .filter(|r| r.declared_first.as_deref() == Some(c))
+                    .count(),
+                over_gate.len()
+            ),
+            _ => "-".into(),
+        };
         let halved_of = rs.iter().filter(|r| r.halved.is_some()).count();
         writeln!(
             md,
-            "| {} | {n} | {} | {} | {} | {} | {} | {} | {} | {} | {} -> {} | {} | {} -> {} | {} -> {} | {} |",
+            "| {} | {n} | {} | {} | {} | {} | {} | {} | {} | {} | {} -> {} | {} | {} | {} | {} -> {} | {} -> {} | {} |",
             row.name(),
             rs.iter().filter(|r| r.fit_ok).count(),
             rs.iter()
@@ -901,6 +967,8 @@ fn write_table(
                 .join(", "),
             f3(med(&|r| r.excess_before)),
             f3(med(&|r| r.excess_after)),
+            shares,
+            visible,
             if halved_of == 0 {
                 "-".into()
             } else {
