@@ -483,33 +483,28 @@ struct Run {
     seconds: f64,
 }
 
-/// The baseline's own fit and RMS (cached per baseline directory and fit): `fit`'s
-/// defaults, or with `reference` the very `fit` command `diagnose` printed for the
-/// measurements' description of the hidden row (`reference.fit_command`,
-/// `persist::diag::reference`) run on the baseline's data instead, so that both RMS
-/// come from the same description.
+/// The baseline's own fit and RMS (cached per fit command): `fit`'s defaults, or with
+/// `reference` the very `fit` command `diagnose` printed for the measurements'
+/// description of the hidden row (`reference.fit_command`, `persist::diag::reference`)
+/// run on the baseline's data instead, so that both RMS come from the same description.
 fn baseline_rms(
     ctx: &Ctx,
     b: &Path,
     reference: Option<&str>,
-    cache: &mut BTreeMap<(PathBuf, Option<String>), Option<f64>>,
+    cache: &mut BTreeMap<Vec<String>, Option<f64>>,
 ) -> Option<f64> {
-    let key = (b.to_path_buf(), reference.map(str::to_string));
+    let input = b.to_str()?;
+    let words = match reference {
+        Some(line) => printed_words(line),
+        None => vec!["fit", "--input", input, "--out", ""],
+    };
+    // the command with its input replaced and its output left out: the cache key
+    let key = with_values(&words, input, "");
     if let Some(v) = cache.get(&key) {
         return *v;
     }
-    let m = b.with_extension(match reference {
-        Some(_) => format!("measured{}.json", cache.len()),
-        None => "model.json".to_string(),
-    });
-    let (input, out) = (b.to_str()?.to_string(), m.to_str()?.to_string());
-    let a: Vec<String> = match reference {
-        Some(line) => on_other_data(line, &input, &out),
-        None => ["fit", "--input", &input, "--out", &out]
-            .iter()
-            .map(|w| w.to_string())
-            .collect(),
-    };
+    let m = b.with_extension(format!("baseline{}.json", cache.len()));
+    let a = with_values(&words, input, m.to_str()?);
     let refs: Vec<&str> = a.iter().map(String::as_str).collect();
     let v = persist(ctx, &refs)
         .ok()
@@ -519,12 +514,15 @@ fn baseline_rms(
     v
 }
 
-/// A printed `persist fit ...` line with its `--input` and `--out` values replaced.
-fn on_other_data(line: &str, input: &str, out: &str) -> Vec<String> {
-    let words: Vec<&str> = line
-        .split_whitespace()
+/// The words of a printed `persist ...` command line, without `persist`.
+fn printed_words(line: &str) -> Vec<&str> {
+    line.split_whitespace()
         .skip_while(|w| *w == "persist")
-        .collect();
+        .collect()
+}
+
+/// Command words with the values of `--input` and `--out` replaced.
+fn with_values(words: &[&str], input: &str, out: &str) -> Vec<String> {
     let mut a = Vec::with_capacity(words.len());
     let mut it = words.iter();
     while let Some(w) = it.next() {
@@ -541,10 +539,7 @@ fn on_other_data(line: &str, input: &str, out: &str) -> Vec<String> {
 
 /// Run a `persist ...` command line as `diagnose` prints it; Ok(its `--out` path).
 fn run_printed(ctx: &Ctx, line: &str) -> Result<PathBuf, String> {
-    let words: Vec<&str> = line
-        .split_whitespace()
-        .skip_while(|w| *w == "persist")
-        .collect();
+    let words = printed_words(line);
     let out = words
         .iter()
         .position(|w| *w == "--out")
@@ -554,12 +549,7 @@ fn run_printed(ctx: &Ctx, line: &str) -> Result<PathBuf, String> {
     persist(ctx, &words).map(|_| out)
 }
 
-fn one(
-    ctx: &Ctx,
-    row: &Row,
-    seed: u64,
-    cache: &mut BTreeMap<(PathBuf, Option<String>), Option<f64>>,
-) -> Run {
+fn one(ctx: &Ctx, row: &Row, seed: u64, cache: &mut BTreeMap<Vec<String>, Option<f64>>) -> Run {
     let t0 = Instant::now();
     let mut r = Run {
         row: row.name(),
