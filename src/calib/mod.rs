@@ -964,6 +964,10 @@ pub struct FitReport {
     pub cell_statistic: crate::measure::eval::CellStatistic,
     /// How each exposure's background was measured.
     pub background: crate::measure::data::Background,
+    /// The background and noise of the exposures with no background pixel, measured
+    /// from the darks ([`crate::measure::data`], "Every pixel lit").
+    #[serde(skip_serializing_if = "crate::measure::data::LitMeasured::is_empty")]
+    pub lit: crate::measure::data::LitMeasured,
     pub model_identity: String,
 }
 
@@ -1092,6 +1096,7 @@ pub fn run(
         cells: cells.len(),
         cell_statistic: cfg.cell_statistic,
         background: cfg.background,
+        lit: seq.lit.clone(),
         model_identity: params.identity(),
     };
     write_text(out, &(params.to_json_pretty() + "\n"))?;
@@ -1136,6 +1141,9 @@ pub fn run(
              chord over {} pixels, first read {} s after the reset\n",
             r.line_fraction, r.pixels, r.first_read_s
         );
+    }
+    if !rep.lit.is_empty() {
+        s += &format!("  {}\n", rep.lit.describe());
     }
     s += &format!("model {} , report {}", out.display(), report_path.display());
     Ok(s)

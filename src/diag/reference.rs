@@ -258,8 +258,13 @@ pub fn run(
             .map_err(|e| Error::new(ErrorKind::Io, e.to_string()))?;
         crate::calib::write_text(p, &(text + "\n"))?;
     }
+    let lit = if seq.lit.is_empty() {
+        String::new()
+    } else {
+        format!("{}\n", seq.lit.describe())
+    };
     Ok(format!(
-        "tested against: {}\n{}",
+        "{lit}tested against: {}\n{}",
         d.reference.why,
         diagnose::render(&d.diagnosis)
     ))

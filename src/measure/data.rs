@@ -10,8 +10,7 @@
 //! current (and its temperature drift) exposure by exposure. The per-pixel noise
 //! `sigma_k` is 1.4826 times the median absolute deviation of the same pixels.
 //! When no pixel qualifies (every pixel was lit above the limit by some illumination),
-//! `b_k` is 0 and `sigma_k` 0.1 e-/s, and a warning names how many exposures and the
-//! first.
+//! both are measured from the darks themselves ("Every pixel lit" below).
 //! On sky data (no `t_illuminated_s`), every exposure counts as an illumination and
 //! `b_k` is the same statistic, i.e. the faint sky plus dark.
 //!
@@ -36,12 +35,43 @@
 //! ([`crate::calib`]) is measured the same way, read by read
 //! ([`Sequence::background_of`]; each read its own intercept). Test:
 //! `tests/background.rs`.
+//!
+//! # Every pixel lit
+//! The paper's laboratory data light every pixel, so no pixel is background after the
+//! first illumination. Then, for the exposures with no background pixel
+//! ([`LitMeasured`], printed by `fit` and `diagnose`):
+//! - **read noise** `sigma_k`: from pairs of consecutive darks of equal length after
+//!   the same illumination, in its late window (the darks from half the block's last
+//!   mid-time on; any consecutive darks when no window holds a pair). Of each pair's
+//!   difference, over the lowest-fluence quarter of the unsaturated pixels
+//!   ([`LOW_FLUENCE_SHARE`]: the smallest persistence, so the least shot noise), the
+//!   median of each of 8 equal-count fluence bins is removed (what persistence decays
+//!   between the two darks is a smooth function of the fluence); `sigma_k` is 1.4826
+//!   times the median absolute residual over `sqrt 2`, pooled over the pairs of one
+//!   integration length. Another length takes the nearest measured one's, scaled by
+//!   `(t_ref / t_k)^1.5` (a line fit over evenly spaced reads of read-noise-limited
+//!   data). The shot noise of a sample's own current is added where it is used
+//!   ([`Sequence::shot_var_per_e_per_s`]).
+//! - **dark level** `b_k`: one level for all the darks after the same illumination (the
+//!   dark current is constant between two illuminations at a stable temperature):
+//!   the median of the same lowest-fluence pixels in each dark of the late window,
+//!   extrapolated to infinite time by a least-squares line in `1 / t` (`t` from the
+//!   end of the illumination to the dark's middle; late decays go as `t^-0.8` to
+//!   `t^-1.2`). A zero-fluence intercept across pixels does not do: persistence is not
+//!   proportional to the fluence at the lowest fluences of such data (the second truth
+//!   generator's single illumination, 64 x 64, seeds 1-2: intercepts of -0.004 and
+//!   -0.020 e-/s where the dark current is 0.013 and 0.016). A block with no late dark
+//!   takes the median of the other blocks' levels. What an earlier illumination still
+//!   releases in those pixels is taken for dark current when it does not decay as the
+//!   last illumination's persistence.
+//! Test: `lit_sequences_measure_noise_and_dark_level_from_the_darks` below.
 
 use crate::error::{Error, ErrorKind, Result};
 use crate::flags::bits;
 use crate::product::{read, Exposure};
 use crate::stats::median;
 use ndarray::Array2;
+use serde::Serialize;
 use std::path::Path;
 
 /// Pixels below this extrapolated fluence in every illumination are background, e-.
@@ -60,6 +90,9 @@ pub struct Sequence {
     pub noise_e_per_s: Vec<f64>,
     /// How `background_e_per_s` was measured ([`Sequence::with_background`]).
     pub background: Background,
+    /// What the background and noise of the exposures with no background pixel were
+    /// measured from (module docs, "Every pixel lit").
+    pub lit: LitMeasured,
     /// Per exposure: the index (into `exposures`) of the last illumination before it.
     pub last_illumination: Vec<Option<usize>>,
     pub ny: usize,
@@ -134,6 +167,7 @@ impl Sequence {
             background_e_per_s: Vec::new(),
             noise_e_per_s: Vec::new(),
             background,
+            lit: LitMeasured::default(),
             last_illumination: last,
             ny,
             nx,
@@ -202,7 +236,7 @@ impl Sequence {
                 })
                 .collect();
             if pts.is_empty() {
-                no_background.push(e.meta.exposure_index);
+                no_background.push(i);
             }
             let fitted = if line && !is_ill {
                 background_line(&pts)
@@ -242,18 +276,156 @@ impl Sequence {
                 background[k] = level;
             }
         }
-        if let Some(first) = no_background.first() {
-            // every pixel was lit above BACKGROUND_FLUENCE_E by some illumination: the
-            // measured current of these exposures is the raw image and their noise 0.1
-            tracing::warn!(
-                exposures = no_background.len(),
-                first_exposure_index = first,
-                "no background pixel (every pixel lit above {BACKGROUND_FLUENCE_E} e- so far): \
-                 their measured current is not dark-subtracted and their noise is taken as 0.1 e-/s"
-            );
+        self.lit = LitMeasured::default();
+        if !no_background.is_empty() {
+            let (lit, levels) = self.measure_lit(&no_background);
+            for (&k, (b, s)) in no_background.iter().zip(levels) {
+                background[k] = b;
+                noise[k] = s;
+            }
+            tracing::debug!("{}", lit.describe());
+            self.lit = lit;
         }
         self.background_e_per_s = background;
         self.noise_e_per_s = noise;
+    }
+
+    /// The darks after each illumination: `(illumination, darks in order)`.
+    fn dark_blocks(&self) -> Vec<(usize, Vec<usize>)> {
+        self.illuminations
+            .iter()
+            .map(|&a| {
+                let darks = (a + 1..self.exposures.len())
+                    .filter(|&k| self.last_illumination[k] == Some(a))
+                    .filter(|k| !self.illuminations.contains(k))
+                    .collect();
+                (a, darks)
+            })
+            .collect()
+    }
+
+    /// The late window of a block of darks after illumination `a`: the darks from half
+    /// the block's last mid-time on (as the calibration's late plateau,
+    /// [`crate::calib::dark`]).
+    fn late_window(&self, a: usize, darks: &[usize]) -> Vec<usize> {
+        let Some(&last) = darks.last() else {
+            return Vec::new();
+        };
+        let t_half = 0.5 * self.t_mid_after_s(a, last);
+        darks
+            .iter()
+            .copied()
+            .filter(|&k| self.t_mid_after_s(a, k) >= t_half)
+            .collect()
+    }
+
+    /// Background and noise of the exposures `ks` that have no background pixel
+    /// (module docs, "Every pixel lit"), in the order of `ks`, and what they came from.
+    fn measure_lit(&self, ks: &[usize]) -> (LitMeasured, Vec<(f64, f64)>) {
+        let blocks = self.dark_blocks();
+        let fluences: Vec<(usize, Array2<f64>)> = blocks
+            .iter()
+            .map(|(a, _)| (*a, fluence(&self.exposures[*a])))
+            .collect();
+        let fluence_of = |a: usize| &fluences.iter().find(|f| f.0 == a).expect("a block").1;
+        let mut lit = LitMeasured {
+            exposures: ks
+                .iter()
+                .map(|&k| self.exposures[k].meta.exposure_index)
+                .collect(),
+            ..LitMeasured::default()
+        };
+        // pairs of consecutive darks of equal length: the late windows first, any darks
+        // when no window holds a pair
+        let pairs_in = |late: bool| -> Vec<(usize, usize, usize)> {
+            let mut out = Vec::new();
+            for (a, darks) in &blocks {
+                let w = if late {
+                    self.late_window(*a, darks)
+                } else {
+                    darks.clone()
+                };
+                for p in w.windows(2) {
+                    let (t0, t1) = (
+                        self.exposures[p[0]].meta.t_exposure_s,
+                        self.exposures[p[1]].meta.t_exposure_s,
+                    );
+                    if p[1] == p[0] + 1 && t0 == t1 {
+                        out.push((*a, p[0], p[1]));
+                    }
+                }
+            }
+            out
+        };
+        let mut pairs = pairs_in(true);
+        lit.pairs_late = true;
+        if pairs.is_empty() {
+            pairs = pairs_in(false);
+            lit.pairs_late = false;
+        }
+        let mut by_length: Vec<(f64, Vec<f64>, Vec<u64>)> = Vec::new();
+        for &(a, k0, k1) in &pairs {
+            let res = pair_residuals(fluence_of(a), &self.exposures[k0], &self.exposures[k1]);
+            let t = self.exposures[k0].meta.t_exposure_s;
+            let ids = [k0, k1].map(|k| self.exposures[k].meta.exposure_index);
+            match by_length.iter_mut().find(|b| b.0 == t) {
+                Some(b) => {
+                    b.1.extend(res);
+                    b.2.extend(ids);
+                }
+                None => by_length.push((t, res, ids.to_vec())),
+            }
+        }
+        for (t, res, ids) in &by_length {
+            let s = 1.4826 * median(res) / std::f64::consts::SQRT_2;
+            if s.is_finite() && s > 0.0 {
+                lit.noise.push(LitNoise {
+                    t_exposure_s: *t,
+                    noise_e_per_s: s,
+                    pairs: ids.len() / 2,
+                    first_exposure: ids.iter().copied().min().unwrap_or(0),
+                    last_exposure: ids.iter().copied().max().unwrap_or(0),
+                });
+            }
+        }
+        // the dark level of each block: where the lowest-fluence pixels' median over its
+        // late darks tends as 1/t
+        for (a, darks) in &blocks {
+            let f = fluence_of(*a);
+            let pts: Vec<(f64, f64)> = self
+                .late_window(*a, darks)
+                .iter()
+                .filter_map(|&k| {
+                    let v: Vec<f64> = low_fluence_pixels(f, good(&self.exposures[k]))
+                        .iter()
+                        .map(|p| p.1)
+                        .collect();
+                    let t = self.t_mid_after_s(*a, k);
+                    (v.len() >= 10 && t > 0.0).then(|| (1.0 / t, median(&v)))
+                })
+                .collect();
+            if let Some(level) = level_at_infinite_time(&pts) {
+                lit.dark_levels.push(LitDark {
+                    illumination: self.exposures[*a].meta.exposure_index,
+                    level_e_per_s: level,
+                    darks: pts.len(),
+                });
+            }
+        }
+        let all_levels: Vec<f64> = lit.dark_levels.iter().map(|d| d.level_e_per_s).collect();
+        let out = ks
+            .iter()
+            .map(|&k| {
+                let own = self.last_illumination[k].and_then(|a| {
+                    let id = self.exposures[a].meta.exposure_index;
+                    lit.dark_levels.iter().find(|d| d.illumination == id)
+                });
+                let b = own.map_or_else(|| median(&all_levels), |d| d.level_e_per_s);
+                let b = if b.is_finite() { b } else { 0.0 };
+                (b, lit.noise_for(self.exposures[k].meta.t_exposure_s))
+            })
+            .collect();
+        (lit, out)
     }
 
     /// The background of the background pixels' `(fluence, value)` by
@@ -513,6 +685,179 @@ pub fn background_line(pts: &[(f64, f64)]) -> Option<(f64, f64)> {
     let slope = sxy / sxx;
     let b = my - slope * mx;
     (b.is_finite() && slope.is_finite()).then_some((b, slope))
+}
+
+/// The noise of a pair of consecutive darks measured on one integration length
+/// (module docs, "Every pixel lit").
+#[derive(Debug, Clone, Serialize)]
+pub struct LitNoise {
+    pub t_exposure_s: f64,
+    /// Read noise of one integration, e-/s.
+    pub noise_e_per_s: f64,
+    pub pairs: usize,
+    pub first_exposure: u64,
+    pub last_exposure: u64,
+}
+
+/// The dark level measured in the darks after one illumination (module docs).
+#[derive(Debug, Clone, Serialize)]
+pub struct LitDark {
+    /// Exposure index of the illumination.
+    pub illumination: u64,
+    pub level_e_per_s: f64,
+    /// Late darks whose intercepts the level is the median of.
+    pub darks: usize,
+}
+
+/// What the background and noise of the exposures with no background pixel were
+/// measured from (module docs, "Every pixel lit"). Empty when every exposure has
+/// background pixels.
+#[derive(Debug, Clone, Default, Serialize)]
+pub struct LitMeasured {
+    /// Exposure indices with no background pixel.
+    pub exposures: Vec<u64>,
+    pub noise: Vec<LitNoise>,
+    /// True when the pairs are those of the late windows.
+    pub pairs_late: bool,
+    pub dark_levels: Vec<LitDark>,
+}
+
+impl LitMeasured {
+    pub fn is_empty(&self) -> bool {
+        self.exposures.is_empty()
+    }
+
+    /// The read noise of an integration of `t_s`: the pairs' of that length, else the
+    /// nearest measured length's scaled by `(t_ref / t_s)^1.5` (a line fit over evenly
+    /// spaced reads of read-noise-limited data, as [`crate::calib::dark`]); NaN when
+    /// nothing was measured.
+    pub fn noise_for(&self, t_s: f64) -> f64 {
+        let Some(n) = self.noise.iter().min_by(|a, b| {
+            (a.t_exposure_s / t_s)
+                .ln()
+                .abs()
+                .total_cmp(&(b.t_exposure_s / t_s).ln().abs())
+        }) else {
+            return f64::NAN;
+        };
+        n.noise_e_per_s * (n.t_exposure_s / t_s).powf(1.5)
+    }
+
+    /// One paragraph: what was measured, and from which exposures.
+    pub fn describe(&self) -> String {
+        if self.exposures.is_empty() {
+            return "background and noise: the background pixels of every exposure (pixels \
+                    never lit above 3000 e-)"
+                .into();
+        }
+        let first = self.exposures.first().copied().unwrap_or(0);
+        let mut s = format!(
+            "background and noise: no background pixel in {} exposures (first {first}; every \
+             pixel lit above {BACKGROUND_FLUENCE_E} e-); ",
+            self.exposures.len()
+        );
+        if self.noise.is_empty() {
+            s += "read noise not measured (no two consecutive darks of equal length); ";
+        }
+        for n in &self.noise {
+            s += &format!(
+                "read noise {:.4} e-/s for {:.0} s from {} pairs of consecutive {}darks \
+                 (exposures {}-{}); ",
+                n.noise_e_per_s,
+                n.t_exposure_s,
+                n.pairs,
+                if self.pairs_late { "late " } else { "" },
+                n.first_exposure,
+                n.last_exposure
+            );
+        }
+        if self.dark_levels.is_empty() {
+            s += "dark level not measured (no late darks): taken as 0";
+        } else {
+            s += "dark level where the median of the lowest-fluence pixels tends as 1/t over \
+                  each illumination's late darks:";
+            for d in &self.dark_levels {
+                s += &format!(
+                    " {:.4} e-/s after exposure {} ({} darks),",
+                    d.level_e_per_s, d.illumination, d.darks
+                );
+            }
+            s.pop();
+        }
+        s
+    }
+}
+
+/// Equal-count fluence bins of the lowest-fluence pixels of [`low_fluence_pixels`].
+const LIT_BINS: usize = 8;
+
+/// `(fluence, value)` of the good pixels of `e` (as [`Sequence::measured`] keeps them)
+/// below half the saturation fluence in `f`, the lowest [`LOW_FLUENCE_SHARE`] of them
+/// by fluence, sorted by fluence. Their persistence is the smallest of the array and
+/// nearly proportional to the fluence (the paper, "Initial Persistence Current
+/// Response").
+fn low_fluence_pixels(
+    f: &Array2<f64>,
+    values: impl Iterator<Item = Option<f64>>,
+) -> Vec<(f64, f64)> {
+    let mut p: Vec<(f64, f64)> = f
+        .iter()
+        .zip(values)
+        .filter_map(|(f, v)| Some((*f, v?)))
+        .filter(|(f, v)| f.is_finite() && *f < 0.5 * SATURATION_FLUENCE_E && v.is_finite())
+        .collect();
+    p.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.total_cmp(&b.1)));
+    p.truncate(((p.len() as f64) * LOW_FLUENCE_SHARE).ceil() as usize);
+    p
+}
+
+/// Share of the unsaturated pixels, by fluence, that [`low_fluence_pixels`] keeps.
+pub const LOW_FLUENCE_SHARE: f64 = 0.25;
+
+fn good(e: &Exposure) -> impl Iterator<Item = Option<f64>> + '_ {
+    e.image
+        .iter()
+        .zip(e.flags.iter())
+        .map(|(v, f)| (*f & BAD_BITS == 0 && v.is_finite()).then_some(f64::from(*v)))
+}
+
+/// The dark level under medians `(1 / t, m)` of late darks: the intercept of their
+/// least-squares line in `1 / t` (a late decay of about `1 / t`), or their median when
+/// fewer than three darks or a single time; None without a point.
+fn level_at_infinite_time(pts: &[(f64, f64)]) -> Option<f64> {
+    if pts.is_empty() {
+        return None;
+    }
+    let n = pts.len() as f64;
+    let mx = pts.iter().map(|p| p.0).sum::<f64>() / n;
+    let my = pts.iter().map(|p| p.1).sum::<f64>() / n;
+    let sxx: f64 = pts.iter().map(|p| (p.0 - mx).powi(2)).sum();
+    let sxy: f64 = pts.iter().map(|p| (p.0 - mx) * (p.1 - my)).sum();
+    let b = if pts.len() >= 3 && sxx > 0.0 {
+        my - sxy / sxx * mx
+    } else {
+        median(&pts.iter().map(|p| p.1).collect::<Vec<_>>())
+    };
+    b.is_finite().then_some(b)
+}
+
+/// `|d - median_bin(d)|` of the pair difference `d = image_0 - image_1` of the
+/// lowest-fluence pixels ([`low_fluence_pixels`]), within [`LIT_BINS`] equal-count
+/// fluence bins: what persistence decays between the two darks is a smooth function of
+/// the fluence and leaves with the bin's median, the read noise stays.
+fn pair_residuals(f: &Array2<f64>, e0: &Exposure, e1: &Exposure) -> Vec<f64> {
+    let d = good(e0).zip(good(e1)).map(|(a, b)| Some(a? - b?));
+    let p = low_fluence_pixels(f, d);
+    if p.len() < 10 * LIT_BINS {
+        return Vec::new();
+    }
+    let mut out = Vec::with_capacity(p.len());
+    for b in 0..LIT_BINS {
+        let s = &p[b * p.len() / LIT_BINS..(b + 1) * p.len() / LIT_BINS];
+        let m = median(&s.iter().map(|q| q.1).collect::<Vec<_>>());
+        out.extend(s.iter().map(|q| (q.1 - m).abs()));
+    }
+    out
 }
 
 /// Bins of [`background_line`].
