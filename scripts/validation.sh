@@ -28,6 +28,11 @@
 #                                               with the nothing-hidden rows
 #                                               ($FAMILY_HELDOUT_ARGS; under an hour; not in
 #                                               the default set)
+#   reference  docs/validation/reference_rms.md  scripts/reference_table.sh: the pixel
+#                                               reference's residual RMS on every
+#                                               nothing-hidden sequence (two generators x
+#                                               single/campaign x dark pixels x seeds 1-3;
+#                                               about 15 minutes; not in the default set)
 # Without arguments every page is regenerated. Release builds (PERSIST_BIN=path skips the
 # build of the binary); run it on a quiet machine
 # (the header records the load average at the start).
@@ -43,8 +48,8 @@ if [[ ${#pages[@]} -eq 0 ]]; then
 fi
 for p in "${pages[@]}"; do
     case $p in
-        floor|bench|matrix|verify|verify_bench|family|family128|family_heldout) ;;
-        *) echo "validation.sh: unknown page '$p' (floor, bench, matrix, verify, verify_bench, family, family128, family_heldout)" >&2; exit 2 ;;
+        floor|bench|matrix|verify|verify_bench|family|family128|family_heldout|reference) ;;
+        *) echo "validation.sh: unknown page '$p' (floor, bench, matrix, verify, verify_bench, family, family128, family_heldout, reference)" >&2; exit 2 ;;
     esac
 done
 
@@ -263,6 +268,18 @@ page_family_heldout() {
 }
 
 # verify: persist verify against the simulator's truth (its own script).
+page_reference() {
+    local page=$out_dir/reference_rms.md
+    echo "reference: scripts/reference_table.sh" >&2
+    {
+        scripts/validation_header.sh "The pixel reference on data with nothing hidden" \
+            "make validation PAGES=reference (scripts/reference_table.sh)"
+        PERSIST_BIN=$persist WORK=$tmp/reference scripts/reference_table.sh
+    } > "$page.tmp"
+    mv "$page.tmp" "$page"
+    echo "wrote $page" >&2
+}
+
 page_verify() {
     PERSIST_BIN=$persist scripts/validate_verify.sh
 }

@@ -20,6 +20,20 @@
 //! (weights `1 / (sigma_k^2 + (0.1 p)^2)`, `p` the model's prediction; a small ridge
 //! keeps unused knots at 0) on at most [`MAX_FIT_SAMPLES`] samples taken at a fixed
 //! stride (deterministic).
+//!
+//! # Pixel reference
+//! [`predict_scaled`] multiplies the base by each pixel's own factor, quadratic in the
+//! log of the time since the illumination, and gives the pixels saturated in an
+//! illumination knots of their own; it is weighted by the measurement noise alone
+//! (exposure noise and shot noise). Its residuals are those of each pixel, not of a
+//! population's 95th percentile: compared with the noise less each sample's leverage
+//! ([`Scaled::cells`]), they measure how far a description that absorbs the decay law,
+//! its fluence dependence, the response around saturation and the mix of trap
+//! populations stands from the data. `persist diagnose` prints its RMS; nothing-hidden
+//! sequences of both truth generators: `docs/validation/reference_rms.md` (`make
+//! validation PAGES=reference`). It does not yet decide anything: the effects are
+//! still refitted and gated against the measurements' description
+//! ([`super::reference`]).
 
 use super::data::{fluence, Sequence, BACKGROUND_FLUENCE_E};
 use super::eval::Samples;
@@ -52,22 +66,21 @@ fn knots_of(f: f64) -> Option<[(usize, f64); 2]> {
 }
 
 /// Sparse features of sample `i`: (parameter index, value).
-fn features(
-    seq: &Sequence,
-    s: &Samples,
-    maps: &[(usize, Array2<f64>)],
-    i: usize,
-    out: &mut Vec<(usize, f64)>,
-) {
+fn features(seq: &Sequence, s: &Samples, maps: &[Map], i: usize, out: &mut Vec<(usize, f64)>) {
     out.clear();
     let np = s.npix();
     let (row, px) = (i / np, i % np);
     let k = s.exposures[row];
     let (y, x) = s.pixels[px];
-    for (a, f) in maps.iter().filter(|(a, _)| *a < k) {
-        let Some(kn) = knots_of(f[(y, x)]) else {
+    for m in maps.iter().filter(|m| m.illumination < k) {
+        let (a, f) = (&m.illumination, &m.fluence);
+        let Some(mut kn) = knots_of(f[(y, x)]) else {
             continue;
         };
+        if m.overflow.as_ref().is_some_and(|o| o[(y, x)]) {
+            // the saturated pixels' response: knots of their own
+            kn.iter_mut().for_each(|k| k.0 += n_knots());
+        }
         let t = seq.t_mid_after_s(*a, k).max(0.0);
         for (j, tau) in TAU_S.iter().enumerate() {
             let d = (-t / tau).exp();
@@ -86,13 +99,77 @@ fn features(
 /// The base's prediction of every sample: the model's prediction `pred` plus the
 /// correction fitted on `s` (module docs); `pred` itself when the fit fails.
 pub fn predict(seq: &Sequence, s: &Samples, pred: &[f64]) -> Vec<f64> {
-    let maps: Vec<(usize, Array2<f64>)> = seq
-        .illuminations
+    let maps = fluence_maps(seq, false);
+    let ones = vec![1.0; s.len()];
+    match fit_correction(seq, s, &maps, pred, &ones, relative_variance) {
+        Some(coef) => corrected(seq, s, &maps, pred, &coef),
+        None => pred.to_vec(),
+    }
+}
+
+/// The variance [`predict`] weights sample `i` by at prediction `p`: its exposure
+/// noise and a tenth of the prediction (module docs).
+fn relative_variance(s: &Samples, i: usize, p: f64) -> f64 {
+    s.noise[i / s.npix().max(1)].powi(2) + (0.1 * p).powi(2)
+}
+
+/// The variance of a measurement of sample `i` at current `p`: its exposure noise and
+/// the current's shot noise ([`Samples::shot_var_per_e_per_s`]).
+fn measurement_variance(s: &Samples, i: usize, p: f64) -> f64 {
+    let row = i / s.npix().max(1);
+    s.noise[row].powi(2) + s.shot_var_per_e_per_s[row] * p.max(0.0)
+}
+
+/// One illumination's fluence map, and which pixels saturated in it when their
+/// response has knots of its own.
+struct Map {
+    /// Index into the sequence.
+    illumination: usize,
+    fluence: Array2<f64>,
+    overflow: Option<Array2<bool>>,
+}
+
+/// The fluence map of every illumination; with `split_saturated`, the pixels flagged
+/// `OVERFLOW` in it.
+fn fluence_maps(seq: &Sequence, split_saturated: bool) -> Vec<Map> {
+    seq.illuminations
         .iter()
-        .map(|&a| (a, fluence(&seq.exposures[a])))
-        .collect();
-    let np = s.npix().max(1);
-    let p = n_knots() * TAU_S.len();
+        .map(|&a| {
+            let e = &seq.exposures[a];
+            Map {
+                illumination: a,
+                fluence: fluence(e),
+                overflow: split_saturated
+                    .then(|| e.flags.mapv(|f| f & crate::flags::bits::OVERFLOW != 0)),
+            }
+        })
+        .collect()
+}
+
+/// `pred` plus the correction `coef` at every sample.
+fn corrected(seq: &Sequence, s: &Samples, maps: &[Map], pred: &[f64], coef: &[f64]) -> Vec<f64> {
+    (0..s.len())
+        .into_par_iter()
+        .map_init(Vec::new, |f, i| {
+            features(seq, s, maps, i, f);
+            pred[i] + f.iter().map(|&(a, v)| coef[a] * v).sum::<f64>()
+        })
+        .collect()
+}
+
+/// The correction's coefficients: weighted least squares of `measured / scale_p -
+/// pred` on the features (module docs), each sample weighted by `scale_p^2` over its
+/// variance; None when the normal equations are singular.
+fn fit_correction(
+    seq: &Sequence,
+    s: &Samples,
+    maps: &[Map],
+    pred: &[f64],
+    scale: &[f64],
+    variance: impl Fn(&Samples, usize, f64) -> f64 + Sync,
+) -> Option<Vec<f64>> {
+    let split = maps.iter().any(|m| m.overflow.is_some());
+    let p = if split { 2 } else { 1 } * n_knots() * TAU_S.len();
     let usable: Vec<usize> = (0..s.len())
         .filter(|&i| s.measured[i].is_finite() && pred[i].is_finite())
         .collect();
@@ -105,13 +182,13 @@ pub fn predict(seq: &Sequence, s: &Samples, pred: &[f64]) -> Vec<f64> {
             let mut atb = vec![0.0; p];
             let mut f = Vec::new();
             for &i in chunk {
-                features(seq, s, &maps, i, &mut f);
-                if f.is_empty() {
+                features(seq, s, maps, i, &mut f);
+                let sc = scale[i];
+                if f.is_empty() || sc.is_nan() || sc <= 0.0 {
                     continue;
                 }
-                let sig = s.noise[i / np];
-                let w = 1.0 / (sig * sig + (0.1 * pred[i]).powi(2)).max(1e-12);
-                let y = s.measured[i] - pred[i];
+                let w = sc * sc / variance(s, i, sc * pred[i]).max(1e-12);
+                let y = s.measured[i] / sc - pred[i];
                 for &(a, va) in &f {
                     atb[a] += w * va * y;
                     for &(b, vb) in &f {
@@ -134,16 +211,167 @@ pub fn predict(seq: &Sequence, s: &Samples, pred: &[f64]) -> Vec<f64> {
     for j in 0..p {
         m[j * p + j] += 1e-6 * trace.max(1e-300);
     }
-    let Some(coef) = solve_spd(&mut m, atb, p) else {
-        return pred.to_vec();
-    };
-    (0..s.len())
-        .into_par_iter()
-        .map_init(Vec::new, |f, i| {
-            features(seq, s, &maps, i, f);
-            pred[i] + f.iter().map(|&(a, v)| coef[a] * v).sum::<f64>()
+    solve_spd(&mut m, atb, p)
+}
+
+/// Alternations of the scaled base's fit ([`predict_scaled`]).
+pub const SCALE_PASSES: usize = 4;
+
+/// Reference time of the per-pixel decay tilt ([`predict_scaled`]), s.
+pub const TILT_REFERENCE_S: f64 = 1000.0;
+
+/// Per-pixel terms of [`predict_scaled`]: `L^0 .. L^(PIXEL_TERMS - 1)`.
+pub const PIXEL_TERMS: usize = 3;
+
+/// Each pixel's factor at sample `i` from its terms `c`: `sum_j c_j L_i^j`.
+fn pixel_factor(c: &[f64], l: f64) -> f64 {
+    c.iter().rev().fold(0.0, |acc, cj| acc * l + cj)
+}
+
+/// The base with a per-pixel amplitude and decay shape: `f_p(L) * (pred +
+/// correction)`, `f_p(L) = sum_j c_pj L^j` over [`PIXEL_TERMS`] powers of `L = ln(t /
+/// TILT_REFERENCE_S)` (`t` since the last illumination), the correction as
+/// [`predict`]'s (with knots of their own for the pixels saturated in the
+/// illumination: the response around saturation) and `c_p` each sampled pixel's own
+/// (the mix of trap populations: pixels of one fluence and history differ by a factor
+/// and by their share of fast and slow traps, a tilt and a bend of the decay in log
+/// time), fitted by alternating the correction and the pixels' terms
+/// ([`SCALE_PASSES`]). Each pixel's terms are the weighted least-squares fit of its
+/// measurements on its unscaled prediction times `L^j`, weights one over the
+/// measurement's variance (exposure noise and the prediction's shot noise). Returns
+/// the predictions, each sample's noise and its leverage in its pixel's fit (`h_i`:
+/// under the fit, a residual's variance is `sigma_i^2 (1 - h_i)`).
+pub fn predict_scaled(seq: &Sequence, s: &Samples, pred: &[f64]) -> Scaled {
+    const K: usize = PIXEL_TERMS;
+    let maps = fluence_maps(seq, true);
+    let np = s.npix().max(1);
+    let tilt: Vec<f64> = (0..s.len())
+        .map(|i| (s.t_since_s[i / np].max(1.0) / TILT_REFERENCE_S).ln())
+        .collect();
+    let mut scale = vec![1.0; s.len()];
+    let mut unscaled = pred.to_vec();
+    let mut normal = Vec::new();
+    for pass in 0..=SCALE_PASSES {
+        if pass > 0 {
+            if let Some(coef) = fit_correction(seq, s, &maps, pred, &scale, measurement_variance) {
+                unscaled = corrected(seq, s, &maps, pred, &coef);
+            }
+        }
+        // per pixel: the normal equations of its terms
+        normal = vec![(vec![0.0f64; K * K], vec![0.0f64; K]); np];
+        for (i, (&m, &u)) in s.measured.iter().zip(&unscaled).enumerate() {
+            if !(m.is_finite() && u.is_finite()) {
+                continue;
+            }
+            let w = 1.0 / measurement_variance(s, i, u).max(1e-12);
+            let x: [f64; K] = std::array::from_fn(|j| u * tilt[i].powi(j as i32));
+            let (ata, atb) = &mut normal[i % np];
+            for a in 0..K {
+                atb[a] += w * m * x[a];
+                for b in 0..K {
+                    ata[a * K + b] += w * x[a] * x[b];
+                }
+            }
+        }
+        let terms: Vec<Vec<f64>> = normal
+            .iter()
+            .map(|(ata, atb)| {
+                let mut m = ata.clone();
+                let tr = (0..K).map(|j| m[j * K + j]).sum::<f64>() / K as f64;
+                for j in 0..K {
+                    m[j * K + j] += 1e-9 * tr;
+                }
+                match solve_spd(&mut m, atb.clone(), K) {
+                    Some(c) if tr > 0.0 => c,
+                    _ => std::iter::once(1.0)
+                        .chain(std::iter::repeat(0.0))
+                        .take(K)
+                        .collect(),
+                }
+            })
+            .collect();
+        scale = (0..s.len())
+            .map(|i| pixel_factor(&terms[i % np], tilt[i]).max(0.0))
+            .collect();
+    }
+    let prediction: Vec<f64> = unscaled.iter().zip(&scale).map(|(u, c)| c * u).collect();
+    let sigma: Vec<f64> = (0..s.len())
+        .map(|i| measurement_variance(s, i, unscaled[i]).sqrt())
+        .collect();
+    // leverage of each sample in its pixel's fit (the last pass's normal equations)
+    let inverse: Vec<Option<Vec<f64>>> =
+        normal.iter().map(|(ata, _)| inverse_spd(ata, K)).collect();
+    let leverage = (0..s.len())
+        .map(|i| {
+            let Some(inv) = &inverse[i % np] else {
+                return 0.0;
+            };
+            let u = unscaled[i];
+            let w = 1.0 / sigma[i].powi(2).max(1e-12);
+            let x: [f64; K] = std::array::from_fn(|j| u * tilt[i].powi(j as i32));
+            let mut h = 0.0;
+            for a in 0..K {
+                for b in 0..K {
+                    h += x[a] * inv[a * K + b] * x[b];
+                }
+            }
+            let h = w * h;
+            if h.is_finite() {
+                h.clamp(0.0, 1.0)
+            } else {
+                0.0
+            }
         })
-        .collect()
+        .collect();
+    Scaled {
+        prediction,
+        sigma,
+        leverage,
+    }
+}
+
+/// The inverse of a symmetric positive definite `n x n` matrix (row major), by
+/// [`solve_spd`] column by column; None when it is not positive definite.
+fn inverse_spd(m: &[f64], n: usize) -> Option<Vec<f64>> {
+    let mut inv = vec![0.0; n * n];
+    for c in 0..n {
+        let mut e = vec![0.0; n];
+        e[c] = 1.0;
+        let col = solve_spd(&mut m.to_vec(), e, n)?;
+        for r in 0..n {
+            inv[r * n + c] = col[r];
+        }
+    }
+    Some(inv)
+}
+
+/// What [`predict_scaled`] returns.
+#[derive(Debug, Clone)]
+pub struct Scaled {
+    /// Per sample, e-/s.
+    pub prediction: Vec<f64>,
+    /// Per sample: the measurement's noise at the prediction (exposure noise and shot
+    /// noise), e-/s.
+    pub sigma: Vec<f64>,
+    /// Per sample: its leverage `h_i` in its pixel's fit.
+    pub leverage: Vec<f64>,
+}
+
+impl Scaled {
+    /// The reference's cells ([`crate::measure::eval::cell_z`]'s keys): the paired
+    /// statistic, each residual's noise `sigma_i sqrt(1 - h_i)`.
+    pub fn cells(&self, s: &Samples) -> Vec<(Vec<i64>, crate::measure::eval::GroupStat)> {
+        crate::measure::eval::groups_by(
+            s,
+            &self.prediction,
+            s.cells.keys(),
+            crate::measure::eval::CellStatistic::Paired,
+            |i| {
+                let sd = self.sigma[i] * (1.0 - self.leverage[i]).max(0.0).sqrt();
+                (0.0, sd, sd)
+            },
+        )
+    }
 }
 
 /// Solves `m x = b` for a symmetric positive definite `m` (n x n, row major) by

@@ -307,6 +307,9 @@ pub struct Diagnosis {
     pub refit: Refit,
     /// RMS of the cell residuals (as `compare`, on the subsample).
     pub residual_rms_normalised: f64,
+    /// How well the pixel reference fits the same samples
+    /// ([`super::base::predict_scaled`]).
+    pub pixel_reference: PixelReference,
     pub bootstrap_replicas: usize,
     pub threshold: f64,
     /// Median over the replicas of the largest LM (what "nothing missing" looks like).
@@ -332,6 +335,31 @@ pub struct Diagnosis {
     pub verdict: String,
     /// What limits the diagnosis of this model (empty when nothing is known to).
     pub cautions: Vec<String>,
+}
+
+/// The pixel reference's fit ([`super::base::predict_scaled`]): the flexible base with
+/// each pixel's own amplitude and decay shape, its residuals against the noise
+/// measured from the data (the exposure noise and the shot noise, less each sample's
+/// leverage in its pixel's fit).
+#[derive(Debug, Clone, Serialize)]
+pub struct PixelReference {
+    pub residual_rms_normalised: f64,
+    pub cells: usize,
+    /// Its three largest cell residuals.
+    pub largest_residuals: Vec<eval::GroupStat>,
+}
+
+impl PixelReference {
+    fn of(cells: &[(Vec<i64>, eval::GroupStat)]) -> PixelReference {
+        let mut worst: Vec<eval::GroupStat> = cells.iter().map(|c| c.1).collect();
+        worst.sort_by(|a, b| b.z.abs().total_cmp(&a.z.abs()));
+        worst.truncate(3);
+        PixelReference {
+            residual_rms_normalised: eval::rms(cells),
+            cells: cells.len(),
+            largest_residuals: worst,
+        }
+    }
 }
 
 /// The fewest bootstrap replicas whose 95 % point is not simply their largest value.
@@ -360,6 +388,9 @@ pub fn diagnose(
     let (contrasts, tests) = testable_tests(params, seq, &samples, cfg.decide);
     // what the flexible base's residual depends on, by permutation
     let flexible = super::base::predict(seq, &samples, &base.current);
+    let pixel_reference = PixelReference::of(
+        &super::base::predict_scaled(seq, &samples, &base.current).cells(&samples),
+    );
     let dependences = contrast::dependences(seq, &samples, &flexible, &contrasts, cfg.seed);
     let winner = dependences.iter().find(|d| d.depends);
     let scored = score_tests(
@@ -488,6 +519,7 @@ pub fn diagnose(
         background: seq.background,
         refit: cfg.refit,
         residual_rms_normalised: rms,
+        pixel_reference,
         bootstrap_replicas: cfg.bootstrap,
         threshold: scored.threshold,
         bootstrap_median_max: scored.median_max,
@@ -998,7 +1030,8 @@ fn cautions(params: &ModelParams) -> Vec<String> {
 pub fn render(d: &Diagnosis) -> String {
     let mut s = format!(
         "persist diagnose: statistic {}, {} pixels, {} cells in {} groups, {} illumination events, \
-         residual RMS {:.2} ({} cells{}{})\nthreshold {:.2} (95 % of the largest score over {} bootstrap replicas \
+         residual RMS {:.2} ({} cells{}{})\npixel reference (the flexible base with each pixel's own \
+         amplitude and decay shape): residual RMS {:.2} over {} cells\nthreshold {:.2} (95 % of the largest score over {} bootstrap replicas \
          from the fitted model; median {:.2}; the score ranks, it does not decide)\n\
          {:<16} {:>10} {:>6} {:>9} {:>15} {:>9} {:>15}  covariate\n",
         d.statistic_reason,
@@ -1013,6 +1046,8 @@ pub fn render(d: &Diagnosis) -> String {
             Refit::Full => "; candidates refitted with the model's own effects (--refit full)",
             Refit::Candidate => "; candidates refitted alone (--refit candidate)",
         },
+        d.pixel_reference.residual_rms_normalised,
+        d.pixel_reference.cells,
         d.threshold,
         d.bootstrap_replicas,
         d.bootstrap_median_max,

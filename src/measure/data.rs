@@ -64,7 +64,8 @@
 //!   takes the median of the other blocks' levels. What an earlier illumination still
 //!   releases in those pixels is taken for dark current when it does not decay as the
 //!   last illumination's persistence.
-//! Test: `lit_sequences_measure_noise_and_dark_level_from_the_darks` below.
+//!
+//! Test: `tests/fit_all_lit.rs`, `lit_sequences_measure_noise_and_dark_level_from_the_darks`.
 
 use crate::error::{Error, ErrorKind, Result};
 use crate::flags::bits;

@@ -852,6 +852,18 @@ pub fn bin_value(covariate: &str, b: i64) -> f64 {
 
 /// Groups keyed by bins of the given covariates (in their order).
 pub fn groups(s: &Samples, pred: &[f64], keys: &[&str]) -> Vec<(Vec<i64>, GroupStat)> {
+    groups_by(s, pred, keys, s.statistic, |i| s.null_of(i, pred[i]))
+}
+
+/// [`groups`] with each sample's null `(offset, sd, noise)` given by `null` (sample
+/// index) and the groups compared by `statistic`.
+pub fn groups_by(
+    s: &Samples,
+    pred: &[f64],
+    keys: &[&str],
+    statistic: CellStatistic,
+    null: impl Fn(usize) -> (f64, f64, f64),
+) -> Vec<(Vec<i64>, GroupStat)> {
     use std::collections::BTreeMap;
     /// Per group: measured, predicted, and per sample the null's offset, standard
     /// deviation and measurement noise ([`Samples::null_of`]).
@@ -874,7 +886,7 @@ pub fn groups(s: &Samples, pred: &[f64], keys: &[&str]) -> Vec<(Vec<i64>, GroupS
             continue;
         };
         let e = g.entry(key).or_default();
-        let (offset, sd, noise) = s.null_of(i, pred[i]);
+        let (offset, sd, noise) = null(i);
         e.m.push(m);
         e.p.push(pred[i]);
         e.offset.push(offset);
@@ -885,7 +897,7 @@ pub fn groups(s: &Samples, pred: &[f64], keys: &[&str]) -> Vec<(Vec<i64>, GroupS
     let g: Vec<_> = g.into_iter().collect();
     g.into_par_iter()
         .filter_map(|(k, c)| {
-            cell_stat_null(s.statistic, &c.m, &c.p, &c.offset, &c.sd, median(&c.noise))
+            cell_stat_null(statistic, &c.m, &c.p, &c.offset, &c.sd, median(&c.noise))
                 .map(|st| (k, st))
         })
         .collect()
