@@ -9,6 +9,8 @@
 //! model file).
 
 pub mod exposure;
+pub mod fits;
+pub mod format;
 pub mod read;
 pub mod schema;
 pub mod synthetic;

@@ -30,7 +30,7 @@ use std::time::Duration;
 pub fn detectors(input: &Path, fits: &crate::fits::FitsConfig) -> Result<BTreeSet<DetectorId>> {
     Ok(queue::candidates(input)?
         .iter()
-        .filter_map(|p| super::run::read_input_meta(p, fits).ok())
+        .filter_map(|p| crate::product::format::read_input_meta(p, fits).ok())
         .map(|m| m.detector)
         .collect())
 }
