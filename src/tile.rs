@@ -237,7 +237,11 @@ impl Plan {
         }
         let mut detectors = std::collections::BTreeSet::new();
         for path in crate::stage::queue::candidates(input)? {
-            detectors.insert(format::read_input_meta(&path, &FitsConfig::default())?.detector.0);
+            detectors.insert(
+                format::read_input_meta(&path, &FitsConfig::default())?
+                    .detector
+                    .0,
+            );
         }
         if detectors.is_empty() {
             return Err(
@@ -749,7 +753,9 @@ pub fn run_tile_with(
             &record,
             planes.current_e_per_s.slice(c).to_owned().view(),
             planes.flags.slice(c),
-            read.exposure.flags.slice(s![rect.y0..rect.y1, rect.x0..rect.x1]),
+            read.exposure
+                .flags
+                .slice(s![rect.y0..rect.y1, rect.x0..rect.x1]),
         )?;
         exposures.push(record);
     }
@@ -884,11 +890,14 @@ pub struct Assembled {
 /// Build the whole-array outputs and final checkpoints from the tiles of every detector
 /// of the plan (module docs). With `keep_work`, the work files stay.
 pub fn assemble(plan: &Plan, model: &Model, keep_work: bool) -> Result<Vec<Assembled>> {
-    // The stage's lock: never alongside a `persist run` on the same directories.
-    for dir in [&plan.output, &plan.checkpoints] {
-        std::fs::create_dir_all(dir).map_err(|e| Error::io(dir, e))?;
-    }
-    let _lock = crate::stage::lock::DirLock::acquire(&[&plan.output, &plan.checkpoints])?;
+    // The stage's start-up: never alongside a `persist run` on the same directories.
+    let _started = crate::stage::startup::start(
+        &[&plan.output, &plan.checkpoints],
+        crate::stage::startup::Startup {
+            lock: true,
+            signals: false,
+        },
+    )?;
     // Every tile of every detector finished with one history, before anything is
     // published.
     let mut loaded = Vec::new();
@@ -993,7 +1002,14 @@ fn assemble_detector(
     let (ny, nx) = first.shape;
     let attrs_of = |r: &ExposureRecord, planes: &PersistencePlanes| {
         let warmup = span.and_then(Span::warmup_attrs);
-        output_attrs(model, r.t_meas_s, r.previous_index, &plan.processed_utc, planes, warmup)
+        output_attrs(
+            model,
+            r.t_meas_s,
+            r.previous_index,
+            &plan.processed_utc,
+            planes,
+            warmup,
+        )
     };
     let fits = plan.fits();
     let rewrite = plan.time.as_ref().is_some_and(|t| t.from_start);

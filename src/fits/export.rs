@@ -10,9 +10,9 @@
 //! a Gaussian PSF cube, a linear wavelength table from the band edges): they give
 //! round-trip tests SPHEREx's file structure, not science.
 
+use crate::error::{Error, ErrorKind, Result};
 use crate::product::fits::write::{append_persistence, check_written, flag_cards, flush};
 use crate::product::fits::{fits_error, Conversion, Keywords};
-use crate::error::{Error, ErrorKind, Result};
 use crate::product::{self, Exposure, PersistenceAttrs, PersistencePlanes};
 use crate::validate::{validate_path, ProductKind};
 use fitsio::images::{ImageDescription, ImageType};

@@ -122,16 +122,8 @@ pub fn stage_output(
     cfg: &FitsConfig,
 ) -> Result<Option<h5io::Staged>> {
     match &read.fits {
-        Some(f) => fits::write_output(
-            input,
-            out,
-            &read.exposure,
-            planes,
-            attrs,
-            f,
-            &cfg.keywords,
-        )
-        .map(|()| None),
+        Some(f) => fits::write_output(input, out, &read.exposure, planes, attrs, f, &cfg.keywords)
+            .map(|()| None),
         None => super::write::stage_output(out, &read.exposure, planes, attrs).map(Some),
     }
 }

@@ -174,13 +174,19 @@ pub fn step_exposure(
     let image = if whole {
         exposure.image.view()
     } else {
-        cut = exposure.image.slice(s![rows.clone(), cols.clone()]).to_owned();
+        cut = exposure
+            .image
+            .slice(s![rows.clone(), cols.clone()])
+            .to_owned();
         cut.view()
     };
     let mut flags = if whole {
         std::mem::take(&mut exposure.flags)
     } else {
-        exposure.flags.slice(s![rows.clone(), cols.clone()]).to_owned()
+        exposure
+            .flags
+            .slice(s![rows.clone(), cols.clone()])
+            .to_owned()
     };
     let input = Input {
         image_e_per_s: image,

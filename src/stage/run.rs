@@ -68,7 +68,7 @@
 //! # Start-time order (FITS without a sequence number)
 //!
 //! SPHEREx's FITS files carry no exposure sequence number: their exposure index is the
-//! start time in milliseconds since 1970 UTC ([`crate::fits::Sequence::StartTime`]),
+//! start time in milliseconds since 1970 UTC ([`crate::product::fits::Sequence::StartTime`]),
 //! deterministic per file and recorded in the output (`EXPINDEX`, `IDXSRC`). Such a
 //! detector's history (the bookkeeping's `by_start_time`, kept in the checkpoint, never
 //! mixed with sequence numbers) has no successor index to wait for: the earliest queued
@@ -171,7 +171,7 @@ pub struct Ops {
     /// Progress of a batch run (its length is set once the products are queued).
     pub progress: Option<indicatif::ProgressBar>,
     /// How FITS inputs (`*.fits`) are read: keyword names, conversion factors.
-    pub fits: crate::fits::FitsConfig,
+    pub fits: crate::product::fits::FitsConfig,
     /// Worker mode ([`super::workers`]): process this detector only; the products of
     /// other detectors are left alone.
     pub only: Option<OnlyDetector>,
@@ -261,61 +261,6 @@ pub fn file_digest(path: &Path) -> Result<String> {
     Ok(crate::model::params::to_hex(&h.finalize()))
 }
 
-/// Process every product in `cfg.input` once (batch, no quarantine).
-pub fn run(cfg: &RunConfig, on_exposure: &(dyn Fn(&ExposureReport) + Sync)) -> RunReport {
-    run_with(cfg, &Ops::default(), on_exposure)
-}
-
-/// Run the stage as `ops` says: one batch, or watching until [`Ops::stop`].
-pub fn run_with(
-    cfg: &RunConfig,
-    ops: &Ops,
-    on_exposure: &(dyn Fn(&ExposureReport) + Sync),
-) -> RunReport {
-    let mut stage = Stage::new(cfg, ops, on_exposure);
-    for dir in [&cfg.output, &cfg.checkpoints] {
-        if let Err(e) = std::fs::create_dir_all(dir) {
-            stage.report.errors.push(Error::io(dir, e));
-            return stage.report;
-        }
-    }
-    if !cfg.input.is_dir() {
-        stage
-            .report
-            .errors
-            .push(Error::new(ErrorKind::Usage, "input is not a directory").path(&cfg.input));
-        return stage.report;
-    }
-    match &ops.watch {
-        None => {
-            stage.scan(Instant::now(), true);
-            if let Some(pb) = &ops.progress {
-                pb.set_length(stage.backlog() as u64);
-            }
-            stage.advance(Instant::now(), true);
-            for p in stage.detectors.values() {
-                if let Some((&next, _)) = p.pending.first_key_value() {
-                    if !p.dead && !ops.stop.load(Ordering::SeqCst) {
-                        stage.report.errors.push(
-                            Error::new(
-                                ErrorKind::NotReady,
-                                format!(
-                                    "{} product(s) from exposure {next} on left for the next run",
-                                    p.pending.len()
-                                ),
-                            )
-                            .detector(p.det),
-                        );
-                    }
-                }
-            }
-        }
-        Some(w) => super::watch::watch(&mut stage, w),
-    }
-    stage.report.stopped = ops.stop.load(Ordering::SeqCst);
-    stage.report
-}
-
 /// (size, modification time) of a file: what tells a rescan that it changed.
 pub(crate) type FileKey = (u64, Option<SystemTime>);
 
@@ -357,6 +302,62 @@ impl<'a> Stage<'a> {
             names: HashMap::new(),
             report: RunReport::default(),
         }
+    }
+
+    /// A stage on `cfg`'s directories (the output and checkpoint directories created),
+    /// or the report of why it cannot start.
+    pub(crate) fn open(
+        cfg: &'a RunConfig,
+        ops: &'a Ops,
+        on_exposure: &'a (dyn Fn(&ExposureReport) + Sync),
+    ) -> std::result::Result<Self, RunReport> {
+        let mut stage = Stage::new(cfg, ops, on_exposure);
+        for dir in [&cfg.output, &cfg.checkpoints] {
+            if let Err(e) = std::fs::create_dir_all(dir) {
+                stage.report.errors.push(Error::io(dir, e));
+                return Err(stage.report);
+            }
+        }
+        if !cfg.input.is_dir() {
+            stage
+                .report
+                .errors
+                .push(Error::new(ErrorKind::Usage, "input is not a directory").path(&cfg.input));
+            return Err(stage.report);
+        }
+        Ok(stage)
+    }
+
+    /// One batch: one scan, one advance crossing every gap; what is left is reported.
+    pub(crate) fn batch(&mut self) {
+        let ops = self.ops;
+        self.scan(Instant::now(), true);
+        if let Some(pb) = &ops.progress {
+            pb.set_length(self.backlog() as u64);
+        }
+        self.advance(Instant::now(), true);
+        for p in self.detectors.values() {
+            if let Some((&next, _)) = p.pending.first_key_value() {
+                if !p.dead && !ops.stop.load(Ordering::SeqCst) {
+                    self.report.errors.push(
+                        Error::new(
+                            ErrorKind::NotReady,
+                            format!(
+                                "{} product(s) from exposure {next} on left for the next run",
+                                p.pending.len()
+                            ),
+                        )
+                        .detector(p.det),
+                    );
+                }
+            }
+        }
+    }
+
+    /// The run's report, with whether the stop flag ended it.
+    pub(crate) fn finish(mut self) -> RunReport {
+        self.report.stopped = self.ops.stop.load(Ordering::SeqCst);
+        self.report
     }
 
     /// Products queued and not processed yet.
