@@ -10,9 +10,12 @@
 //! [`Plan::tasks`] is tile `n % tiles` of detector `n / tiles`.
 //!
 //! # Why the split is exact
-//! A tile job steps the detector's whole history, exposure by exposure, exactly as
-//! `persist run` does (same start checkpoint, same order, same gap rule and
-//! bookkeeping), but keeps only its tile's pixels. Where a tile's pixels are computed
+//! A tile job steps the detector's whole history, exposure by exposure, through the
+//! stage's own exposure path ([`crate::stage::exposure::step_exposure`]: same start
+//! checkpoint, same order, same gap rule and bookkeeping; the tile is only the window it
+//! reads and writes), and keeps only its tile's pixels. Products are read and written
+//! through [`crate::product::format`], so FITS inputs give FITS outputs as in
+//! `persist run`. Where a tile's pixels are computed
 //! ([`Placement`]):
 //! - a model whose pixels are independent ([`Model::is_pixel_local`]: no neighbour
 //!   effect, no background estimated over the array) is stepped on the tile alone
@@ -47,8 +50,9 @@
 //! with the stage's writer (validated against the schemas, `.NAME.part`, fsync, rename,
 //! directory fsync; an output already published is left alone, as `persist run`
 //! does), then the final checkpoint with the stage's checkpoint writer, prunes the
-//! checkpoints by the plan's retention, and removes the detector's work files. It holds
-//! the stage's directory lock ([`crate::stage::lock`]) while it writes.
+//! checkpoints by the plan's retention, and removes the detector's work files. It goes
+//! through the stage's start-up first ([`crate::stage::startup`]: the directory lock,
+//! held while it writes; stray temporaries removed).
 //!
 //! The split is for reprocessing a clean input: a product the stage would refuse or
 //! quarantine (unreadable, outside the ICD, a duplicate index, not following the
@@ -1061,7 +1065,11 @@ fn assemble_detector(
             exposure.flags.slice_mut(win).assign(&flags);
         }
         let attrs = attrs_of(r, &planes);
-        format::write_output(&r.input, &out_path, &read, &planes, &attrs, &fits)?;
+        if let Some(staged) =
+            format::stage_output(&r.input, &out_path, &read, &planes, &attrs, &fits)?
+        {
+            staged.commit()?;
+        }
         out.written += 1;
     }
     if span.is_some_and(|s| !s.exact()) {

@@ -15,24 +15,10 @@ use std::path::Path;
 /// `persist slurm` (tiles `ROWSxCOLS`) into `ROOT/NAME`, then its jobs on this machine.
 fn split(input: &Path, model: Option<&Path>, root: &Path, name: &str, tiles: &str) {
     let dir = root.join(name);
-    let d = |x: &str| dir.join(x).to_string_lossy().into_owned();
-    let mut args: Vec<String> = vec![
-        "slurm".into(),
-        "--input".into(),
-        input.to_string_lossy().into_owned(),
-        "--output".into(),
-        d("out"),
-        "--checkpoints".into(),
-        d("ckpt"),
-        "--work".into(),
-        d("work"),
-        "--tiles".into(),
-        tiles.into(),
-    ];
-    if let Some(m) = model {
-        args.extend(["--model".into(), m.to_string_lossy().into_owned()]);
-    }
-    let o = common::bin().args(&args).output().unwrap();
+    let o = common::bin()
+        .args(slurm_args_for(input, model, &dir, tiles))
+        .output()
+        .unwrap();
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let o = std::process::Command::new("bash")
         .arg(dir.join("work/run_local.sh"))

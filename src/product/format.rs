@@ -128,21 +128,6 @@ pub fn stage_output(
     }
 }
 
-/// [`stage_output`], published.
-pub fn write_output(
-    input: &Path,
-    out: &Path,
-    read: &InputProduct,
-    planes: &PersistencePlanes,
-    attrs: &PersistenceAttrs,
-    cfg: &FitsConfig,
-) -> Result<()> {
-    match stage_output(input, out, read, planes, attrs, cfg)? {
-        Some(staged) => staged.commit(),
-        None => Ok(()),
-    }
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -65,23 +65,30 @@ pub fn reference(s: &Sky, name: &str) -> PathBuf {
 
 /// `persist slurm` arguments for `ROOT/NAME/{out,ckpt,work}`.
 pub fn slurm_args(s: &Sky, name: &str, tiles: &str) -> Vec<String> {
-    let dir = s.root.path().join(name);
+    slurm_args_for(&s.input, Some(&s.model), &s.root.path().join(name), tiles)
+}
+
+/// `persist slurm` arguments of `input` for `DIR/{out,ckpt,work}` (`model`: none, the
+/// default model).
+pub fn slurm_args_for(input: &Path, model: Option<&Path>, dir: &Path, tiles: &str) -> Vec<String> {
     let d = |x: &str| dir.join(x).to_string_lossy().into_owned();
-    vec![
+    let mut args: Vec<String> = vec![
         "slurm".into(),
         "--input".into(),
-        s.input.to_string_lossy().into_owned(),
+        input.to_string_lossy().into_owned(),
         "--output".into(),
         d("out"),
         "--checkpoints".into(),
         d("ckpt"),
         "--work".into(),
         d("work"),
-        "--model".into(),
-        s.model.to_string_lossy().into_owned(),
         "--tiles".into(),
         tiles.into(),
-    ]
+    ];
+    if let Some(m) = model {
+        args.extend(["--model".into(), m.to_string_lossy().into_owned()]);
+    }
+    args
 }
 
 /// Output products by file name.
