@@ -1,8 +1,8 @@
 """One exposure path: the Python `persist.run`, the command line's `persist run` and
 `persist slurm`'s tile jobs give the same output and checkpoint bytes on the committed
 fixtures and on a 2-detector simulated sky (tests/one_path.rs compares the last two
-alone). Needs the `persist` executable of this checkout (`cargo build --release`), or
-its path in PERSIST_BIN."""
+alone). Needs the `persist` executable of this checkout (`cargo build`, or `cargo test`,
+which `make test` runs first), or its path in PERSIST_BIN."""
 
 import os
 import pathlib
@@ -18,8 +18,14 @@ EPOCH = "1767225600"
 
 
 def executable():
-    exe = pathlib.Path(os.environ.get("PERSIST_BIN", ROOT / "target" / "release" / "persist"))
-    assert exe.is_file(), f"{exe}: build it with `cargo build --release` or set PERSIST_BIN"
+    """PERSIST_BIN, or the newer of this checkout's release and debug builds."""
+    if "PERSIST_BIN" in os.environ:
+        exe = pathlib.Path(os.environ["PERSIST_BIN"])
+    else:
+        built = [ROOT / "target" / p / "persist" for p in ("release", "debug")]
+        found = [b for b in built if b.is_file()]
+        exe = max(found, key=lambda b: b.stat().st_mtime) if found else built[0]
+    assert exe.is_file(), f"{exe}: build it with `cargo build` or set PERSIST_BIN"
     return exe
 
 
