@@ -22,7 +22,7 @@
 //!   (`Crop` with no halo): a pixel-local model predicts any selection of its pixels,
 //!   laid out anew, bit for bit as on the whole array;
 //! - any other model is stepped on the whole array with the tile as its active pixels
-//!   (`Frame`, [`StepContext::active_pixels`]): the step advances the tile, and builds
+//!   (`Frame`, [`crate::model::StepContext::active_pixels`]): the step advances the tile, and builds
 //!   the response planes on the tile widened by the halo its effects declare
 //!   ([`halo_px`], the sum of [`crate::model::effect::Effect::response_reach_px`]:
 //!   `ipc` 1, `blooming` 0), plus the rows the early-release background samples.

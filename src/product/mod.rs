@@ -1,7 +1,7 @@
 //! Level-1 input and persistence output products (ICD), in memory, in HDF5 and in
 //! SPHEREx's FITS layout ([`fits`]).
 //!
-//! This is the only code that knows the product layouts, and [`format`] the only place
+//! This is the only code that knows the product layouts, and [`mod@format`] the only place
 //! that chooses between them (by a file's content): the stage asks it for the next
 //! exposure and hands it the output. Files are checked against the JSON Schemas of
 //! `schemas/` through a manifest of their layout ([`schema`]), then against what a

@@ -1,9 +1,9 @@
 //! One exposure of a detector's history through the model: the one path that
-//! `persist run` ([`super::run`]), `persist slurm`'s tile jobs ([`crate::tile`]) and the
+//! `persist run` ([`mod@super::run`]), `persist slurm`'s tile jobs ([`crate::tile`]) and the
 //! Python `persist.run` (which calls the stage) share.
 //!
 //! [`step_exposure`] takes the detector's state and bookkeeping and one exposure, applies
-//! the stage's gap rule (the "history incomplete" deadline, [`super::run`] module docs),
+//! the stage's gap rule (the "history incomplete" deadline, [`mod@super::run`] module docs),
 //! steps the model over a [`Window`] of the array, and leaves the state, the output
 //! planes, the exposure's flags (with the `PERSIST` bits) and the bookkeeping (crossed
 //! gaps, first index, input digests) advanced; [`output_attrs`] is the provenance every
@@ -90,7 +90,7 @@ impl Bookkeeping {
 }
 
 /// Whether exposure `index` follows a gap in a history whose last processed exposure is
-/// `last` (the gap rule, [`super::run`] module docs): never in a history ordered by
+/// `last` (the gap rule, [`mod@super::run`] module docs): never in a history ordered by
 /// start time, which has no successor index.
 pub fn gap_before(book: &Bookkeeping, last: Option<u64>, index: u64) -> bool {
     book.by_start_time != Some(true) && last.is_some_and(|l| index != l + 1)

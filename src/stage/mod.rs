@@ -24,7 +24,7 @@ pub fn run(cfg: &RunConfig, on_exposure: &(dyn Fn(&ExposureReport) + Sync)) -> R
     run_with(cfg, &Ops::default(), on_exposure)
 }
 
-/// Run the stage as `ops` says: one batch ([`run`] module docs), or watching until
+/// Run the stage as `ops` says: one batch ([`mod@run`] module docs), or watching until
 /// [`Ops::stop`] ([`watch`]).
 pub fn run_with(
     cfg: &RunConfig,
