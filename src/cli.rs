@@ -15,7 +15,6 @@ use persist::diag::data::Background;
 use persist::diag::diagnose::{Refit, Statistic};
 use persist::diag::eval::{CellStatistic, Cells};
 use persist::model::{Model, ModelParams};
-use persist::stage::lock::DirLock;
 use persist::stage::{self, ExposureReport, Ops, RunConfig, RunReport, WatchOpts};
 use persist::units::DetectorId;
 use persist::{Error, ErrorKind};
@@ -1146,28 +1145,14 @@ fn run_stage(args: &RunArgs) -> persist::Result<ExitCode> {
         })
         .transpose()?;
     // A worker runs under its parent's lock (module docs of `stage::workers`).
-    let _lock = match worker {
-        None => Some(DirLock::acquire(&[&args.output, &args.checkpoints])?),
-        Some(_) => None,
-    };
-    for dir in [&args.output, &args.checkpoints]
-        .into_iter()
-        .filter(|_| worker.is_none())
-    {
-        let n = persist::checkpoint::clean_temporaries(dir)?;
-        if n > 0 {
-            tracing::info!(dir = %dir.display(), removed = n, "stray temporary files removed");
-        }
-    }
-    let stop = Arc::new(AtomicBool::new(false));
-    for sig in [signal_hook::consts::SIGINT, signal_hook::consts::SIGTERM] {
-        // A second signal while stopping exits at once (status 130).
-        signal_hook::flag::register_conditional_shutdown(sig, 130, Arc::clone(&stop))
-            .and_then(|_| signal_hook::flag::register(sig, Arc::clone(&stop)))
-            .map_err(|e| {
-                Error::new(ErrorKind::Io, format!("cannot install signal handler: {e}"))
-            })?;
-    }
+    let started = stage::startup::start(
+        &[&args.output, &args.checkpoints],
+        stage::startup::Startup {
+            lock: worker.is_none(),
+            signals: true,
+        },
+    )?;
+    let stop = Arc::clone(&started.stop);
     if worker.is_some() {
         // Blocked since the worker started: a stop forwarded before now is handled now.
         stage::workers::unblock_stop_signals();
@@ -1490,7 +1475,7 @@ fn compare(a: &CompareArgs) -> persist::Result<ExitCode> {
         cell_statistic: a.cells.cell_statistic,
         background: a.cells.background,
     };
-    let s = persist::diag::compare::run_with(&a.input, &a.models, &a.report, &opts)?;
+    let s = persist::diag::compare_command::run_with(&a.input, &a.models, &a.report, &opts)?;
     out!("{s}");
     Ok(ExitCode::SUCCESS)
 }

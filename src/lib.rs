@@ -1,9 +1,11 @@
 //! `persist`: predict and flag image persistence in HAWAII-2RG arrays (SPHEREx).
 //!
-//! The data take one straight path, each step one module:
+//! ARCHITECTURE.md (at the repository's root) is the one-page map: the data path, each
+//! folder's job, and what may import what. The data take one straight path, each step
+//! one module:
 //!
 //! ```text
-//! product::read -> model::fluence -> model::Model::step -> product::write -> checkpoint
+//! product::format -> model::fluence -> model::Model::step -> product::format -> checkpoint
 //!                                      (predict, flag, early release, decay, respond)
 //! ```
 //!

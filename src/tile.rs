@@ -10,16 +10,19 @@
 //! [`Plan::tasks`] is tile `n % tiles` of detector `n / tiles`.
 //!
 //! # Why the split is exact
-//! A tile job steps the detector's whole history, exposure by exposure, exactly as
-//! `persist run` does (same start checkpoint, same order, same gap rule and
-//! bookkeeping), but keeps only its tile's pixels. Where a tile's pixels are computed
+//! A tile job steps the detector's whole history, exposure by exposure, through the
+//! stage's own exposure path ([`crate::stage::exposure::step_exposure`]: same start
+//! checkpoint, same order, same gap rule and bookkeeping; the tile is only the window it
+//! reads and writes), and keeps only its tile's pixels. Products are read and written
+//! through [`crate::product::format`], so FITS inputs give FITS outputs as in
+//! `persist run`. Where a tile's pixels are computed
 //! ([`Placement`]):
 //! - a model whose pixels are independent ([`Model::is_pixel_local`]: no neighbour
 //!   effect, no background estimated over the array) is stepped on the tile alone
 //!   (`Crop` with no halo): a pixel-local model predicts any selection of its pixels,
 //!   laid out anew, bit for bit as on the whole array;
 //! - any other model is stepped on the whole array with the tile as its active pixels
-//!   (`Frame`, [`StepContext::active_pixels`]): the step advances the tile, and builds
+//!   (`Frame`, [`crate::model::StepContext::active_pixels`]): the step advances the tile, and builds
 //!   the response planes on the tile widened by the halo its effects declare
 //!   ([`halo_px`], the sum of [`crate::model::effect::Effect::response_reach_px`]:
 //!   `ipc` 1, `blooming` 0), plus the rows the early-release background samples.
@@ -47,8 +50,9 @@
 //! with the stage's writer (validated against the schemas, `.NAME.part`, fsync, rename,
 //! directory fsync; an output already published is left alone, as `persist run`
 //! does), then the final checkpoint with the stage's checkpoint writer, prunes the
-//! checkpoints by the plan's retention, and removes the detector's work files. It holds
-//! the stage's directory lock ([`crate::stage::lock`]) while it writes.
+//! checkpoints by the plan's retention, and removes the detector's work files. It goes
+//! through the stage's start-up first ([`crate::stage::startup`]: the directory lock,
+//! held while it writes; stray temporaries removed).
 //!
 //! The split is for reprocessing a clean input: a product the stage would refuse or
 //! quarantine (unreadable, outside the ICD, a duplicate index, not following the
@@ -57,9 +61,14 @@
 use crate::checkpoint::{self, CheckpointMeta, Retention};
 use crate::error::{Error, ErrorKind, Result};
 use crate::h5io;
-use crate::model::{Input, Model, ModelParams, Output, State, StepContext};
-use crate::product::{self, ExposureMeta, PersistenceAttrs, PersistencePlanes};
-use crate::stage::run::{file_digest, Bookkeeping, DUPLICATE_WINDOW};
+use crate::model::{Model, ModelParams, State};
+use crate::product::fits::FitsConfig;
+use crate::product::format;
+use crate::product::{ExposureMeta, PersistencePlanes};
+use crate::stage::exposure::{
+    gap_before, output_attrs, step_exposure, Bookkeeping, ExposureStep, Window,
+};
+use crate::stage::run::file_digest;
 use crate::timesplit::{Span, SpanStart, TimeSplit};
 use crate::units::DetectorId;
 use ndarray::{s, Array2, Array3, ArrayView2};
@@ -232,10 +241,16 @@ impl Plan {
         }
         let mut detectors = std::collections::BTreeSet::new();
         for path in crate::stage::queue::candidates(input)? {
-            detectors.insert(product::read::read_meta(&path)?.detector.0);
+            detectors.insert(
+                format::read_input_meta(&path, &FitsConfig::default())?
+                    .detector
+                    .0,
+            );
         }
         if detectors.is_empty() {
-            return Err(Error::new(ErrorKind::Usage, "no input products (*.h5) found").path(input));
+            return Err(
+                Error::new(ErrorKind::Usage, "no input products (*.h5, *.fits) found").path(input),
+            );
         }
         Ok(Plan {
             format: PLAN_FORMAT.into(),
@@ -279,7 +294,7 @@ impl Plan {
                 .ok_or_else(|| Error::invalid("detectors", format!("{d}: must be 1..=6")))?;
             let products: BTreeMap<u64, ExposureMeta> = detector_products(&self.input, det)?
                 .into_iter()
-                .map(|(i, (_, m))| (i, m))
+                .map(|(i, (_, m, _))| (i, m))
                 .collect();
             let start = if from_start {
                 None
@@ -423,6 +438,12 @@ impl Plan {
         Ok(plan)
     }
 
+    /// How FITS inputs are read: SPHEREx's keywords, the conversion their headers give
+    /// (the defaults of `persist run`).
+    pub fn fits(&self) -> FitsConfig {
+        FitsConfig::default()
+    }
+
     fn det_dir(&self, det: DetectorId) -> PathBuf {
         self.work.join(format!("det{}", det.0))
     }
@@ -481,20 +502,21 @@ pub struct TileRecord {
     pub last_index: Option<u64>,
 }
 
+/// A product of a detector: its file, its metadata, and whether its index is a start
+/// time ([`format::read_input_sequence`]).
+type Product = (PathBuf, ExposureMeta, bool);
+
 /// The detector's products in `input`, by exposure index (a repeated index is an error:
 /// the split needs a clean input).
-fn detector_products(
-    input: &Path,
-    det: DetectorId,
-) -> Result<BTreeMap<u64, (PathBuf, ExposureMeta)>> {
-    let mut out: BTreeMap<u64, (PathBuf, ExposureMeta)> = BTreeMap::new();
+fn detector_products(input: &Path, det: DetectorId) -> Result<BTreeMap<u64, Product>> {
+    let mut out: BTreeMap<u64, Product> = BTreeMap::new();
     for path in crate::stage::queue::candidates(input)? {
-        let meta = product::read::read_meta(&path)?;
+        let (meta, by_start_time) = format::read_input_sequence(&path, &FitsConfig::default())?;
         if meta.detector != det {
             continue;
         }
         let index = meta.exposure_index;
-        if let Some((first, _)) = out.get(&index) {
+        if let Some((first, _, _)) = out.get(&index) {
             return Err(Error::new(
                 ErrorKind::Sequence,
                 format!(
@@ -506,7 +528,7 @@ fn detector_products(
             .path(&path)
             .field("exposure_index"));
         }
-        out.insert(index, (path, meta));
+        out.insert(index, (path, meta, by_start_time));
     }
     Ok(out)
 }
@@ -654,22 +676,28 @@ pub fn run_tile_with(
     };
     let (publish_from, last) = span.map_or((0, u64::MAX), |s| (s.first, s.last));
     let place = opts.placement.unwrap_or_else(|| placement(model));
-    let t_cross = model.carry_over_s();
+    let fits = plan.fits();
     // Fixed by the first exposure, with the state of the region it steps.
     let mut work: Option<(Geometry, State)> = None;
     let mut exposures = Vec::new();
-    let mut planes: Option<(Array2<f32>, Array2<u8>)> = None;
-    for (&index, (path, queued)) in products.range(from..=last.max(from)) {
+    let mut planes = PersistencePlanes {
+        current_e_per_s: Array2::zeros((0, 0)),
+        flags: Array2::zeros((0, 0)),
+    };
+    for (&index, (path, queued, by_start_time)) in products.range(from..=last.max(from)) {
         let fail = |e: Error| e.path(path).detector(det).exposure(index);
+        let resumed = work.as_ref().map_or(started_from, |(_, s)| s.last_index);
+        book.admit_order(resumed.is_some(), *by_start_time)
+            .map_err(|why| fail(Error::new(ErrorKind::Sequence, why).field("exposure_index")))?;
         let digest = file_digest(path).map_err(fail)?;
-        let exposure = product::read::read_exposure(path).map_err(fail)?;
-        if exposure.meta != *queued {
+        let mut read = format::read_input(path, &fits).map_err(fail)?;
+        if read.exposure.meta != *queued {
             return Err(fail(Error::new(
                 ErrorKind::NotReady,
                 "changed while the job ran; run the job again",
             )));
         }
-        let shape = exposure.image.dim();
+        let shape = read.exposure.image.dim();
         if work.is_none() {
             let g = Geometry::new(plan.grid, tile, shape, place)?;
             let st = match state.take() {
@@ -693,70 +721,24 @@ pub fn run_tile_with(
         let Some((g, st)) = work.as_mut() else {
             return Err(fail(Error::new(ErrorKind::Usage, "no geometry")));
         };
-        let (region, core, mask) = (g.region, g.core, g.mask.as_deref());
         if shape != g.full {
             return Err(fail(Error::invalid(
                 "image",
                 format!("shape {shape:?} differs from the detector's {:?}", g.full),
             )));
         }
-        let meta = &exposure.meta;
-        // The stage's gap rule (crate::stage::run, "History incomplete"): in a batch
-        // run every gap is crossed, and outputs are marked until t_start + T after it.
-        let mut until = book.history_incomplete_until_unix_s;
-        if st.last_index.is_some_and(|l| index != l + 1) {
-            let u = meta.t_start.0 + t_cross;
-            until = Some(until.map_or(u, |x| x.max(u)));
-        }
-        let history_incomplete =
-            until.is_some_and(|u| meta.t_start.0 + 0.5 * meta.t_exposure_s < u);
-        let reg = |a: ArrayView2<'_, f32>| {
-            a.slice(s![region.y0..region.y1, region.x0..region.x1])
-                .to_owned()
+        // The stage's own step: in a batch every gap is crossed (crate::stage::run).
+        let step = ExposureStep {
+            window: Window {
+                rows: g.region.y0..g.region.y1,
+                cols: g.region.x0..g.region.x1,
+                active: g.mask.as_deref(),
+            },
+            gap_before: gap_before(&book, st.last_index, index),
+            digest,
         };
-        let image = reg(exposure.image.view());
-        let mut flags = exposure
-            .flags
-            .slice(s![region.y0..region.y1, region.x0..region.x1])
-            .to_owned();
-        let (current, pflags) = planes
-            .get_or_insert_with(|| (Array2::zeros(region.shape()), Array2::zeros(region.shape())));
-        let input = Input {
-            image_e_per_s: image.view(),
-            exposure_index: index,
-            t_start_unix_s: meta.t_start.0,
-            t_exposure_s: meta.t_exposure_s,
-            t_illuminated_s: meta.t_illuminated_s(),
-            history_incomplete,
-            background_e_per_s: None,
-        };
-        let ctx = StepContext {
-            focal_plane_temp_k: meta.focal_plane_temp_k,
-            active_pixels: mask,
-        };
-        let summary = model
-            .step_with(
-                st,
-                &input,
-                &ctx,
-                &mut Output {
-                    flags: &mut flags,
-                    current_e_per_s: current,
-                    pflags,
-                },
-            )
+        let stepped = step_exposure(model, st, &mut book, &mut read.exposure, step, &mut planes)
             .map_err(fail)?;
-        book.history_incomplete_until_unix_s = until;
-        if let Some(prev) = summary.previous_index.filter(|&p| index > p + 1) {
-            book.crossed.push((prev + 1, index - 1));
-        }
-        if book.first_index.is_none() && started_from.is_none() {
-            book.first_index = Some(index);
-        }
-        book.digests.insert(index, digest);
-        while book.digests.len() > DUPLICATE_WINDOW {
-            book.digests.pop_first();
-        }
         if index < publish_from {
             // The warm-up (or the replay up to the span): stepped, not published.
             continue;
@@ -764,17 +746,20 @@ pub fn run_tile_with(
         let record = ExposureRecord {
             exposure_index: index,
             input: path.clone(),
-            t_meas_s: summary.t_meas_s,
-            previous_index: summary.previous_index,
-            history_incomplete,
+            t_meas_s: stepped.summary.t_meas_s,
+            previous_index: stepped.summary.previous_index,
+            history_incomplete: stepped.history_incomplete,
         };
-        let c = |a: &Array2<f32>| a.slice(s![core.y0..core.y1, core.x0..core.x1]).to_owned();
+        let (core, rect) = (g.core, g.rect);
+        let c = s![core.y0..core.y1, core.x0..core.x1];
         write_part(
             &plan.part_path(det, index, tile),
             &record,
-            c(current).view(),
-            pflags.slice(s![core.y0..core.y1, core.x0..core.x1]),
-            flags.slice(s![core.y0..core.y1, core.x0..core.x1]),
+            planes.current_e_per_s.slice(c).to_owned().view(),
+            planes.flags.slice(c),
+            read.exposure
+                .flags
+                .slice(s![rect.y0..rect.y1, rect.x0..rect.x1]),
         )?;
         exposures.push(record);
     }
@@ -909,11 +894,14 @@ pub struct Assembled {
 /// Build the whole-array outputs and final checkpoints from the tiles of every detector
 /// of the plan (module docs). With `keep_work`, the work files stay.
 pub fn assemble(plan: &Plan, model: &Model, keep_work: bool) -> Result<Vec<Assembled>> {
-    // The stage's lock: never alongside a `persist run` on the same directories.
-    for dir in [&plan.output, &plan.checkpoints] {
-        std::fs::create_dir_all(dir).map_err(|e| Error::io(dir, e))?;
-    }
-    let _lock = crate::stage::lock::DirLock::acquire(&[&plan.output, &plan.checkpoints])?;
+    // The stage's start-up: never alongside a `persist run` on the same directories.
+    let _started = crate::stage::startup::start(
+        &[&plan.output, &plan.checkpoints],
+        crate::stage::startup::Startup {
+            lock: true,
+            signals: false,
+        },
+    )?;
     // Every tile of every detector finished with one history, before anything is
     // published.
     let mut loaded = Vec::new();
@@ -1016,18 +1004,18 @@ fn assemble_detector(
         return Ok(out);
     }
     let (ny, nx) = first.shape;
-    let attrs_of = |r: &ExposureRecord, planes: &PersistencePlanes| PersistenceAttrs {
-        model_id: model.identity().to_string(),
-        model_name: model.params().name.clone(),
-        threshold_high_e_per_s: model.params().thresholds.high_e_per_s,
-        threshold_low_e_per_s: model.params().thresholds.low_e_per_s,
-        t_meas_s: r.t_meas_s.unwrap_or(f64::NAN),
-        previous_exposure_index: r.previous_index.map_or(-1, |i| i as i64),
-        software_version: crate::VERSION.to_string(),
-        processed_utc: plan.processed_utc.clone(),
-        stats: Some(product::FlagStats::of_plane(&planes.flags)),
-        warmup: span.and_then(Span::warmup_attrs),
+    let attrs_of = |r: &ExposureRecord, planes: &PersistencePlanes| {
+        let warmup = span.and_then(Span::warmup_attrs);
+        output_attrs(
+            model,
+            r.t_meas_s,
+            r.previous_index,
+            &plan.processed_utc,
+            planes,
+            warmup,
+        )
     };
+    let fits = plan.fits();
     let rewrite = plan.time.as_ref().is_some_and(|t| t.from_start);
     std::fs::create_dir_all(&plan.output).map_err(|e| Error::io(&plan.output, e))?;
     for r in &first.exposures {
@@ -1036,7 +1024,8 @@ fn assemble_detector(
             out.already_published += 1;
             continue;
         }
-        let mut exposure = product::read::read_exposure(&r.input)?;
+        let mut read = format::read_input(&r.input, &fits)?;
+        let exposure = &mut read.exposure;
         if exposure.image.dim() != (ny, nx) {
             return Err(Error::invalid("image", "shape differs from the tiles'").path(&r.input));
         }
@@ -1075,7 +1064,12 @@ fn assemble_detector(
             planes.flags.slice_mut(win).assign(&pflags);
             exposure.flags.slice_mut(win).assign(&flags);
         }
-        product::write::write_output(&out_path, &exposure, &planes, &attrs_of(r, &planes))?;
+        let attrs = attrs_of(r, &planes);
+        if let Some(staged) =
+            format::stage_output(&r.input, &out_path, &read, &planes, &attrs, &fits)?
+        {
+            staged.commit()?;
+        }
         out.written += 1;
     }
     if span.is_some_and(|s| !s.exact()) {

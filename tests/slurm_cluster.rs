@@ -1,7 +1,8 @@
 //! The split on a real Slurm: a one-node cluster (scripts/slurm_cluster.sh: munged,
 //! slurmctld, slurmd in the foreground, private configuration and ports) runs
 //! `persist slurm --submit`'s array of 2 detectors x 4 tiles and its `afterok`
-//! assembly job on a 64 x 64 simulated sky; the outputs and final checkpoints must be
+//! assembly job on a 64 x 64 simulated sky, and 2 detectors x 2 tiles of the same sky
+//! written as SPHEREx-layout FITS; the outputs and final checkpoints must be
 //! byte-identical to one `persist run`. The daemons are stopped by their PIDs
 //! afterwards, also when the test fails. A machine where the cluster cannot start
 //! (no root, no package) fails this test; `PERSIST_SLURM_TEST=skip` skips it, loudly.
@@ -108,19 +109,33 @@ impl Drop for Cluster {
     }
 }
 
+/// One cluster at a time in this process (they share the PID's directory and ports).
+static CLUSTER: std::sync::Mutex<()> = std::sync::Mutex::new(());
+
 #[test]
 fn a_slurm_array_of_two_detectors_by_four_tiles_and_its_assembly_give_the_bytes_of_one_run() {
+    split_on_a_cluster(sky(), "2x2", 8);
+}
+
+#[test]
+fn fits_inputs_in_a_slurm_array_of_two_detectors_by_two_tiles_give_the_bytes_of_one_run() {
+    split_on_a_cluster(sky_fits(), "1x2", 4);
+}
+
+/// `persist slurm --submit` of `s` in `tiles` (`tasks` array tasks in all) on the
+/// one-node cluster, against one `persist run`.
+fn split_on_a_cluster(s: Sky, tiles: &str, tasks: usize) {
     if std::env::var("PERSIST_SLURM_TEST").as_deref() == Ok("skip") {
         eprintln!("SKIPPED: the Slurm cluster test (PERSIST_SLURM_TEST=skip)");
         return;
     }
+    let _one = CLUSTER.lock().unwrap_or_else(|e| e.into_inner());
     let t0 = Instant::now();
-    let s = sky();
     let reference = reference(&s, "ref");
     let mut cluster = Cluster::start();
     let started = t0.elapsed();
     let o = common::bin()
-        .args(slurm_args(&s, "slurm", "2x2"))
+        .args(slurm_args(&s, "slurm", tiles))
         .arg("--submit")
         .env("SLURM_CONF", &cluster.conf)
         .output()
@@ -168,7 +183,7 @@ fn a_slurm_array_of_two_detectors_by_four_tiles_and_its_assembly_give_the_bytes_
         .unwrap_or_default();
     assert_eq!(done, "COMPLETED", "assembly job {assemble}; logs:\n{logs}");
     let tile_states = cluster.scontrol_states(tiles);
-    assert_eq!(tile_states.len(), 8, "{tile_states:?}");
+    assert_eq!(tile_states.len(), tasks, "{tile_states:?}");
     assert!(
         tile_states.iter().all(|s| s == "COMPLETED"),
         "{tile_states:?}"

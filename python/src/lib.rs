@@ -598,7 +598,7 @@ fn run<'py>(
     from_checkpoint: Option<(i64, u64)>,
     allow_model_change: bool,
 ) -> PyResult<Bound<'py, PyDict>> {
-    use persist::stage::{self, lock::DirLock, Ops, RunConfig};
+    use persist::stage::{self, startup, Ops, RunConfig};
     if checkpoint_every == 0 {
         return Err(PyValueError::new_err("checkpoint_every: must be >= 1"));
     }
@@ -631,15 +631,15 @@ fn run<'py>(
         processed_utc: stage::processing_time(),
     };
     let report = py.detach(|| -> persist::Result<stage::RunReport> {
-        // As `persist run`: one stage per set of directories, so every temporary file
-        // left there is from an interrupted write of ours.
-        for dir in [&cfg.output, &cfg.checkpoints] {
-            std::fs::create_dir_all(dir).map_err(|e| persist::Error::io(dir, e))?;
-        }
-        let _lock = DirLock::acquire(&[&cfg.output, &cfg.checkpoints])?;
-        for dir in [&cfg.output, &cfg.checkpoints] {
-            persist::checkpoint::clean_temporaries(dir)?;
-        }
+        // As `persist run`: the lock and the cleaning of temporaries; Python keeps its
+        // own signal handlers.
+        let _started = startup::start(
+            &[&cfg.output, &cfg.checkpoints],
+            startup::Startup {
+                lock: true,
+                signals: false,
+            },
+        )?;
         let ops = Ops {
             quarantine: Some(quarantine),
             ..Ops::default()
@@ -676,7 +676,7 @@ fn compare<'py>(
     let summary = report.join("summary.json");
     let text = py
         .detach(|| -> persist::Result<String> {
-            persist::diag::compare::run(&input, &models, &report)?;
+            persist::diag::compare_command::run(&input, &models, &report)?;
             std::fs::read_to_string(&summary).map_err(|e| persist::Error::io(&summary, e))
         })
         .map_err(err)?;

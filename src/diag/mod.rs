@@ -20,6 +20,7 @@ pub use crate::measure::{data, eval, spread};
 pub mod base;
 pub mod command;
 pub mod compare;
+pub mod compare_command;
 pub mod config;
 pub mod contrast;
 pub mod data_term;

@@ -10,9 +10,9 @@
 //! a Gaussian PSF cube, a linear wavelength table from the band edges): they give
 //! round-trip tests SPHEREx's file structure, not science.
 
-use super::write::{append_persistence, check_written, flag_cards, flush};
-use super::{fits_error, Conversion, Keywords};
 use crate::error::{Error, ErrorKind, Result};
+use crate::product::fits::write::{append_persistence, check_written, flag_cards, flush};
+use crate::product::fits::{fits_error, Conversion, Keywords};
 use crate::product::{self, Exposure, PersistenceAttrs, PersistencePlanes};
 use crate::validate::{validate_path, ProductKind};
 use fitsio::images::{ImageDescription, ImageType};
@@ -172,7 +172,7 @@ pub fn write_exposure(
             let mut f = FitsFile::open(tmp).map_err(|err| fits_error(path, "file", err))?;
             for ext in [k.image_ext.as_str(), k.flags_ext.as_str()] {
                 let hdu = f.hdu(ext).map_err(|err| fits_error(path, ext, err))?;
-                super::read::plane_shape(path, ext, &hdu)?;
+                crate::product::fits::read::plane_shape(path, ext, &hdu)?;
             }
             if persistence.is_some() {
                 check_written(tmp, path, dim, &k.flags_ext)?;

@@ -71,6 +71,12 @@ use crate::error::{Error, ErrorKind, Result};
 use crate::flags::bits;
 use crate::product::{read, Exposure};
 use crate::stats::median;
+
+/// `T` times the shot-noise variance, per e-/s of current, of an unweighted
+/// least-squares slope over an integration of length `T`: for `m` reads `dt` apart the
+/// variance is `6 (m^2 + 1) / (5 m (m^2 - 1) dt)` per e-/s (Rauscher et al. 2007;
+/// [`crate::sim::detector`]), which is `6 / (5 T)` for many reads.
+pub const SHOT_VAR_LINE_FIT: f64 = 1.2;
 use ndarray::Array2;
 use serde::Serialize;
 use std::path::Path;
@@ -466,9 +472,9 @@ impl Sequence {
     }
 
     /// The shot-noise variance of exposure `k`'s line-fit current per e-/s of current:
-    /// [`super::eval::SHOT_VAR_LINE_FIT`] over its integration's length.
+    /// [`SHOT_VAR_LINE_FIT`] over its integration's length.
     pub fn shot_var_per_e_per_s(&self, k: usize) -> f64 {
-        super::eval::SHOT_VAR_LINE_FIT / self.exposures[k].meta.t_exposure_s
+        SHOT_VAR_LINE_FIT / self.exposures[k].meta.t_exposure_s
     }
 
     /// The pixels' relative spread below their 95th percentile, per fluence, measured
@@ -544,7 +550,7 @@ impl PopulationSpread {
     /// From the illumination's fluence and the next dark integration's measured current
     /// (e-/s, NaN where unusable) with exposure noise `noise_e_per_s` and the shot noise
     /// of the pixels' own current, variance `shot_var_per_e_per_s` per e-/s (the line
-    /// fit's [`super::eval::SHOT_VAR_LINE_FIT`] over the integration's length; 0 for
+    /// fit's [`SHOT_VAR_LINE_FIT`] over the integration's length; 0 for
     /// none).
     pub fn measure(
         fluence_e: &Array2<f64>,
@@ -1060,7 +1066,7 @@ mod tests {
     }
 
     /// The same population with each pixel's own shot noise (a 180 s line fit:
-    /// variance 1.2 / 180 per e-/s, [`super::super::eval::SHOT_VAR_LINE_FIT`]) on top of
+    /// variance 1.2 / 180 per e-/s, [`super::SHOT_VAR_LINE_FIT`]) on top of
     /// the exposure noise: told the shot noise, `r` is the 8 % lognormal's 0.075 within
     /// 15 % at 1e4.3-1e5 e-, where the shot noise is 1-2.6 times the spread below the
     /// 95th percentile; told only the exposure noise (as it once was), `r` counts the shot noise as spread and stands more than 30 % high at
@@ -1070,7 +1076,7 @@ mod tests {
         use rand::{Rng, SeedableRng};
         use rand_distr::StandardNormal;
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(5);
-        let (n, sigma, g) = (40_000, 0.02, super::super::eval::SHOT_VAR_LINE_FIT / 180.0);
+        let (n, sigma, g) = (40_000, 0.02, super::SHOT_VAR_LINE_FIT / 180.0);
         let f = Array2::from_shape_fn((1, n), |(_, i)| 10f64.powf(4.3 + 0.7 * i as f64 / n as f64));
         let c = Array2::from_shape_fn((1, n), |(_, i)| {
             let (a, b, e): (f64, f64, f64) = (

@@ -513,11 +513,7 @@ impl Samples {
     }
 }
 
-/// `T` times the shot-noise variance, per e-/s of current, of an unweighted
-/// least-squares slope over an integration of length `T`: for `m` reads `dt` apart the
-/// variance is `6 (m^2 + 1) / (5 m (m^2 - 1) dt)` per e-/s (Rauscher et al. 2007;
-/// [`crate::sim::detector`]), which is `6 / (5 T)` for many reads.
-pub const SHOT_VAR_LINE_FIT: f64 = 1.2;
+pub use super::data::SHOT_VAR_LINE_FIT;
 
 /// The model's predictions (and flags) at the samples.
 #[derive(Debug, Clone)]

@@ -1,6 +1,6 @@
 //! Model effects: physical corrections to the paper's exponential sum, plugged into the
-//! same [`crate::model::Model::step`] the stage uses (ARCHITECTURE "Effects plug into
-//! the same step the stage uses").
+//! same [`crate::model::Model::step`] the stage uses (ARCHITECTURE.md, "Where effects
+//! plug in").
 //!
 //! An effect is one type implementing [`Effect`], with named parameters (value and
 //! bounds, [`ParamSpec`]) so that `persist fit` and `persist diagnose` can vary them.

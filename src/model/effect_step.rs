@@ -89,6 +89,36 @@ fn needed_pixels(
     m
 }
 
+impl Model {
+    /// [`Model::step`] with the exposure's environment (temperature), which effects
+    /// may use. A model without effects ignores it.
+    pub fn step_with(
+        &self,
+        state: &mut State,
+        input: &Input<'_>,
+        ctx: &StepContext,
+        out: &mut Output<'_>,
+    ) -> Result<StepSummary, Error> {
+        if self.effects().is_empty() {
+            return self.step_fused(state, input, out);
+        }
+        self.check_pixel_response(state)?;
+        step(self, self.effects(), state, input, ctx, out)
+    }
+
+    /// Run one exposure: see the documentation of [`super::step`]. Nothing is changed
+    /// on error. A model with effects goes through this module's step (without an
+    /// environment; the stage uses [`Model::step_with`]).
+    pub fn step(
+        &self,
+        state: &mut State,
+        input: &Input<'_>,
+        out: &mut Output<'_>,
+    ) -> Result<StepSummary, Error> {
+        self.step_with(state, input, &StepContext::default(), out)
+    }
+}
+
 pub(crate) fn step(
     model: &Model,
     effects: &[Box<dyn Effect>],

@@ -18,16 +18,25 @@
 //! `t_illuminated_s` is (the model checks that it is, in `(0, t_exposure_s]`), so NaN
 //! and Inf never reach the state through it.
 
-use crate::flags::bits;
+use crate::flags::{bits, pbits};
 use ndarray::{Array2, ArrayView2, Zip};
 
-/// The on-board flag values the model acts on (the ICD's by default).
+/// The on-board flag values the model acts on, and the persistence flag bits it writes
+/// (the ICD's by default; [`crate::model::Model::with_flag_bits`] sets others).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct FlagBits {
     pub transient: u32,
     pub sur_error: u32,
     pub nonfunc: u32,
     pub persist: u32,
+    /// The bits of the persistence flag plane the step writes (`/persistence/flags`):
+    /// current above the high and the low threshold, maximum amplitude used, released
+    /// early, history incomplete.
+    pub high: u8,
+    pub low: u8,
+    pub max_amplitude: u8,
+    pub released: u8,
+    pub history_incomplete: u8,
 }
 
 impl Default for FlagBits {
@@ -37,6 +46,11 @@ impl Default for FlagBits {
             sur_error: bits::SUR_ERROR,
             nonfunc: bits::NONFUNC,
             persist: bits::PERSIST,
+            high: pbits::HIGH,
+            low: pbits::LOW,
+            max_amplitude: pbits::MAX_AMPLITUDE,
+            released: pbits::RELEASED,
+            history_incomplete: pbits::HISTORY_INCOMPLETE,
         }
     }
 }

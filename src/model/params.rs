@@ -161,7 +161,7 @@ impl Default for EarlyRelease {
     }
 }
 
-/// A named physical effect with its parameters (see ARCHITECTURE "Effects").
+/// A named physical effect with its parameters (ARCHITECTURE.md, "Where effects plug in").
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct EffectSpec {

@@ -1,6 +1,6 @@
 //! One exposure through the model, fused into one pass over the state.
 //!
-//! For each pixel, in this order (ARCHITECTURE "The path of one exposure"):
+//! For each pixel, in this order (ARCHITECTURE.md, "The data path"):
 //! 1. **predict** `i_p(t_meas) = sum_n A_n C_n exp(-t_meas/tau_n)` from the state left by
 //!    the previous exposure, `t_meas = t_slew + 0.5 t_exposure` after its reset;
 //! 2. **flag**: above the high / low thresholds (strictly greater). A pixel whose
@@ -36,7 +36,6 @@ use super::pixel_response::PixelResponse;
 use super::response::Response;
 use super::state::{State, PENDING_MAX_AMPLITUDE};
 use crate::error::{Error, ErrorKind};
-use crate::flags::pbits;
 use ndarray::{Array2, ArrayView2};
 use rayon::prelude::*;
 
@@ -122,7 +121,7 @@ impl Model {
     }
 
     /// A model applying a per-pixel map steps only arrays of the map's shape.
-    fn check_pixel_response(&self, state: &State) -> Result<(), Error> {
+    pub(super) fn check_pixel_response(&self, state: &State) -> Result<(), Error> {
         match &self.pixel_response {
             Some(r) if r.dim() != state.shape() => Err(Error::invalid(
                 "pixel_map",
@@ -211,36 +210,16 @@ impl Model {
         !(er.enabled && er.subtract_background) && self.effects.iter().all(|e| e.is_pixel_local())
     }
 
-    /// [`Model::step`] with the exposure's environment (temperature), which effects
-    /// may use. A model without effects ignores it.
-    pub fn step_with(
-        &self,
-        state: &mut State,
-        input: &Input<'_>,
-        ctx: &super::effect_step::StepContext,
-        out: &mut Output<'_>,
-    ) -> Result<StepSummary, Error> {
-        if self.effects.is_empty() {
-            return self.step(state, input, out);
-        }
-        self.check_pixel_response(state)?;
-        super::effect_step::step(self, &self.effects, state, input, ctx, out)
-    }
-
-    /// Run one exposure: see the module documentation. Nothing is changed on error.
-    /// A model with effects goes through [`crate::model::effect_step`] (without an
-    /// environment; the stage uses [`Model::step_with`]).
-    pub fn step(
+    /// The paper's fused kernel: one exposure of a model without effects (module
+    /// documentation). [`Model::step`] and [`Model::step_with`] (in
+    /// [`super::effect_step`], which also steps the models with effects) call it.
+    /// Nothing is changed on error.
+    pub(super) fn step_fused(
         &self,
         state: &mut State,
         input: &Input<'_>,
         out: &mut Output<'_>,
     ) -> Result<StepSummary, Error> {
-        if !self.effects.is_empty() {
-            self.check_pixel_response(state)?;
-            let ctx = super::effect_step::StepContext::default();
-            return super::effect_step::step(self, &self.effects, state, input, &ctx, out);
-        }
         let k = self.prepare(state, input, out)?;
         let (ny, nx) = state.shape();
         let n = k.n;
@@ -402,7 +381,7 @@ impl Model {
             first: self.response.first_segment(),
             t_illuminated_s: t_illum,
             history: if input.history_incomplete {
-                pbits::HISTORY_INCOMPLETE
+                self.bits.history_incomplete
             } else {
                 0
             },
@@ -666,7 +645,7 @@ impl Kernel<'_> {
                 &mut pflags[x],
             );
         }
-        Counts::of_row(pflags).summary(nx)
+        Counts::of_row(pflags, &self.bits).summary(nx)
     }
 
     /// Any number of terms.
@@ -692,7 +671,7 @@ impl Kernel<'_> {
         for ((((((a, c), p), &m), f), cur), pf) in pixels {
             self.pixel(a, &self.w[..], &self.decay[..], c, p, m, f, cur, pf);
         }
-        Counts::of_row(pflags).summary(image.len())
+        Counts::of_row(pflags, &self.bits).summary(image.len())
     }
 
     /// One pixel: predict, flag, early release, decay, respond (module docs). Always
@@ -781,10 +760,11 @@ impl Kernel<'_> {
     ) {
         *pending = if max_used { PENDING_MAX_AMPLITUDE } else { 0 };
         *current = v.pred as f32;
-        *pflags = (v.high as u8 * pbits::HIGH)
-            | (v.low as u8 * pbits::LOW)
-            | (v.max_prev as u8 * pbits::MAX_AMPLITUDE)
-            | (v.released as u8 * pbits::RELEASED)
+        let b = &self.bits;
+        *pflags = (v.high as u8 * b.high)
+            | (v.low as u8 * b.low)
+            | (v.max_prev as u8 * b.max_amplitude)
+            | (v.released as u8 * b.released)
             | self.history;
         *flags = (*flags & !self.bits.persist) | if v.high { self.bits.persist } else { 0 };
     }
@@ -833,13 +813,13 @@ struct Counts {
 }
 
 impl Counts {
-    fn of_row(pflags: &[u8]) -> Counts {
+    fn of_row(pflags: &[u8], bits: &FlagBits) -> Counts {
         let bit = |b: u8| pflags.iter().map(|&f| u32::from(f & b != 0)).sum::<u32>();
         Counts {
-            high: bit(pbits::HIGH),
-            low: bit(pbits::LOW),
-            released: bit(pbits::RELEASED),
-            max_amplitude: bit(pbits::MAX_AMPLITUDE),
+            high: bit(bits.high),
+            low: bit(bits.low),
+            released: bit(bits.released),
+            max_amplitude: bit(bits.max_amplitude),
         }
     }
 

@@ -1,7 +1,7 @@
 //! Discover input products: the candidate files of a directory.
 //!
 //! A file is a candidate when its name ends in `.h5` (or is a FITS exposure, `.fits`,
-//! [`crate::fits::is_fits`]) and neither starts with `.` nor
+//! [`crate::product::fits::is_fits`]) and neither starts with `.` nor
 //! ends in `.part` (ICD: upstream writes under such temporary names and renames when
 //! done); folders whose names start with `.` (the quarantine among them) are not
 //! searched. Ordering, gaps and duplicates are the stage's ([`super::run()`]).
@@ -14,7 +14,7 @@ pub fn is_candidate(path: &Path) -> bool {
     let Some(name) = path.file_name().and_then(|n| n.to_str()) else {
         return false;
     };
-    (name.ends_with(".h5") || crate::fits::is_fits(path))
+    (name.ends_with(".h5") || crate::product::fits::is_fits(path))
         && !name.starts_with('.')
         && !name.ends_with(".part")
 }

@@ -68,7 +68,7 @@
 //! # Start-time order (FITS without a sequence number)
 //!
 //! SPHEREx's FITS files carry no exposure sequence number: their exposure index is the
-//! start time in milliseconds since 1970 UTC ([`crate::fits::Sequence::StartTime`]),
+//! start time in milliseconds since 1970 UTC ([`crate::product::fits::Sequence::StartTime`]),
 //! deterministic per file and recorded in the output (`EXPINDEX`, `IDXSRC`). Such a
 //! detector's history (the bookkeeping's `by_start_time`, kept in the checkpoint, never
 //! mixed with sequence numbers) has no successor index to wait for: the earliest queued
@@ -101,13 +101,15 @@
 
 use crate::checkpoint::{self, CheckpointMeta, Retention};
 use crate::error::{Error, ErrorKind, Result};
-use crate::model::{Input, Model, Output, State, StepSummary};
-use crate::product::{self, Exposure, ExposureMeta, PersistenceAttrs, PersistencePlanes};
+use crate::model::{Model, State, StepSummary};
+use crate::product::format::{self, InputProduct};
+use crate::product::{ExposureMeta, PersistencePlanes};
+use crate::stage::exposure::{self as exposure_step, ExposureStep, Window};
 use crate::stage::{quarantine, queue};
 use crate::units::DetectorId;
 use ndarray::Array2;
 use rayon::prelude::*;
-use serde::{Deserialize, Serialize};
+use serde::Serialize;
 use sha2::{Digest, Sha256};
 use std::collections::{BTreeMap, BTreeSet, HashMap};
 use std::path::{Path, PathBuf};
@@ -115,9 +117,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 use std::time::{Duration, Instant, SystemTime};
 
-/// How many processed exposures per detector keep their input digest in the checkpoint
-/// bookkeeping, to tell an identical re-delivery from a different-content duplicate.
-pub const DUPLICATE_WINDOW: usize = 64;
+pub use super::exposure::{Bookkeeping, DUPLICATE_WINDOW};
 
 /// How long a product that HDF5 could not lock waits before it is tried again.
 const RETRY_NOT_READY: Duration = Duration::from_millis(500);
@@ -171,7 +171,7 @@ pub struct Ops {
     /// Progress of a batch run (its length is set once the products are queued).
     pub progress: Option<indicatif::ProgressBar>,
     /// How FITS inputs (`*.fits`) are read: keyword names, conversion factors.
-    pub fits: crate::fits::FitsConfig,
+    pub fits: crate::product::fits::FitsConfig,
     /// Worker mode ([`super::workers`]): process this detector only; the products of
     /// other detectors are left alone.
     pub only: Option<OnlyDetector>,
@@ -235,42 +235,6 @@ pub struct RunReport {
     pub processed: u64,
 }
 
-/// The stage's own bookkeeping carried in each checkpoint (`stage_json`).
-#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
-pub struct Bookkeeping {
-    /// Mark outputs "history incomplete" while their mid-exposure time is before this.
-    pub history_incomplete_until_unix_s: Option<f64>,
-    /// Inclusive ranges of exposure indices the history crossed without them (missing
-    /// or rejected): a product for one of them that turns up later is late.
-    #[serde(default)]
-    pub crossed: Vec<(u64, u64)>,
-    /// The first exposure index of this history (products below it are late).
-    #[serde(default)]
-    pub first_index: Option<u64>,
-    /// SHA-256 (hex) of the input file of each of the last [`DUPLICATE_WINDOW`]
-    /// processed exposures, by index.
-    #[serde(default)]
-    pub digests: BTreeMap<u64, String>,
-    /// Whether this history's exposure indices are start times (FITS exposures without
-    /// a sequence number) rather than sequence numbers; set by the first product
-    /// offered. The two are never mixed in one history. Written only when true, so
-    /// that sequence-number checkpoints are as before (and as `persist tile` writes
-    /// them); a resumed history without it that has processed anything is one of
-    /// sequence numbers.
-    #[serde(default, skip_serializing_if = "is_not_true")]
-    pub by_start_time: Option<bool>,
-}
-
-fn is_not_true(v: &Option<bool>) -> bool {
-    *v != Some(true)
-}
-
-impl Bookkeeping {
-    pub fn was_crossed(&self, index: u64) -> bool {
-        self.crossed.iter().any(|&(a, b)| (a..=b).contains(&index))
-    }
-}
-
 /// The processing time to record: `SOURCE_DATE_EPOCH` (reproducible runs) or now.
 pub fn processing_time() -> String {
     let t = std::env::var("SOURCE_DATE_EPOCH")
@@ -295,61 +259,6 @@ pub fn file_digest(path: &Path) -> Result<String> {
         h.update(&buf[..n]);
     }
     Ok(crate::model::params::to_hex(&h.finalize()))
-}
-
-/// Process every product in `cfg.input` once (batch, no quarantine).
-pub fn run(cfg: &RunConfig, on_exposure: &(dyn Fn(&ExposureReport) + Sync)) -> RunReport {
-    run_with(cfg, &Ops::default(), on_exposure)
-}
-
-/// Run the stage as `ops` says: one batch, or watching until [`Ops::stop`].
-pub fn run_with(
-    cfg: &RunConfig,
-    ops: &Ops,
-    on_exposure: &(dyn Fn(&ExposureReport) + Sync),
-) -> RunReport {
-    let mut stage = Stage::new(cfg, ops, on_exposure);
-    for dir in [&cfg.output, &cfg.checkpoints] {
-        if let Err(e) = std::fs::create_dir_all(dir) {
-            stage.report.errors.push(Error::io(dir, e));
-            return stage.report;
-        }
-    }
-    if !cfg.input.is_dir() {
-        stage
-            .report
-            .errors
-            .push(Error::new(ErrorKind::Usage, "input is not a directory").path(&cfg.input));
-        return stage.report;
-    }
-    match &ops.watch {
-        None => {
-            stage.scan(Instant::now(), true);
-            if let Some(pb) = &ops.progress {
-                pb.set_length(stage.backlog() as u64);
-            }
-            stage.advance(Instant::now(), true);
-            for p in stage.detectors.values() {
-                if let Some((&next, _)) = p.pending.first_key_value() {
-                    if !p.dead && !ops.stop.load(Ordering::SeqCst) {
-                        stage.report.errors.push(
-                            Error::new(
-                                ErrorKind::NotReady,
-                                format!(
-                                    "{} product(s) from exposure {next} on left for the next run",
-                                    p.pending.len()
-                                ),
-                            )
-                            .detector(p.det),
-                        );
-                    }
-                }
-            }
-        }
-        Some(w) => super::watch::watch(&mut stage, w),
-    }
-    stage.report.stopped = ops.stop.load(Ordering::SeqCst);
-    stage.report
 }
 
 /// (size, modification time) of a file: what tells a rescan that it changed.
@@ -395,6 +304,62 @@ impl<'a> Stage<'a> {
         }
     }
 
+    /// A stage on `cfg`'s directories (the output and checkpoint directories created),
+    /// or the report of why it cannot start.
+    pub(crate) fn open(
+        cfg: &'a RunConfig,
+        ops: &'a Ops,
+        on_exposure: &'a (dyn Fn(&ExposureReport) + Sync),
+    ) -> std::result::Result<Self, RunReport> {
+        let mut stage = Stage::new(cfg, ops, on_exposure);
+        for dir in [&cfg.output, &cfg.checkpoints] {
+            if let Err(e) = std::fs::create_dir_all(dir) {
+                stage.report.errors.push(Error::io(dir, e));
+                return Err(stage.report);
+            }
+        }
+        if !cfg.input.is_dir() {
+            stage
+                .report
+                .errors
+                .push(Error::new(ErrorKind::Usage, "input is not a directory").path(&cfg.input));
+            return Err(stage.report);
+        }
+        Ok(stage)
+    }
+
+    /// One batch: one scan, one advance crossing every gap; what is left is reported.
+    pub(crate) fn batch(&mut self) {
+        let ops = self.ops;
+        self.scan(Instant::now(), true);
+        if let Some(pb) = &ops.progress {
+            pb.set_length(self.backlog() as u64);
+        }
+        self.advance(Instant::now(), true);
+        for p in self.detectors.values() {
+            if let Some((&next, _)) = p.pending.first_key_value() {
+                if !p.dead && !ops.stop.load(Ordering::SeqCst) {
+                    self.report.errors.push(
+                        Error::new(
+                            ErrorKind::NotReady,
+                            format!(
+                                "{} product(s) from exposure {next} on left for the next run",
+                                p.pending.len()
+                            ),
+                        )
+                        .detector(p.det),
+                    );
+                }
+            }
+        }
+    }
+
+    /// The run's report, with whether the stop flag ended it.
+    pub(crate) fn finish(mut self) -> RunReport {
+        self.report.stopped = self.ops.stop.load(Ordering::SeqCst);
+        self.report
+    }
+
     /// Products queued and not processed yet.
     pub(crate) fn backlog(&self) -> usize {
         self.detectors.values().map(|p| p.pending.len()).sum()
@@ -438,7 +403,7 @@ impl<'a> Stage<'a> {
 
     fn observe(&mut self, path: &Path, key: FileKey, now: Instant) {
         self.seen.insert(path.to_path_buf(), key);
-        let (meta, by_start_time) = match read_input_sequence(path, &self.ops.fits) {
+        let (meta, by_start_time) = match format::read_input_sequence(path, &self.ops.fits) {
             Ok((m, _)) if self.ops.only.is_some_and(|o| o.detector != m.detector) => return,
             Ok(m) => m,
             Err(_) if self.ops.only.is_some_and(|o| !o.unattributed) => return,
@@ -627,7 +592,8 @@ struct Processor<'a> {
     dead: bool,
     state: Option<State>,
     book: Bookkeeping,
-    buffers: Option<PersistencePlanes>,
+    /// The output planes, reused from exposure to exposure.
+    buffers: PersistencePlanes,
     pending: BTreeMap<u64, Pending>,
     /// Indices refused in this run: no need to wait for them.
     refused: BTreeSet<u64>,
@@ -671,7 +637,10 @@ impl<'a> Processor<'a> {
             dead: false,
             state: None,
             book: Bookkeeping::default(),
-            buffers: None,
+            buffers: PersistencePlanes {
+                current_e_per_s: Array2::zeros((0, 0)),
+                flags: Array2::zeros((0, 0)),
+            },
             pending: BTreeMap::new(),
             refused: BTreeSet::new(),
             gap_before: false,
@@ -783,28 +752,8 @@ impl<'a> Processor<'a> {
                 .exposure(index)
         };
         let resumed = self.last().is_some();
-        let history = self.book.by_start_time.unwrap_or(!resumed && by_start_time);
-        self.book.by_start_time = Some(history);
-        if history != by_start_time {
-            let (this, history) = if by_start_time {
-                (
-                    "has no sequence number (ordered by its start time)",
-                    "sequence numbers",
-                )
-            } else {
-                (
-                    "has a sequence number",
-                    "start times (FITS without a sequence number)",
-                )
-            };
-            let det = self.det;
-            return Offer::Refused(err(
-                ErrorKind::Sequence,
-                format!(
-                    "this product {this}, but detector {det}'s history is ordered by \
-                     {history}: the two are not mixed"
-                ),
-            ));
+        if let Err(why) = self.book.admit_order(resumed, by_start_time) {
+            return Offer::Refused(err(ErrorKind::Sequence, why));
         }
         if let Some(last) = self.last().filter(|&l| index <= l) {
             if let Some(d) = self.book.digests.get(&index) {
@@ -929,9 +878,10 @@ impl<'a> Processor<'a> {
             let Some(mut entry) = self.pending.remove(&next) else {
                 break;
             };
-            let last = self.last();
-            let by_start_time = self.by_start_time();
-            if let Some(l) = last.filter(|&l| next != l + 1 && !by_start_time) {
+            if let Some(l) = self
+                .last()
+                .filter(|_| exposure_step::gap_before(&self.book, self.last(), next))
+            {
                 self.gap_before = true;
                 if !(l + 1..next).all(|i| self.refused.contains(&i)) {
                     tracing::warn!(
@@ -945,15 +895,6 @@ impl<'a> Processor<'a> {
             match self.one(&mut entry) {
                 Ok(report) => {
                     self.gap_before = false;
-                    if self.book.first_index.is_none() && last.is_none() {
-                        self.book.first_index = Some(next);
-                    }
-                    if let Some(d) = entry.digest.take() {
-                        self.book.digests.insert(next, d);
-                        while self.book.digests.len() > DUPLICATE_WINDOW {
-                            self.book.digests.pop_first();
-                        }
-                    }
                     tracing::info!(detector = self.det.0, exposure_index = next,
                         path = %entry.path.display(),
                         above_high = report.summary.above_high,
@@ -1119,24 +1060,15 @@ impl<'a> Processor<'a> {
 
     /// Read, step, publish one exposure.
     fn one(&mut self, entry: &mut Pending) -> Result<ExposureReport, Failure> {
-        let model = &self.model;
         // The duplicate digest reads the file's bytes with plain file I/O (no HDF5), on
         // its own thread while the product is read through HDF5.
         let digesting = entry.digest.is_none().then(|| {
             let path = entry.path.clone();
             std::thread::spawn(move || file_digest(&path))
         });
-        // FITS inputs carry the conversion of their image to e-/s, recorded in the output.
-        let (mut exposure, fits): (Exposure, Option<crate::fits::FitsInput>) =
-            if crate::fits::is_fits(&entry.path) {
-                let (e, c) = crate::fits::read_exposure(&entry.path, &self.ops.fits)
-                    .map_err(Failure::Input)?;
-                (e, Some(c))
-            } else {
-                let e = product::read::read_exposure(&entry.path).map_err(Failure::Input)?;
-                (e, None)
-            };
-        let meta = exposure.meta.clone();
+        let mut read: InputProduct =
+            format::read_input(&entry.path, &self.ops.fits).map_err(Failure::Input)?;
+        let meta = read.exposure.meta.clone();
         if meta != entry.meta {
             return Err(Failure::Input(
                 Error::new(
@@ -1154,93 +1086,46 @@ impl<'a> Processor<'a> {
             entry.digest = Some(digest.map_err(Failure::Input)?);
         }
         let out_path = self.output_path(&entry.path);
-        let shape = exposure.image.dim();
+        let shape = read.exposure.image.dim();
+        let model = &self.model;
         let st = self
             .state
             .get_or_insert_with(|| model.new_state(shape.0, shape.1));
-        let planes = self.buffers.get_or_insert_with(|| PersistencePlanes {
-            current_e_per_s: Array2::zeros(shape),
-            flags: Array2::zeros(shape),
-        });
-        if planes.current_e_per_s.dim() != shape {
-            *planes = PersistencePlanes {
-                current_e_per_s: Array2::zeros(shape),
-                flags: Array2::zeros(shape),
-            };
-        }
-        let book = &mut self.book;
-        let t_mid = meta.t_start.0 + 0.5 * meta.t_exposure_s;
-        let mut until = book.history_incomplete_until_unix_s;
-        if self.gap_before {
-            let u = meta.t_start.0 + model.carry_over_s();
-            until = Some(until.map_or(u, |x| x.max(u)));
-        }
-        let history_incomplete = until.is_some_and(|u| t_mid < u);
-        let input = Input {
-            image_e_per_s: exposure.image.view(),
-            exposure_index: meta.exposure_index,
-            t_start_unix_s: meta.t_start.0,
-            t_exposure_s: meta.t_exposure_s,
-            t_illuminated_s: meta.t_illuminated_s(),
-            history_incomplete,
-            background_e_per_s: None,
+        let step = ExposureStep {
+            window: Window::whole(shape),
+            gap_before: self.gap_before,
+            digest: entry.digest.clone().unwrap_or_default(),
         };
-        let mut flags = std::mem::take(&mut exposure.flags);
-        // The step validates before it changes anything: an error leaves the state as it was.
-        let env = crate::model::StepContext {
-            focal_plane_temp_k: meta.focal_plane_temp_k,
-            ..Default::default()
-        };
-        let summary = model
-            .step_with(
-                st,
-                &input,
-                &env,
-                &mut Output {
-                    flags: &mut flags,
-                    current_e_per_s: &mut planes.current_e_per_s,
-                    pflags: &mut planes.flags,
-                },
-            )
-            .map_err(Failure::Input)?;
-        book.history_incomplete_until_unix_s = until;
-        exposure.flags = flags;
-        if let Some(prev) = summary
-            .previous_index
-            .filter(|&p| meta.exposure_index > p + 1 && book.by_start_time != Some(true))
-        {
-            book.crossed.push((prev + 1, meta.exposure_index - 1));
-        }
+        let stepped = exposure_step::step_exposure(
+            model,
+            st,
+            &mut self.book,
+            &mut read.exposure,
+            step,
+            &mut self.buffers,
+        )
+        .map_err(Failure::Input)?;
+        let summary = stepped.summary;
         let written = if out_path.exists() && !self.reprocess {
             false
         } else {
-            let attrs = PersistenceAttrs {
-                model_id: model.identity().to_string(),
-                model_name: model.params().name.clone(),
-                threshold_high_e_per_s: model.params().thresholds.high_e_per_s,
-                threshold_low_e_per_s: model.params().thresholds.low_e_per_s,
-                t_meas_s: summary.t_meas_s.unwrap_or(f64::NAN),
-                previous_exposure_index: summary.previous_index.map_or(-1, |i| i as i64),
-                software_version: crate::VERSION.to_string(),
-                processed_utc: self.cfg.processed_utc.clone(),
-                stats: Some(product::FlagStats::of_plane(&planes.flags)),
-                warmup: None,
-            };
-            let staged = match &fits {
-                Some(read) => crate::fits::write_output(
-                    &entry.path,
-                    &out_path,
-                    &exposure,
-                    planes,
-                    &attrs,
-                    read,
-                    &self.ops.fits.keywords,
-                )
-                .map(|()| None),
-                None => {
-                    product::write::stage_output(&out_path, &exposure, planes, &attrs).map(Some)
-                }
-            }
+            let planes = &self.buffers;
+            let attrs = exposure_step::output_attrs(
+                model,
+                summary.t_meas_s,
+                summary.previous_index,
+                &self.cfg.processed_utc,
+                planes,
+                None,
+            );
+            let staged = format::stage_output(
+                &entry.path,
+                &out_path,
+                &read,
+                planes,
+                &attrs,
+                &self.ops.fits,
+            )
             .map_err(Failure::Output)?;
             // Outputs are published in order: the previous one's publication (started
             // while this exposure was read and stepped) ends first.
@@ -1258,7 +1143,7 @@ impl<'a> Processor<'a> {
             exposure_index: meta.exposure_index,
             path: entry.path.clone(),
             summary,
-            history_incomplete,
+            history_incomplete: stepped.history_incomplete,
             written,
         })
     }
@@ -1315,25 +1200,4 @@ pub(crate) fn resume_parts(
             .field("stage_json")
     })?;
     Ok((state, book))
-}
-/// The metadata of an input product: a FITS exposure (`*.fits`, read with `fits`) or a
-/// Level-1 HDF5 product.
-pub fn read_input_meta(
-    path: &Path,
-    fits: &crate::fits::FitsConfig,
-) -> Result<crate::product::ExposureMeta> {
-    read_input_sequence(path, fits).map(|(meta, _)| meta)
-}
-
-/// [`read_input_meta`], and whether its exposure index is a start time (a FITS exposure
-/// without a sequence number, [`crate::fits::Sequence::StartTime`]).
-pub fn read_input_sequence(
-    path: &Path,
-    fits: &crate::fits::FitsConfig,
-) -> Result<(crate::product::ExposureMeta, bool)> {
-    if crate::fits::is_fits(path) {
-        crate::fits::read_meta_sequence(path, fits).map(|(m, s)| (m, s.is_start_time()))
-    } else {
-        product::read::read_meta(path).map(|m| (m, false))
-    }
 }

@@ -27,10 +27,13 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Duration;
 
 /// The detectors of the products under `input` whose header can be read.
-pub fn detectors(input: &Path, fits: &crate::fits::FitsConfig) -> Result<BTreeSet<DetectorId>> {
+pub fn detectors(
+    input: &Path,
+    fits: &crate::product::fits::FitsConfig,
+) -> Result<BTreeSet<DetectorId>> {
     Ok(queue::candidates(input)?
         .iter()
-        .filter_map(|p| super::run::read_input_meta(p, fits).ok())
+        .filter_map(|p| crate::product::format::read_input_meta(p, fits).ok())
         .map(|m| m.detector)
         .collect())
 }

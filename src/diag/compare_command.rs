@@ -1,0 +1,151 @@
+//! `persist compare`: the comparison of models on one sequence ([`super::compare`]),
+//! written as `summary.json` and `report.html` ([`super::report`]), and the lines the
+//! command prints. Apart from [`super::compare`] so that the report, which renders the
+//! comparison's types, and the comparison do not import each other.
+
+use super::compare::{definitions, summarise_touched, touched_pixels, Options, Summary, STRIDE};
+use super::data::Sequence;
+use super::eval::Samples;
+use crate::error::{Error, ErrorKind, Result};
+use std::path::Path;
+
+/// `persist compare`.
+pub fn run(input: &Path, models: &[std::path::PathBuf], out: &Path) -> Result<String> {
+    run_with(input, models, out, &Options::default())
+}
+
+/// `persist compare` with [`Options`].
+/// Why a sequence gives `compare` nothing to compare.
+const NOTHING_AFTER_AN_ILLUMINATION: &str =
+    "no exposure follows an illumination: compare needs a laboratory sequence \
+     (illuminated exposures, which carry `t_illuminated_s`, each followed by darks); \
+     on sky data every exposure is an illumination";
+
+pub fn run_with(
+    input: &Path,
+    models: &[std::path::PathBuf],
+    out: &Path,
+    opts: &Options,
+) -> Result<String> {
+    let seq = Sequence::load_with(input, opts.background)?;
+    let samples = Samples::new(&seq, STRIDE)
+        .with_cells(opts.cells)
+        .with_statistic(opts.cell_statistic);
+    if samples.exposures.is_empty() {
+        return Err(Error::invalid("t_illuminated_s", NOTHING_AFTER_AN_ILLUMINATION).path(input));
+    }
+    let mut loaded = Vec::new();
+    for m in models {
+        loaded.push((m.display().to_string(), crate::model_file::load(m)?));
+    }
+    let touched = match &opts.touched_baseline {
+        Some(b) => Some(touched_pixels(
+            &seq,
+            &samples,
+            input,
+            b,
+            opts.touched_min_e_per_s,
+        )?),
+        None => None,
+    };
+    let ms = summarise_touched(
+        &seq,
+        &samples,
+        &loaded,
+        touched.as_ref().map(|t| t.0.as_slice()),
+    )?;
+    let summary = Summary {
+        input: input.display().to_string(),
+        definitions: definitions(samples.cells, samples.statistic, seq.background),
+        cells: samples.cells,
+        cell_statistic: samples.statistic,
+        background: seq.background,
+        exposures_compared: samples.exposures.len(),
+        pixels_sampled: samples.npix(),
+        pixel_stride: STRIDE,
+        samples: samples.len(),
+        touched: touched.map(|t| t.1),
+        models: ms,
+    };
+    std::fs::create_dir_all(out).map_err(|e| Error::io(out, e))?;
+    let text = serde_json::to_string_pretty(&summary)
+        .map_err(|e| Error::new(ErrorKind::Io, e.to_string()))?;
+    crate::calib::write_text(&out.join("summary.json"), &(text + "\n"))?;
+    let html = super::report::html(&summary).map_err(|e| e.path(out.join("report.html")))?;
+    crate::calib::write_text(&out.join("report.html"), &html)?;
+    let mut s = format!(
+        "persist compare: {} exposures, {} pixels sampled ({} cells{})\n",
+        summary.exposures_compared,
+        summary.pixels_sampled,
+        summary.cells.describe(),
+        summary.cell_statistic.note()
+    );
+    if let Some(t) = &summary.touched {
+        s += &format!(
+            "  touched pixels: {} of {} sampled (> {} e-/s from {})\n",
+            t.touched_pixels, t.pixels_sampled, t.min_difference_e_per_s, t.baseline
+        );
+    }
+    for m in &summary.models {
+        let q = m.flag_quality.get("0.1");
+        s += &format!(
+            "  {:<40} residual RMS {:>8.2}  missed@0.1 {:.4}  over@0.1 {:.4}",
+            m.path,
+            m.residual_rms_normalised,
+            q.map_or(f64::NAN, |q| q.missed_flag_fraction),
+            q.map_or(f64::NAN, |q| q.over_flag_fraction)
+        );
+        if let Some(t) = m.flag_quality_touched.get("0.1") {
+            s += &format!(
+                "  missed@0.1 of touched {:.4}",
+                t.missed_flag_fraction_touched
+            );
+        }
+        s += "\n";
+        let sp = &m.spread;
+        s += &format!(
+            "    pixels moving together: score {:.1} (about N(0, 1) for independent pixels)",
+            sp.score
+        );
+        if let Some(k) = sp.kernel.filter(|k| k.kernel.corr > 0.0) {
+            s += &format!(
+                "; correlation {:.3} over {:.1} px, RMS {:.2} with it",
+                k.kernel.corr, k.kernel.length_px, sp.residual_rms_normalised_correlated
+            );
+        }
+        s += "\n";
+        if !m.residual_rms_by_illumination.is_empty() {
+            let per: Vec<String> = m
+                .residual_rms_by_illumination
+                .iter()
+                .map(|r| format!("{}: {:.2}", r.illumination, r.residual_rms_normalised))
+                .collect();
+            s += &format!("    by illumination (exposure: RMS) {}\n", per.join(", "));
+        }
+        // the cell with the most missed samples at 0.1 e-/s (the first in the map's order
+        // among equals)
+        let worst = m.flag_quality_by_cell.get("0.1").and_then(|c| {
+            c.iter().filter(|c| c.quality.missed > 0).reduce(|a, b| {
+                if b.quality.missed > a.quality.missed {
+                    b
+                } else {
+                    a
+                }
+            })
+        });
+        if let Some(c) = worst {
+            s += &format!(
+                "    most missed@0.1 in one cell: {} of {} samples at {}{:.3e} e-, {:.0} s\n",
+                c.quality.missed,
+                c.quality.samples,
+                c.place
+                    .illumination
+                    .map_or(String::new(), |i| format!("illumination {i}, ")),
+                c.place.fluence_e,
+                c.place.time_s
+            );
+        }
+    }
+    s += &format!("report {}", out.join("report.html").display());
+    Ok(s)
+}
