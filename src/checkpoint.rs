@@ -312,7 +312,9 @@ fn create_aligned(path: &Path) -> Result<hdf5::File> {
     hdf5::File::with_options()
         .with_fcpl(|p| p.obj_track_times(false))
         .with_fapl(|p| {
+            // No data sieving: h5io::create says why.
             p.file_locking(false)
+                .sieve_buf_size(0)
                 .alignment(1 << 20, DIRECT_ALIGN as u64)
         })
         .create(path)

@@ -495,6 +495,14 @@ pub struct RunArgs {
     /// seconds (from when it was first seen); then the gap is crossed.
     #[arg(long, default_value_t = 600.0, value_parser = nonnegative_seconds)]
     pub gap_timeout_s: f64,
+    /// With --watch: keep Prometheus metrics (docs/operations.md) in this file, replaced
+    /// atomically at most every second: a textfile for node_exporter (`*.prom`).
+    #[arg(long, requires = "watch")]
+    pub metrics_file: Option<PathBuf>,
+    /// With --watch: serve the same metrics over HTTP on this address (e.g.
+    /// 127.0.0.1:9464).
+    #[arg(long, requires = "watch")]
+    pub metrics_addr: Option<std::net::SocketAddr>,
     /// Process every detector in this one process (threads) rather than one worker
     /// process per detector (HDF5 serialises the I/O of one process).
     #[arg(long)]
@@ -1192,7 +1200,17 @@ fn run_stage(args: &RunArgs) -> persist::Result<ExitCode> {
                 pb
             },
         );
+    let metrics = (args.metrics_file.is_some() || args.metrics_addr.is_some()).then(|| {
+        Arc::new(stage::metrics::Metrics::new(
+            &args.checkpoints,
+            args.metrics_file.clone(),
+        ))
+    });
+    if let (Some(addr), Some(m)) = (args.metrics_addr, &metrics) {
+        stage::metrics::serve(addr, Arc::clone(m))?;
+    }
     let ops = Ops {
+        metrics,
         quarantine: Some(
             args.quarantine
                 .clone()

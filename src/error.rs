@@ -116,6 +116,10 @@ impl From<hdf5::Error> for Error {
         // A file still open for writing by another process cannot be locked (errno 11).
         let kind = if text.contains("unable to lock file") {
             ErrorKind::NotReady
+        } else if os_errno(&text).is_some() {
+            // A system call failed (EIO, ENOSPC, EMFILE, ...): the disk or the system,
+            // not the file's content; the file is not refused for it.
+            ErrorKind::Io
         } else {
             ErrorKind::Hdf5
         };
@@ -123,9 +127,32 @@ impl From<hdf5::Error> for Error {
     }
 }
 
+/// The nonzero `errno = N` HDF5 writes into its message when a system call of its file
+/// driver failed (`unable to open file: ..., errno = 5, error message = '...'`); HDF5
+/// reports a malformed file without one.
+fn os_errno(text: &str) -> Option<i32> {
+    text.split("errno = ")
+        .skip(1)
+        .filter_map(|rest| {
+            let digits: String = rest.chars().take_while(char::is_ascii_digit).collect();
+            digits.parse::<i32>().ok()
+        })
+        .find(|&n| n != 0)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn hdf5_system_call_failures_are_io_not_content() {
+        // The message of HDF5 1.10's sec2 driver (H5FDsec2.c) for a failed open.
+        let text = "unable to open file: name = 'in/a.h5', errno = 5, error message = \
+                    'Input/output error', flags = 0, o_flags = 0";
+        assert_eq!(os_errno(text), Some(5));
+        assert_eq!(os_errno("file signature not found"), None);
+        assert_eq!(os_errno("errno = 0, error message = 'Success'"), None);
+    }
 
     #[test]
     fn display_names_file_field_and_reason() {

@@ -11,7 +11,8 @@
 //!   directory (a name watchers ignore), closes, re-opens and validates the temporary
 //!   file, `fsync`s it, renames it into place and `fsync`s the directory. On any failure
 //!   the temporary file is removed: a file under its final name is always complete and
-//!   valid.
+//!   valid. (A failed `fsync` of the directory after the rename is reported; the file
+//!   it leaves published is complete and synced.)
 //! - Errors name the file (the final name, not the temporary one).
 
 use crate::error::{Error, ErrorKind, Result};
@@ -110,10 +111,16 @@ fn open_error(e: hdf5::Error) -> Error {
 
 /// Create (truncate) an HDF5 file with object times off. (No path in the error: the
 /// caller names the file, usually the final name of a temporary file.)
+///
+/// Data sieving is off (`sieve_buf_size(0)`): HDF5 1.10 keeps small contiguous
+/// datasets in its sieve buffer and writes them later, from a path that drops a
+/// failed write (an ENOSPC or EIO injected into that `pwrite64` gave a published file
+/// with a hole and no error, tests/ops_write_faults.rs); written at once, a failure is
+/// the dataset write's error. The file's bytes are the same.
 pub fn create(path: &Path) -> hdf5::Result<hdf5::File> {
     hdf5::File::with_options()
         .with_fcpl(|p| p.obj_track_times(false))
-        .with_fapl(|p| p.file_locking(false))
+        .with_fapl(|p| p.file_locking(false).sieve_buf_size(0))
         .create(path)
         .map(close_on_exec)
 }
@@ -359,11 +366,16 @@ pub fn publish(
 /// A file written and validated under its temporary name, not yet published: the
 /// first half of [`publish`]. [`Staged::commit`] is the second half (sync, rename,
 /// sync the directory); it needs no HDF5 call and no data in memory, so it can run on
-/// another thread. Dropped without a commit, the temporary file is removed.
+/// another thread. The temporary file and its directory are opened by [`write_temp`],
+/// on the writing thread, so that the commit makes no `open` of its own: every `open`
+/// of a publication is made in one thread, in order. Dropped without a commit, the
+/// temporary file is removed.
 #[derive(Debug)]
 pub struct Staged {
     tmp: Option<PathBuf>,
     path: PathBuf,
+    /// The temporary file (read-only: `fsync` needs no write access) and the directory.
+    handles: Option<(std::fs::File, std::fs::File)>,
 }
 
 impl Staged {
@@ -373,22 +385,29 @@ impl Staged {
     }
 
     /// `fsync` the temporary file, rename it into place, `fsync` the directory.
+    ///
+    /// A failure before the rename removes the temporary file: nothing is published.
+    /// A failure of the directory's `fsync` after the rename leaves the complete,
+    /// synced file published under its final name (the rename is not known to be
+    /// durable); the error says so, and the stage syncs the directory of an output it
+    /// finds published before it checkpoints past it.
     pub fn commit(mut self) -> Result<()> {
-        let Some(tmp) = self.tmp.take() else {
+        let (Some(tmp), Some((file, dir))) = (self.tmp.take(), self.handles.take()) else {
             return Ok(());
         };
         let path = &self.path;
-        let result = (|| {
-            let f = std::fs::File::open(&tmp).map_err(|e| Error::io(path, e))?;
-            f.sync_all().map_err(|e| Error::io(path, e))?;
-            drop(f);
-            std::fs::rename(&tmp, path).map_err(|e| Error::io(path, e))?;
-            sync_dir(path)
-        })();
-        if result.is_err() {
+        if let Err(e) = file.sync_all().and_then(|()| std::fs::rename(&tmp, path)) {
             let _ = std::fs::remove_file(&tmp);
+            return Err(Error::io(path, e));
         }
-        result
+        drop(file);
+        dir.sync_all().map_err(|e| {
+            Error::new(
+                ErrorKind::Io,
+                format!("published, but the fsync of its directory failed: {e}"),
+            )
+            .path(path)
+        })
     }
 }
 
@@ -400,30 +419,46 @@ impl Drop for Staged {
     }
 }
 
-/// The first half of [`publish`]: write and validate under the temporary name.
+/// The first half of [`publish`]: write and validate under the temporary name, then
+/// open the temporary file and its directory for [`Staged::commit`].
 pub fn write_temp(
     path: &Path,
     write: impl FnOnce(&Path) -> Result<()>,
     validate: impl FnOnce(&Path) -> Result<()>,
 ) -> Result<Staged> {
     let tmp = temp_path(path);
-    let staged = Staged {
+    let mut staged = Staged {
         tmp: Some(tmp.clone()),
         path: path.to_path_buf(),
+        handles: None,
     };
     // On error `staged` is dropped, which removes the temporary file (best effort: it
     // may not exist if the failure came before its creation).
     write(&tmp).map_err(|e| e.path(path))?;
     validate(&tmp).map_err(|e| e.path(path))?;
+    let file = std::fs::File::open(&tmp).map_err(|e| Error::io(path, e))?;
+    let dir = std::fs::File::open(dir_of(path)).map_err(|e| {
+        Error::new(ErrorKind::Io, format!("cannot open its directory: {e}")).path(path)
+    })?;
+    staged.handles = Some((file, dir));
     Ok(staged)
+}
+
+/// The directory holding `path` (`.` for a bare name).
+fn dir_of(path: &Path) -> &Path {
+    match path.parent() {
+        Some(d) if !d.as_os_str().is_empty() => d,
+        _ => Path::new("."),
+    }
 }
 
 /// `fsync` the directory holding `path`, so that a rename into it is durable.
 pub fn sync_dir(path: &Path) -> Result<()> {
-    let dir = match path.parent() {
-        Some(d) if !d.as_os_str().is_empty() => d,
-        _ => Path::new("."),
-    };
+    sync_dir_itself(dir_of(path))
+}
+
+/// `fsync` the directory `dir` itself (what makes the renames into it durable).
+pub fn sync_dir_itself(dir: &Path) -> Result<()> {
     std::fs::File::open(dir)
         .and_then(|d| d.sync_all())
         .map_err(|e| Error::new(ErrorKind::Io, format!("fsync of directory: {e}")).path(dir))

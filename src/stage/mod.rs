@@ -4,6 +4,7 @@
 
 pub mod exposure;
 pub mod lock;
+pub mod metrics;
 pub mod options;
 pub mod quarantine;
 pub mod queue;

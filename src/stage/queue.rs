@@ -24,14 +24,27 @@ pub fn candidates(dir: &Path) -> Result<Vec<PathBuf>> {
     if !dir.is_dir() {
         return Err(Error::new(ErrorKind::Usage, "input is not a directory").path(dir));
     }
-    let mut files: Vec<PathBuf> = walkdir::WalkDir::new(dir)
+    let mut files = Vec::new();
+    let walk = walkdir::WalkDir::new(dir)
         .follow_links(true)
         .into_iter()
-        .filter_entry(|e| e.depth() == 0 || !e.file_name().to_string_lossy().starts_with('.'))
-        .filter_map(|e| e.ok())
-        .filter(|e| e.file_type().is_file() && is_candidate(e.path()))
-        .map(|e| e.into_path())
-        .collect();
+        .filter_entry(|e| e.depth() == 0 || !e.file_name().to_string_lossy().starts_with('.'));
+    for entry in walk {
+        match entry {
+            Ok(e) if e.file_type().is_file() && is_candidate(e.path()) => files.push(e.into_path()),
+            Ok(_) => {}
+            // A directory that cannot be read (EIO, EMFILE, ...) hides its products: an
+            // error, not an empty listing. Vanished entries and symlink loops are skipped.
+            Err(err) => match err.io_error() {
+                Some(io) if io.kind() != std::io::ErrorKind::NotFound => {
+                    let at = err.path().unwrap_or(dir).to_path_buf();
+                    let io = std::io::Error::new(io.kind(), io.to_string());
+                    return Err(Error::io(&at, io));
+                }
+                _ => {}
+            },
+        }
+    }
     files.sort();
     Ok(files)
 }

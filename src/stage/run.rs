@@ -175,6 +175,8 @@ pub struct Ops {
     /// Worker mode ([`super::workers`]): process this detector only; the products of
     /// other detectors are left alone.
     pub only: Option<OnlyDetector>,
+    /// Operator metrics to keep up to date (`--metrics-file`, `--metrics-addr`).
+    pub metrics: Option<Arc<super::metrics::Metrics>>,
 }
 
 /// One detector of a run split into worker processes.
@@ -196,6 +198,7 @@ impl Default for Ops {
             progress: None,
             fits: Default::default(),
             only: None,
+            metrics: None,
         }
     }
 }
@@ -220,6 +223,9 @@ pub struct ExposureReport {
     pub history_incomplete: bool,
     /// false when an identical-key output was already published and left alone.
     pub written: bool,
+    /// Seconds to read, step and write it (not reproducible: not serialised).
+    #[serde(skip)]
+    pub seconds: f64,
 }
 
 #[derive(Debug, Default)]
@@ -354,9 +360,21 @@ impl<'a> Stage<'a> {
         }
     }
 
-    /// The run's report, with whether the stop flag ended it.
+    /// Refresh the backlog gauge and rewrite the metrics textfile if due (`force`: now).
+    pub(crate) fn update_metrics(&mut self, force: bool) {
+        let backlog = self.backlog();
+        if let Some(m) = &self.ops.metrics {
+            m.set_backlog(backlog);
+            if let Err(e) = m.write_file(force) {
+                tracing::warn!(error = %e, "cannot write the metrics file");
+            }
+        }
+    }
+
+    /// The run's report, with whether the stop flag ended it; the metrics written.
     pub(crate) fn finish(mut self) -> RunReport {
         self.report.stopped = self.ops.stop.load(Ordering::SeqCst);
+        self.update_metrics(true);
         self.report
     }
 
@@ -492,6 +510,9 @@ impl<'a> Stage<'a> {
                         kind = ?e.kind, field = e.context.field.as_deref().unwrap_or(""),
                         reason = %e.message, "refused: quarantined");
                     self.report.quarantined.push(to);
+                    if let Some(m) = &self.ops.metrics {
+                        m.quarantined(&e);
+                    }
                 }
                 Err(qe) => {
                     tracing::error!(path = %path.display(), error = %qe, "refused, and could not be quarantined");
@@ -511,6 +532,11 @@ impl<'a> Stage<'a> {
         let watching = self.ops.watch.is_some();
         for p in self.detectors.values_mut() {
             self.report.processed += p.reports.len() as u64;
+            if let Some(m) = &self.ops.metrics {
+                for r in &p.reports {
+                    m.processed(r.detector, r.seconds);
+                }
+            }
             if watching {
                 // Weeks of reports are not kept: the logs have them.
                 p.reports.clear();
@@ -892,8 +918,10 @@ impl<'a> Processor<'a> {
                     );
                 }
             }
+            let t0 = Instant::now();
             match self.one(&mut entry) {
-                Ok(report) => {
+                Ok(mut report) => {
+                    report.seconds = t0.elapsed().as_secs_f64();
                     self.gap_before = false;
                     tracing::info!(detector = self.det.0, exposure_index = next,
                         path = %entry.path.display(),
@@ -942,11 +970,15 @@ impl<'a> Processor<'a> {
                 }
                 Err(Failure::Input(e)) if e.kind == ErrorKind::Io => {
                     // Vanished or unreadable: not its content; forget it (a reappearance
-                    // is observed anew), the gap rule decides about its place.
+                    // is observed anew), the gap rule decides about its place. A batch
+                    // stops this detector here: it does not cross a product that exists.
                     tracing::error!(error = %e, "cannot read");
                     self.errors
                         .push(e.path(&entry.path).detector(self.det).exposure(next));
                     self.forget.push(entry.path);
+                    if final_ {
+                        break;
+                    }
                 }
                 Err(Failure::Input(e)) => {
                     self.gap_before = true;
@@ -1107,6 +1139,9 @@ impl<'a> Processor<'a> {
         .map_err(Failure::Input)?;
         let summary = stepped.summary;
         let written = if out_path.exists() && !self.reprocess {
+            // Published by a run that may have stopped before its directory fsync
+            // (h5io::Staged::commit): made durable before a checkpoint includes it.
+            crate::h5io::sync_dir(&out_path).map_err(Failure::Output)?;
             false
         } else {
             let planes = &self.buffers;
@@ -1145,6 +1180,7 @@ impl<'a> Processor<'a> {
             summary,
             history_incomplete: stepped.history_incomplete,
             written,
+            seconds: 0.0,
         })
     }
 

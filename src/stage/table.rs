@@ -273,6 +273,7 @@ mod tests {
             },
             history_incomplete: k == 2,
             written: true,
+            seconds: 0.0,
         }
     }
 

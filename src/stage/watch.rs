@@ -71,6 +71,7 @@ pub(crate) fn watch(stage: &mut Stage<'_>, w: &WatchOpts) {
     let mut last_wait_log = Instant::now();
     while !stop.load(Ordering::SeqCst) {
         stage.advance(Instant::now(), false);
+        stage.update_metrics(false);
         if stop.load(Ordering::SeqCst) {
             break;
         }
