@@ -138,6 +138,16 @@ pub enum Command {
     /// Print the command-line reference (docs/cli.md) as markdown.
     #[command(hide = true)]
     HelpMarkdown,
+    /// Internal: read one file in an isolated child of `persist run` (the reader guard).
+    #[command(hide = true, name = "guarded-read")]
+    GuardedRead {
+        /// `meta`, `exposure` or `checkpoint`.
+        what: String,
+        path: PathBuf,
+        /// The FITS reading options, JSON.
+        #[arg(long, default_value = "")]
+        fits: String,
+    },
     /// Persistence measured in flight (no shutter): follow pixels after bright events
     /// through later sky exposures, stack their excess over the surrounding sky by
     /// fluence and time, set it beside the stage's predictions and flags; writes
@@ -519,6 +529,16 @@ pub struct RunArgs {
     /// over the header's ESCONV.
     #[arg(long = "fits-gain", value_parser = persist::fits::parse_gain)]
     pub fits_gain: Vec<(u8, f64)>,
+    /// Read every input and checkpoint in-process, without first reading it in an
+    /// isolated child process (the reader guard, docs/operations.md).
+    #[arg(long)]
+    pub no_reader_guard: bool,
+    /// The reader guard's limit of wall time (and CPU time) per file read, seconds.
+    #[arg(long, default_value_t = persist::guard::DEFAULT_TIMEOUT_S, value_parser = positive_seconds)]
+    pub reader_timeout_s: f64,
+    /// The reader guard's limit of address space per file read, MiB.
+    #[arg(long, default_value_t = persist::guard::DEFAULT_MEMORY_MIB, value_parser = clap::value_parser!(u64).range(64..))]
+    pub reader_memory_mib: u64,
 }
 
 #[derive(Args, Debug)]
@@ -861,6 +881,9 @@ pub fn run(cli: Cli) -> persist::Result<ExitCode> {
         Command::Diagnose(a) => diagnose(&a),
         Command::Bench(args) => bench(&args),
         Command::Export(a) => export(&a),
+        Command::GuardedRead { what, path, fits } => Ok(ExitCode::from(
+            u8::try_from(persist::guard::serve(&what, &path, &fits)).unwrap_or(1),
+        )),
         Command::HelpMarkdown => {
             use clap::CommandFactory;
             out_nonl!("{}", crate::cli_reference::markdown(Cli::command()));
@@ -1185,9 +1208,19 @@ fn run_stage(args: &RunArgs) -> persist::Result<ExitCode> {
         },
         gains: args.fits_gain.iter().copied().collect(),
     };
+    let guard = if args.no_reader_guard {
+        None
+    } else {
+        let exe = std::env::current_exe().map_err(|e| Error::new(ErrorKind::Io, e.to_string()))?;
+        Some(persist::guard::Guard {
+            exe,
+            timeout: Duration::from_secs_f64(args.reader_timeout_s),
+            memory_bytes: args.reader_memory_mib << 20,
+        })
+    };
     // A missing input is the stage's error to report (exit 1), not a usage error.
     if worker.is_none() && !args.watch && !args.one_process && args.input.is_dir() {
-        let dets = stage::workers::detectors(&args.input, &fits)?;
+        let dets = stage::workers::detectors(&args.input, &fits, guard.as_ref())?;
         if dets.len() > 1 {
             drop(table);
             return run_workers(args, &dets, &stop);
@@ -1225,6 +1258,7 @@ fn run_stage(args: &RunArgs) -> persist::Result<ExitCode> {
             detector,
             unattributed: args.worker_unattributed,
         }),
+        guard,
     };
     let cfg = RunConfig {
         input: args.input.clone(),

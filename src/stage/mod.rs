@@ -2,6 +2,7 @@
 //! history, run them through the model, publish outputs and checkpoints; watch a
 //! directory, quarantine bad inputs, lock the directories, report status.
 
+pub mod fallback;
 pub mod lock;
 pub mod options;
 pub mod quarantine;

@@ -175,6 +175,9 @@ pub struct Ops {
     /// Worker mode ([`super::workers`]): process this detector only; the products of
     /// other detectors are left alone.
     pub only: Option<OnlyDetector>,
+    /// Read every input and checkpoint in an isolated child process first
+    /// ([`crate::guard`]); `None`: read in-process.
+    pub guard: Option<crate::guard::Guard>,
 }
 
 /// One detector of a run split into worker processes.
@@ -196,6 +199,7 @@ impl Default for Ops {
             progress: None,
             fits: Default::default(),
             only: None,
+            guard: None,
         }
     }
 }
@@ -438,7 +442,11 @@ impl<'a> Stage<'a> {
 
     fn observe(&mut self, path: &Path, key: FileKey, now: Instant) {
         self.seen.insert(path.to_path_buf(), key);
-        let (meta, by_start_time) = match read_input_sequence(path, &self.ops.fits) {
+        let (meta, by_start_time) = match crate::guard::read_input_sequence(
+            self.ops.guard.as_ref(),
+            path,
+            &self.ops.fits,
+        ) {
             Ok((m, _)) if self.ops.only.is_some_and(|o| o.detector != m.detector) => return,
             Ok(m) => m,
             Err(_) if self.ops.only.is_some_and(|o| !o.unattributed) => return,
@@ -724,7 +732,7 @@ impl<'a> Processor<'a> {
     }
 
     /// The state to start from, if any checkpoint applies.
-    fn start(&self) -> Result<Option<(State, Bookkeeping)>> {
+    fn start(&mut self) -> Result<Option<(State, Bookkeeping)>> {
         let cfg = self.cfg;
         let path = match cfg.from_checkpoint {
             Some((d, index)) if d == self.det => {
@@ -736,12 +744,28 @@ impl<'a> Processor<'a> {
                     .path(&cfg.checkpoints)
                 })?)
             }
-            _ => checkpoint::list(&cfg.checkpoints, self.det)?
-                .pop()
-                .map(|(_, p)| p),
+            _ => {
+                let newest = super::fallback::newest_readable(cfg, self.ops, self.det)?;
+                self.errors.extend(newest.skipped);
+                let Some((path, meta, state)) = newest.found else {
+                    return Ok(None);
+                };
+                return self.resume(path, meta, state).map(Some);
+            }
         };
         let Some(path) = path else { return Ok(None) };
-        let (meta, state) = checkpoint::load(&path)?;
+        let (meta, state) = crate::guard::load_checkpoint(self.ops.guard.as_ref(), &path)?;
+        self.resume(path, meta, state).map(Some)
+    }
+
+    /// Resume from a loaded checkpoint, if this run's model accepts it.
+    fn resume(
+        &self,
+        path: PathBuf,
+        meta: CheckpointMeta,
+        state: State,
+    ) -> Result<(State, Bookkeeping)> {
+        let cfg = self.cfg;
         if meta.model_id != cfg.model.identity() && !cfg.allow_model_change {
             return Err(Error::new(
                 ErrorKind::Checkpoint,
@@ -755,7 +779,7 @@ impl<'a> Processor<'a> {
             )
             .path(&path));
         }
-        resume_parts(&path, state, &meta, &cfg.model).map(Some)
+        resume_parts(&path, state, &meta, &cfg.model)
     }
 
     /// Whether this detector's indices are start times (module docs: start-time order).
@@ -1128,14 +1152,8 @@ impl<'a> Processor<'a> {
         });
         // FITS inputs carry the conversion of their image to e-/s, recorded in the output.
         let (mut exposure, fits): (Exposure, Option<crate::fits::FitsInput>) =
-            if crate::fits::is_fits(&entry.path) {
-                let (e, c) = crate::fits::read_exposure(&entry.path, &self.ops.fits)
-                    .map_err(Failure::Input)?;
-                (e, Some(c))
-            } else {
-                let e = product::read::read_exposure(&entry.path).map_err(Failure::Input)?;
-                (e, None)
-            };
+            crate::guard::read_input(self.ops.guard.as_ref(), &entry.path, &self.ops.fits)
+                .map_err(Failure::Input)?;
         let meta = exposure.meta.clone();
         if meta != entry.meta {
             return Err(Failure::Input(
@@ -1331,9 +1349,5 @@ pub fn read_input_sequence(
     path: &Path,
     fits: &crate::fits::FitsConfig,
 ) -> Result<(crate::product::ExposureMeta, bool)> {
-    if crate::fits::is_fits(path) {
-        crate::fits::read_meta_sequence(path, fits).map(|(m, s)| (m, s.is_start_time()))
-    } else {
-        product::read::read_meta(path).map(|m| (m, false))
-    }
+    crate::guard::read_input_sequence(None, path, fits)
 }
