@@ -37,6 +37,7 @@ pub mod diag;
 pub mod error;
 pub mod fits;
 pub mod flags;
+pub mod fuzz;
 pub mod guard;
 pub mod h5io;
 pub mod measure;
