@@ -171,6 +171,61 @@ pub fn read_input(
     }
 }
 
+/// A whole input read ahead, on its own thread, while the stage steps the one before.
+type Reading = std::thread::JoinHandle<Result<(Exposure, Option<FitsInput>)>>;
+
+/// One input read ahead through the guard (what [`read_input_ahead`] keeps between
+/// calls): its path, its (size, modification time) when the read started, the read.
+#[derive(Default)]
+pub struct Ahead(
+    Option<(
+        PathBuf,
+        Option<(u64, Option<std::time::SystemTime>)>,
+        Reading,
+    )>,
+);
+
+fn file_key(path: &Path) -> Option<(u64, Option<std::time::SystemTime>)> {
+    let m = std::fs::metadata(path).ok()?;
+    Some((m.len(), m.modified().ok()))
+}
+
+/// [`read_input`] of `path`, taking the read started ahead for it if the file has not
+/// changed since (same size and time); then, guarded, start reading `next` ahead, so
+/// that its child runs while the stage steps this one. Unguarded: no read ahead.
+pub fn read_input_ahead(
+    guard: Option<&Guard>,
+    ahead: &mut Ahead,
+    path: &Path,
+    next: Option<&Path>,
+    fits: &FitsConfig,
+) -> Result<(Exposure, Option<FitsInput>)> {
+    let Some(g) = guard else {
+        return read_input_here(path, fits);
+    };
+    let result = match ahead.0.take() {
+        Some((p, key, reading)) if p == path => {
+            let done = reading
+                .join()
+                .unwrap_or_else(|_| Err(crash("the thread reading ahead panicked").path(path)));
+            if key.is_some() && key == file_key(path) {
+                done
+            } else {
+                read_input(Some(g), path, fits)
+            }
+        }
+        _ => read_input(Some(g), path, fits),
+    };
+    if let Some(next) = next.filter(|n| *n != path) {
+        let (g, next, fits) = (g.clone(), next.to_path_buf(), fits.clone());
+        let key = file_key(&next);
+        let p = next.clone();
+        let reading = std::thread::spawn(move || read_input(Some(&g), &p, &fits));
+        ahead.0 = Some((next, key, reading));
+    }
+    result
+}
+
 /// Load a checkpoint, checked first in the child when guarded.
 pub fn load_checkpoint(
     guard: Option<&Guard>,

@@ -161,6 +161,20 @@ fn an_unreadable_checkpoint_falls_back_to_the_one_before_it() {
     let newest = common::newest_checkpoint(root, 1).unwrap();
     assert_eq!(newest.0, 11);
     let good = std::fs::read(&newest.1).unwrap();
+    // Provenance: the HDF5 library's version in the checkpoint and in every output.
+    let version = persist::h5io::library_version();
+    assert_eq!(version.split('.').count(), 3, "{version}");
+    let attr = |f: &hdf5::Location| {
+        f.attr("hdf5_version")
+            .unwrap()
+            .read_scalar::<hdf5::types::VarLenUnicode>()
+            .unwrap()
+            .to_string()
+    };
+    assert_eq!(attr(&hdf5::File::open(&newest.1).unwrap()), version);
+    let out0 = hdf5::File::open(root.join("out/l1_det1_exp0000.h5")).unwrap();
+    assert_eq!(attr(&out0.group("persistence").unwrap()), version);
+    drop(out0);
     let outputs = tree(&root.join("out"));
     std::fs::write(&newest.1, &good[..good.len() / 3]).unwrap();
     let (code, err) = run_batch(&input, root, &["--checkpoint-every", "4"]);

@@ -655,6 +655,8 @@ struct Processor<'a> {
     /// The last output's publication (fsync, rename, directory fsync), running on its
     /// own thread while the next exposure is read and stepped.
     committing: Option<std::thread::JoinHandle<Result<()>>>,
+    /// The next queued input, read ahead through the reader guard.
+    ahead: crate::guard::Ahead,
 }
 
 impl<'a> Processor<'a> {
@@ -692,6 +694,7 @@ impl<'a> Processor<'a> {
             forget: Vec::new(),
             publishing: None,
             committing: None,
+            ahead: Default::default(),
         }
     }
 
@@ -1151,9 +1154,16 @@ impl<'a> Processor<'a> {
             std::thread::spawn(move || file_digest(&path))
         });
         // FITS inputs carry the conversion of their image to e-/s, recorded in the output.
+        let next = self.pending.first_key_value().map(|(_, p)| p.path.clone());
         let (mut exposure, fits): (Exposure, Option<crate::fits::FitsInput>) =
-            crate::guard::read_input(self.ops.guard.as_ref(), &entry.path, &self.ops.fits)
-                .map_err(Failure::Input)?;
+            crate::guard::read_input_ahead(
+                self.ops.guard.as_ref(),
+                &mut self.ahead,
+                &entry.path,
+                next.as_deref(),
+                &self.ops.fits,
+            )
+            .map_err(Failure::Input)?;
         let meta = exposure.meta.clone();
         if meta != entry.meta {
             return Err(Failure::Input(
