@@ -177,15 +177,12 @@ type Reading = std::thread::JoinHandle<Result<(Exposure, Option<FitsInput>)>>;
 /// One input read ahead through the guard (what [`read_input_ahead`] keeps between
 /// calls): its path, its (size, modification time) when the read started, the read.
 #[derive(Default)]
-pub struct Ahead(
-    Option<(
-        PathBuf,
-        Option<(u64, Option<std::time::SystemTime>)>,
-        Reading,
-    )>,
-);
+pub struct Ahead(Option<(PathBuf, Option<FileKey>, Reading)>);
 
-fn file_key(path: &Path) -> Option<(u64, Option<std::time::SystemTime>)> {
+/// (size, modification time) of a file.
+type FileKey = (u64, Option<std::time::SystemTime>);
+
+fn file_key(path: &Path) -> Option<FileKey> {
     let m = std::fs::metadata(path).ok()?;
     Some((m.len(), m.modified().ok()))
 }
