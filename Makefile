@@ -1,6 +1,6 @@
 # The two commands of the README: `make demo` (main job on a built-in default) and
 # `make test` (the test suite). Both install what a fresh Debian 12 machine lacks.
-.PHONY: demo test bootstrap lint bench fixtures validation
+.PHONY: demo test bootstrap lint bench fixtures validation fuzz fuzz-doc
 
 bootstrap:
 	@bash scripts/bootstrap.sh
@@ -31,3 +31,11 @@ fixtures: bootstrap
 # BENCH_ARGS=--quick, MATRIX_ARGS="--size 64 ..." as scripts/validation.sh says).
 validation: bootstrap
 	@bash scripts/validation.sh $(PAGES)
+
+# The mutation fuzzer over every reader, against the real stage (docs/operations.md):
+# 100,000 mutants; fuzz-doc regenerates the figures of docs/operations.md.
+fuzz: bootstrap
+	cargo run --release --quiet -- fuzz --mutants 100000 --seed 1 --batch 200 --stage-checkpoints 100
+
+fuzz-doc: bootstrap
+	cargo run --release --quiet -- fuzz --mutants 1000 --seed 2 --batch 100 --stage-checkpoints 8 --markdown-into docs/operations.md

@@ -24,6 +24,10 @@
 //!   no rename. The checkpoint goes through HDF5 and the page cache, every exposure;
 //!   the stage writes its amplitudes with direct I/O, at its cadence.
 //!
+//! - **(g) `guarded`**: (c) with the reader guard on ([`crate::guard`], as `persist run`
+//!   has it): every input's metadata and arrays read in a child process first.
+//!   Interleaved with (c) in the same rounds; g/c is what isolating the reader costs.
+//!
 //! - **(e) `copy`**: a plain copy of the bytes (c) moves through files: read each input
 //!   file, write the bytes of its output product (as the `stage` case published them,
 //!   read beforehand, not timed) to a new file and `fsync` it. No HDF5, no checkpoint.
@@ -77,6 +81,7 @@ pub enum Case {
     Io,
     Copy,
     Verify,
+    Guarded,
 }
 
 impl Case {
@@ -88,6 +93,7 @@ impl Case {
             Case::Io => "io",
             Case::Copy => "copy",
             Case::Verify => "verify",
+            Case::Guarded => "guarded",
         }
     }
 
@@ -99,6 +105,7 @@ impl Case {
             Case::Io,
             Case::Copy,
             Case::Verify,
+            Case::Guarded,
         ]
         .into_iter()
         .find(|c| c.name() == s)
@@ -134,6 +141,10 @@ pub struct CaseResult {
     /// For `verify`: what the run measured.
     #[serde(default)]
     pub verify: Option<VerifyCounts>,
+    /// For `stage` and `guarded`: the whole run (the scan of the input included) over
+    /// its exposures, seconds, one per run.
+    #[serde(default)]
+    pub whole_s: Vec<f64>,
 }
 
 /// What one timed `verify` run went through.
@@ -311,6 +322,16 @@ pub struct Row {
     pub c_over_d: f64,
     /// The whole stage against a plain copy of its input and output bytes (target <= 2).
     pub c_over_e: f64,
+    /// (g) the stage with the reader guard, seconds per exposure.
+    #[serde(default)]
+    pub guarded_s: f64,
+    /// (g)/(c): the cost of isolating the reader (target <= 1.1).
+    #[serde(default)]
+    pub g_over_c: f64,
+    /// (g)/(c) of the whole runs (the scan of the input, one metadata read per file,
+    /// included).
+    #[serde(default)]
+    pub g_over_c_whole: f64,
     pub stage_peak_bytes: u64,
     /// `1.5 x (state + three images)`.
     pub memory_bound_bytes: u64,
@@ -432,10 +453,22 @@ pub fn run_case(spec: &CaseSpec) -> Result<CaseResult> {
         .num_threads(spec.threads.max(1))
         .build()
         .map_err(|e| bench_error(format!("rayon pool: {e}")))?;
+    let mut whole_s = Vec::new();
     let (samples, verify) = pool.install(|| match spec.case {
         Case::Step => case_step(spec).map(|s| (s, None)),
         Case::Memory => Ok((case_memory(spec), None)),
-        Case::Stage => case_stage(spec).map(|s| (s, None)),
+        Case::Stage | Case::Guarded => {
+            let guard = match spec.case {
+                Case::Guarded => Some(
+                    crate::guard::Guard::located()
+                        .ok_or_else(|| bench_error("the persist executable is not found"))?,
+                ),
+                _ => None,
+            };
+            let (s, whole) = case_stage(spec, guard)?;
+            whole_s.push(whole);
+            Ok((s, None))
+        }
         Case::Io => case_io(spec).map(|s| (s, None)),
         Case::Copy => case_copy(spec).map(|s| (s, None)),
         Case::Verify => case_verify(spec).map(|c| (vec![c.total_s / c.exposures as f64], Some(c))),
@@ -449,6 +482,7 @@ pub fn run_case(spec: &CaseSpec) -> Result<CaseResult> {
         samples_s: samples,
         peak_rss_bytes: peak_rss_bytes(),
         verify,
+        whole_s,
     })
 }
 
@@ -544,15 +578,19 @@ fn case_memory(spec: &CaseSpec) -> Vec<f64> {
     samples
 }
 
-/// (c) The stage itself on a stream of `reps` products of one detector.
-fn case_stage(spec: &CaseSpec) -> Result<Vec<f64>> {
+/// (c) The stage itself on a stream of `reps` products of one detector; (g) with
+/// `guard`. Also returns the whole run's time over its exposures.
+fn case_stage(spec: &CaseSpec, guard: Option<crate::guard::Guard>) -> Result<(Vec<f64>, f64)> {
     let input = input_dir(&spec.scratch, spec.size);
-    let root = stage_root(
+    let mut root = stage_root(
         &spec.scratch,
         spec.size,
         spec.threads,
         spec.checkpoint_every,
     );
+    if guard.is_some() {
+        root.as_mut_os_string().push("_guarded");
+    }
     if root.exists() {
         std::fs::remove_dir_all(&root).map_err(|e| Error::io(&root, e))?;
     }
@@ -573,11 +611,17 @@ fn case_stage(spec: &CaseSpec) -> Result<Vec<f64>> {
         processed_utc: "2026-03-02T00:00:00.000000Z".into(),
     };
     let stamps = std::sync::Mutex::new(Vec::new());
-    let report = stage::run(&cfg, &|_| {
+    let ops = stage::Ops {
+        guard,
+        ..Default::default()
+    };
+    let t0 = Instant::now();
+    let report = stage::run_with(&cfg, &ops, &|_| {
         if let Ok(mut s) = stamps.lock() {
             s.push(Instant::now());
         }
     });
+    let whole = t0.elapsed().as_secs_f64() / report.exposures.len().max(1) as f64;
     // The outputs stay for the `copy` case (the parent removes the scratch directory).
     let _ = std::fs::remove_dir_all(&cfg.checkpoints);
     if let Some(e) = report.errors.into_iter().next() {
@@ -592,13 +636,16 @@ fn case_stage(spec: &CaseSpec) -> Result<Vec<f64>> {
         .collect();
     let every = spec.checkpoint_every.max(1) as usize;
     if every == 1 {
-        return Ok(diffs);
+        return Ok((diffs, whole));
     }
     // Average over whole checkpoint periods (each holds exactly one checkpoint).
-    Ok(diffs
-        .chunks_exact(every)
-        .map(|c| c.iter().sum::<f64>() / every as f64)
-        .collect())
+    Ok((
+        diffs
+            .chunks_exact(every)
+            .map(|c| c.iter().sum::<f64>() / every as f64)
+            .collect(),
+        whole,
+    ))
 }
 
 /// (d) Raw HDF5: read the input planes, write the same output and checkpoint datasets.
@@ -777,7 +824,7 @@ pub fn run(cfg: &BenchConfig, progress: &dyn Fn(&CaseResult)) -> Result<BenchRep
             // Interleaved rounds per size and thread count, so that drifts in the
             // machine's load hit the numerator and the denominator of each ratio alike;
             // each case's samples of all rounds are pooled into one median.
-            let mut merged: Vec<Option<CaseResult>> = vec![None, None, None, None, None];
+            let mut merged: Vec<Option<CaseResult>> = vec![None; 6];
             for _ in 0..cfg.rounds.max(1) {
                 // (e) copies what (c) just wrote, so it runs right after it.
                 let runs = [
@@ -785,6 +832,7 @@ pub fn run(cfg: &BenchConfig, progress: &dyn Fn(&CaseResult)) -> Result<BenchRep
                     (Case::Memory, cfg.reps, 1),
                     (Case::Stage, stage_exposures, DEFAULT_CADENCE),
                     (Case::Copy, stage_exposures, 1),
+                    (Case::Guarded, stage_exposures, DEFAULT_CADENCE),
                     (Case::Io, cfg.exposures, 1),
                 ];
                 for (slot, (case, reps, every)) in merged.iter_mut().zip(runs) {
@@ -794,6 +842,7 @@ pub fn run(cfg: &BenchConfig, progress: &dyn Fn(&CaseResult)) -> Result<BenchRep
                         None => r,
                         Some(mut m) => {
                             m.samples_s.extend(r.samples_s);
+                            m.whole_s.extend(r.whole_s);
                             m.median_s = median(&m.samples_s);
                             m.peak_rss_bytes = m.peak_rss_bytes.max(r.peak_rss_bytes);
                             m
@@ -801,8 +850,9 @@ pub fn run(cfg: &BenchConfig, progress: &dyn Fn(&CaseResult)) -> Result<BenchRep
                     });
                 }
             }
-            let [Some(a), Some(b), Some(c), Some(e), Some(d)] =
-                merged.try_into().unwrap_or([None, None, None, None, None])
+            let [Some(a), Some(b), Some(c), Some(e), Some(g), Some(d)] = merged
+                .try_into()
+                .unwrap_or([None, None, None, None, None, None])
             else {
                 return Err(bench_error("no result"));
             };
@@ -825,12 +875,19 @@ pub fn run(cfg: &BenchConfig, progress: &dyn Fn(&CaseResult)) -> Result<BenchRep
                 a_over_b: a.median_s / b.median_s,
                 c_over_d: c.median_s / d.median_s,
                 c_over_e: c.median_s / e.median_s,
+                guarded_s: g.median_s,
+                g_over_c: g.median_s / c.median_s,
+                g_over_c_whole: median(&g.whole_s) / median(&c.whole_s),
                 stage_peak_bytes: c.peak_rss_bytes,
                 memory_bound_bytes: memory_bound_bytes(size, model().n_terms()),
             });
-            results.extend([a, b, c, d, e]);
+            results.extend([a, b, c, d, e, g]);
             for every in std::iter::once(DEFAULT_CADENCE).chain(cfg.checkpoint_every.clone()) {
-                let _ = std::fs::remove_dir_all(stage_root(&cfg.scratch, size, threads, every));
+                let root = stage_root(&cfg.scratch, size, threads, every);
+                let mut guarded = root.clone();
+                guarded.as_mut_os_string().push("_guarded");
+                let _ = std::fs::remove_dir_all(root);
+                let _ = std::fs::remove_dir_all(guarded);
             }
         }
         let dir = input_dir(&cfg.scratch, size);
@@ -1098,19 +1155,21 @@ pub fn table(rows: &[Row]) -> String {
         .map(|r| r.stage_every_s.iter().map(|e| e.0).collect())
         .unwrap_or_default();
     let mut s = String::from(
-        "| image | threads | (a) step exp/s | (b) memory exp/s | a/b | (c) stage exp/s | (d) I/O exp/s | c/d | (e) copy exp/s | c/e |",
+        "| image | threads | (a) step exp/s | (b) memory exp/s | a/b | (c) stage exp/s | (d) I/O exp/s | c/d | (e) copy exp/s | c/e | (g) guarded exp/s | g/c | g/c whole run |",
     );
     for e in &every {
         s.push_str(&format!(" (c) ckpt/{e} exp/s |"));
     }
-    s.push_str(" stage peak MiB | bound MiB |\n|---|---|---|---|---|---|---|---|---|---|");
+    s.push_str(
+        " stage peak MiB | bound MiB |\n|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+    );
     for _ in &every {
         s.push_str("---|");
     }
     s.push_str("---|---|\n");
     for r in rows {
         s.push_str(&format!(
-            "| {0}^2 | {1} | {2:.1} | {3:.1} | {4:.2} | {5:.2} | {6:.2} | {7:.2} | {8:.2} | {9:.2} |",
+            "| {0}^2 | {1} | {2:.1} | {3:.1} | {4:.2} | {5:.2} | {6:.2} | {7:.2} | {8:.2} | {9:.2} | {10:.2} | {11:.3} | {12:.3} |",
             r.size,
             r.threads,
             1.0 / r.step_s,
@@ -1120,7 +1179,10 @@ pub fn table(rows: &[Row]) -> String {
             1.0 / r.io_s,
             r.c_over_d,
             1.0 / r.copy_s,
-            r.c_over_e
+            r.c_over_e,
+            1.0 / r.guarded_s,
+            r.g_over_c,
+            r.g_over_c_whole
         ));
         for (_, t) in &r.stage_every_s {
             s.push_str(&format!(" {:.2} |", 1.0 / t));

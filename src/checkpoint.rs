@@ -343,6 +343,7 @@ fn write_checkpoint(
     attr_f64(file, "t_reset_unix_s", t_reset)?;
     attr_str(file, "t_reset_utc", &UtcSeconds(t_reset).to_iso())?;
     attr_str(file, "software_version", &meta.software_version)?;
+    attr_str(file, "hdf5_version", &h5io::library_version())?;
     attr_str(file, "stage_json", &meta.stage_json)?;
     let field = |f: &'static str| move |err: hdf5::Error| Error::from(err).field(f);
     let (ny, nx, n) = state.amplitudes_e.dim();

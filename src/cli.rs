@@ -137,6 +137,29 @@ pub enum Command {
     /// Print the command-line reference (docs/cli.md) as markdown.
     #[command(hide = true)]
     HelpMarkdown,
+    /// Development: the mutation fuzzer over every reader, against the real stage
+    /// (`make fuzz`; docs/operations.md).
+    #[command(hide = true)]
+    Fuzz(FuzzArgs),
+    /// Internal: read one file in an isolated child of `persist run` (the reader guard).
+    #[command(hide = true, name = "guarded-read")]
+    GuardedRead {
+        /// `meta`, `exposure` or `checkpoint`.
+        what: String,
+        path: PathBuf,
+        /// The FITS reading options, JSON.
+        #[arg(long, default_value = "")]
+        fits: String,
+        /// Address-space limit, bytes.
+        #[arg(long, default_value_t = persist::guard::DEFAULT_MEMORY_MIB << 20)]
+        memory_bytes: u64,
+        /// CPU-time limit, seconds.
+        #[arg(long, default_value_t = persist::guard::DEFAULT_TIMEOUT_S as u64)]
+        cpu_s: u64,
+        /// The process that must stay this one's parent.
+        #[arg(long)]
+        parent: Option<u32>,
+    },
     /// Persistence measured in flight (no shutter): follow pixels after bright events
     /// through later sky exposures, stack their excess over the surrounding sky by
     /// fluence and time, set it beside the stage's predictions and flags; writes
@@ -526,6 +549,49 @@ pub struct RunArgs {
     /// over the header's ESCONV.
     #[arg(long = "fits-gain", value_parser = persist::fits::parse_gain)]
     pub fits_gain: Vec<(u8, f64)>,
+    /// Read every input and checkpoint in-process, without first reading it in an
+    /// isolated child process (the reader guard, docs/operations.md).
+    #[arg(long)]
+    pub no_reader_guard: bool,
+    /// The reader guard's limit of wall time (and CPU time) per file read, seconds.
+    #[arg(long, default_value_t = persist::guard::DEFAULT_TIMEOUT_S, value_parser = positive_seconds)]
+    pub reader_timeout_s: f64,
+    /// The reader guard's limit of address space per file read, MiB.
+    #[arg(long, default_value_t = persist::guard::DEFAULT_MEMORY_MIB, value_parser = clap::value_parser!(u64).range(64..))]
+    pub reader_memory_mib: u64,
+}
+
+#[derive(Args, Debug)]
+pub struct FuzzArgs {
+    /// Mutants in all (the readers in turn).
+    #[arg(long, default_value_t = 1000)]
+    pub mutants: usize,
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+    /// The repository's fixtures.
+    #[arg(long, default_value = "fixtures")]
+    pub fixtures: PathBuf,
+    /// Scratch directory (emptied first) [default: a directory under the system's].
+    #[arg(long)]
+    pub work: Option<PathBuf>,
+    /// Input mutants per stage run.
+    #[arg(long, default_value_t = 50)]
+    pub batch: usize,
+    /// Checkpoint mutants that also get a stage restart each.
+    #[arg(long, default_value_t = 10)]
+    pub stage_checkpoints: usize,
+    /// The reader guard's limit per read, seconds.
+    #[arg(long, default_value_t = 10.0, value_parser = positive_seconds)]
+    pub read_timeout_s: f64,
+    /// A stage run still going after this many seconds is a hang.
+    #[arg(long, default_value_t = 600.0, value_parser = positive_seconds)]
+    pub stage_timeout_s: f64,
+    /// Write the report as JSON to this file.
+    #[arg(long)]
+    pub json: Option<PathBuf>,
+    /// Replace the figures between `<!-- fuzz:begin -->` and `<!-- fuzz:end -->` here.
+    #[arg(long)]
+    pub markdown_into: Option<PathBuf>,
 }
 
 #[derive(Args, Debug)]
@@ -868,6 +934,23 @@ pub fn run(cli: Cli) -> persist::Result<ExitCode> {
         Command::Diagnose(a) => diagnose(&a),
         Command::Bench(args) => bench(&args),
         Command::Export(a) => export(&a),
+        Command::Fuzz(a) => fuzz(&a),
+        Command::GuardedRead {
+            what,
+            path,
+            fits,
+            memory_bytes,
+            cpu_s,
+            parent,
+        } => {
+            let limits = persist::guard::Limits {
+                memory_bytes,
+                cpu_s,
+                parent,
+            };
+            let code = persist::guard::serve(&what, &path, &fits, &limits);
+            Ok(ExitCode::from(u8::try_from(code).unwrap_or(1)))
+        }
         Command::HelpMarkdown => {
             use clap::CommandFactory;
             out_nonl!("{}", crate::cli_reference::markdown(Cli::command()));
@@ -1178,9 +1261,19 @@ fn run_stage(args: &RunArgs) -> persist::Result<ExitCode> {
         },
         gains: args.fits_gain.iter().copied().collect(),
     };
+    let guard = if args.no_reader_guard {
+        None
+    } else {
+        let exe = std::env::current_exe().map_err(|e| Error::new(ErrorKind::Io, e.to_string()))?;
+        Some(persist::guard::Guard {
+            exe,
+            timeout: Duration::from_secs_f64(args.reader_timeout_s),
+            memory_bytes: args.reader_memory_mib << 20,
+        })
+    };
     // A missing input is the stage's error to report (exit 1), not a usage error.
     if worker.is_none() && !args.watch && !args.one_process && args.input.is_dir() {
-        let dets = stage::workers::detectors(&args.input, &fits)?;
+        let dets = stage::workers::detectors(&args.input, &fits, guard.as_ref())?;
         if dets.len() > 1 {
             drop(table);
             return run_workers(args, &dets, &stop);
@@ -1228,6 +1321,7 @@ fn run_stage(args: &RunArgs) -> persist::Result<ExitCode> {
             detector,
             unattributed: args.worker_unattributed,
         }),
+        guard,
     };
     let cfg = RunConfig {
         input: args.input.clone(),
@@ -1516,6 +1610,52 @@ fn diagnose(a: &DiagnoseArgs) -> persist::Result<ExitCode> {
         persist::diag::reference::run(&a.input, &a.model, a.json.as_deref(), &cfg, a.reference)?;
     out!("{s}");
     Ok(ExitCode::SUCCESS)
+}
+
+fn fuzz(args: &FuzzArgs) -> persist::Result<ExitCode> {
+    let exe = std::env::current_exe().map_err(|e| Error::new(ErrorKind::Io, e.to_string()))?;
+    let own_work = args.work.is_none();
+    let work = args.work.clone().unwrap_or_else(|| {
+        std::env::temp_dir().join(format!("persist-fuzz-{}", std::process::id()))
+    });
+    let cfg = persist::fuzz::FuzzConfig {
+        mutants: args.mutants,
+        seed: args.seed,
+        fixtures: args.fixtures.clone(),
+        work: work.clone(),
+        exe,
+        batch: args.batch,
+        stage_checkpoints: args.stage_checkpoints,
+        read_timeout: Duration::from_secs_f64(args.read_timeout_s),
+        stage_timeout: Duration::from_secs_f64(args.stage_timeout_s),
+    };
+    let r = persist::fuzz::run(&cfg, &|done, total| {
+        tracing::info!(done, total, "stage runs");
+    })?;
+    let command = format!(
+        "persist fuzz --mutants {} --seed {}",
+        args.mutants, args.seed
+    );
+    let md = persist::fuzz::markdown(&r, &command);
+    out_nonl!("{md}");
+    if let Some(j) = &args.json {
+        let text = serde_json::to_string_pretty(&r)
+            .map_err(|e| Error::new(ErrorKind::Io, e.to_string()))?;
+        std::fs::write(j, text + "\n").map_err(|e| Error::io(j, e))?;
+    }
+    if let Some(doc) = &args.markdown_into {
+        persist::fuzz::insert_markdown(doc, &md)?;
+    }
+    let bad =
+        r.stage_deaths + r.hangs + r.good_lost + r.readers.iter().map(|c| c.panics).sum::<usize>();
+    if own_work && bad == 0 {
+        let _ = std::fs::remove_dir_all(&work);
+    }
+    Ok(if bad == 0 {
+        ExitCode::SUCCESS
+    } else {
+        ExitCode::from(1)
+    })
 }
 
 fn bench(args: &BenchArgs) -> persist::Result<ExitCode> {

@@ -7,13 +7,16 @@ use std::fmt;
 use std::path::{Path, PathBuf};
 
 /// What went wrong, coarsely: callers decide on this (quarantine, retry, stop).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, serde::Serialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, serde::Serialize, serde::Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum ErrorKind {
     /// Reading or writing a file failed at the OS level.
     Io,
     /// The HDF5 library refused the file (truncated, corrupt, not HDF5).
     Hdf5,
+    /// The reader of the file (the HDF5 or CFITSIO library, in its isolated child
+    /// process, [`crate::guard`]) crashed, hung or exceeded its limits on it.
+    Crash,
     /// A product or checkpoint does not match its JSON Schema / the ICD.
     Invalid,
     /// An exposure does not fit the detector's history (order, timing, duplicate).

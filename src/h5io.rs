@@ -321,6 +321,13 @@ pub fn attr_i64(loc: &hdf5::Location, name: &str, value: i64) -> Result<()> {
         .map_err(|e| Error::from(e).field(name))
 }
 
+/// The version of the HDF5 library this program runs with (`MAJOR.MINOR.RELEASE`),
+/// recorded as `hdf5_version` in every output product and checkpoint.
+pub fn library_version() -> String {
+    let (a, b, c) = hdf5::library_version();
+    format!("{a}.{b}.{c}")
+}
+
 /// Check that a 2-D plane about to be written has sane dimensions.
 pub fn check_plane(field: &str, dim: (usize, usize)) -> Result<()> {
     check_axes(field, &[dim.0, dim.1])

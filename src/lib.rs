@@ -39,6 +39,8 @@ pub mod diag;
 pub mod error;
 pub mod fits;
 pub mod flags;
+pub mod fuzz;
+pub mod guard;
 pub mod h5io;
 pub mod measure;
 pub mod model;

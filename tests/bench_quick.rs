@@ -36,15 +36,25 @@ fn quick_bench_runs_every_case_and_writes_the_table_and_json() {
     assert_eq!(rows.len(), 2);
     for r in rows {
         for k in [
-            "step_s", "memory_s", "stage_s", "io_s", "copy_s", "a_over_b", "c_over_d", "c_over_e",
+            "step_s",
+            "memory_s",
+            "stage_s",
+            "io_s",
+            "copy_s",
+            "a_over_b",
+            "c_over_d",
+            "c_over_e",
+            "guarded_s",
+            "g_over_c",
+            "g_over_c_whole",
         ] {
             let v = r[k].as_f64().unwrap();
             assert!(v.is_finite() && v > 0.0, "{k} = {v}");
         }
         assert!(r["stage_peak_bytes"].as_u64().unwrap() > 0);
     }
-    // Every case ran: 5 cases + the checkpoint-cadence row, for each thread count.
-    assert_eq!(report["results"].as_array().unwrap().len(), 12);
+    // Every case ran: 6 cases + the checkpoint-cadence row, for each thread count.
+    assert_eq!(report["results"].as_array().unwrap().len(), 14);
     // (f) verify: the full frame's first exposures, the day and its first exposures,
     // for each thread count, and one projected day per thread count.
     let v = report["verify_rows"].as_array().unwrap();

@@ -104,6 +104,7 @@ pub fn stage_output(
             attr_f64(&g, "t_meas_s", attrs.t_meas_s)?;
             attr_i64(&g, "previous_exposure_index", attrs.previous_exposure_index)?;
             attr_str(&g, "software_version", &attrs.software_version)?;
+            attr_str(&g, "hdf5_version", &h5io::library_version())?;
             attr_str(&g, "processed_utc", &attrs.processed_utc)?;
             if let Some(st) = &attrs.stats {
                 attr_f64(&g, "fraction_above_high", st.fraction_above_high)?;

@@ -3,6 +3,7 @@
 //! directory, quarantine bad inputs, lock the directories, report status.
 
 pub mod exposure;
+pub mod fallback;
 pub mod lock;
 pub mod metrics;
 pub mod options;

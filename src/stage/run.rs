@@ -177,6 +177,9 @@ pub struct Ops {
     pub only: Option<OnlyDetector>,
     /// Operator metrics to keep up to date (`--metrics-file`, `--metrics-addr`).
     pub metrics: Option<Arc<super::metrics::Metrics>>,
+    /// Read every input and checkpoint in an isolated child process first
+    /// ([`crate::guard`]); `None`: read in-process.
+    pub guard: Option<crate::guard::Guard>,
 }
 
 /// One detector of a run split into worker processes.
@@ -199,6 +202,7 @@ impl Default for Ops {
             fits: Default::default(),
             only: None,
             metrics: None,
+            guard: None,
         }
     }
 }
@@ -421,7 +425,11 @@ impl<'a> Stage<'a> {
 
     fn observe(&mut self, path: &Path, key: FileKey, now: Instant) {
         self.seen.insert(path.to_path_buf(), key);
-        let (meta, by_start_time) = match format::read_input_sequence(path, &self.ops.fits) {
+        let (meta, by_start_time) = match crate::guard::read_input_sequence(
+            self.ops.guard.as_ref(),
+            path,
+            &self.ops.fits,
+        ) {
             Ok((m, _)) if self.ops.only.is_some_and(|o| o.detector != m.detector) => return,
             Ok(m) => m,
             Err(_) if self.ops.only.is_some_and(|o| !o.unattributed) => return,
@@ -639,6 +647,8 @@ struct Processor<'a> {
     /// The last output's publication (fsync, rename, directory fsync), running on its
     /// own thread while the next exposure is read and stepped.
     committing: Option<std::thread::JoinHandle<Result<()>>>,
+    /// The next queued input, read ahead through the reader guard.
+    ahead: crate::guard::Ahead,
 }
 
 impl<'a> Processor<'a> {
@@ -679,6 +689,7 @@ impl<'a> Processor<'a> {
             forget: Vec::new(),
             publishing: None,
             committing: None,
+            ahead: Default::default(),
         }
     }
 
@@ -719,7 +730,7 @@ impl<'a> Processor<'a> {
     }
 
     /// The state to start from, if any checkpoint applies.
-    fn start(&self) -> Result<Option<(State, Bookkeeping)>> {
+    fn start(&mut self) -> Result<Option<(State, Bookkeeping)>> {
         let cfg = self.cfg;
         let path = match cfg.from_checkpoint {
             Some((d, index)) if d == self.det => {
@@ -731,12 +742,28 @@ impl<'a> Processor<'a> {
                     .path(&cfg.checkpoints)
                 })?)
             }
-            _ => checkpoint::list(&cfg.checkpoints, self.det)?
-                .pop()
-                .map(|(_, p)| p),
+            _ => {
+                let newest = super::fallback::newest_readable(cfg, self.ops, self.det)?;
+                self.errors.extend(newest.skipped);
+                let Some((path, meta, state)) = newest.found else {
+                    return Ok(None);
+                };
+                return self.resume(path, meta, state).map(Some);
+            }
         };
         let Some(path) = path else { return Ok(None) };
-        let (meta, state) = checkpoint::load(&path)?;
+        let (meta, state) = crate::guard::load_checkpoint(self.ops.guard.as_ref(), &path)?;
+        self.resume(path, meta, state).map(Some)
+    }
+
+    /// Resume from a loaded checkpoint, if this run's model accepts it.
+    fn resume(
+        &self,
+        path: PathBuf,
+        meta: CheckpointMeta,
+        state: State,
+    ) -> Result<(State, Bookkeeping)> {
+        let cfg = self.cfg;
         if meta.model_id != cfg.model.identity() && !cfg.allow_model_change {
             return Err(Error::new(
                 ErrorKind::Checkpoint,
@@ -750,7 +777,7 @@ impl<'a> Processor<'a> {
             )
             .path(&path));
         }
-        resume_parts(&path, state, &meta, &cfg.model).map(Some)
+        resume_parts(&path, state, &meta, &cfg.model)
     }
 
     /// Whether this detector's indices are start times (module docs: start-time order).
@@ -1098,8 +1125,16 @@ impl<'a> Processor<'a> {
             let path = entry.path.clone();
             std::thread::spawn(move || file_digest(&path))
         });
-        let mut read: InputProduct =
-            format::read_input(&entry.path, &self.ops.fits).map_err(Failure::Input)?;
+        let next = self.pending.first_key_value().map(|(_, p)| p.path.clone());
+        let (exposure, fits) = crate::guard::read_input_ahead(
+            self.ops.guard.as_ref(),
+            &mut self.ahead,
+            &entry.path,
+            next.as_deref(),
+            &self.ops.fits,
+        )
+        .map_err(Failure::Input)?;
+        let mut read = InputProduct { exposure, fits };
         let meta = read.exposure.meta.clone();
         if meta != entry.meta {
             return Err(Failure::Input(

@@ -6,7 +6,8 @@
 //! that checkpoint (from its file time), the gaps the history crossed and how long the
 //! outputs stay "history incomplete" (its bookkeeping), the backlog (inputs with a later
 //! index, with `--input`) and the indices missing before them, and the quarantined files
-//! (their reason files).
+//! (their reason files: refused inputs, and checkpoints a resume set aside as unreadable,
+//! under `CHECKPOINTS/.quarantine`).
 
 use crate::checkpoint;
 use crate::error::Error;
@@ -192,7 +193,19 @@ pub fn status(
             Err(e) => st.problems.push(e.to_string()),
         }
     }
-    if let Some(q) = quarantine.filter(|q| q.is_dir()) {
+    // Refused inputs, and checkpoints set aside on resume (`super::fallback`).
+    let ckpt_q = super::fallback::quarantine_dir(checkpoints);
+    for q in quarantine.into_iter().chain([ckpt_q.as_path()]) {
+        add_quarantined(q, &mut st, &mut dets);
+    }
+    st.detectors = dets.into_values().collect();
+    st
+}
+
+/// Add the reason files of quarantine directory `q` to their detectors (or to the
+/// unattributed list).
+fn add_quarantined(q: &Path, st: &mut Status, dets: &mut BTreeMap<u8, DetectorStatus>) {
+    if q.is_dir() {
         match std::fs::read_dir(q) {
             Ok(entries) => {
                 let mut reasons: Vec<PathBuf> = entries
@@ -222,8 +235,6 @@ pub fn status(
             Err(e) => st.problems.push(Error::io(q, e).to_string()),
         }
     }
-    st.detectors = dets.into_values().collect();
-    st
 }
 
 fn read_reason(path: &Path) -> crate::Result<(Option<u8>, Quarantined)> {

@@ -26,15 +26,17 @@ use std::process::{Child, Command, ExitStatus, Stdio};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Duration;
 
-/// The detectors of the products under `input` whose header can be read.
+/// The detectors of the products under `input` whose header can be read (through the
+/// reader guard when there is one: a file that crashes its reader has no detector).
 pub fn detectors(
     input: &Path,
     fits: &crate::product::fits::FitsConfig,
+    guard: Option<&crate::guard::Guard>,
 ) -> Result<BTreeSet<DetectorId>> {
     Ok(queue::candidates(input)?
         .iter()
-        .filter_map(|p| crate::product::format::read_input_meta(p, fits).ok())
-        .map(|m| m.detector)
+        .filter_map(|p| crate::guard::read_input_sequence(guard, p, fits).ok())
+        .map(|(m, _)| m.detector)
         .collect())
 }
 

@@ -256,6 +256,14 @@ fn attr_cards(
     )?;
     hdu.write_key(
         f,
+        "HDF5VERS",
+        (
+            crate::h5io::library_version().as_str(),
+            "HDF5 library version of persist",
+        ),
+    )?;
+    hdu.write_key(
+        f,
         "PROCUTC",
         (a.processed_utc.as_str(), "processing time (UTC)"),
     )?;
