@@ -36,6 +36,7 @@ pub mod demo;
 pub mod diag;
 pub mod error;
 pub mod fits;
+pub mod flag_quality;
 pub mod flags;
 pub mod h5io;
 pub mod measure;
