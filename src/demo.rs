@@ -11,7 +11,8 @@
 //! # The paper's workflow
 //! Without a model file the demo first measures the same simulated detector (same size
 //! and seed: the same pixels) in the laboratory ([`crate::pixmap::eval::lab_sequence`]:
-//! the paper's pattern, three illuminations and 1.5 h of darks after the first), fits
+//! the paper's pattern with a dark corner for the dark level and noise, three
+//! illuminations and 1.5 h of darks after the first), fits
 //! it as `persist fit --coverage 0.95` does (the paper's calibration, then the flags
 //! calibrated to 95 % coverage, [`crate::calib::coverage`]), and flags the sky with that
 //! model. Then it counts the flags against the simulator's truth
@@ -150,7 +151,7 @@ fn model_of(cfg: &DemoConfig, progress: &dyn Fn(&str)) -> Result<(ModelParams, S
         "simulating the laboratory sequence of the same detector ({}x{}, seed {})",
         cfg.size, cfg.size, cfg.seed
     ));
-    let (_, seq) = crate::pixmap::eval::lab_sequence(cfg.size, cfg.seed)?;
+    let (_, seq) = crate::pixmap::eval::lab_sequence(cfg.size, cfg.seed, true)?;
     progress("fitting it (the paper's calibration, then the flags' coverage)");
     let (params, cal) = crate::calib::calibrate(&seq, &crate::calib::CalibConfig::default())?;
     let (params, cov) = crate::calib::coverage::apply(&params, &seq, &cfg.coverage)?;

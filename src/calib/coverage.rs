@@ -9,8 +9,14 @@
 //! is what the data ask for, and the 1.2 a consequence.
 //!
 //! # Rule
-//! The samples are grouped by threshold `thr` (default 0.1 and 0.01 e-/s) and by time
-//! since the last illumination (`bins_per_decade` log-spaced bins). A sample counts as
+//! The samples are grouped by threshold `thr` (default 0.1 and 0.01 e-/s), by time
+//! since the last illumination (`bins_per_decade` log-spaced bins) and by band of
+//! measured current in units of the threshold ([`crate::flag_quality::BANDS`]: 1-1.5,
+//! 1.5-2, 2-3 and above 3 times it, the bands the flags are judged by against a truth).
+//! The bands matter: in a laboratory sequence most samples above a threshold are far
+//! above it and flagged whatever the margin, while on the sky most are just above it; a
+//! coverage over all of them together says little about the samples that decide the
+//! flags. A sample counts as
 //! **measured above** `thr` when its measured current exceeds `thr + noise_sigmas *
 //! sigma_k` (`sigma_k` the exposure's noise; 2 as in
 //! [`crate::measure::eval::FlagQuality`]): noise alone then puts few samples truly
@@ -25,7 +31,8 @@
 //! factor out): any caller that has a model's predictions at laboratory samples can
 //! re-derive the margin, e.g. after fitting effects. [`apply`] runs them on a model:
 //!
-//! 1. **Shape** (`shape`, default on): per time bin the largest required scale over the
+//! 1. **Shape** (`shape`, default off: on the simulated detector it moves neither the
+//!    sky's missed nor its over-flagged samples, docs/validation/flag_quality.md): per time bin the largest required scale over the
 //!    thresholds, `g_b`; the decay `S(t) = sum_n C_n exp(-t/tau_n)` is refitted to
 //!    `g(t) S(t)` (`g` linear in `log t` between the bins' median times, held at the
 //!    first and last bin's value outside them) over the calibration's `C_n` span
@@ -44,6 +51,7 @@
 //! (from the prior).
 
 use crate::error::{Error, Result};
+use crate::flag_quality::BANDS;
 use crate::measure::data::Sequence;
 use crate::measure::eval::{predict, Samples};
 use crate::model::params::ModelParams;
@@ -78,7 +86,7 @@ impl Default for CoverageConfig {
             noise_sigmas: 2.0,
             bins_per_decade: 4.0,
             min_samples: 30,
-            shape: true,
+            shape: false,
         }
     }
 }
@@ -125,6 +133,9 @@ pub struct CoverageInput<'a> {
 #[derive(Debug, Clone, Serialize, PartialEq)]
 pub struct BinCoverage {
     pub threshold_e_per_s: f64,
+    /// The band of measured current, in units of the threshold: from this (the band's
+    /// lower edge, [`crate::flag_quality::BANDS`]).
+    pub band_lo: f64,
     pub t_lo_s: f64,
     pub t_hi_s: f64,
     /// Median time since the illumination of the bin's samples measured above, s.
@@ -145,7 +156,8 @@ pub fn measure(input: CoverageInput, cfg: &CoverageConfig) -> Vec<BinCoverage> {
     let bin_of = |t: f64| (t.log10() * cfg.bins_per_decade).floor() as i64;
     let mut out = Vec::new();
     for &thr in &cfg.thresholds_e_per_s {
-        let mut by_bin: std::collections::BTreeMap<i64, Vec<(f64, f64)>> = Default::default();
+        let mut by_bin: std::collections::BTreeMap<(i64, usize), Vec<(f64, f64)>> =
+            Default::default();
         for i in 0..input.measured_e_per_s.len() {
             let (m, p, t) = (
                 input.measured_e_per_s[i],
@@ -157,10 +169,11 @@ pub fn measure(input: CoverageInput, cfg: &CoverageConfig) -> Vec<BinCoverage> {
             }
             if m > thr + cfg.noise_sigmas * input.noise_e_per_s[i] {
                 let p = if p.is_finite() { p } else { 0.0 };
-                by_bin.entry(bin_of(t)).or_default().push((p, t));
+                let band = BANDS.iter().rposition(|&lo| m >= lo * thr).unwrap_or(0);
+                by_bin.entry((bin_of(t), band)).or_default().push((p, t));
             }
         }
-        for (b, v) in by_bin {
+        for ((b, band), v) in by_bin {
             let edge = |k: i64| 10f64.powf(k as f64 / cfg.bins_per_decade);
             let mut p: Vec<f64> = v.iter().map(|x| x.0).collect();
             p.sort_by(f64::total_cmp);
@@ -171,6 +184,7 @@ pub fn measure(input: CoverageInput, cfg: &CoverageConfig) -> Vec<BinCoverage> {
             let pk = p[k.min(n - 1)];
             out.push(BinCoverage {
                 threshold_e_per_s: thr,
+                band_lo: BANDS[band],
                 t_lo_s: edge(b),
                 t_hi_s: edge(b + 1),
                 t_median_s: crate::stats::median(&times),
@@ -278,9 +292,24 @@ impl CoverageReport {
                 format!(", decay reshaped by {}", g.join(", "))
             }
         );
-        for &thr in &self.config.thresholds_e_per_s {
-            s += &format!("  coverage at {thr} e-/s by time since illumination:");
-            for b in self.after.iter().filter(|b| b.threshold_e_per_s == thr) {
+        for (&thr, &band) in self
+            .config
+            .thresholds_e_per_s
+            .iter()
+            .flat_map(|t| BANDS.iter().map(move |b| (t, b)))
+        {
+            s += &format!(
+                "  coverage at {thr} e-/s, measured {band}x-{} by time since illumination:",
+                BANDS
+                    .iter()
+                    .find(|&&b| b > band)
+                    .map_or("".to_string(), |b| format!("{b}x"))
+            );
+            for b in self
+                .after
+                .iter()
+                .filter(|b| b.threshold_e_per_s == thr && b.band_lo == band)
+            {
                 s += &format!(
                     " {:.0}-{:.0} s {:.1} % ({}{}),",
                     b.t_lo_s,

@@ -115,24 +115,27 @@ pub fn lab_model_and_map(
     crate::model::ModelParams,
     super::PixelMap,
 )> {
-    let (cfg, seq) = lab_sequence(size, seed)?;
+    let (cfg, seq) = lab_sequence(size, seed, false)?;
     let (params, _) = crate::calib::calibrate(&seq, &crate::calib::CalibConfig::default())?;
     let map = super::build(&seq, &params, &super::MapConfig::default())?;
     Ok((cfg, params, map))
 }
 
 /// [`lab_campaign`] on the simulated detector `(size, seed)` (the paper's pattern, every
-/// pixel lit): its configuration and the sequence.
+/// pixel lit, or with `dark_pixels` a corner of `size/8 x size/8` pixels kept unlit, whose
+/// dark level and noise the measured currents are then taken against,
+/// [`crate::measure::data`]): its configuration and the sequence.
 pub fn lab_sequence(
     size: usize,
     seed: u64,
+    dark_pixels: bool,
 ) -> crate::Result<(crate::sim::lab::LabConfig, crate::measure::data::Sequence)> {
     use crate::sim::lab;
     let cfg = lab::LabConfig {
         size,
         seed,
         campaign: Some(lab_campaign()),
-        paper_pattern: Some(lab::PaperPattern { dark_pixels: false }),
+        paper_pattern: Some(lab::PaperPattern { dark_pixels }),
         ..lab::LabConfig::default()
     };
     let mut exposures = Vec::new();
