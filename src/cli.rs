@@ -934,27 +934,27 @@ fn verify(a: &VerifyArgs) -> persist::Result<ExitCode> {
     persist::verify::write_report(&r, &a.report)?;
     let c = &r.checks;
     out!(
-        "{} exposures, {} events, {} samples; decay {} (slope predicted - measured {:.3} +- {:.3}); \
-         margin {:.2} ({:.2}-{:.2}): {}",
+        "{} exposures, {} events, {} samples; {}",
         r.exposures,
         r.events,
         r.samples,
-        if c.decay_agrees { "agrees" } else { "disagrees" },
-        c.slope_difference.mean,
-        c.slope_difference.se,
-        c.margin.0,
-        c.margin.1,
-        c.margin.2,
-        c.margin_verdict
+        c.verdict()
     );
     if let Some((inside, n)) = c.truth_inside {
         out!("truth inside the measured 95 % interval in {inside} of {n} bins");
+    }
+    if let Some(q) = &r.flag_quality {
+        out!(
+            "flags against the truth, pixel-exposures from exposure {} on:\n{}",
+            q.from_exposure,
+            q.table().trim_end()
+        );
     }
     for e in &r.errors {
         eprintln!("unreadable: {}: {}", e.file.display(), e.reason);
     }
     out!("report: {}", a.report.join("report.html").display());
-    let ok = c.decay_agrees && c.margin_verdict == "ok" && r.errors.is_empty();
+    let ok = c.agree() && r.errors.is_empty();
     Ok(if ok {
         ExitCode::SUCCESS
     } else {
@@ -1454,21 +1454,10 @@ fn demo(args: &DemoArgs) -> persist::Result<ExitCode> {
         r.flag_quality.from_exposure
     );
     out!("{}", r.flag_quality.table().trim_end());
-    let c = &r.verify;
     out!(
-        "persist verify: decay {} (slope predicted - measured {:.3} +- {:.3}); margin {:.2} \
-         ({:.2}-{:.2}): {}",
-        if c.decay_agrees {
-            "agrees"
-        } else {
-            "disagrees"
-        },
-        c.slope_difference.mean,
-        c.slope_difference.se,
-        c.margin.0,
-        c.margin.1,
-        c.margin.2,
-        c.margin_verdict
+        "persist verify: {} (its exit code would be {})",
+        r.verify.verdict(),
+        u8::from(!r.verify.agree())
     );
     for p in &r.plots {
         out!("plot: {}", p.display());

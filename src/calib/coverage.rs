@@ -298,6 +298,13 @@ impl CoverageReport {
             .iter()
             .flat_map(|t| BANDS.iter().map(move |b| (t, b)))
         {
+            if !self
+                .after
+                .iter()
+                .any(|b| b.threshold_e_per_s == thr && b.band_lo == band)
+            {
+                continue;
+            }
             s += &format!(
                 "  coverage at {thr} e-/s, measured {band}x-{} by time since illumination:",
                 BANDS
