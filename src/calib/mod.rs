@@ -781,7 +781,7 @@ pub fn fit_cn_to(
     t_max_s: f64,
     target: &dyn Fn(f64) -> f64,
 ) -> Result<CnFit> {
-    if t_max_s.is_nan() || t_max_s <= t_min_s || !(t_min_s > 0.0) {
+    if t_max_s.is_nan() || t_max_s <= t_min_s || t_min_s.is_nan() || t_min_s <= 0.0 {
         return Err(Error::invalid(
             "--t-min-s",
             format!("span [{t_min_s}, {t_max_s}] s is empty"),
