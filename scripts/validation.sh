@@ -14,6 +14,9 @@
 #   matrix  docs/validation/diagnose_matrix.md  examples/diagnose_matrix $MATRIX_ARGS
 #                                               (default --size 128: hours)
 #   verify  docs/validation/verify.md           scripts/validate_verify.sh (minutes)
+#   flag_quality  docs/validation/flag_quality.md  examples/flag_quality on the demo's
+#                                               detector (seed 1) and seed 2, not used for
+#                                               tuning (about two minutes; not in the default set)
 #   verify_bench  docs/validation/verify_bench.md (+ .json)  `persist bench --verify-only
 #                                               $VERIFY_BENCH_ARGS`: `persist verify` on full
 #                                               frames and one detector-day (about 8 minutes)
@@ -48,8 +51,8 @@ if [[ ${#pages[@]} -eq 0 ]]; then
 fi
 for p in "${pages[@]}"; do
     case $p in
-        floor|bench|matrix|verify|verify_bench|family|family128|family_heldout|reference) ;;
-        *) echo "validation.sh: unknown page '$p' (floor, bench, matrix, verify, verify_bench, family, family128, family_heldout, reference)" >&2; exit 2 ;;
+        floor|bench|matrix|verify|verify_bench|family|family128|family_heldout|reference|flag_quality) ;;
+        *) echo "validation.sh: unknown page '$p' (floor, bench, matrix, verify, verify_bench, family, family128, family_heldout, reference, flag_quality)" >&2; exit 2 ;;
     esac
 done
 
@@ -265,6 +268,42 @@ page_family_heldout() {
     family_page diagnostics_family_heldout \
         "Diagnostics on the held-aside forms and seeds of the second truth generator" \
         FAMILY_HELDOUT_ARGS "${FAMILY_HELDOUT_ARGS:---held-out --size 64 --seeds 5 --first-seed 100 --rows none@single,none@single+dark,none@campaign,none@campaign+dark,temperature:weight,populations:patches,shape:fast_ceiling}"
+}
+
+# flag_quality: the flags against the simulator's truth, the demo's detector and a
+# second seed not used for tuning.
+page_flag_quality() {
+    local page=$out_dir/flag_quality.md
+    cargo build --release --quiet --example flag_quality
+    local bin=$root/target/release/examples/flag_quality
+    {
+        scripts/validation_header.sh "Validation: flag quality against the simulator's truth" \
+            "make validation PAGES=flag_quality"
+        cat <<'TEXT'
+What the flags cost and miss, counted the way a user evaluating the stage would: every
+pixel-exposure from exposure 200 on, non-functional pixels left out, against the
+simulator's true persistence current (`persist::flag_quality`, the same counts
+`persist demo` prints). The models: the paper's default; `persist fit`'s calibration of
+the same detector's laboratory sequence (the paper's 95th percentile x 1.2); the same
+calibrated to 95 % coverage (`persist fit --coverage 0.95`, `persist::calib::coverage`:
+the margin the laboratory data ask for at 0.1 and 0.01 e-/s in every time bin and band
+of measured current), with and without the per-pixel map (`persist::pixmap`, margin 1);
+and the coverage calibration with the decay reshaped in time. The baseline: a
+time-window flagger (a pixel saturated in the last W seconds flagged at both
+thresholds). The laboratory sequence keeps a corner of size/8 x size/8 pixels dark
+(the measured currents' dark level and noise come from it).
+
+## The demo's detector (seed 1)
+
+TEXT
+        "$bin" --seed 1
+        echo
+        echo "## A second detector (seed 2, not used for tuning)"
+        echo
+        "$bin" --seed 2
+    } > "$page.tmp"
+    mv "$page.tmp" "$page"
+    echo "wrote $page" >&2
 }
 
 # verify: persist verify against the simulator's truth (its own script).

@@ -7,6 +7,17 @@
 //! The default is the paper's two days (1143 exposures of 112 s) on one detector at
 //! 128 x 128 pixels: the star density per pixel is the full array's, so the statistics
 //! are those of a 128 x 128 patch of the sky.
+//!
+//! # The paper's workflow
+//! Without a model file the demo first measures the same simulated detector (same size
+//! and seed: the same pixels) in the laboratory ([`crate::pixmap::eval::lab_sequence`]:
+//! the paper's pattern with a dark corner for the dark level and noise, three
+//! illuminations and 1.5 h of darks after the first), fits
+//! it as `persist fit --coverage 0.95` does (the paper's calibration, then the flags
+//! calibrated to 95 % coverage, [`crate::calib::coverage`]), and flags the sky with that
+//! model. Then it counts the flags against the simulator's truth
+//! ([`crate::flag_quality`], from exposure [`crate::flag_quality::FROM_EXPOSURE`] on)
+//! and runs `persist verify` on the stage's outputs.
 
 use crate::checkpoint::Retention;
 use crate::error::{Error, Result};
@@ -23,7 +34,11 @@ pub struct DemoConfig {
     pub size: usize,
     pub exposures: u64,
     pub seed: u64,
-    pub model: ModelParams,
+    /// The model; None: fitted on the laboratory sequence (module docs, "The paper's
+    /// workflow").
+    pub model: Option<ModelParams>,
+    /// The coverage the fitted model is calibrated to.
+    pub coverage: crate::calib::coverage::CoverageConfig,
     /// The sky survey's parameters (star counts, cosmic rays, ...); `size`, `detectors`,
     /// `exposures` and `seed` are taken from the fields above.
     pub sky: sky::SkyConfig,
@@ -36,7 +51,8 @@ impl Default for DemoConfig {
             size: 128,
             exposures: 1143,
             seed: 1,
-            model: ModelParams::default(),
+            model: None,
+            coverage: crate::calib::coverage::CoverageConfig::default(),
             sky: sky::SkyConfig::default(),
         }
     }
@@ -92,6 +108,12 @@ pub struct DemoReport {
     pub steady_median_pred_e_per_s: f64,
     pub plots: Vec<PathBuf>,
     pub errors: usize,
+    /// Where the model came from (the fit's summary when the demo fitted it).
+    pub model_source: String,
+    /// The flags against the simulator's truth.
+    pub flag_quality: crate::flag_quality::TruthTally,
+    /// `persist verify` on the stage's outputs.
+    pub verify: crate::verify::Checks,
 }
 
 fn read_plane(path: &Path, dataset: &str) -> Result<ndarray::Array2<f32>> {
@@ -119,11 +141,36 @@ fn draw(path: &Path, chart: &Chart, width: u32, height: u32) -> Result<()> {
     line_chart_png(path, &c, width, height)
 }
 
+/// The demo's model: `cfg.model`, or fitted on the laboratory sequence of the same
+/// detector (module docs), with a summary of where it came from.
+fn model_of(cfg: &DemoConfig, progress: &dyn Fn(&str)) -> Result<(ModelParams, String)> {
+    if let Some(m) = &cfg.model {
+        return Ok((m.clone(), format!("model `{}` (given)", m.name)));
+    }
+    progress(&format!(
+        "simulating the laboratory sequence of the same detector ({}x{}, seed {})",
+        cfg.size, cfg.size, cfg.seed
+    ));
+    let (_, seq) = crate::pixmap::eval::lab_sequence(cfg.size, cfg.seed, true)?;
+    progress("fitting it (the paper's calibration, then the flags' coverage)");
+    let (params, cal) = crate::calib::calibrate(&seq, &crate::calib::CalibConfig::default())?;
+    let (params, cov) = crate::calib::coverage::apply(&params, &seq, &cfg.coverage)?;
+    let text = format!(
+        "fitted on the laboratory sequence: {} knots, then\n{}",
+        cal.knots.len(),
+        cov.describe().trim_end()
+    );
+    let path = cfg.out.join("model.json");
+    crate::calib::write_text(&path, &(params.to_json_pretty() + "\n"))?;
+    Ok((params, text))
+}
+
 /// Simulate, run the stage, analyse, plot. `progress` is told what happens.
 pub fn run(cfg: &DemoConfig, progress: &dyn Fn(&str)) -> Result<DemoReport> {
     if cfg.out.exists() {
         std::fs::remove_dir_all(&cfg.out).map_err(|e| Error::io(&cfg.out, e))?;
     }
+    let (model, model_source) = model_of(cfg, progress)?;
     let sim_dir = cfg.out.join("sim");
     let sky_cfg = sky::SkyConfig {
         size: cfg.size,
@@ -146,10 +193,7 @@ pub fn run(cfg: &DemoConfig, progress: &dyn Fn(&str)) -> Result<DemoReport> {
     let mut event: (f64, u64, (usize, usize)) = (0.0, 0, (0, 0));
     let mut counts: Vec<SimCounts> = Vec::new();
     // The true current is counted against the model's own thresholds.
-    let (high, low) = (
-        cfg.model.thresholds.high_e_per_s,
-        cfg.model.thresholds.low_e_per_s,
-    );
+    let (high, low) = (model.thresholds.high_e_per_s, model.thresholds.low_e_per_s);
     let description = sky::run(&sky_cfg, |s| {
         let k = s.exposure.meta.exposure_index;
         let n = s.true_persistence.len().max(1) as f64;
@@ -177,15 +221,12 @@ pub fn run(cfg: &DemoConfig, progress: &dyn Fn(&str)) -> Result<DemoReport> {
     })?;
     writer.finish(description)?;
 
-    progress(&format!(
-        "running the stage with model `{}`",
-        cfg.model.name
-    ));
+    progress(&format!("running the stage with model `{}`", model.name));
     let run_cfg = RunConfig {
         input: sim_dir.clone(),
         output: cfg.out.join("output"),
         checkpoints: cfg.out.join("checkpoints"),
-        model: Model::new(cfg.model.clone())?,
+        model: Model::new(model.clone())?,
         from_checkpoint: None,
         allow_model_change: false,
         checkpoint_every: 1,
@@ -200,17 +241,24 @@ pub fn run(cfg: &DemoConfig, progress: &dyn Fn(&str)) -> Result<DemoReport> {
     let t0 = crate::sim::epoch().0;
     let mut rows = Vec::new();
     let mut trace = Vec::new();
+    let mut flag_quality =
+        crate::flag_quality::TruthTally::new(high, low, crate::flag_quality::FROM_EXPOSURE);
     for r in &exposures {
-        let meta = crate::product::read::read_meta(&r.path)?;
-        let t_hours = (meta.t_start.0 + 0.5 * meta.t_exposure_s - t0) / 3600.0;
         let n = r.summary.pixels.max(1) as f64;
         let c = counts
             .get(r.exposure_index as usize)
             .copied()
             .unwrap_or_default();
         let out = run_cfg.output.join(r.path.file_name().unwrap_or_default());
-        let truth = crate::sim::output::truth_path(&sim_dir, 1, r.exposure_index);
-        let predicted = read_plane(&out, "persistence/current")?;
+        let truth = read_plane(
+            &crate::sim::output::truth_path(&sim_dir, 1, r.exposure_index),
+            "true_persistence",
+        )?;
+        let (e, planes, _) = crate::product::read::read_output(&out)?;
+        let meta = &e.meta;
+        let t_hours = (meta.t_start.0 + 0.5 * meta.t_exposure_s - t0) / 3600.0;
+        flag_quality.add_pflags(r.exposure_index, &planes.flags, &truth, &e.flags);
+        let predicted = planes.current_e_per_s;
         rows.push(Row {
             exposure_index: r.exposure_index,
             t_hours,
@@ -226,7 +274,7 @@ pub fn run(cfg: &DemoConfig, progress: &dyn Fn(&str)) -> Result<DemoReport> {
         trace.push((
             t_hours,
             f64::from(predicted[event.2]),
-            f64::from(read_plane(&truth, "true_persistence")?[event.2]),
+            f64::from(truth[event.2]),
         ));
     }
     let steady = |f: fn(&Row) -> f64| {
@@ -249,7 +297,7 @@ pub fn run(cfg: &DemoConfig, progress: &dyn Fn(&str)) -> Result<DemoReport> {
         &Chart {
             title: format!(
                 "Pixels above threshold, model `{}` and truth ({}x{}, seed {})",
-                cfg.model.name, cfg.size, cfg.size, cfg.seed
+                model.name, cfg.size, cfg.size, cfg.seed
             ),
             x_label: "time since start [h]".into(),
             y_label: "pixels above threshold [%]".into(),
@@ -317,6 +365,12 @@ pub fn run(cfg: &DemoConfig, progress: &dyn Fn(&str)) -> Result<DemoReport> {
     for e in &report.errors {
         progress(&format!("error: {e}"));
     }
+    progress("running persist verify on the outputs");
+    let verified = crate::verify::run(
+        &sim_dir,
+        &run_cfg.output,
+        &crate::verify::VerifyParams::default(),
+    )?;
     Ok(DemoReport {
         rows,
         pixel: event.2,
@@ -330,6 +384,9 @@ pub fn run(cfg: &DemoConfig, progress: &dyn Fn(&str)) -> Result<DemoReport> {
         steady_median_true_e_per_s: steady_median_true,
         steady_median_pred_e_per_s: steady_median_pred,
         plots,
-        errors: report.errors.len(),
+        errors: report.errors.len() + verified.errors.len(),
+        model_source,
+        flag_quality,
+        verify: verified.checks,
     })
 }

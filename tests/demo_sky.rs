@@ -15,6 +15,7 @@ fn two_day_sky_run_flags_a_steady_percent_or_two() {
         size: 64,
         exposures: 1143,
         seed: 3,
+        model: Some(persist::model::ModelParams::default()),
         ..DemoConfig::default()
     };
     let r = run(&cfg, &|_| {}).unwrap();

@@ -49,6 +49,7 @@
 //! ([`crate::model::effects::chord`], `first_read_s`) then shows as a first-dark
 //! deficit (docs/validation/diagnose_matrix.md).
 
+pub mod coverage;
 pub mod dark;
 pub mod effects;
 pub mod exponent;
@@ -752,6 +753,40 @@ pub fn fit_cn_power(
             format!("{offset_s}: must be finite and > 0"),
         ));
     }
+    let target = |t: f64| (t + offset_s).powf(-exponent);
+    let mut f = fit_cn_to(rates, t_min_s, t_max_s, &target).map_err(|_| {
+        // every term decayed before the span begins: a model that predicts nothing
+        Error::invalid(
+            "--t-min-s",
+            format!(
+                "no term follows (t + {offset_s})^-{exponent} over [{t_min_s}, {t_max_s}] s: every \
+                 C_n came out 0 (the slowest rate, {} 1/s, has decayed by then)",
+                rates.iter().copied().fold(f64::INFINITY, f64::min)
+            ),
+        )
+    })?;
+    f.offset_s = offset_s;
+    f.exponent = exponent;
+    Ok(f)
+}
+
+/// Step 5 of the module docs with any positive target `q(t)`: least squares of the
+/// relative error `sum_n C_n exp(-t/tau_n) / q(t) - 1` at 400 log-spaced times over
+/// `[t_min_s, t_max_s]`, negative `C_n` dropped and the rest refitted. The returned
+/// fit's `offset_s` and `exponent` are NaN (the target is not a power law); errors
+/// when the span is empty or every `C_n` comes out 0.
+pub fn fit_cn_to(
+    rates: &[f64],
+    t_min_s: f64,
+    t_max_s: f64,
+    target: &dyn Fn(f64) -> f64,
+) -> Result<CnFit> {
+    if t_max_s.is_nan() || t_max_s <= t_min_s || t_min_s.is_nan() || t_min_s <= 0.0 {
+        return Err(Error::invalid(
+            "--t-min-s",
+            format!("span [{t_min_s}, {t_max_s}] s is empty"),
+        ));
+    }
     let m = 400;
     let ts: Vec<f64> = (0..m)
         .map(|i| t_min_s * (t_max_s / t_min_s).powf(i as f64 / (m - 1) as f64))
@@ -761,7 +796,7 @@ pub fn fit_cn_power(
     for _ in 0..rates.len() {
         let idx: Vec<usize> = (0..rates.len()).filter(|&i| active[i]).collect();
         let a = DMatrix::from_fn(m, idx.len(), |j, k| {
-            (-rates[idx[k]] * ts[j]).exp() * (ts[j] + offset_s).powf(exponent)
+            (-rates[idx[k]] * ts[j]).exp() / target(ts[j])
         });
         let b = DVector::from_element(m, 1.0);
         let sol = a.svd(true, true).solve(&b, 1e-14).map_err(|e| {
@@ -781,28 +816,23 @@ pub fn fit_cn_power(
     }
     c.iter_mut().for_each(|v| *v = v.max(0.0));
     if c.iter().all(|v| *v == 0.0) {
-        // every term decayed before the span begins: a model that predicts nothing
         return Err(Error::invalid(
-            "--t-min-s",
-            format!(
-                "no term follows (t + {offset_s})^-{exponent} over [{t_min_s}, {t_max_s}] s: every \
-                 C_n came out 0 (the slowest rate, {} 1/s, has decayed by then)",
-                rates.iter().copied().fold(f64::INFINITY, f64::min)
-            ),
+            "C_n",
+            format!("every C_n came out 0 over [{t_min_s}, {t_max_s}] s"),
         ));
     }
     let err: Vec<f64> = ts
         .iter()
         .map(|t| {
             let s: f64 = c.iter().zip(rates).map(|(ci, r)| ci * (-r * t).exp()).sum();
-            s * (t + offset_s).powf(exponent) - 1.0
+            s / target(*t) - 1.0
         })
         .collect();
     Ok(CnFit {
         t_min_s,
         t_max_s,
-        offset_s,
-        exponent,
+        offset_s: f64::NAN,
+        exponent: f64::NAN,
         terms: c
             .iter()
             .zip(rates)
@@ -957,6 +987,9 @@ pub struct FitReport {
     #[serde(skip_serializing_if = "Option::is_none")]
     pub readout: Option<readout::Readout>,
     pub effects: Option<effects::EffectFit>,
+    /// The flags calibrated to a coverage (`--coverage`, [`coverage`]).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub coverage: Option<coverage::CoverageReport>,
     /// RMS of the normalised cell residuals of the written model (diag::eval docs).
     pub residual_rms_normalised: f64,
     pub cells: usize,
@@ -1077,13 +1110,22 @@ pub fn run(
     input: &std::path::Path,
     cfg: &CalibConfig,
     (preset, with): (Preset, &[String]),
-    free: effects::Free,
+    (free, cov): (effects::Free, Option<&coverage::CoverageConfig>),
     out: &std::path::Path,
     report_path: &std::path::Path,
 ) -> Result<String> {
     let seq = Sequence::load_with(input, cfg.background)?;
     let (with, readout) = preset.with_for(&seq, with);
-    let (params, cal, ef) = fit_params(&seq, cfg, &with, free).map_err(|e| e.path(input))?;
+    let (mut params, cal, ef) = fit_params(&seq, cfg, &with, free).map_err(|e| e.path(input))?;
+    // the margin last, after every effect (coverage module docs)
+    let covered = match cov {
+        Some(c) => {
+            let (p, r) = coverage::apply(&params, &seq, c).map_err(|e| e.path(input))?;
+            params = p;
+            Some(r)
+        }
+        None => None,
+    };
     let samples = cfg.samples(&seq);
     let pr = crate::measure::eval::predict(&params, &seq, &samples, false)?;
     let cells = crate::measure::spread::model_cell_z(&params, &samples, &pr.current);
@@ -1092,6 +1134,7 @@ pub fn run(
         calibration: cal,
         readout,
         effects: ef,
+        coverage: covered,
         residual_rms_normalised: crate::measure::eval::rms(&cells),
         cells: cells.len(),
         cell_statistic: cfg.cell_statistic,
@@ -1144,6 +1187,9 @@ pub fn run(
     }
     if !rep.lit.is_empty() {
         s += &format!("  {}\n", rep.lit.describe());
+    }
+    if let Some(c) = &rep.coverage {
+        s += &c.describe();
     }
     s += &format!("model {} , report {}", out.display(), report_path.display());
     Ok(s)

@@ -3,88 +3,10 @@
 //! unflagged (missed), by band of true current. Non-functional pixels are left out
 //! (masked anyway). Used by `examples/pixel_map_validation` and the tests.
 
-use crate::flags::{bits, pbits};
+pub use crate::flag_quality::{FlagTally, BANDS};
+use crate::flags::pbits;
 use crate::model::{Model, State};
 use ndarray::Array2;
-
-/// Bands of true current, in units of the threshold: `[1, 1.5)`, `[1.5, 2)`, `[2, 3)`,
-/// `[3, inf)` (0.1-0.15, 0.15-0.2, 0.2-0.3, above 0.3 e-/s at 0.1 e-/s).
-pub const BANDS: [f64; 4] = [1.0, 1.5, 2.0, 3.0];
-
-/// Counts at one threshold over pixel-exposures.
-#[derive(Debug, Clone, Copy, Default, PartialEq, serde::Serialize)]
-pub struct FlagTally {
-    pub threshold_e_per_s: f64,
-    /// Functional pixel-exposures counted.
-    pub samples: u64,
-    pub flagged: u64,
-    /// Flagged while the truth is below the threshold.
-    pub over_flagged: u64,
-    /// Truth at or above the threshold, per band ([`BANDS`]).
-    pub above: [u64; 4],
-    /// Of those, not flagged.
-    pub missed: [u64; 4],
-}
-
-impl FlagTally {
-    pub fn new(threshold_e_per_s: f64) -> FlagTally {
-        FlagTally {
-            threshold_e_per_s,
-            ..FlagTally::default()
-        }
-    }
-
-    /// Add one exposure: `flagged` the model's flag at this threshold per pixel.
-    pub fn add(&mut self, flagged: &Array2<bool>, truth: &Array2<f32>, flags: &Array2<u32>) {
-        let th = self.threshold_e_per_s;
-        for ((f, t), fl) in flagged.iter().zip(truth.iter()).zip(flags.iter()) {
-            if fl & bits::NONFUNC != 0 {
-                continue;
-            }
-            self.samples += 1;
-            let t = f64::from(*t);
-            if *f {
-                self.flagged += 1;
-            }
-            if t < th {
-                if *f {
-                    self.over_flagged += 1;
-                }
-                continue;
-            }
-            let b = BANDS.iter().rposition(|&lo| t >= lo * th).unwrap_or(0);
-            self.above[b] += 1;
-            if !*f {
-                self.missed[b] += 1;
-            }
-        }
-    }
-
-    /// Over-flagged pixel-exposures per functional pixel-exposure.
-    pub fn over_flag_fraction(&self) -> f64 {
-        self.over_flagged as f64 / self.samples.max(1) as f64
-    }
-
-    /// Missed fraction of band `b`'s pixel-exposures (NaN when the band is empty).
-    pub fn missed_fraction(&self, b: usize) -> f64 {
-        if self.above[b] == 0 {
-            f64::NAN
-        } else {
-            self.missed[b] as f64 / self.above[b] as f64
-        }
-    }
-
-    /// Missed fraction over every band.
-    pub fn missed_fraction_all(&self) -> f64 {
-        let a: u64 = self.above.iter().sum();
-        let m: u64 = self.missed.iter().sum();
-        if a == 0 {
-            f64::NAN
-        } else {
-            m as f64 / a as f64
-        }
-    }
-}
 
 /// One model stepped through a sky run next to the truth, tallied at its high and low
 /// thresholds (`pflags` `HIGH` and `LOW`) from `t_skip_s` after the first exposure.
@@ -128,30 +50,6 @@ impl Tracker {
             self.low.add(&lo, &s.true_persistence, &e.flags);
         }
         Ok(())
-    }
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn tally_counts_bands() {
-        let mut t = FlagTally::new(0.1);
-        let truth =
-            Array2::from_shape_vec((1, 6), vec![0.05, 0.05, 0.12, 0.17, 0.25, 0.5]).unwrap();
-        let flagged =
-            Array2::from_shape_vec((1, 6), vec![true, false, false, true, true, false]).unwrap();
-        let mut flags = Array2::<u32>::zeros((1, 6));
-        t.add(&flagged, &truth, &flags);
-        assert_eq!(t.samples, 6);
-        assert_eq!(t.over_flagged, 1);
-        assert_eq!(t.above, [1, 1, 1, 1]);
-        assert_eq!(t.missed, [1, 0, 0, 1]);
-        flags[[0, 0]] = bits::NONFUNC;
-        let mut u = FlagTally::new(0.1);
-        u.add(&flagged, &truth, &flags);
-        assert_eq!((u.samples, u.over_flagged), (5, 0));
     }
 }
 
@@ -217,12 +115,27 @@ pub fn lab_model_and_map(
     crate::model::ModelParams,
     super::PixelMap,
 )> {
+    let (cfg, seq) = lab_sequence(size, seed, false)?;
+    let (params, _) = crate::calib::calibrate(&seq, &crate::calib::CalibConfig::default())?;
+    let map = super::build(&seq, &params, &super::MapConfig::default())?;
+    Ok((cfg, params, map))
+}
+
+/// [`lab_campaign`] on the simulated detector `(size, seed)` (the paper's pattern, every
+/// pixel lit, or with `dark_pixels` a corner of `size/8 x size/8` pixels kept unlit, whose
+/// dark level and noise the measured currents are then taken against,
+/// [`crate::measure::data`]): its configuration and the sequence.
+pub fn lab_sequence(
+    size: usize,
+    seed: u64,
+    dark_pixels: bool,
+) -> crate::Result<(crate::sim::lab::LabConfig, crate::measure::data::Sequence)> {
     use crate::sim::lab;
     let cfg = lab::LabConfig {
         size,
         seed,
         campaign: Some(lab_campaign()),
-        paper_pattern: Some(lab::PaperPattern { dark_pixels: false }),
+        paper_pattern: Some(lab::PaperPattern { dark_pixels }),
         ..lab::LabConfig::default()
     };
     let mut exposures = Vec::new();
@@ -231,9 +144,7 @@ pub fn lab_model_and_map(
         Ok(())
     })?;
     let seq = crate::measure::data::Sequence::from_exposures(exposures)?;
-    let (params, _) = crate::calib::calibrate(&seq, &crate::calib::CalibConfig::default())?;
-    let map = super::build(&seq, &params, &super::MapConfig::default())?;
-    Ok((cfg, params, map))
+    Ok((cfg, seq))
 }
 
 impl Experiment {

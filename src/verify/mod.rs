@@ -176,6 +176,32 @@ pub struct Checks {
     pub truth_inside: Option<(usize, usize)>,
 }
 
+impl Checks {
+    /// The decay and margin checks in one line, as `persist verify` prints them.
+    pub fn verdict(&self) -> String {
+        format!(
+            "decay {} (slope predicted - measured {:.3} +- {:.3}); margin {:.2} ({:.2}-{:.2}): {}",
+            if self.decay_agrees {
+                "agrees"
+            } else {
+                "disagrees"
+            },
+            self.slope_difference.mean,
+            self.slope_difference.se,
+            self.margin.0,
+            self.margin.1,
+            self.margin.2,
+            self.margin_verdict
+        )
+    }
+
+    /// Both checks agree (what `persist verify`'s exit code 0 needs, with no
+    /// unreadable file).
+    pub fn agree(&self) -> bool {
+        self.decay_agrees && self.margin_verdict == "ok"
+    }
+}
+
 #[derive(Debug, Clone, Serialize)]
 pub struct FileError {
     pub file: PathBuf,
@@ -198,6 +224,11 @@ pub struct Report {
     pub flags: Vec<FlagBin>,
     pub margins: Vec<MarginBin>,
     pub checks: Checks,
+    /// Where the input holds a simulator's truth: the stage's flags against it at the
+    /// threshold and at the default low threshold, from exposure
+    /// [`crate::flag_quality::FROM_EXPOSURE`] on ([`crate::flag_quality`]).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub flag_quality: Option<crate::flag_quality::TruthTally>,
 }
 
 /// Accumulators of one run (all detectors).
@@ -336,6 +367,12 @@ pub fn run_observing(
         }
     }
     let mut acc = Acc::default();
+    let mut tally = crate::flag_quality::TruthTally::new(
+        params.threshold_e_per_s,
+        crate::model::params::Thresholds::default().low_e_per_s,
+        crate::flag_quality::FROM_EXPOSURE,
+    );
+    let mut any_truth = false;
     let mut model_ids = Vec::new();
     let (mut exposures, mut events, mut rejected, mut no_sky) = (0, 0, 0, 0);
     for (&det, files) in by_det.iter_mut() {
@@ -379,6 +416,10 @@ pub fn run_observing(
                     });
                     continue;
                 }
+                if let Some(t) = &truth {
+                    any_truth = true;
+                    tally.add_pflags(e.meta.exposure_index, &planes.flags, t, &e.flags);
+                }
                 let frame = Frame::of(
                     &e,
                     planes.current_e_per_s.view(),
@@ -400,7 +441,7 @@ pub fn run_observing(
             no_sky += t.no_sky;
         }
     }
-    Ok(summarise(
+    let mut report = summarise(
         params,
         acc,
         Summary {
@@ -412,7 +453,9 @@ pub fn run_observing(
             rejected,
             no_sky,
         },
-    ))
+    );
+    report.flag_quality = any_truth.then_some(tally);
+    Ok(report)
 }
 
 struct Summary {
@@ -516,6 +559,7 @@ fn summarise(p: &VerifyParams, acc: Acc, s: Summary) -> Report {
         flags,
         margins,
         checks,
+        flag_quality: None,
     }
 }
 
