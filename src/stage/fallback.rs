@@ -10,7 +10,6 @@
 //! error, or a lock held elsewhere) stops the detector instead: moving it aside would
 //! lose a good checkpoint.
 
-use super::run::{Ops, RunConfig};
 use crate::checkpoint::{self, CheckpointMeta};
 use crate::error::{Error, ErrorKind, Result};
 use crate::model::State;
@@ -29,12 +28,17 @@ pub fn quarantine_dir(checkpoints: &Path) -> PathBuf {
     checkpoints.join(".quarantine")
 }
 
-/// Walk `det`'s checkpoints from the newest back to the first that loads.
-pub fn newest_readable(cfg: &RunConfig, ops: &Ops, det: DetectorId) -> Result<Newest> {
+/// Walk `det`'s checkpoints under `checkpoints` from the newest back to the first that
+/// loads, each read through `guard` when there is one.
+pub fn newest_readable(
+    checkpoints: &Path,
+    guard: Option<&crate::guard::Guard>,
+    det: DetectorId,
+) -> Result<Newest> {
     let mut skipped = Vec::new();
-    let mut list = checkpoint::list(&cfg.checkpoints, det)?;
+    let mut list = checkpoint::list(checkpoints, det)?;
     while let Some((index, path)) = list.pop() {
-        match crate::guard::load_checkpoint(ops.guard.as_ref(), &path) {
+        match crate::guard::load_checkpoint(guard, &path) {
             Ok((meta, state)) => {
                 return Ok(Newest {
                     found: Some((path, meta, state)),
@@ -44,8 +48,7 @@ pub fn newest_readable(cfg: &RunConfig, ops: &Ops, det: DetectorId) -> Result<Ne
             Err(e) if matches!(e.kind, ErrorKind::Io | ErrorKind::NotReady) => return Err(e),
             Err(e) => {
                 let e = e.path(&path).detector(det).exposure(index);
-                let moved =
-                    super::quarantine::quarantine(&quarantine_dir(&cfg.checkpoints), &path, &e)?;
+                let moved = super::quarantine::quarantine(&quarantine_dir(checkpoints), &path, &e)?;
                 tracing::warn!(path = %path.display(), quarantined = %moved.display(),
                     error = %e, "checkpoint unreadable: set aside, resuming from the one before it");
                 skipped.push(Error::new(

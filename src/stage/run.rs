@@ -743,7 +743,11 @@ impl<'a> Processor<'a> {
                 })?)
             }
             _ => {
-                let newest = super::fallback::newest_readable(cfg, self.ops, self.det)?;
+                let newest = super::fallback::newest_readable(
+                    &cfg.checkpoints,
+                    self.ops.guard.as_ref(),
+                    self.det,
+                )?;
                 self.errors.extend(newest.skipped);
                 let Some((path, meta, state)) = newest.found else {
                     return Ok(None);
