@@ -102,10 +102,9 @@ fn a_straight_first_dark_ramp_does_not_become_a_knot() {
 }
 
 /// A laboratory sequence in which every pixel was lit above 3,000 e- leaves `compare` no
-/// background pixel to measure the dark level on (`diag::data`, "Background"): it then
-/// took 0 e-/s and a noise of 0.1 e-/s without a word, and a first layout of the
-/// moved-spot campaign scored z of -15 to -24 from it. At 8 x 8 the edge leak lights
-/// every column.
+/// background pixel to measure the dark level on (`measure::data`, "Every pixel lit"):
+/// the run says so, with how many exposures, and what it measured instead. At 8 x 8 the
+/// edge leak lights every column.
 #[test]
 fn a_sequence_without_background_pixels_is_reported() {
     let t = tempfile::tempdir().unwrap();

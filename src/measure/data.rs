@@ -44,14 +44,17 @@
 //!   the same illumination, in its late window (the darks from half the block's last
 //!   mid-time on; any consecutive darks when no window holds a pair). Of each pair's
 //!   difference, over the lowest-fluence quarter of the unsaturated pixels
-//!   ([`LOW_FLUENCE_SHARE`]: the smallest persistence, so the least shot noise), the
+//!   ([`LOW_FLUENCE_SHARE`], at least 80 pixels: the smallest persistence, so the
+//!   least shot noise), the
 //!   median of each of 8 equal-count fluence bins is removed (what persistence decays
 //!   between the two darks is a smooth function of the fluence); `sigma_k` is 1.4826
 //!   times the median absolute residual over `sqrt 2`, pooled over the pairs of one
 //!   integration length. Another length takes the nearest measured one's, scaled by
 //!   `(t_ref / t_k)^1.5` (a line fit over evenly spaced reads of read-noise-limited
 //!   data). The shot noise of a sample's own current is added where it is used
-//!   ([`Sequence::shot_var_per_e_per_s`]).
+//!   ([`Sequence::shot_var_per_e_per_s`]). With no two consecutive darks, the spread
+//!   of each exposure's pixels within fluence bins stands for it (an upper bound: it
+//!   holds the population spread too).
 //! - **dark level** `b_k`: one level for all the darks after the same illumination (the
 //!   dark current is constant between two illuminations at a stable temperature):
 //!   the median of the same lowest-fluence pixels in each dark of the late window,
@@ -290,7 +293,12 @@ impl Sequence {
                 background[k] = b;
                 noise[k] = s;
             }
-            tracing::debug!("{}", lit.describe());
+            tracing::info!(
+                exposures = no_background.len(),
+                first_exposure_index = lit.exposures.first().copied().unwrap_or(0),
+                "{}",
+                lit.describe()
+            );
             self.lit = lit;
         }
         self.background_e_per_s = background;
@@ -324,6 +332,21 @@ impl Sequence {
             .copied()
             .filter(|&k| self.t_mid_after_s(a, k) >= t_half)
             .collect()
+    }
+
+    /// The noise of exposure `k` when no pair of darks measures it: 1.4826 times the
+    /// median absolute deviation of its pixels from their fluence bin's median (the
+    /// fluence of the last illumination), which also holds the population spread, so
+    /// an upper bound; NaN when it has no such pixels.
+    fn spread_within_fluence(&self, k: usize) -> f64 {
+        let Some(a) = self.last_illumination[k] else {
+            return f64::NAN;
+        };
+        let res = binned_residuals(low_fluence_pixels(
+            &fluence(&self.exposures[a]),
+            good(&self.exposures[k]),
+        ));
+        1.4826 * median(&res)
     }
 
     /// Background and noise of the exposures `ks` that have no background pixel
@@ -429,7 +452,13 @@ impl Sequence {
                 });
                 let b = own.map_or_else(|| median(&all_levels), |d| d.level_e_per_s);
                 let b = if b.is_finite() { b } else { 0.0 };
-                (b, lit.noise_for(self.exposures[k].meta.t_exposure_s))
+                let s = lit.noise_for(self.exposures[k].meta.t_exposure_s);
+                let s = if s.is_finite() && s > 0.0 {
+                    s
+                } else {
+                    self.spread_within_fluence(k)
+                };
+                (b, s)
             })
             .collect();
         (lit, out)
@@ -764,7 +793,8 @@ impl LitMeasured {
             self.exposures.len()
         );
         if self.noise.is_empty() {
-            s += "read noise not measured (no two consecutive darks of equal length); ";
+            s += "no two consecutive darks of equal length: noise from the spread of each \
+                  exposure's pixels within fluence bins (an upper bound); ";
         }
         for n in &self.noise {
             s += &format!(
@@ -814,7 +844,8 @@ fn low_fluence_pixels(
         .filter(|(f, v)| f.is_finite() && *f < 0.5 * SATURATION_FLUENCE_E && v.is_finite())
         .collect();
     p.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.total_cmp(&b.1)));
-    p.truncate(((p.len() as f64) * LOW_FLUENCE_SHARE).ceil() as usize);
+    let keep = ((p.len() as f64) * LOW_FLUENCE_SHARE).ceil() as usize;
+    p.truncate(keep.max(10 * LIT_BINS));
     p
 }
 
@@ -854,13 +885,17 @@ fn level_at_infinite_time(pts: &[(f64, f64)]) -> Option<f64> {
 /// the fluence and leaves with the bin's median, the read noise stays.
 fn pair_residuals(f: &Array2<f64>, e0: &Exposure, e1: &Exposure) -> Vec<f64> {
     let d = good(e0).zip(good(e1)).map(|(a, b)| Some(a? - b?));
-    let p = low_fluence_pixels(f, d);
-    if p.len() < 10 * LIT_BINS {
-        return Vec::new();
-    }
+    binned_residuals(low_fluence_pixels(f, d))
+}
+
+/// `|v - median_bin(v)|` of `(fluence, v)` sorted by fluence, within [`LIT_BINS`]
+/// equal-count bins (fewer, of at least 10 values each, when there are fewer than
+/// `10 LIT_BINS` values); empty below 10 values.
+fn binned_residuals(p: Vec<(f64, f64)>) -> Vec<f64> {
+    let bins = (p.len() / 10).min(LIT_BINS);
     let mut out = Vec::with_capacity(p.len());
-    for b in 0..LIT_BINS {
-        let s = &p[b * p.len() / LIT_BINS..(b + 1) * p.len() / LIT_BINS];
+    for b in 0..bins {
+        let s = &p[b * p.len() / bins..(b + 1) * p.len() / bins];
         let m = median(&s.iter().map(|q| q.1).collect::<Vec<_>>());
         out.extend(s.iter().map(|q| (q.1 - m).abs()));
     }
