@@ -139,15 +139,7 @@ impl LatePlateau {
             .find(|&i| i > i0)
             .unwrap_or(seq.exposures.len());
         let block: Vec<usize> = (d + 1..end).collect();
-        let t_last = block
-            .last()
-            .map(|&k| seq.t_mid_after_s(i0, k))
-            .unwrap_or(0.0);
-        let window: Vec<usize> = block
-            .iter()
-            .copied()
-            .filter(|&k| seq.t_mid_after_s(i0, k) >= 0.5 * t_last)
-            .collect();
+        let window = seq.late_window(i0, &block);
         let index = |k: usize| seq.exposures[k].meta.exposure_index;
         if window.len() < MIN_LATE_DARKS {
             return Err(Error::invalid(

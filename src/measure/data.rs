@@ -320,9 +320,9 @@ impl Sequence {
     }
 
     /// The late window of a block of darks after illumination `a`: the darks from half
-    /// the block's last mid-time on (as the calibration's late plateau,
+    /// the block's last mid-time on (also the calibration's late plateau,
     /// [`crate::calib::dark`]).
-    fn late_window(&self, a: usize, darks: &[usize]) -> Vec<usize> {
+    pub fn late_window(&self, a: usize, darks: &[usize]) -> Vec<usize> {
         let Some(&last) = darks.last() else {
             return Vec::new();
         };
