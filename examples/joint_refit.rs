@@ -14,7 +14,7 @@ use persist::model::ModelParams;
 use std::path::Path;
 
 fn rss(p: &ModelParams, seq: &Sequence, s: &Samples) -> (f64, usize) {
-    eval::rss_cells(p, seq, s).expect("predict")
+    persist::diag::spread::rss_cells(p, seq, s).expect("predict")
 }
 
 fn main() {

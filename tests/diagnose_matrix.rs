@@ -134,13 +134,13 @@ fn data_from_the_fitted_model_declare_nothing() {
 }
 
 /// The normalised residual RMS of `p` over the cells of `s` (what `persist fit`
-/// reports), as `eval::rss_cells` sums it.
+/// reports), as `spread::rss_cells` sums it.
 fn cell_rms(
     p: &persist::model::ModelParams,
     seq: &Sequence,
     s: &persist::diag::eval::Samples,
 ) -> f64 {
-    let (rss, n) = persist::diag::eval::rss_cells(p, seq, s).unwrap();
+    let (rss, n) = persist::diag::spread::rss_cells(p, seq, s).unwrap();
     (rss / n as f64).sqrt()
 }
 

@@ -612,7 +612,7 @@ pub fn smooth_start(
         if let Some((s_from, r)) = &scale {
             super::knots::rescale(s_from, &mut m, r)?;
         }
-        Ok((eval::rss_cells(&m, seq, samples)?.0, m))
+        Ok((spread::rss_cells(&m, seq, samples)?.0, m))
     };
     let starts: Vec<(f64, bool)> = SMOOTH_START_VALUES
         .iter()

@@ -162,7 +162,7 @@ pub fn offer(
         samples,
     )?;
     // against the model without the term (the fit's own "before" is its start)
-    let (rss0, m) = crate::measure::eval::rss_cells(own_refit, seq, samples)?;
+    let (rss0, m) = crate::measure::spread::rss_cells(own_refit, seq, samples)?;
     let rss1 = f.rss_before_after().1;
     let k = f.params.iter().filter(|p| p.effect == name).count();
     let dbic = delta_bic(rss0, rss1, k, f.cells);

@@ -375,6 +375,17 @@ pub fn model_cell_z(
     z
 }
 
+/// `params` run over `seq`: [`eval::rss`] of its cells at the samples `s`, widened as
+/// the model states ([`model_cell_z`]).
+pub fn rss_cells(
+    params: &crate::model::ModelParams,
+    seq: &super::data::Sequence,
+    s: &Samples,
+) -> crate::error::Result<(f64, usize)> {
+    let pr = eval::predict(params, seq, s, false)?;
+    Ok(eval::rss(&model_cell_z(params, s, &pr.current)))
+}
+
 /// [`widen`] the cells `z` of `pred` by the design effects of the spread correlation
 /// `params` states (nothing when it states none).
 pub fn widen_for_model(

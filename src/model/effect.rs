@@ -46,6 +46,7 @@
 
 use super::response::Response;
 use ndarray::{Array2, Array3};
+use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 use std::fmt::Debug;
 
@@ -152,6 +153,38 @@ impl EffectDef {
     /// The parameter that switches the effect on, with its null value.
     pub fn switch(&self) -> Option<(&'static ParamSpec, f64)> {
         self.params.iter().find_map(|p| p.null.map(|n| (p, n)))
+    }
+}
+
+/// A named physical effect with its parameters (ARCHITECTURE.md, "Where effects plug in").
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct EffectSpec {
+    pub name: String,
+    #[serde(default)]
+    pub params: serde_json::Map<String, serde_json::Value>,
+    /// Parameters held at their value by `persist fit` and by `diagnose`'s refits,
+    /// whatever their [`ParamSpec::fitted`] (a value known from
+    /// elsewhere: `persist fit --with NAME:param=value`). Not written when empty, so a
+    /// model without pinned parameters has the same identity as one without the field.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub fixed: Vec<String>,
+}
+
+impl EffectSpec {
+    /// The effect `name` at its defaults, nothing pinned.
+    pub fn named(name: impl Into<String>) -> EffectSpec {
+        EffectSpec {
+            name: name.into(),
+            params: serde_json::Map::new(),
+            fixed: Vec::new(),
+        }
+    }
+
+    /// Whether `param` is fitted: the effect fits it ([`ParamSpec::fitted`])
+    /// and this model does not pin it.
+    pub fn fits(&self, param: &ParamSpec) -> bool {
+        param.fitted && !self.fixed.iter().any(|f| f == param.name)
     }
 }
 

@@ -3,6 +3,11 @@
 //! the model through [`Model::step`].
 //!
 //! Units: amplitudes `A_n` in electrons, `C_n` in 1/s, currents in e-/s, times in s.
+//!
+//! Imports, downwards only (tests/import_graph.rs): [`params`] (the model file) ->
+//! [`effects`] (the registry of effects by name) -> [`effect`] (the trait every effect
+//! implements) -> [`response`]. The trait and the response import nothing from the
+//! registry or the model file; an effect's file imports the trait, never the model file.
 
 pub mod decay;
 pub mod effect;

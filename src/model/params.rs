@@ -13,6 +13,8 @@
 //! registered in [`crate::model::effects::REGISTRY`], at most once, with known
 //! parameters inside their bounds.
 
+pub use super::effect::EffectSpec;
+pub use super::response::Knot;
 use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
 
@@ -37,16 +39,6 @@ pub struct Term {
     pub c_per_s: f64,
     /// Decay rate `1/tau_n`, 1/s. The paper quotes rates, so they are stored as rates.
     pub rate_per_s: f64,
-}
-
-/// One knot of the piecewise-linear response `A_k(fluence)`.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct Knot {
-    /// Extrapolated fluence, electrons.
-    pub fluence_e: f64,
-    /// Amplitude `A_k`, electrons.
-    pub amplitude_e: f64,
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -158,38 +150,6 @@ impl Default for EarlyRelease {
             subtract_background: true,
             background: BackgroundEstimate::default(),
         }
-    }
-}
-
-/// A named physical effect with its parameters (ARCHITECTURE.md, "Where effects plug in").
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct EffectSpec {
-    pub name: String,
-    #[serde(default)]
-    pub params: serde_json::Map<String, serde_json::Value>,
-    /// Parameters held at their value by `persist fit` and by `diagnose`'s refits,
-    /// whatever their [`crate::model::effect::ParamSpec::fitted`] (a value known from
-    /// elsewhere: `persist fit --with NAME:param=value`). Not written when empty, so a
-    /// model without pinned parameters has the same identity as one without the field.
-    #[serde(default, skip_serializing_if = "Vec::is_empty")]
-    pub fixed: Vec<String>,
-}
-
-impl EffectSpec {
-    /// The effect `name` at its defaults, nothing pinned.
-    pub fn named(name: impl Into<String>) -> EffectSpec {
-        EffectSpec {
-            name: name.into(),
-            params: serde_json::Map::new(),
-            fixed: Vec::new(),
-        }
-    }
-
-    /// Whether `param` is fitted: the effect fits it ([`crate::model::effect::ParamSpec::fitted`])
-    /// and this model does not pin it.
-    pub fn fits(&self, param: &crate::model::effect::ParamSpec) -> bool {
-        param.fitted && !self.fixed.iter().any(|f| f == param.name)
     }
 }
 

@@ -5,7 +5,17 @@
 //! value beyond the last knot. Fluence <= 0 gives 0. The caller never passes NaN:
 //! what non-finite and negative currents do is decided in [`crate::model::step`].
 
-use super::params::Knot;
+use serde::{Deserialize, Serialize};
+
+/// One knot of the piecewise-linear response `A_k(fluence)`.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Knot {
+    /// Extrapolated fluence, electrons.
+    pub fluence_e: f64,
+    /// Amplitude `A_k`, electrons.
+    pub amplitude_e: f64,
+}
 
 /// The knot table, prepared for fast evaluation.
 #[derive(Debug, Clone, PartialEq)]

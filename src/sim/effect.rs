@@ -176,30 +176,14 @@ impl<'a> ParamReader<'a> {
 }
 
 /// The effects switched on for a run, in a fixed order (sorted by name), so the result
-/// does not depend on the order of `--effect` options.
+/// does not depend on the order of `--effect` options. Built by `EffectSet::from_specs`,
+/// which sits with the registry in [`super::effects`] (this file imports nothing from it).
 #[derive(Debug, Default)]
 pub struct EffectSet {
     pub list: Vec<Box<dyn Effect>>,
 }
 
 impl EffectSet {
-    pub fn from_specs(specs: &[EffectSpec]) -> crate::Result<EffectSet> {
-        let mut list = Vec::new();
-        let mut names: Vec<&str> = Vec::new();
-        for s in specs {
-            if names.contains(&s.name.as_str()) {
-                return Err(crate::Error::invalid(
-                    "--effect",
-                    format!("effect `{}` given twice", s.name),
-                ));
-            }
-            names.push(&s.name);
-            list.push(super::effects::build(s)?);
-        }
-        list.sort_by_key(|e| e.name());
-        Ok(EffectSet { list })
-    }
-
     pub fn is_empty(&self) -> bool {
         self.list.is_empty()
     }

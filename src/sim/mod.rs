@@ -13,6 +13,10 @@
 //! Units: seconds, electrons, electrons per second, kelvin.
 //! Determinism: all randomness comes from [`rng`] sub-streams keyed by
 //! (seed, purpose, detector, exposure, row).
+//!
+//! Imports, downwards only (tests/import_graph.rs): the engine and the campaigns ->
+//! [`effects`] (the registry: names to effects, [`effect::EffectSet::from_specs`]) ->
+//! [`effect`] (the trait) -> [`traps`]. The trait file imports nothing from the registry.
 
 pub mod analysis;
 pub mod detector;

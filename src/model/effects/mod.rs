@@ -17,8 +17,7 @@ pub mod smooth;
 pub mod soak;
 pub mod temperature;
 
-use super::effect::{Effect, EffectDef};
-use super::params::EffectSpec;
+use super::effect::{Effect, EffectDef, EffectSpec};
 use std::collections::BTreeMap;
 
 /// Every effect this build knows, sorted by name.

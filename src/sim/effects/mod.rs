@@ -1,6 +1,9 @@
 //! The truth effects, one file each. They share names with the flagging model's
 //! effects but not code: these act on trap bins and the detector, the model's on an
 //! exponential sum.
+//!
+//! The registry: [`build`] maps a name to its effect, [`EffectSet::from_specs`] builds
+//! a run's set.
 
 pub mod blooming;
 pub mod capacity;
@@ -11,7 +14,7 @@ pub mod short_tau_boost;
 pub mod soak;
 pub mod temperature;
 
-use super::effect::{Effect, EffectSpec};
+use super::effect::{Effect, EffectSet, EffectSpec};
 
 /// Names accepted by `--effect`.
 pub const NAMES: [&str; 8] = [
@@ -44,4 +47,24 @@ pub fn build(s: &EffectSpec) -> crate::Result<Box<dyn Effect>> {
             ))
         }
     })
+}
+
+impl EffectSet {
+    /// The effects of `specs` (each name at most once), sorted by name.
+    pub fn from_specs(specs: &[EffectSpec]) -> crate::Result<EffectSet> {
+        let mut list = Vec::new();
+        let mut names: Vec<&str> = Vec::new();
+        for s in specs {
+            if names.contains(&s.name.as_str()) {
+                return Err(crate::Error::invalid(
+                    "--effect",
+                    format!("effect `{}` given twice", s.name),
+                ));
+            }
+            names.push(&s.name);
+            list.push(build(s)?);
+        }
+        list.sort_by_key(|e| e.name());
+        Ok(EffectSet { list })
+    }
 }
