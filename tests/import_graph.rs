@@ -19,7 +19,7 @@ use std::collections::{BTreeMap, BTreeSet};
 use std::path::{Path, PathBuf};
 
 /// The binary's files (by name, or a folder ending in `/`).
-const BINARY: [&str; 4] = ["main.rs", "cli.rs", "cli/", "cli_reference.rs"];
+const BINARY: [&str; 3] = ["main.rs", "cli/", "cli_reference.rs"];
 
 fn is_binary(file: &str) -> bool {
     BINARY
