@@ -9,7 +9,7 @@
 //! ```
 use persist::calib::effects as ceffects;
 use persist::diag::data::Sequence;
-use persist::diag::eval::{self, Samples};
+use persist::diag::eval::Samples;
 use persist::model::ModelParams;
 use std::path::Path;
 
