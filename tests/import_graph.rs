@@ -400,28 +400,34 @@ fn no_folder_imports_a_folder_that_imports_it_back() {
     );
 }
 
+/// The cycles of a planted `src/`: `lib.rs` declares `a`, `a/mod.rs` declares `x` and `y`
+/// and re-exports what `reexport` says, `a/x.rs` and `a/y.rs` hold `x` and `y`.
+fn planted(reexport: &str, x: &str, y: &str) -> Vec<Vec<String>> {
+    let files: BTreeMap<String, String> = [
+        ("lib.rs", "pub mod a;\n".to_string()),
+        ("a/mod.rs", format!("pub mod x;\npub mod y;\n{reexport}")),
+        ("a/x.rs", x.to_string()),
+        ("a/y.rs", y.to_string()),
+    ]
+    .into_iter()
+    .map(|(f, t)| (f.to_string(), t))
+    .collect();
+    cycles(&edges(&files))
+}
+
+fn x_and_y() -> Vec<Vec<String>> {
+    vec![vec!["a/x.rs".to_string(), "a/y.rs".to_string()]]
+}
+
 #[test]
 fn the_reader_sees_a_cycle_it_is_shown() {
     // A check that could be false: a planted two-file cycle is found.
-    let mut files = BTreeMap::new();
-    files.insert("lib.rs".to_string(), "pub mod a;\n".to_string());
-    files.insert(
-        "a/mod.rs".to_string(),
-        "pub mod x;\npub mod y;\n".to_string(),
+    let found = planted(
+        "",
+        "use super::y::Y;\npub struct X;\n",
+        "use crate::a::{x::X, self};\n// use super::nothing;\npub struct Y;\n",
     );
-    files.insert(
-        "a/x.rs".to_string(),
-        "use super::y::Y;\npub struct X;\n".to_string(),
-    );
-    files.insert(
-        "a/y.rs".to_string(),
-        "use crate::a::{x::X, self};\n// use super::nothing;\npub struct Y;\n".to_string(),
-    );
-    let found = cycles(&edges(&files));
-    assert_eq!(
-        found,
-        vec![vec!["a/x.rs".to_string(), "a/y.rs".to_string()]]
-    );
+    assert_eq!(found, x_and_y());
 }
 
 #[test]
@@ -429,47 +435,21 @@ fn a_cycle_behind_a_re_export_is_shown() {
     // `y` names `X` by the path its folder re-exports it under: the edge leads on to
     // `x.rs`, which imports `y` back (read without the re-export, `y` would import the
     // folder's `mod.rs` only, and no cycle would show).
-    let mut files = BTreeMap::new();
-    files.insert("lib.rs".to_string(), "pub mod a;\n".to_string());
-    files.insert(
-        "a/mod.rs".to_string(),
-        "pub mod x;\npub mod y;\n\npub use x::{X, Z};\n".to_string(),
+    let found = planted(
+        "\npub use x::{X, Z};\n",
+        "use super::y::Y;\npub struct X;\npub struct Z;\n",
+        "pub struct Y(crate::a::X);\n",
     );
-    files.insert(
-        "a/x.rs".to_string(),
-        "use super::y::Y;\npub struct X;\npub struct Z;\n".to_string(),
-    );
-    files.insert(
-        "a/y.rs".to_string(),
-        "pub struct Y(crate::a::X);\n".to_string(),
-    );
-    let found = cycles(&edges(&files));
-    assert_eq!(
-        found,
-        vec![vec!["a/x.rs".to_string(), "a/y.rs".to_string()]]
-    );
+    assert_eq!(found, x_and_y());
 }
 
 #[test]
 fn a_module_used_by_its_name_is_an_edge() {
     // `use super::y;` then `y::f()`: the edge goes to `y.rs`, which imports `x` back.
-    let mut files = BTreeMap::new();
-    files.insert("lib.rs".to_string(), "pub mod a;\n".to_string());
-    files.insert(
-        "a/mod.rs".to_string(),
-        "pub mod x;\npub mod y;\n".to_string(),
+    let found = planted(
+        "",
+        "use super::y;\npub fn g() -> u8 {\n    y::f()\n}\n",
+        "pub fn f() -> u8 {\n    crate::a::x::g();\n    1\n}\n",
     );
-    files.insert(
-        "a/x.rs".to_string(),
-        "use super::y;\npub fn g() -> u8 {\n    y::f()\n}\n".to_string(),
-    );
-    files.insert(
-        "a/y.rs".to_string(),
-        "pub fn f() -> u8 {\n    crate::a::x::g();\n    1\n}\n".to_string(),
-    );
-    let found = cycles(&edges(&files));
-    assert_eq!(
-        found,
-        vec![vec!["a/x.rs".to_string(), "a/y.rs".to_string()]]
-    );
+    assert_eq!(found, x_and_y());
 }

@@ -156,7 +156,8 @@ impl EffectDef {
     }
 }
 
-/// A named physical effect with its parameters (ARCHITECTURE.md, "Where effects plug in").
+/// A named physical effect with its parameters: one entry of a model file's `effects`
+/// ([`crate::model::params::ModelParams`]; ARCHITECTURE.md, "Where effects plug in").
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct EffectSpec {
@@ -164,8 +165,8 @@ pub struct EffectSpec {
     #[serde(default)]
     pub params: serde_json::Map<String, serde_json::Value>,
     /// Parameters held at their value by `persist fit` and by `diagnose`'s refits,
-    /// whatever their [`ParamSpec::fitted`] (a value known from
-    /// elsewhere: `persist fit --with NAME:param=value`). Not written when empty, so a
+    /// whatever their [`ParamSpec::fitted`] (a value known from elsewhere: `persist fit
+    /// --with NAME:param=value`). Not written when empty, so a
     /// model without pinned parameters has the same identity as one without the field.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub fixed: Vec<String>,

@@ -13,6 +13,8 @@
 //! registered in [`crate::model::effects::REGISTRY`], at most once, with known
 //! parameters inside their bounds.
 
+// A model file's effect entries and knots are defined beside what reads them (the effect
+// trait, the response), which import nothing from this file (src/model/mod.rs).
 pub use super::effect::EffectSpec;
 pub use super::response::Knot;
 use serde::{Deserialize, Serialize};
