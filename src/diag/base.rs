@@ -23,9 +23,12 @@
 //!
 //! # Pixel reference
 //! [`predict_scaled`] multiplies the base by each pixel's own factor, quadratic in the
-//! log of the time since the illumination, and gives the pixels saturated in an
-//! illumination knots of their own; it is weighted by the measurement noise alone
-//! (exposure noise and shot noise). Its residuals are those of each pixel, not of a
+//! log of the time since the illumination, plus an amplitude of its own for the share
+//! of its current that comes from illuminations that saturated it (the saturated
+//! traps' population, which a campaign that saturates a pixel in some illuminations and
+//! not in others shows apart), and gives the pixels saturated in an illumination knots
+//! of their own; it is weighted by the measurement noise alone (exposure noise and the
+//! shot noise of the reference's own current). Its residuals are those of each pixel, not of a
 //! population's 95th percentile: compared with the noise less each sample's leverage
 //! ([`Scaled::cells`]), they measure how far a description that absorbs the decay law,
 //! its fluence dependence, the response around saturation and the mix of trap
@@ -40,8 +43,12 @@ use super::eval::Samples;
 use ndarray::Array2;
 use rayon::prelude::*;
 
-/// The fixed grid of decay times, s.
-pub const TAU_S: [f64; 9] = [10.0, 30.0, 100.0, 300.0, 1e3, 3e3, 1e4, 3e4, 1e5];
+/// The fixed grid of decay times, s: four per decade, as fine as the first darks of a
+/// laboratory sequence (90-450 s after the illumination) need to be followed to 1-2 %.
+pub const TAU_S: [f64; 17] = [
+    10.0, 17.8, 31.6, 56.2, 100.0, 178.0, 316.0, 562.0, 1e3, 1.78e3, 3.16e3, 5.62e3, 1e4, 1.78e4,
+    3.16e4, 5.62e4, 1e5,
+];
 /// Response knots per decade of fluence.
 const KNOTS_PER_DECADE: f64 = 5.0;
 /// Knots from 10^LOG_F_MIN to 10^LOG_F_MAX e-.
@@ -223,9 +230,80 @@ pub const TILT_REFERENCE_S: f64 = 1000.0;
 /// Per-pixel terms of [`predict_scaled`]: `L^0 .. L^(PIXEL_TERMS - 1)`.
 pub const PIXEL_TERMS: usize = 3;
 
-/// Each pixel's factor at sample `i` from its terms `c`: `sum_j c_j L_i^j`.
-fn pixel_factor(c: &[f64], l: f64) -> f64 {
-    c.iter().rev().fold(0.0, |acc, cj| acc * l + cj)
+/// Per-pixel terms of [`predict_scaled`] in all: the powers of `L` and the amplitude
+/// after a saturating illumination.
+const ALL_PIXEL_TERMS: usize = PIXEL_TERMS + 1;
+
+/// The regressors of sample `i`'s factor: `L^0 .. L^(PIXEL_TERMS - 1)`, then `sat`
+/// ([`saturated_share`]).
+fn pixel_regressors(l: f64, sat: f64) -> [f64; ALL_PIXEL_TERMS] {
+    std::array::from_fn(|j| {
+        if j < PIXEL_TERMS {
+            l.powi(j as i32)
+        } else {
+            sat
+        }
+    })
+}
+
+/// Each pixel's factor at sample `i` from its terms `c` ([`pixel_regressors`]).
+fn pixel_factor(c: &[f64], l: f64, sat: f64) -> f64 {
+    c.iter()
+        .zip(pixel_regressors(l, sat))
+        .map(|(c, x)| c * x)
+        .sum()
+}
+
+/// Per sample: the share of its persistence current that comes from illuminations
+/// that saturated the pixel (`OVERFLOW`), each illumination `a` weighted as the
+/// paper's 1/t law has it, `F_a / t(a, k)`; for a pixel whose sampled shares are not
+/// all on one side of one half, else 0 (the saturated traps' amplitude is then a term
+/// of its own, which a pixel always or never saturated cannot separate from its
+/// overall amplitude).
+fn saturated_share(seq: &Sequence, s: &Samples, maps: &[Map]) -> Vec<f64> {
+    let np = s.npix().max(1);
+    let share = |i: usize| -> f64 {
+        let (row, (y, x)) = (i / np, s.pixels[i % np]);
+        let k = s.exposures[row];
+        let (mut sat, mut all) = (0.0, 0.0);
+        for m in maps.iter().filter(|m| m.illumination < k) {
+            let f = m.fluence[(y, x)];
+            if !(f.is_finite() && f > BACKGROUND_FLUENCE_E) {
+                continue;
+            }
+            let w = f / seq.t_mid_after_s(m.illumination, k).max(1.0);
+            all += w;
+            if m.overflow.as_ref().is_some_and(|o| o[(y, x)]) {
+                sat += w;
+            }
+        }
+        if all > 0.0 {
+            sat / all
+        } else {
+            0.0
+        }
+    };
+    let shares: Vec<f64> = (0..s.len()).map(share).collect();
+    let mut sides = vec![(false, false); np];
+    for (i, v) in shares.iter().enumerate() {
+        let side = &mut sides[i % np];
+        if *v > 0.5 {
+            side.0 = true;
+        } else {
+            side.1 = true;
+        }
+    }
+    shares
+        .iter()
+        .enumerate()
+        .map(|(i, v)| {
+            if sides[i % np] == (true, true) {
+                *v
+            } else {
+                0.0
+            }
+        })
+        .collect()
 }
 
 /// The base with a per-pixel amplitude and decay shape: `f_p(L) * (pred +
@@ -242,8 +320,9 @@ fn pixel_factor(c: &[f64], l: f64) -> f64 {
 /// the predictions, each sample's noise and its leverage in its pixel's fit (`h_i`:
 /// under the fit, a residual's variance is `sigma_i^2 (1 - h_i)`).
 pub fn predict_scaled(seq: &Sequence, s: &Samples, pred: &[f64]) -> Scaled {
-    const K: usize = PIXEL_TERMS;
+    const K: usize = ALL_PIXEL_TERMS;
     let maps = fluence_maps(seq, true);
+    let sat = saturated_share(seq, s, &maps);
     let np = s.npix().max(1);
     let tilt: Vec<f64> = (0..s.len())
         .map(|i| (s.t_since_s[i / np].max(1.0) / TILT_REFERENCE_S).ln())
@@ -263,8 +342,8 @@ pub fn predict_scaled(seq: &Sequence, s: &Samples, pred: &[f64]) -> Scaled {
             if !(m.is_finite() && u.is_finite()) {
                 continue;
             }
-            let w = 1.0 / measurement_variance(s, i, u).max(1e-12);
-            let x: [f64; K] = std::array::from_fn(|j| u * tilt[i].powi(j as i32));
+            let w = 1.0 / measurement_variance(s, i, scale[i] * u).max(1e-12);
+            let x = pixel_regressors(tilt[i], sat[i]).map(|r| u * r);
             let (ata, atb) = &mut normal[i % np];
             for a in 0..K {
                 atb[a] += w * m * x[a];
@@ -276,12 +355,8 @@ pub fn predict_scaled(seq: &Sequence, s: &Samples, pred: &[f64]) -> Scaled {
         let terms: Vec<Vec<f64>> = normal
             .iter()
             .map(|(ata, atb)| {
-                let mut m = ata.clone();
-                let tr = (0..K).map(|j| m[j * K + j]).sum::<f64>() / K as f64;
-                for j in 0..K {
-                    m[j * K + j] += 1e-9 * tr;
-                }
-                match solve_spd(&mut m, atb.clone(), K) {
+                let tr = (0..K).map(|j| ata[j * K + j]).sum::<f64>();
+                match solve_spd(&mut ridged(ata, K), atb.clone(), K) {
                     Some(c) if tr > 0.0 => c,
                     _ => std::iter::once(1.0)
                         .chain(std::iter::repeat(0.0))
@@ -291,16 +366,18 @@ pub fn predict_scaled(seq: &Sequence, s: &Samples, pred: &[f64]) -> Scaled {
             })
             .collect();
         scale = (0..s.len())
-            .map(|i| pixel_factor(&terms[i % np], tilt[i]).max(0.0))
+            .map(|i| pixel_factor(&terms[i % np], tilt[i], sat[i]).max(0.0))
             .collect();
     }
     let prediction: Vec<f64> = unscaled.iter().zip(&scale).map(|(u, c)| c * u).collect();
     let sigma: Vec<f64> = (0..s.len())
-        .map(|i| measurement_variance(s, i, unscaled[i]).sqrt())
+        .map(|i| measurement_variance(s, i, prediction[i]).sqrt())
         .collect();
     // leverage of each sample in its pixel's fit (the last pass's normal equations)
-    let inverse: Vec<Option<Vec<f64>>> =
-        normal.iter().map(|(ata, _)| inverse_spd(ata, K)).collect();
+    let inverse: Vec<Option<Vec<f64>>> = normal
+        .iter()
+        .map(|(ata, _)| inverse_spd(&ridged(ata, K), K))
+        .collect();
     let leverage = (0..s.len())
         .map(|i| {
             let Some(inv) = &inverse[i % np] else {
@@ -308,7 +385,7 @@ pub fn predict_scaled(seq: &Sequence, s: &Samples, pred: &[f64]) -> Scaled {
             };
             let u = unscaled[i];
             let w = 1.0 / sigma[i].powi(2).max(1e-12);
-            let x: [f64; K] = std::array::from_fn(|j| u * tilt[i].powi(j as i32));
+            let x = pixel_regressors(tilt[i], sat[i]).map(|r| u * r);
             let mut h = 0.0;
             for a in 0..K {
                 for b in 0..K {
@@ -328,6 +405,17 @@ pub fn predict_scaled(seq: &Sequence, s: &Samples, pred: &[f64]) -> Scaled {
         sigma,
         leverage,
     }
+}
+
+/// `m` (`n x n`) plus a ridge of 1e-9 of its mean diagonal: a term with no samples
+/// (a column of zeros) gets a zero coefficient and a zero leverage.
+fn ridged(m: &[f64], n: usize) -> Vec<f64> {
+    let tr = (0..n).map(|j| m[j * n + j]).sum::<f64>() / n as f64;
+    let mut r = m.to_vec();
+    for j in 0..n {
+        r[j * n + j] += 1e-9 * tr;
+    }
+    r
 }
 
 /// The inverse of a symmetric positive definite `n x n` matrix (row major), by
