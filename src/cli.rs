@@ -221,6 +221,10 @@ pub struct VerifyArgs {
     /// Seed of the bootstrap over events.
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
+    /// The quantile of the transient rule: of measured / predicted at the first exposure
+    /// after a cosmic-ray hit (docs/verify.md, "The transient rule").
+    #[arg(long, default_value_t = persist::verify::transient::DEFAULT_QUANTILE)]
+    pub transient_quantile: f64,
     /// Also learn each pixel's response from the tracks and write it as a per-pixel map
     /// (HDF5, the laboratory map's format; one detector: the first found). Needs
     /// `--map-model`.
@@ -715,8 +719,18 @@ pub struct DemoArgs {
 #[derive(Args, Debug)]
 pub struct FitArgs {
     /// Directory of a laboratory sequence (products; the first dark keeps its ramp).
-    #[arg(long)]
-    pub input: PathBuf,
+    #[arg(long, required_unless_present = "from_verify")]
+    pub input: Option<PathBuf>,
+    /// Instead of a laboratory fit: set the transient rule of `--model` (the model the
+    /// verified run was flagged with) from a `persist verify` report.json, and write the
+    /// model to OUT (docs/verify.md, "The transient rule"). Refused when the report
+    /// gives no rule (too few cosmic-ray hits).
+    #[arg(long, conflicts_with = "input")]
+    pub from_verify: Option<PathBuf>,
+    /// With --from-verify: the model file the verified run was flagged with [default:
+    /// the built-in default].
+    #[arg(long, requires = "from_verify")]
+    pub model: Option<PathBuf>,
     /// The model file to write.
     #[arg(long)]
     pub out: PathBuf,
@@ -992,8 +1006,18 @@ fn lines_out(lines: Vec<String>) -> persist::Result<ExitCode> {
 
 /// `persist verify`: exit code 1 when a check disagrees or a file could not be read.
 fn verify(a: &VerifyArgs) -> persist::Result<ExitCode> {
+    if !(a.transient_quantile > 0.0 && a.transient_quantile < 1.0) {
+        return Err(Error::new(
+            ErrorKind::Usage,
+            format!(
+                "--transient-quantile {}: need 0 < q < 1",
+                a.transient_quantile
+            ),
+        ));
+    }
     let mut p = persist::verify::VerifyParams {
         seed: a.seed,
+        transient_quantile: a.transient_quantile,
         ..Default::default()
     };
     if let Some(f) = a.event_fluence_e {
@@ -1033,6 +1057,11 @@ fn verify(a: &VerifyArgs) -> persist::Result<ExitCode> {
     if let Some((inside, n)) = c.truth_inside {
         out!("truth inside the measured 95 % interval in {inside} of {n} bins");
     }
+    out!(
+        "{} cosmic-ray hits followed; transient rule: {}",
+        r.transients.hits,
+        r.transients.rule
+    );
     if let Some(q) = &r.flag_quality {
         out!(
             "flags against the truth, pixel-exposures from exposure {} on:\n{}",
@@ -1568,6 +1597,21 @@ fn demo(args: &DemoArgs) -> persist::Result<ExitCode> {
 
 /// `persist fit`.
 fn fit(a: &FitArgs) -> persist::Result<ExitCode> {
+    if let Some(report) = &a.from_verify {
+        let model = match &a.model {
+            Some(m) => persist::model_file::load(m)?,
+            None => persist::model::ModelParams::default(),
+        };
+        out!(
+            "{}",
+            persist::verify::transient::run(report, &model, &a.out)?
+        );
+        return Ok(ExitCode::SUCCESS);
+    }
+    let input = a
+        .input
+        .as_deref()
+        .ok_or_else(|| Error::new(ErrorKind::Usage, "--input: required without --from-verify"))?;
     let p = a.preset.config();
     let cfg = persist::calib::CalibConfig {
         amplification: a.amplification.unwrap_or(p.amplification),
@@ -1604,7 +1648,7 @@ fn fit(a: &FitArgs) -> persist::Result<ExitCode> {
         c.check()?;
     }
     let r = persist::calib::run(
-        &a.input,
+        input,
         &cfg,
         (a.preset, &a.with),
         (free, coverage.as_ref()),
