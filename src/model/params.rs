@@ -639,6 +639,42 @@ mod tests {
         assert!(q.validate().unwrap_err().contains("terms[2].rate_per_s"));
     }
 
+    /// A transient rule: its amplitude replaces the maximum for transients, it changes
+    /// the identity, and bad values are refused naming the field.
+    #[test]
+    fn a_transient_rule_is_validated_and_enters_the_identity() {
+        let p = ModelParams::default();
+        assert_eq!(p.transient_amplitude_e(), 878.0);
+        let mut q = p.clone();
+        q.transient = Some(TransientRule {
+            amplitude_e: 30.0,
+            measured: TransientProvenance {
+                report: "r/report.json".into(),
+                report_sha256: "ab".repeat(32),
+                quantile: 0.95,
+                ratio: 30.0 / 878.0,
+                flown_amplitude_e: 878.0,
+                events: 500,
+            },
+        });
+        q.validate().unwrap();
+        assert_eq!(q.transient_amplitude_e(), 30.0);
+        assert_ne!(q.identity(), p.identity());
+        assert_eq!(ModelParams::from_json(&q.to_json_pretty()).unwrap(), q);
+        let mut r = q.clone();
+        r.transient.as_mut().unwrap().amplitude_e = f64::NAN;
+        assert!(r
+            .validate()
+            .unwrap_err()
+            .starts_with("transient.amplitude_e"));
+        let mut r = q.clone();
+        r.transient.as_mut().unwrap().measured.report_sha256 = "xyz".into();
+        assert!(r
+            .validate()
+            .unwrap_err()
+            .starts_with("transient.measured.report_sha256"));
+    }
+
     #[test]
     fn max_amplitude_is_table1_largest() {
         assert_eq!(ModelParams::default().max_amplitude_e(), 878.0);

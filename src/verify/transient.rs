@@ -277,7 +277,7 @@ pub fn run(report: &Path, model: &ModelParams, out: &Path) -> Result<String> {
     std::fs::write(out, rule.to_json_pretty() + "\n").map_err(|e| Error::io(out, e))?;
     let t = rule.transient.as_ref().expect("set by apply");
     Ok(format!(
-        "transient amplitude {:.1} e- (was {:.1} e-, x {:.4}: {} hits, {:.0}th percentile); \
+        "transient amplitude {:.1} e- (the flown {:.1} e- x {:.4}: {} hits, {:.0}th percentile); \
          the exposure after a hit stays flagged. Model: {}",
         t.amplitude_e,
         t.measured.flown_amplitude_e,
