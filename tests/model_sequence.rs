@@ -3,6 +3,7 @@
 
 use ndarray::{array, Array2};
 use persist::flags::{bits, pbits};
+use persist::model::params::{TransientProvenance, TransientRule};
 use persist::model::{
     reference, EarlyRelease, Input, Knot, Model, ModelParams, Output, State, StepSummary, Term,
     Thresholds,
@@ -104,6 +105,54 @@ impl Run {
             self.state.amplitudes_e[(0, x, 0)],
             self.state.amplitudes_e[(0, x, 1)],
         ]
+    }
+}
+
+/// A transient rule of `amplitude_e` (its provenance made up: the step does not read it).
+fn rule(amplitude_e: f64) -> TransientRule {
+    TransientRule {
+        amplitude_e,
+        measured: TransientProvenance {
+            report: "report.json".into(),
+            report_sha256: "0".repeat(64),
+            quantile: 0.95,
+            ratio: amplitude_e / 1000.0,
+            flown_amplitude_e: 1000.0,
+            events: 1000,
+        },
+    }
+}
+
+/// With a measured transient rule of 50 e- (the hand model's maximum is 1000 e-): a hit
+/// on a dark pixel adds 50 e-, one on a pixel whose slope asks for more adds the slope's
+/// amplitude, a hit without a usable slope (NaN, or `SUR_ERROR`) keeps the maximum; and
+/// the exposure after every hit is flagged whatever the prediction (`MAX_AMPLITUDE`).
+#[test]
+fn a_measured_transient_rule_sets_the_hit_s_amplitude_and_the_next_exposure_stays_flagged() {
+    let mut params = hand_model().params().clone();
+    params.transient = Some(rule(50.0));
+    let mut r = Run::new(Model::new(params).unwrap(), 1, 4);
+    let t = bits::TRANSIENT;
+    // x = 1: 1500 e-/s x 100 s = 1.5e5 e- -> A_k = 100 + 9 x 50 = 550 > 50.
+    r.step(
+        0,
+        0.0,
+        array![[0.0, 1500.0, f32::NAN, 0.0]],
+        array![[t, t, t, t | bits::SUR_ERROR]],
+    );
+    assert_eq!(r.amps(0), [50.0, 50.0]);
+    assert_eq!(r.amps(1), [550.0, 550.0]);
+    assert_eq!(r.amps(2), [1000.0, 1000.0]);
+    assert_eq!(r.amps(3), [1000.0, 1000.0]);
+    // E1 a day later: every prediction is far below 0.1 e-/s, every pixel still flagged.
+    r.step(1, 86_400.0, Array2::zeros((1, 4)), Array2::zeros((1, 4)));
+    assert!(r.current.iter().all(|&c| c < 0.01), "{:?}", r.current);
+    for x in 0..4 {
+        assert_eq!(
+            r.pflags[(0, x)],
+            pbits::HIGH | pbits::LOW | pbits::MAX_AMPLITUDE,
+            "pixel {x}"
+        );
     }
 }
 
@@ -324,6 +373,18 @@ proptest! {
     fn fused_step_matches_reference(seq in prop::collection::vec(exp_strategy(12), 1..25)) {
         let mut params = ModelParams::default();
         params.early_release.threshold_e_per_s = 5.0; // let releases happen often
+        let model = Model::new(params).unwrap();
+        fused_matches_reference(&model, &seq)?;
+    }
+
+    /// The same with a measured transient rule (below the table's maximum).
+    #[test]
+    fn fused_step_matches_reference_with_a_transient_rule(
+        seq in prop::collection::vec(exp_strategy(12), 1..25),
+    ) {
+        let mut params = ModelParams::default();
+        params.early_release.threshold_e_per_s = 5.0;
+        params.transient = Some(rule(30.0));
         let model = Model::new(params).unwrap();
         fused_matches_reference(&model, &seq)?;
     }

@@ -12,8 +12,18 @@ use std::process::ExitCode;
 #[derive(Args, Debug)]
 pub struct FitArgs {
     /// Directory of a laboratory sequence (products; the first dark keeps its ramp).
-    #[arg(long)]
-    pub input: PathBuf,
+    #[arg(long, required_unless_present = "from_verify")]
+    pub input: Option<PathBuf>,
+    /// Instead of a laboratory fit: set the transient rule of `--model` (the model the
+    /// verified run was flagged with) from a `persist verify` report.json, and write the
+    /// model to OUT (docs/verify.md, "The transient rule"). Refused when the report
+    /// gives no rule (too few cosmic-ray hits).
+    #[arg(long, conflicts_with = "input")]
+    pub from_verify: Option<PathBuf>,
+    /// With --from-verify: the model file the verified run was flagged with [default:
+    /// the built-in default].
+    #[arg(long, requires = "from_verify")]
+    pub model: Option<PathBuf>,
     /// The model file to write.
     #[arg(long)]
     pub out: PathBuf,
@@ -183,6 +193,23 @@ pub struct DiagnoseArgs {
 
 /// `persist fit`.
 pub(super) fn fit(a: &FitArgs) -> persist::Result<ExitCode> {
+    if let Some(report) = &a.from_verify {
+        let model = match &a.model {
+            Some(m) => persist::model_file::load(m)?,
+            None => persist::model::ModelParams::default(),
+        };
+        out!(
+            "{}",
+            persist::verify::transient::run(report, &model, &a.out)?
+        );
+        return Ok(ExitCode::SUCCESS);
+    }
+    let input = a.input.as_deref().ok_or_else(|| {
+        persist::Error::new(
+            persist::ErrorKind::Usage,
+            "--input: required without --from-verify",
+        )
+    })?;
     let p = a.preset.config();
     let cfg = persist::calib::CalibConfig {
         amplification: a.amplification.unwrap_or(p.amplification),
@@ -219,7 +246,7 @@ pub(super) fn fit(a: &FitArgs) -> persist::Result<ExitCode> {
         c.check()?;
     }
     let r = persist::calib::run(
-        &a.input,
+        input,
         &cfg,
         (a.preset, &a.with),
         (free, coverage.as_ref()),

@@ -48,6 +48,10 @@ pub struct VerifyArgs {
     /// Seed of the bootstrap over events.
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
+    /// The quantile of the transient rule: of measured / predicted at the first exposure
+    /// after a cosmic-ray hit (docs/verify.md, "The transient rule").
+    #[arg(long, default_value_t = persist::verify::transient::DEFAULT_QUANTILE)]
+    pub transient_quantile: f64,
     /// Also learn each pixel's response from the tracks and write it as a per-pixel map
     /// (HDF5, the laboratory map's format; one detector: the first found). Needs
     /// `--map-model`.
@@ -63,8 +67,18 @@ pub struct VerifyArgs {
 
 /// `persist verify`: exit code 1 when a check disagrees or a file could not be read.
 pub(super) fn verify(a: &VerifyArgs) -> persist::Result<ExitCode> {
+    if !(a.transient_quantile > 0.0 && a.transient_quantile < 1.0) {
+        return Err(Error::new(
+            ErrorKind::Usage,
+            format!(
+                "--transient-quantile {}: need 0 < q < 1",
+                a.transient_quantile
+            ),
+        ));
+    }
     let mut p = persist::verify::VerifyParams {
         seed: a.seed,
+        transient_quantile: a.transient_quantile,
         ..Default::default()
     };
     if let Some(f) = a.event_fluence_e {
@@ -104,6 +118,11 @@ pub(super) fn verify(a: &VerifyArgs) -> persist::Result<ExitCode> {
     if let Some((inside, n)) = c.truth_inside {
         out!("truth inside the measured 95 % interval in {inside} of {n} bins");
     }
+    out!(
+        "{} cosmic-ray hits followed; transient rule: {}",
+        r.transients.hits,
+        r.transients.rule
+    );
     if let Some(q) = &r.flag_quality {
         out!(
             "flags against the truth, pixel-exposures from exposure {} on:\n{}",

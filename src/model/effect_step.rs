@@ -8,7 +8,8 @@
 //! [`Effect::observe`]); the response planes `A_k,n` `[ny, nx, n_terms]`
 //! ([`Effect::response`]; built only here); then one pass over the pixels with
 //! [`Effect::accumulate`] when an effect has it. Pixels of unknown fluence keep the
-//! maximum amplitude and non-functional pixels add nothing, whatever the hooks say;
+//! maximum amplitude (a transient: the model's transient rule) and non-functional
+//! pixels add nothing, whatever the hooks say;
 //! except pixels with no slope (`SUR_ERROR`, not a transient): brighter than any
 //! measured pixel, they take the hooks' amplitudes capped at the maximum, so that a
 //! hook that fills less than the whole capacity (`soak`'s level-blind fill) applies to
@@ -50,7 +51,8 @@ pub struct StepContext<'a> {
 
 /// Pixel kinds of the response planes.
 const KNOWN: u8 = 0;
-/// Unknown fluence (transient, fit error, non-finite): the maximum amplitude.
+/// Unknown fluence (transient, fit error, non-finite): the maximum amplitude (a
+/// transient: the transient rule's, [`crate::model::ModelParams::transient_amplitude_e`]).
 const UNKNOWN: u8 = 1;
 /// Non-functional: adds nothing.
 const NONFUNC: u8 = 2;
@@ -353,7 +355,7 @@ pub(crate) fn step(
                 s.pixels += 1;
                 let v = k.predict_flag_release(a, &w, &mut c[x], p[x], img[x]);
                 // Whatever the hooks did: unknown pixels keep the maximum amplitude
-                // (those with no slope at most it), non-functional ones add nothing,
+                // (a transient the transient rule's; those with no slope at most it), non-functional ones add nothing,
                 // and no NaN, Inf or negative amplitude enters the state.
                 let hooked = kd[x] == KNOWN || kd[x] == NO_SLOPE;
                 let mut add = &ak_row[x * n..(x + 1) * n];

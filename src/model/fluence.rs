@@ -11,8 +11,9 @@
 //! - a `NONFUNC` pixel has no fluence (a dead pixel collects no charge);
 //! - a `TRANSIENT` or `SUR_ERROR` pixel, or one whose current is NaN or infinite, has an
 //!   *unknown* fluence: the model responds with the maximum amplitude of its knot table
-//!   and flags the pixel in the next exposure (paper section 3, conservative, as for
-//!   transients).
+//!   (a `TRANSIENT` pixel without `SUR_ERROR`: the model's transient rule, the maximum
+//!   unless measured in flight) and flags the pixel in the next exposure (paper
+//!   section 3, conservative, as for transients).
 //!
 //! Invariant: a [`PixelFluence::Known`] fluence is finite and non-negative whenever
 //! `t_illuminated_s` is (the model checks that it is, in `(0, t_exposure_s]`), so NaN

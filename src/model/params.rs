@@ -180,6 +180,44 @@ pub struct ModelParams {
     /// without, so models without one keep their identity.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub pixel_map: Option<PixelMapRef>,
+    /// The response of a `TRANSIENT` pixel ([`TransientRule`]); absent (not written):
+    /// the knot table's maximum, the paper's rule, so models without one keep their
+    /// identity.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub transient: Option<TransientRule>,
+}
+
+/// The amplitude a `TRANSIENT` pixel adds to every term, measured in flight
+/// (`persist verify`'s transient measurement, written by `persist fit --from-verify`;
+/// docs/verify.md, "The transient rule"). Without it a transient takes the knot table's
+/// maximum (paper section "Transients"). Either way the exposure after the hit is
+/// flagged whatever the prediction (`MAX_AMPLITUDE`): the rule sets what the later
+/// exposures predict.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TransientRule {
+    /// `A_k` of a `TRANSIENT` pixel, e- (finite, `>= 0`).
+    pub amplitude_e: f64,
+    /// Where it was measured.
+    pub measured: TransientProvenance,
+}
+
+/// The verify report a [`TransientRule`] was derived from, and how.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TransientProvenance {
+    /// The `report.json` of `persist verify`, as given to `fit --from-verify`.
+    pub report: String,
+    /// SHA-256 of its bytes, 64 lower-case hex digits.
+    pub report_sha256: String,
+    /// The quantile of measured / predicted over the hits' first exposures (in `(0, 1)`).
+    pub quantile: f64,
+    /// The upper end of that quantile's bootstrap 95 % interval: the factor applied.
+    pub ratio: f64,
+    /// The transient amplitude of the model the measured run was flagged with, e-.
+    pub flown_amplitude_e: f64,
+    /// Hits measured.
+    pub events: u64,
 }
 
 /// The per-pixel response maps a model applies (`crate::pixmap`; docs/pixel_map.md):
@@ -299,6 +337,7 @@ impl Default for ModelParams {
             effects: Vec::new(),
             calibration: None,
             pixel_map: None,
+            transient: None,
         }
     }
 }
@@ -354,6 +393,14 @@ impl ModelParams {
             .iter()
             .map(|k| k.amplitude_e)
             .fold(0.0, f64::max)
+    }
+
+    /// The amplitude a `TRANSIENT` pixel adds to every term, e-: the measured rule's
+    /// ([`TransientRule`]), or the knot table's maximum without one.
+    pub fn transient_amplitude_e(&self) -> f64 {
+        self.transient
+            .as_ref()
+            .map_or_else(|| self.max_amplitude_e(), |r| r.amplitude_e)
     }
 
     pub fn validate(&self) -> Result<(), String> {
@@ -420,13 +467,15 @@ impl ModelParams {
                 if f.path.is_empty() {
                     return Err(format!("pixel_map.files[{i}].path: must not be empty"));
                 }
-                let hex = |c: char| c.is_ascii_digit() || ('a'..='f').contains(&c);
-                if f.sha256.len() != 64 || !f.sha256.chars().all(hex) {
+                if !is_sha256_hex(&f.sha256) {
                     return Err(format!(
                         "pixel_map.files[{i}].sha256: must be 64 lower-case hex digits"
                     ));
                 }
             }
+        }
+        if let Some(t) = &self.transient {
+            t.validate()?;
         }
         let mut seen: Vec<&str> = Vec::new();
         for (i, e) in self.effects.iter().enumerate() {
@@ -441,6 +490,41 @@ impl ModelParams {
         }
         Ok(())
     }
+}
+
+impl TransientRule {
+    fn validate(&self) -> Result<(), String> {
+        if !(self.amplitude_e.is_finite() && self.amplitude_e >= 0.0) {
+            return Err("transient.amplitude_e: must be finite and >= 0".into());
+        }
+        let m = &self.measured;
+        if !(m.quantile > 0.0 && m.quantile < 1.0) {
+            return Err("transient.measured.quantile: must be in (0, 1)".into());
+        }
+        for (name, v) in [
+            ("ratio", m.ratio),
+            ("flown_amplitude_e", m.flown_amplitude_e),
+        ] {
+            if !(v.is_finite() && v >= 0.0) {
+                return Err(format!(
+                    "transient.measured.{name}: must be finite and >= 0"
+                ));
+            }
+        }
+        if !is_sha256_hex(&m.report_sha256) {
+            return Err(
+                "transient.measured.report_sha256: must be 64 lower-case hex digits".into(),
+            );
+        }
+        Ok(())
+    }
+}
+
+/// 64 lower-case hex digits.
+fn is_sha256_hex(s: &str) -> bool {
+    s.len() == 64
+        && s.chars()
+            .all(|c| c.is_ascii_digit() || ('a'..='f').contains(&c))
 }
 
 #[cfg(test)]
@@ -515,6 +599,42 @@ mod tests {
         let mut q = p.clone();
         q.terms[2].rate_per_s = f64::NAN;
         assert!(q.validate().unwrap_err().contains("terms[2].rate_per_s"));
+    }
+
+    /// A transient rule: its amplitude replaces the maximum for transients, it changes
+    /// the identity, and bad values are refused naming the field.
+    #[test]
+    fn a_transient_rule_is_validated_and_enters_the_identity() {
+        let p = ModelParams::default();
+        assert_eq!(p.transient_amplitude_e(), 878.0);
+        let mut q = p.clone();
+        q.transient = Some(TransientRule {
+            amplitude_e: 30.0,
+            measured: TransientProvenance {
+                report: "r/report.json".into(),
+                report_sha256: "ab".repeat(32),
+                quantile: 0.95,
+                ratio: 30.0 / 878.0,
+                flown_amplitude_e: 878.0,
+                events: 500,
+            },
+        });
+        q.validate().unwrap();
+        assert_eq!(q.transient_amplitude_e(), 30.0);
+        assert_ne!(q.identity(), p.identity());
+        assert_eq!(ModelParams::from_json(&q.to_json_pretty()).unwrap(), q);
+        let mut r = q.clone();
+        r.transient.as_mut().unwrap().amplitude_e = f64::NAN;
+        assert!(r
+            .validate()
+            .unwrap_err()
+            .starts_with("transient.amplitude_e"));
+        let mut r = q.clone();
+        r.transient.as_mut().unwrap().measured.report_sha256 = "xyz".into();
+        assert!(r
+            .validate()
+            .unwrap_err()
+            .starts_with("transient.measured.report_sha256"));
     }
 
     #[test]

@@ -8,8 +8,8 @@
 use ndarray::{Array2, Array3};
 use rayon::prelude::*;
 
-/// `pending` bit: this pixel's last response used the maximum amplitude (its fluence
-/// was unknown), so the next exposure marks it and flags it.
+/// `pending` bit: this pixel's last response used the maximum amplitude or the transient
+/// rule's (its fluence was unknown), so the next exposure marks it and flags it.
 pub const PENDING_MAX_AMPLITUDE: u8 = 1;
 
 #[derive(Debug, Clone, PartialEq)]

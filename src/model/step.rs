@@ -20,7 +20,11 @@
 //! - `NONFUNC` pixels add nothing (a dead pixel collects no charge);
 //! - `TRANSIENT` or `SUR_ERROR` pixels, and pixels whose current is NaN or infinite, have
 //!   an unknown fluence: they add the maximum amplitude of the knot table (conservative,
-//!   as the paper does for transients), and the next exposure flags them;
+//!   as the paper does for transients), and the next exposure flags them whatever the
+//!   prediction; a `TRANSIENT` pixel with a finite slope and without `SUR_ERROR` adds
+//!   the model's transient rule instead ([`ModelParams::transient_amplitude_e`]: the
+//!   maximum unless the model file holds an amplitude measured in flight) or its
+//!   slope's amplitude, the larger, and the next exposure still flags it;
 //! - a negative current counts as zero fluence (it is noise about zero);
 //! - otherwise the fluence is `current * t_illuminated` (ICD "Timing").
 //!
@@ -30,7 +34,7 @@
 
 use super::decay::ExpSum;
 pub use super::fluence::FlagBits;
-use super::fluence::{pixel_fluence, PixelFluence};
+use super::fluence::{extrapolated_fluence_e, pixel_fluence, PixelFluence};
 use super::params::{BackgroundEstimate, ModelParams};
 use super::pixel_response::PixelResponse;
 use super::response::Response;
@@ -174,15 +178,24 @@ impl Model {
     /// change a flag, so how long outputs carry "history incomplete".
     pub fn carry_over_s(&self) -> f64 {
         self.sum
-            .crossing_time_s(self.response.max_e(), self.params.thresholds.low_e_per_s)
+            .crossing_time_s(
+                self.largest_response_e(),
+                self.params.thresholds.low_e_per_s,
+            )
             .unwrap_or(f64::INFINITY)
     }
     /// The largest current, e-/s, that one exposure's response (at most the knot table's
-    /// maximum amplitude, on every term) can still give `age_s` after the reset that
-    /// ended it: the current [`Model::carry_over_s`] brings down to the low threshold.
-    /// Decreasing in `age_s`.
+    /// maximum amplitude or the transient rule's, on every term) can still give `age_s`
+    /// after the reset that ended it: the current [`Model::carry_over_s`] brings down to
+    /// the low threshold. Decreasing in `age_s`.
     pub fn carry_over_e_per_s(&self, age_s: f64) -> f64 {
-        self.response.max_e() * self.sum.unit_current_per_s(age_s.max(0.0))
+        self.largest_response_e() * self.sum.unit_current_per_s(age_s.max(0.0))
+    }
+    /// The largest amplitude one exposure adds to a term, e-.
+    fn largest_response_e(&self) -> f64 {
+        self.response
+            .max_e()
+            .max(self.params.transient_amplitude_e())
     }
     pub fn flag_bits(&self) -> FlagBits {
         self.bits
@@ -378,6 +391,7 @@ impl Model {
             er_consecutive: er.consecutive,
             response: &self.response,
             a_max: self.response.max_e(),
+            a_transient: self.params.transient_amplitude_e(),
             first: self.response.first_segment(),
             t_illuminated_s: t_illum,
             history: if input.history_incomplete {
@@ -552,6 +566,8 @@ pub(crate) struct Kernel<'m> {
     pub er_consecutive: u8,
     pub response: &'m Response,
     pub a_max: f64,
+    /// `A_k` of a `TRANSIENT` pixel ([`ModelParams::transient_amplitude_e`]).
+    pub a_transient: f64,
     /// [`Response::first_segment`].
     pub first: (f64, f64, f64, f64),
     pub t_illuminated_s: f64,
@@ -560,11 +576,28 @@ pub(crate) struct Kernel<'m> {
 }
 
 impl Kernel<'_> {
-    /// `A_k` for one pixel and whether it was the maximum for an unknown fluence.
+    /// `A_k` for one pixel and whether its fluence was unknown (the next exposure is
+    /// flagged whatever the prediction): a transient with a finite slope (and not a fit
+    /// error) takes the transient rule's amplitude or its slope's, the larger (a source
+    /// bright enough to saturate keeps its own response when a cosmic ray also hits),
+    /// any other unknown fluence the maximum.
     #[inline(always)]
     pub fn response_of(&self, current: f32, flags: u32) -> (f64, bool) {
         match pixel_fluence(current, flags, &self.bits, self.t_illuminated_s) {
-            PixelFluence::Unknown => (self.a_max, true),
+            PixelFluence::Unknown => {
+                let transient_only = flags & self.bits.transient != 0
+                    && flags & self.bits.sur_error == 0
+                    && current.is_finite();
+                let a = if transient_only {
+                    let slope = self
+                        .response
+                        .amplitude_e(extrapolated_fluence_e(current, self.t_illuminated_s));
+                    self.a_transient.max(slope)
+                } else {
+                    self.a_max
+                };
+                (a, true)
+            }
             PixelFluence::NonFunctional => (0.0, false),
             PixelFluence::Known(fluence_e) => {
                 // The first segment, where faint pixels fall, without a table look-up:

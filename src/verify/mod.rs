@@ -28,6 +28,10 @@
 //!   the flags cost sky for nothing.
 //! - **flags**: the measured excess of flagged and unflagged samples by time since the event.
 //!
+//! Cosmic-ray hits (`TRANSIENT` pixels) are followed the same way, and the report's
+//! `transients` section measures the transient rule from them ([`transient`]: what
+//! `persist fit --from-verify` writes into the model file).
+//!
 //! Where the input directory holds a simulator's truth (`truth/`), each bin also carries
 //! the true mean persistence of the same samples, and the report says how often the truth
 //! falls in the measured mean's 95 % interval.
@@ -38,6 +42,7 @@
 pub mod report;
 pub mod stack;
 pub mod track;
+pub mod transient;
 
 use crate::error::{Error, ErrorKind, Result};
 use crate::product::read::read_output;
@@ -76,6 +81,8 @@ pub struct VerifyParams {
     /// away there (on the simulated sky, from 0.05 e-/s measured to 0.003 predicted at
     /// 3 to 4 h), which says nothing about its flags at 0.1 e-/s.
     pub slope_floor_fraction: f64,
+    /// The quantile of the transient rule ([`transient`]).
+    pub transient_quantile: f64,
     /// Seed of the bootstraps.
     pub seed: u64,
 }
@@ -94,6 +101,7 @@ impl Default for VerifyParams {
             margin_factor: std::f64::consts::SQRT_2,
             slope_tolerance: 0.05,
             slope_floor_fraction: 1.0,
+            transient_quantile: transient::DEFAULT_QUANTILE,
             seed: 1,
         }
     }
@@ -229,6 +237,8 @@ pub struct Report {
     /// [`crate::flag_quality::FROM_EXPOSURE`] on ([`crate::flag_quality`]).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub flag_quality: Option<crate::flag_quality::TruthTally>,
+    /// The cosmic-ray hits followed, and the transient rule they give.
+    pub transients: transient::TransientReport,
 }
 
 /// Accumulators of one run (all detectors).
@@ -367,6 +377,8 @@ pub fn run_observing(
         }
     }
     let mut acc = Acc::default();
+    let mut hits = transient::Acc::default();
+    let (mut hits_started, mut hits_rejected) = (0, 0);
     let mut tally = crate::flag_quality::TruthTally::new(
         params.threshold_e_per_s,
         crate::model::params::Thresholds::default().low_e_per_s,
@@ -433,12 +445,17 @@ pub fn run_observing(
                     observe(det, &s);
                 }
                 events += t.clusters_started() - before;
+                for s in t.take_hit_samples() {
+                    hits.add(&params.time_edges_s, &s, (u64::from(det) << 48) | s.cluster);
+                }
                 exposures += 1;
             }
         });
         if let Some(t) = tracker {
             rejected += t.rejected;
             no_sky += t.no_sky;
+            hits_started += t.hits_started;
+            hits_rejected += t.hit_rejected;
         }
     }
     let mut report = summarise(
@@ -452,6 +469,12 @@ pub fn run_observing(
             events,
             rejected,
             no_sky,
+            transients: hits.summarise(
+                &params.time_edges_s,
+                (hits_started, hits_rejected),
+                params.transient_quantile,
+                params.seed,
+            ),
         },
     );
     report.flag_quality = any_truth.then_some(tally);
@@ -466,6 +489,7 @@ struct Summary {
     events: u64,
     rejected: u64,
     no_sky: u64,
+    transients: transient::TransientReport,
 }
 
 fn seed_of(p: &VerifyParams, a: usize, b: usize, c: usize) -> u64 {
@@ -560,6 +584,7 @@ fn summarise(p: &VerifyParams, acc: Acc, s: Summary) -> Report {
         margins,
         checks,
         flag_quality: None,
+        transients: s.transients,
     }
 }
 
@@ -713,6 +738,7 @@ mod tests {
             events: 8,
             rejected: 0,
             no_sky: 0,
+            transients: transient::Acc::default().summarise(&[0.0, 1.0], (0, 0), 0.95, 1),
         }
     }
 

@@ -185,6 +185,7 @@ pub fn html(r: &Report) -> Result<String> {
         );
     }
     h.push_str("</table>");
+    transients_html(&mut h, &r.transients);
     for e in &r.errors {
         let _ = write!(
             h,
@@ -195,6 +196,48 @@ pub fn html(r: &Report) -> Result<String> {
     }
     h.push_str("</body></html>\n");
     Ok(h)
+}
+
+/// The transient section: the rule, then the decay by time since the hit.
+fn transients_html(h: &mut String, t: &super::transient::TransientReport) {
+    let f = &t.first;
+    let _ = write!(
+        h,
+        "<h2>Cosmic-ray hits</h2><p>{} hits followed, {} samples ({} rejected as sources). \
+         First exposure after a hit, measured / predicted: median {}, {:.0}th percentile {} \
+         over {} hits{}.</p><p>Transient rule: {}. The exposure after a hit stays flagged \
+         whatever the prediction.</p>\
+         <table><tr><th>time since hit, s</th><th>hits</th><th>samples</th>\
+         <th>measured excess, e-/s</th><th>predicted, e-/s</th><th>truth, e-/s</th></tr>",
+        t.hits,
+        t.samples,
+        t.rejected_as_sources,
+        f.median_ratio.map_or("-".into(), |v| format!("{v:.4}")),
+        100.0 * f.quantile,
+        f.ratio.map_or("-".into(), |(q, lo, hi)| format!(
+            "{q:.4} (95 %: {lo:.4} - {hi:.4})"
+        )),
+        f.events,
+        f.true_ratio
+            .map_or(String::new(), |v| format!(" (truth: {v:.4})")),
+        esc(&t.rule),
+    );
+    for b in &t.decay {
+        let _ = write!(
+            h,
+            "<tr><td>{:.0} - {:.0}</td><td>{}</td><td>{}</td><td>{:.4} &plusmn; {:.4}</td>\
+             <td>{:.4}</td><td>{}</td></tr>",
+            b.time_lo_s,
+            b.time_hi_s,
+            b.events,
+            b.samples,
+            b.measured.mean,
+            b.measured.se,
+            b.predicted.mean,
+            b.truth.map_or("-".into(), |t| format!("{:.4}", t.mean)),
+        );
+    }
+    h.push_str("</table>");
 }
 
 fn esc(s: &str) -> String {

@@ -22,8 +22,8 @@
 //! the level-blind `1 - exp(-k)`, `k = t_exp rate_n / capture_ratio` ([`Soak::fill`]).
 //! Kept at the full amplitude instead, the brightest pixels of the laboratory campaign's
 //! x4 illumination would carry unsoaked slow terms into the next illumination. A
-//! transient's fluence is unknown for another reason; it keeps the maximum amplitude
-//! whatever the hooks do.
+//! transient's fluence is unknown for another reason; it keeps the transient rule's
+//! amplitude (the maximum unless measured in flight) whatever the hooks do.
 //! Below the first knot the table is linear through 0 and the fill does not depend on
 //! `F`: one value per term and exposure (every dark pixel).
 //!
@@ -309,7 +309,7 @@ impl Effect for Soak {
                         continue;
                     }
                     if f.is_nan() || *f <= 0.0 {
-                        // no charge (A_k = 0), or a transient: the step keeps the maximum
+                        // no charge (A_k = 0), or a transient: the step keeps its own rule
                         continue;
                     }
                     if *f <= x1 {
