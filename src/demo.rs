@@ -161,7 +161,7 @@ fn model_of(cfg: &DemoConfig, progress: &dyn Fn(&str)) -> Result<(ModelParams, S
         cov.describe().trim_end()
     );
     let path = cfg.out.join("model.json");
-    crate::calib::write_text(&path, &(params.to_json_pretty() + "\n"))?;
+    crate::textfile::write_text(&path, &(params.to_json_pretty() + "\n"))?;
     Ok((params, text))
 }
 

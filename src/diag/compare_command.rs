@@ -70,9 +70,9 @@ pub fn run_with(
     std::fs::create_dir_all(out).map_err(|e| Error::io(out, e))?;
     let text = serde_json::to_string_pretty(&summary)
         .map_err(|e| Error::new(ErrorKind::Io, e.to_string()))?;
-    crate::calib::write_text(&out.join("summary.json"), &(text + "\n"))?;
+    crate::textfile::write_text(&out.join("summary.json"), &(text + "\n"))?;
     let html = super::report::html(&summary).map_err(|e| e.path(out.join("report.html")))?;
-    crate::calib::write_text(&out.join("report.html"), &html)?;
+    crate::textfile::write_text(&out.join("report.html"), &html)?;
     let mut s = format!(
         "persist compare: {} exposures, {} pixels sampled ({} cells{})\n",
         summary.exposures_compared,
