@@ -79,6 +79,11 @@ pub struct CalibConfig {
     /// How each exposure's background is measured, in the calibration too
     /// ([`crate::measure::data::Background`]).
     pub background: crate::measure::data::Background,
+    /// Calibrate the flags to this coverage after the effects ([`super::coverage`]): the
+    /// paper preset's default is the paper's 95 %, a flagging model; none for the
+    /// readout preset, a reference compared with measurements, whose knots stay at the
+    /// measured level (`persist fit --coverage`, `--no-coverage`).
+    pub coverage: Option<f64>,
 }
 
 impl CalibConfig {
@@ -94,6 +99,7 @@ impl CalibConfig {
             decay_exponent: None,
             knots_shot_noise_removed: self.knots_shot_noise_removed(),
             late_plateau_dark: false,
+            coverage: self.coverage,
         }
     }
 
@@ -125,6 +131,7 @@ impl Default for CalibConfig {
             cells: crate::measure::eval::Cells::default(),
             cell_statistic: crate::measure::eval::CellStatistic::default(),
             background: crate::measure::data::Background::default(),
+            coverage: Some(super::coverage::CoverageConfig::default().coverage),
         }
     }
 }
@@ -173,6 +180,7 @@ impl Preset {
                 t_min_s: 1.0,
                 decay_offset_s: 0.2,
                 rates_per_s: (0..13).map(|k| 10f64.powf(-0.4 * f64::from(k))).collect(),
+                coverage: None,
                 ..CalibConfig::default()
             },
         }
@@ -224,16 +232,22 @@ impl Preset {
     /// True if calibration record `c` has this preset's options (before anything was
     /// freed after it).
     pub fn matches(self, c: &Calibration) -> bool {
-        // (the knots' noise follows the cell statistic, not the preset)
+        // (the knots' noise follows the cell statistic, not the preset; the coverage is
+        // an option of its own)
         let before_freeing = Calibration {
             fit_cn: false,
             fit_amplification: false,
             decay_exponent: None,
             knots_shot_noise_removed: false,
             late_plateau_dark: false,
+            coverage: None,
             ..c.clone()
         };
-        before_freeing == self.config().record()
+        before_freeing
+            == Calibration {
+                coverage: None,
+                ..self.config().record()
+            }
     }
 }
 
@@ -539,6 +553,8 @@ pub fn calibrate_with(
         amplitude_knots: knots.clone(),
         calibration: Some(Calibration {
             late_plateau_dark: !dark_report.source.is_background_pixels(),
+            // set by `persist fit` when the coverage is reached (`super::command`)
+            coverage: None,
             ..cfg.record()
         }),
         ..base

@@ -142,22 +142,16 @@ pub fn run(
     input: &std::path::Path,
     cfg: &CalibConfig,
     (preset, with): (Preset, &[String]),
-    (free, cov): (effects::Free, Option<&coverage::CoverageConfig>),
+    (free, coverage_stated): (effects::Free, bool),
     out: &std::path::Path,
     report_path: &std::path::Path,
 ) -> Result<String> {
     let seq = Sequence::load_with(input, cfg.background)?;
     let (with, readout) = preset.with_for(&seq, with);
-    let (mut params, cal, ef) = fit_params(&seq, cfg, &with, free).map_err(|e| e.path(input))?;
+    let (params, cal, ef) = fit_params(&seq, cfg, &with, free).map_err(|e| e.path(input))?;
     // the margin last, after every effect (coverage module docs)
-    let covered = match cov {
-        Some(c) => {
-            let (p, r) = coverage::apply(&params, &seq, c).map_err(|e| e.path(input))?;
-            params = p;
-            Some(r)
-        }
-        None => None,
-    };
+    let (params, covered, not_covered) =
+        to_coverage(params, &seq, cfg, coverage_stated).map_err(|e| e.path(input))?;
     let samples = cfg.samples(&seq);
     let pr = crate::measure::eval::predict(&params, &seq, &samples, false)?;
     let cells = crate::measure::spread::model_cell_z(&params, &samples, &pr.current);
@@ -223,8 +217,55 @@ pub fn run(
     if let Some(c) = &rep.coverage {
         s += &c.describe();
     }
+    if let Some(why) = &not_covered {
+        s += &format!(
+            "  flags not calibrated to a coverage ({why}): the knots keep amplification {}\n",
+            cfg.amplification
+        );
+    }
     s += &format!("model {} , report {}", out.display(), report_path.display());
     Ok(s)
+}
+
+/// The flags of `params` calibrated to `cfg.coverage` ([`coverage::apply`]), recorded in
+/// the model's calibration, with the report; `params` as they are without a coverage.
+/// When the laboratory data cannot calibrate it (too few samples measured above a
+/// threshold), an error if the coverage was `stated` (`--coverage`), else (the preset's
+/// default) a warning, the knots kept at the amplification and the reason returned.
+fn to_coverage(
+    params: ModelParams,
+    seq: &Sequence,
+    cfg: &CalibConfig,
+    stated: bool,
+) -> Result<(
+    ModelParams,
+    Option<coverage::CoverageReport>,
+    Option<String>,
+)> {
+    let Some(share) = cfg.coverage else {
+        return Ok((params, None, None));
+    };
+    let c = coverage::CoverageConfig {
+        coverage: share,
+        ..Default::default()
+    };
+    match coverage::apply(&params, seq, &c) {
+        Ok((mut p, r)) => {
+            if let Some(cal) = p.calibration.as_mut() {
+                cal.coverage = Some(share);
+            }
+            Ok((p, Some(r), None))
+        }
+        Err(e) if !stated && e.context.field.as_deref() == Some("coverage") => {
+            tracing::warn!(
+                "flags not calibrated to {:.0} % coverage: {e}; the knots keep amplification {}",
+                100.0 * share,
+                cfg.amplification
+            );
+            Ok((params, None, Some(e.to_string())))
+        }
+        Err(e) => Err(e),
+    }
 }
 
 /// True when a fit `--with` an effect on top of this calibration would fit it against
