@@ -13,7 +13,7 @@
 //! and seed: the same pixels) in the laboratory ([`crate::pixmap::eval::lab_sequence`]:
 //! the paper's pattern with a dark corner for the dark level and noise, three
 //! illuminations and 1.5 h of darks after the first), fits
-//! it as `persist fit --coverage 0.95` does (the paper's calibration, then the flags
+//! it as `persist fit` does by default (the paper's calibration, then the flags
 //! calibrated to 95 % coverage, [`crate::calib::coverage`]), and flags the sky with that
 //! model. Then it counts the flags against the simulator's truth
 //! ([`crate::flag_quality`], from exposure [`crate::flag_quality::FROM_EXPOSURE`] on)
@@ -161,7 +161,7 @@ fn model_of(cfg: &DemoConfig, progress: &dyn Fn(&str)) -> Result<(ModelParams, S
         cov.describe().trim_end()
     );
     let path = cfg.out.join("model.json");
-    crate::calib::write_text(&path, &(params.to_json_pretty() + "\n"))?;
+    crate::textfile::write_text(&path, &(params.to_json_pretty() + "\n"))?;
     Ok((params, text))
 }
 

@@ -53,6 +53,7 @@ pub mod sim;
 pub mod slurm;
 pub mod stage;
 pub mod stats;
+pub mod textfile;
 pub mod tile;
 pub mod timesplit;
 pub mod trapgen;

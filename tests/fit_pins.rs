@@ -77,7 +77,7 @@ fn pinned_parameters_are_held_recorded_and_suggested_again() {
         serde_json::json!({
             "amplification": 1.0, "t_min_s": 1.0, "decay_offset_s": 0.2,
             "rates_per_s": [0.1, 0.0158, 0.00251, 0.000398, 6.31e-5, 1e-5],
-            "fit_cn": false, "fit_amplification": false,
+            "fit_cn": false, "fit_amplification": false, "coverage": 0.95,
         })
     );
     let chord = m["effects"]
@@ -239,6 +239,8 @@ fn the_readout_preset_is_the_long_form_and_is_suggested_back() {
             "0.2",
             "--rates-per-s",
             &rates,
+            // the readout preset compares with measurements: no coverage margin
+            "--no-coverage",
         ],
     );
     assert_eq!(preset, long);

@@ -83,7 +83,9 @@ fn a_straight_first_dark_ramp_does_not_become_a_knot() {
     let lab = path("lab");
     common::lab_campaign(&lab, 64, 7, &[]);
     let m = path("m.json");
-    let mut a = vec!["fit", "--input", &lab, "--out", &m];
+    // the calibration's knots against the measurements: without the flags' coverage
+    // margin, which raises the residual by design
+    let mut a = vec!["fit", "--input", &lab, "--out", &m, "--no-coverage"];
     a.extend(common::POOLED_LEVELS_CELLS);
     common::persist_ok(&a);
     let model: serde_json::Value =

@@ -76,13 +76,17 @@ pub struct FitArgs {
     /// paper: its six, 0.1,0.0158,0.00251,0.000398,6.31e-5,1e-5].
     #[arg(long, value_delimiter = ',', allow_hyphen_values = true)]
     pub rates_per_s: Vec<f64>,
-    /// Calibrate the flags to this coverage (e.g. 0.95, the paper's design): the knots'
-    /// margin, and the decay's shape in time, set so that this share of the laboratory
-    /// samples measured above 0.1 and above 0.01 e-/s is flagged in every time bin the
-    /// data cover, after the `--with` effects (`persist::calib::coverage`). Without it
-    /// the knots keep the amplification.
-    #[arg(long)]
+    /// Calibrate the flags to this coverage: the knots' margin set so that this share
+    /// of the laboratory samples measured above 0.1 and above 0.01 e-/s is flagged in
+    /// every time bin and band the data cover, after the `--with` effects
+    /// (`persist::calib::coverage`) [default: the preset's; paper: 0.95, the paper's
+    /// design, skipped with a warning when the data have too few samples above a
+    /// threshold; readout: none].
+    #[arg(long, conflicts_with = "no_coverage")]
     pub coverage: Option<f64>,
+    /// Keep the knots at the amplification (no coverage calibration).
+    #[arg(long)]
+    pub no_coverage: bool,
     #[command(flatten)]
     pub cells: CellArgs,
 }
@@ -223,6 +227,11 @@ pub(super) fn fit(a: &FitArgs) -> persist::Result<ExitCode> {
         cells: a.cells.cells,
         cell_statistic: a.cells.cell_statistic,
         background: a.cells.background,
+        coverage: if a.no_coverage {
+            None
+        } else {
+            a.coverage.or(p.coverage)
+        },
         ..p
     };
     let report_path = a
@@ -236,20 +245,18 @@ pub(super) fn fit(a: &FitArgs) -> persist::Result<ExitCode> {
         decay_exponent: a.fit_decay_exponent,
     }
     .check()?;
-    let coverage = a
-        .coverage
-        .map(|c| persist::calib::coverage::CoverageConfig {
+    if let Some(c) = a.coverage {
+        persist::calib::coverage::CoverageConfig {
             coverage: c,
             ..Default::default()
-        });
-    if let Some(c) = &coverage {
-        c.check()?;
+        }
+        .check()?;
     }
     let r = persist::calib::run(
         input,
         &cfg,
         (a.preset, &a.with),
-        (free, coverage.as_ref()),
+        (free, a.coverage.is_some()),
         &a.out,
         &report_path,
     )?;

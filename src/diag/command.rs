@@ -126,6 +126,11 @@ fn calibration_args(c: Option<&crate::model::params::Calibration>) -> String {
     };
     let d = preset_of(c).unwrap_or_default().config();
     let mut s = String::new();
+    if c.coverage != d.coverage {
+        s += &c
+            .coverage
+            .map_or(" --no-coverage".to_string(), |v| format!(" --coverage {v}"));
+    }
     if c.amplification != d.amplification {
         s += &format!(" --amplification {}", c.amplification);
     }

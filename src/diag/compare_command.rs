@@ -70,9 +70,9 @@ pub fn run_with(
     std::fs::create_dir_all(out).map_err(|e| Error::io(out, e))?;
     let text = serde_json::to_string_pretty(&summary)
         .map_err(|e| Error::new(ErrorKind::Io, e.to_string()))?;
-    crate::calib::write_text(&out.join("summary.json"), &(text + "\n"))?;
+    crate::textfile::write_text(&out.join("summary.json"), &(text + "\n"))?;
     let html = super::report::html(&summary).map_err(|e| e.path(out.join("report.html")))?;
-    crate::calib::write_text(&out.join("report.html"), &html)?;
+    crate::textfile::write_text(&out.join("report.html"), &html)?;
     let mut s = format!(
         "persist compare: {} exposures, {} pixels sampled ({} cells{})\n",
         summary.exposures_compared,
@@ -102,6 +102,7 @@ pub fn run_with(
             );
         }
         s += "\n";
+        s += &coverage_line(&m.flag_quality);
         let sp = &m.spread;
         s += &format!(
             "    pixels moving together: score {:.1} (about N(0, 1) for independent pixels)",
@@ -148,4 +149,32 @@ pub fn run_with(
     }
     s += &format!("report {}", out.join("report.html").display());
     Ok(s)
+}
+
+/// The flags' coverage and over-flagging at 0.1 and 0.01 e-/s, as `persist fit` calibrates
+/// them (`crate::calib::coverage`): of the samples measured above a threshold by 2 noise
+/// sigmas, the share flagged; and the samples flagged while measured below it by 2
+/// sigmas, per sample. One line, empty when neither threshold was evaluated.
+fn coverage_line(q: &std::collections::BTreeMap<String, super::eval::FlagQuality>) -> String {
+    let parts: Vec<String> = ["0.1", "0.01"]
+        .iter()
+        .filter_map(|t| q.get(*t).map(|q| (t, q)))
+        .map(|(t, q)| {
+            let cov = if q.measured_above == 0 {
+                "-".to_string()
+            } else {
+                format!("{:.1} %", 100.0 * (1.0 - q.missed_of_measured_above))
+            };
+            format!(
+                "at {t} e-/s coverage {cov} of {} measured above, over-flagged {:.2} %",
+                q.measured_above,
+                100.0 * q.over_flag_fraction
+            )
+        })
+        .collect();
+    if parts.is_empty() {
+        String::new()
+    } else {
+        format!("    flags: {}\n", parts.join("; "))
+    }
 }

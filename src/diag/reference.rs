@@ -256,7 +256,7 @@ pub fn run(
     if let Some(p) = json {
         let text = serde_json::to_string_pretty(&d)
             .map_err(|e| Error::new(ErrorKind::Io, e.to_string()))?;
-        crate::calib::write_text(p, &(text + "\n"))?;
+        crate::textfile::write_text(p, &(text + "\n"))?;
     }
     let lit = if seq.lit.is_empty() {
         String::new()

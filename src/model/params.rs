@@ -285,6 +285,12 @@ pub struct Calibration {
     /// identity.
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub late_plateau_dark: bool,
+    /// The knots were then scaled so that this share of the laboratory samples measured
+    /// above each threshold is flagged (`fit --coverage`, the paper preset's default
+    /// 0.95; `persist::calib::coverage`). Absent when the knots keep the amplification
+    /// (`--no-coverage`), so older files keep their identity.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub coverage: Option<f64>,
 }
 
 /// Eq. (bbdetexpsum): `(C_n, 1/tau_n)` for detector BBDet.

@@ -68,7 +68,7 @@ pub fn run(a: &PixelmapArgs) -> Result<Vec<String>> {
         }
         let written = relative_to(m, &a.out);
         let p = file::name_maps(params, &[(map.detector, written, a.out.clone())], a.margin)?;
-        crate::calib::write_text(m, &(p.to_json_pretty() + "\n"))?;
+        crate::textfile::write_text(m, &(p.to_json_pretty() + "\n"))?;
         lines.push(format!(
             "model with the map (margin {}): {} (identity {})",
             a.margin,

@@ -104,6 +104,21 @@ pub fn lab_campaign() -> Vec<crate::sim::lab::Illumination> {
     vec![i(1.0, 30), i(5.0, 10), i(20.0, 10)]
 }
 
+/// Darks after the first illumination of [`paper_lab_campaign`]: 280 of 180 s, 14 h, as
+/// the paper's laboratory measured ("the subsequent integrations taken every three
+/// minutes over the following fourteen hours", section 2.1).
+pub const PAPER_DARKS_AFTER_FIRST: usize = 280;
+
+/// [`lab_campaign`] with the paper's 14 h of darks after the first illumination
+/// ([`PAPER_DARKS_AFTER_FIRST`]): the laboratory sequence `persist demo` and the
+/// flag-quality page calibrate the flags on, whose coverage then reaches the times of
+/// the decay's long terms (`persist::calib::coverage`, "The tail").
+pub fn paper_lab_campaign() -> Vec<crate::sim::lab::Illumination> {
+    let mut c = lab_campaign();
+    c[0].darks_after = PAPER_DARKS_AFTER_FIRST;
+    c
+}
+
 /// The laboratory half of the measurement: [`lab_campaign`] on the simulated detector
 /// `(size, seed)`, the global model calibrated on it (`persist fit`'s calibration) and
 /// the per-pixel map measured against that model.
@@ -130,11 +145,21 @@ pub fn lab_sequence(
     seed: u64,
     dark_pixels: bool,
 ) -> crate::Result<(crate::sim::lab::LabConfig, crate::measure::data::Sequence)> {
+    lab_sequence_of(size, seed, dark_pixels, lab_campaign())
+}
+
+/// [`lab_sequence`] of another campaign (e.g. [`paper_lab_campaign`]).
+pub fn lab_sequence_of(
+    size: usize,
+    seed: u64,
+    dark_pixels: bool,
+    campaign: Vec<crate::sim::lab::Illumination>,
+) -> crate::Result<(crate::sim::lab::LabConfig, crate::measure::data::Sequence)> {
     use crate::sim::lab;
     let cfg = lab::LabConfig {
         size,
         seed,
-        campaign: Some(lab_campaign()),
+        campaign: Some(campaign),
         paper_pattern: Some(lab::PaperPattern { dark_pixels }),
         ..lab::LabConfig::default()
     };
