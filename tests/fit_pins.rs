@@ -77,7 +77,7 @@ fn pinned_parameters_are_held_recorded_and_suggested_again() {
         serde_json::json!({
             "amplification": 1.0, "t_min_s": 1.0, "decay_offset_s": 0.2,
             "rates_per_s": [0.1, 0.0158, 0.00251, 0.000398, 6.31e-5, 1e-5],
-            "fit_cn": false, "fit_amplification": false, "coverage": 0.95,
+            "fit_cn": false, "fit_amplification": false,
         })
     );
     let chord = m["effects"]

@@ -60,7 +60,8 @@ pub struct FitArgs {
     /// alongside override the preset's, a `--with` of an effect it has replaces that one.
     #[arg(long, default_value_t = Preset::Paper, value_parser = parse_flag::<Preset>)]
     pub preset: Preset,
-    /// Amplification of A_0 into A_bin [default: the preset's; paper: 1.2].
+    /// Amplification of A_0 into A_bin [default: the preset's; paper: 1.2]. Stated, it
+    /// is the knots' margin: no coverage calibration unless `--coverage` is stated too.
     #[arg(long, allow_negative_numbers = true)]
     pub amplification: Option<f64>,
     /// Start of the span over which the C_n follow 1/(t+1): the shortest slew, s
@@ -81,7 +82,8 @@ pub struct FitArgs {
     /// every time bin and band the data cover, after the `--with` effects
     /// (`persist::calib::coverage`) [default: the preset's; paper: 0.95, the paper's
     /// design, skipped with a warning when the data have too few samples above a
-    /// threshold; readout: none].
+    /// threshold; readout: none; none when `--amplification` or `--fit-amplification` is
+    /// stated].
     #[arg(long, conflicts_with = "no_coverage")]
     pub coverage: Option<f64>,
     /// Keep the knots at the amplification (no coverage calibration).
@@ -227,7 +229,9 @@ pub(super) fn fit(a: &FitArgs) -> persist::Result<ExitCode> {
         cells: a.cells.cells,
         cell_statistic: a.cells.cell_statistic,
         background: a.cells.background,
-        coverage: if a.no_coverage {
+        coverage: if a.no_coverage
+            || (a.coverage.is_none() && (a.amplification.is_some() || a.fit_amplification))
+        {
             None
         } else {
             a.coverage.or(p.coverage)
