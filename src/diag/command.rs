@@ -45,7 +45,7 @@ pub(super) fn fit_command(
         s += &format!(" --with {e}");
     }
     s += &calibration_args(params.calibration.as_ref());
-    // `fit`'s defaults are the library's (src/cli.rs takes them from there)
+    // `fit`'s defaults are the library's (src/cli/analysis.rs takes them from there)
     if cfg.cells != eval::Cells::default() {
         s += &format!(" --cells {}", cfg.cells);
     }
