@@ -731,7 +731,7 @@ fn diagnose<'py>(
             let text = serde_json::to_string_pretty(&d)
                 .map_err(|e| persist::Error::new(persist::ErrorKind::Io, e.to_string()))?;
             if let Some(p) = &json {
-                persist::calib::write_text(p, &(text.clone() + "\n"))?;
+                persist::textfile::write_text(p, &(text.clone() + "\n"))?;
             }
             Ok(text)
         })
