@@ -116,7 +116,7 @@ pub fn class_of(effect: &str, covariate: &str) -> &'static str {
 
 /// Whether a class varies from pixel to pixel inside one event (its cells are split
 /// by event) rather than from event to event.
-fn pixel_level(class: &str) -> bool {
+pub(super) fn pixel_level(class: &str) -> bool {
     matches!(class, "neighbour_excess_fluence" | "position")
 }
 
@@ -159,7 +159,7 @@ fn tile(seq: &Sequence, (y, x): (usize, usize)) -> i64 {
 }
 
 /// Pixel-events (blocks) of the samples: `(event, pixel index, fluence bin)`, each once.
-fn blocks(s: &Samples) -> Vec<(usize, usize, i64)> {
+pub(super) fn blocks(s: &Samples) -> Vec<(usize, usize, i64)> {
     let np = s.npix();
     let mut seen = std::collections::BTreeSet::new();
     for i in 0..s.len() {
@@ -437,7 +437,7 @@ impl Dependence {
 /// The standardised residual of the flexible base (module docs), per sample (NaN where
 /// unusable), cells split by event when `by_event`.
 #[allow(clippy::needless_range_loop)] // i indexes the samples' parallel columns
-fn base_residual(s: &Samples, pred: &[f64], by_event: bool) -> Vec<f64> {
+pub(super) fn base_residual(s: &Samples, pred: &[f64], by_event: bool) -> Vec<f64> {
     let np = s.npix();
     let mut cells: BTreeMap<(i64, i64, usize), Vec<usize>> = BTreeMap::new();
     for i in 0..s.len() {
@@ -492,7 +492,7 @@ fn gap_bin(seq: &Sequence, a: usize, e: usize) -> i64 {
 }
 
 /// Per-block covariate bin of a class; None leaves the block out.
-fn covariate_bins(
+pub(super) fn covariate_bins(
     seq: &Sequence,
     s: &Samples,
     class: &str,
@@ -598,7 +598,7 @@ pub fn dependences(
                 g.values().map(|(a, n)| a * a / n).sum::<f64>()
             };
             let t = stat(&x);
-            let null = permutation_null(&x, &blocks, by_event, seed, stat);
+            let null = permutation_null(&x, &blocks, by_event, None, seed, stat);
             let mean = null.iter().sum::<f64>() / null.len() as f64;
             let sd = (null.iter().map(|v| (v - mean).powi(2)).sum::<f64>()
                 / (null.len() as f64 - 1.0).max(1.0))
@@ -628,13 +628,13 @@ pub fn dependences(
 }
 
 /// One block's residual summed per cell: (cell id, sum, samples).
-type CellSums = Vec<(usize, f64, f64)>;
+pub(super) type CellSums = Vec<(usize, f64, f64)>;
 
 /// Per block (of [`blocks`]), the residual `e` summed in each of its cells: (cell id,
 /// sum, samples), in cell order; and the residual's sum of squares. Cells are fluence
 /// x time bins, split by event when `by_event`; blocks without a covariate bin in `x`
 /// are left out.
-fn block_sums(
+pub(super) fn block_sums(
     s: &Samples,
     e: &[f64],
     x: &[Option<i64>],
@@ -685,25 +685,28 @@ fn block_sums(
 }
 
 /// `stat` of [`PERMUTATIONS`] permutations of the covariate bins `x` among the blocks
-/// of each stratum (fluence bin, and event when `by_event`), whole blocks at a time,
-/// from a stream seeded by `seed`.
-fn permutation_null(
+/// of each stratum (fluence bin, event when `by_event`, and the bin of `given` when
+/// there is one: the blocks alike in another covariate), whole blocks at a time, from
+/// a stream seeded by `seed`. Blocks without a bin in `x` (or in `given`) keep none.
+pub(super) fn permutation_null(
     x: &[Option<i64>],
     blocks: &[(usize, usize, i64)],
     by_event: bool,
+    given: Option<&[Option<i64>]>,
     seed: u64,
     stat: impl Fn(&[Option<i64>]) -> f64,
 ) -> Vec<f64> {
-    let mut strata: BTreeMap<(i64, usize), Vec<usize>> = BTreeMap::new();
+    let mut strata: BTreeMap<(i64, usize, i64), Vec<usize>> = BTreeMap::new();
     for (b, &(ev, _, f)) in blocks.iter().enumerate() {
-        if x[b].is_some() {
+        let g = given.map_or(Some(0), |g| g[b]);
+        if let (Some(_), Some(g)) = (x[b], g) {
             strata
-                .entry((f, if by_event { ev } else { usize::MAX }))
+                .entry((f, if by_event { ev } else { usize::MAX }, g))
                 .or_default()
                 .push(b);
         }
     }
-    let mut keys: Vec<&(i64, usize)> = strata.keys().collect();
+    let mut keys: Vec<&(i64, usize, i64)> = strata.keys().collect();
     keys.sort();
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed ^ 0x51ed_270b_2a1d_c3f5);
     (0..PERMUTATIONS)

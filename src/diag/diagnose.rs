@@ -194,11 +194,12 @@
 //! shared by neighbours is standing in for something else (radius and fluence go
 //! together when the spot is centred).
 
-use super::command::{fit_command, margin_note, measure_command};
+use super::command::{fit_command, measure_command};
 pub use super::config::{Config, Decide, Refit, Statistic, DEFAULT_BOOTSTRAP, DEFAULT_PIXELS};
 use super::contrast;
 use super::data::Sequence;
 use super::eval::{self, Samples};
+pub use super::finding::{Candidate, Diagnosis, Joint, PixelReference, Place};
 pub use super::refit::{
     delta_bic, held_out, Fold, HeldOut, DBIC_MAX, HELD_OUT_MIN_GAIN, MIN_HELD_OUT_PIXELS, MOVED_Z,
 };
@@ -206,11 +207,12 @@ use super::refit::{fit_candidate, held_with_arg, own_effects, refit_own};
 pub use super::score::ALPHA;
 use super::score::{dof, make_cells, score_step, score_tests, Cells, Scored, Test};
 use super::spread;
+pub use super::verdict::render;
+use super::verdict::{cautions, verdict};
 use crate::error::{Error, ErrorKind, Result};
 use crate::model::effects::REGISTRY;
 use crate::model::params::ModelParams;
 use rayon::prelude::*;
-use serde::Serialize;
 use std::path::Path;
 
 /// Candidates refitted at most: the library effects acting on the covariates the base's
@@ -229,137 +231,6 @@ pub const REFIT_BY_SCORE: usize = 3;
 /// no field (R^2 0.04); the field it then put into the residuals had R^2 0.55-0.66.
 fn position_supported(covariate: &str, spatial: Option<&super::spatial::Coherence>) -> bool {
     covariate != "position" || spatial.is_none_or(|c| c.coherent)
-}
-
-#[derive(Debug, Clone, Serialize)]
-pub struct Candidate {
-    pub effect: String,
-    pub score: f64,
-    pub score_rank: usize,
-    pub threshold: f64,
-    pub passes_score: bool,
-    pub delta_bic: Option<f64>,
-    pub rms_before: Option<f64>,
-    pub rms_after: Option<f64>,
-    pub held_out: Option<HeldOut>,
-    pub significant: bool,
-    /// A position effect that passed the other gates but is not declared: the residuals
-    /// carry no field shared by neighbouring pixels (module docs, "Spatial coherence").
-    #[serde(skip_serializing_if = "std::ops::Not::not")]
-    pub refused_no_field: bool,
-    pub covariate: String,
-    pub command: String,
-    /// When `command` would fit the candidate against knots held at the paper's
-    /// flagging margin ([`crate::calib::knots_held_off_level`]): the `--preset readout`
-    /// fit that measures its parameters instead (`measure_command`).
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub measure_command: Option<String>,
-    /// The candidate at the values its refit measured, as `persist fit --with` takes it
-    /// with every fitted parameter held (`NAME:param=value,...`); `None` when it was
-    /// not refitted.
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub measured_with: Option<String>,
-}
-
-/// A pair of library effects refitted together (module docs, "Joint check").
-#[derive(Debug, Clone, Serialize)]
-pub struct Joint {
-    /// The leading candidate by score, then its partner.
-    pub effects: [String; 2],
-    /// Against the model (its own effects refitted alone), both effects' parameters
-    /// counted.
-    pub delta_bic: f64,
-    /// Against the leader refitted alone, the partner's parameters counted.
-    pub delta_bic_over_leader: f64,
-    pub rms_before: f64,
-    pub rms_after: f64,
-    /// Run for the pair with the lowest `delta_bic` when both BIC gates pass.
-    pub held_out: Option<HeldOut>,
-    pub significant: bool,
-    pub command: String,
-    /// As [`Candidate::measure_command`].
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub measure_command: Option<String>,
-}
-
-#[derive(Debug, Clone, Serialize)]
-pub struct Diagnosis {
-    /// The statistic used (never `auto`) and why.
-    pub statistic: Statistic,
-    pub statistic_reason: String,
-    /// Per contrast class: whether the data can test it, else the measurement that
-    /// would ([`contrast::testability`]). Untestable classes' effects are not scored.
-    pub contrasts: Vec<contrast::Testability>,
-    /// What the flexible base's residual depends on, ranked ([`contrast::dependences`]).
-    pub dependences: Vec<contrast::Dependence>,
-    pub pixels_sampled: usize,
-    pub samples: usize,
-    pub cells: usize,
-    pub groups: usize,
-    pub events: usize,
-    /// The residual cells of the refits and of `residual_rms_normalised`.
-    pub residual_cells: eval::Cells,
-    /// What every cell compares.
-    pub cell_statistic: eval::CellStatistic,
-    /// How each exposure's background was measured.
-    pub background: super::data::Background,
-    /// What the refits freed.
-    pub refit: Refit,
-    /// RMS of the cell residuals (as `compare`, on the subsample).
-    pub residual_rms_normalised: f64,
-    /// How well the pixel reference fits the same samples
-    /// ([`super::base::predict_scaled`]).
-    pub pixel_reference: PixelReference,
-    pub bootstrap_replicas: usize,
-    pub threshold: f64,
-    /// Median over the replicas of the largest LM (what "nothing missing" looks like).
-    pub bootstrap_median_max: f64,
-    pub ranking: Vec<Candidate>,
-    /// The largest cell residuals (where the model fails).
-    pub largest_residuals: Vec<eval::GroupStat>,
-    pub largest_residual_cells: Vec<(f64, f64)>,
-    /// With per-illumination cells: the exposure index of each one's illumination.
-    #[serde(skip_serializing_if = "Vec::is_empty")]
-    pub largest_residual_illuminations: Vec<u64>,
-    /// The joint check, when no candidate is significant alone and one was refitted:
-    /// every pair tried, lowest `delta_bic` first (module docs, "Joint check").
-    #[serde(skip_serializing_if = "Vec::is_empty")]
-    pub joint: Vec<Joint>,
-    /// Whether the residuals carry a field shared by neighbouring pixels
-    /// ([`super::spatial`]; absent with one illumination event).
-    pub spatial: Option<super::spatial::Coherence>,
-    /// The data-driven term along the covariate the residual depends on, when no
-    /// library effect acting on it predicts held-out data ([`super::data_term`]).
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub data_term: Option<super::data_term::DataTerm>,
-    pub verdict: String,
-    /// What limits the diagnosis of this model (empty when nothing is known to).
-    pub cautions: Vec<String>,
-}
-
-/// The pixel reference's fit ([`super::base::predict_scaled`]): the flexible base with
-/// each pixel's own amplitude and decay shape, its residuals against the noise
-/// measured from the data (the exposure noise and the shot noise, less each sample's
-/// leverage in its pixel's fit).
-#[derive(Debug, Clone, Serialize)]
-pub struct PixelReference {
-    pub residual_rms_normalised: f64,
-    pub cells: usize,
-    /// Its three largest cell residuals.
-    pub largest_residuals: Vec<eval::GroupStat>,
-}
-
-impl PixelReference {
-    fn of(cells: &[(Vec<i64>, eval::GroupStat)]) -> PixelReference {
-        let mut worst: Vec<eval::GroupStat> = cells.iter().map(|c| c.1).collect();
-        worst.sort_by(|a, b| b.z.abs().total_cmp(&a.z.abs()));
-        worst.truncate(3);
-        PixelReference {
-            residual_rms_normalised: eval::rms(cells),
-            cells: cells.len(),
-            largest_residuals: worst,
-        }
-    }
 }
 
 /// The fewest bootstrap replicas whose 95 % point is not simply their largest value.
@@ -391,7 +262,10 @@ pub fn diagnose(
     let pixel_reference = PixelReference::of(
         &super::base::predict_scaled(seq, &samples, &base.current).cells(&samples),
     );
-    let dependences = contrast::dependences(seq, &samples, &flexible, &contrasts, cfg.seed);
+    let mut dependences = contrast::dependences(seq, &samples, &flexible, &contrasts, cfg.seed);
+    // two kinds that both depend, each given the other: the one the data name first
+    let separation =
+        super::separate::separate(seq, &samples, &flexible, &mut dependences, cfg.seed);
     let winner = dependences.iter().find(|d| d.depends);
     let scored = score_tests(
         params,
@@ -487,28 +361,23 @@ pub fn diagnose(
         .map(|(k, _)| eval::cell_fluence_time(k))
         .collect();
     let exposure_index = |a: usize| seq.exposures[a].meta.exposure_index;
-    let where_illuminations: Vec<u64> = largest
+    let places: Vec<Place> = largest
         .iter()
-        .filter_map(|(k, _)| eval::cell_illumination(k).map(exposure_index))
+        .map(|(k, _)| Place {
+            illumination_exposure: eval::cell_illumination(k).map(exposure_index),
+            next_to_brighter: eval::cell_next_to_brighter(k),
+        })
         .collect();
-    let verdict = match ranking.iter().find(|c| c.significant) {
-        None if joint.first().is_some_and(|j| j.significant) => joint_sentence(&joint[0], params),
-        Some(c) => candidate_sentence(c, params),
-        None if winner.is_some() && cfg.decide == Decide::Contrast => {
-            let w = winner.expect("checked");
-            dependence_sentence(w) + &data_term_sentence(data_term.as_ref(), &w.class, params)
-        }
-        None => format!(
-            "no library effect is significant; the residual RMS is {rms:.2}, largest at: {}{}",
-            largest_sentence(&largest, &where_cells, &exposure_index),
-            field_sentence(spatial.as_ref())
-        ),
-    };
-    Ok(Diagnosis {
+    let where_illuminations: Vec<u64> = places
+        .iter()
+        .filter_map(|p| p.illumination_exposure)
+        .collect();
+    let mut d = Diagnosis {
         statistic,
         statistic_reason,
         contrasts,
         dependences,
+        separation,
         pixels_sampled: samples.npix(),
         samples: samples.len(),
         cells: cells.members.len(),
@@ -527,12 +396,16 @@ pub fn diagnose(
         largest_residuals: largest.iter().map(|(_, g)| *g).collect(),
         largest_residual_cells: where_cells,
         largest_residual_illuminations: where_illuminations,
+        largest_residual_places: places,
+        decide: cfg.decide,
         joint,
         spatial,
         data_term,
-        verdict,
+        verdict: String::new(),
         cautions: cautions(params),
-    })
+    };
+    d.verdict = verdict(&d, params, false);
+    Ok(d)
 }
 
 /// Refuses fewer than [`MIN_BOOTSTRAP`] replicas and zero pixels, naming the option.
@@ -745,157 +618,6 @@ fn order_ranking(ranking: &mut [Candidate], decide: Decide) {
     });
 }
 
-/// The verdict on a significant pair of the joint check.
-fn joint_sentence(j: &Joint, params: &ModelParams) -> String {
-    format!(
-        "no library effect is significant alone, but {} and {} are together \
-         (dBIC {:.1} against the model, {:.1} against {} alone; held-out gain {:.2}): \
-         neither accounts for the residual without the other, so they act \
-         together; add both with: {}{}",
-        j.effects[0],
-        j.effects[1],
-        j.delta_bic,
-        j.delta_bic_over_leader,
-        j.effects[0],
-        j.held_out.as_ref().map_or(f64::NAN, |h| h.gain),
-        j.command,
-        margin_note(j.measure_command.as_deref(), params)
-    )
-}
-
-/// The verdict on a significant candidate.
-fn candidate_sentence(c: &Candidate, params: &ModelParams) -> String {
-    format!(
-        "missing effect: {} (the evidence is in the residual against {}{}); add it with: {}{}",
-        c.effect,
-        c.covariate,
-        if c.held_out.is_none() {
-            "; no held-out check: too few sampled pixels to split into halves"
-        } else {
-            ""
-        },
-        c.command,
-        margin_note(c.measure_command.as_deref(), params)
-    )
-}
-
-/// The verdict when the residual depends on `w`'s covariate and no library effect on
-/// it predicts held-out data.
-fn dependence_sentence(w: &contrast::Dependence) -> String {
-    format!(
-        "the base's residual depends on {} (it explains {:.1} % of the residual's sum \
-         of squares inside the fluence x time cells, {:.1} % at most over {} \
-         permutations; z {:.1}), but no library effect acting on it ({}) predicts \
-         held-out data: the missing physics is of this kind in another form. The \
-         residual by {}: {}",
-        w.class,
-        100.0 * w.r2,
-        100.0 * w.r2_null_max,
-        w.permutations,
-        w.z,
-        w.effects.join(", "),
-        w.class,
-        w.by_bin
-            .iter()
-            .map(|(b, n, e)| format!("{b}: {e:+.2} ({n} pixel-events)"))
-            .collect::<Vec<_>>()
-            .join("; ")
-    )
-}
-
-/// Where the largest cell residuals are, for the verdict with nothing found.
-fn largest_sentence(
-    largest: &[&(Vec<i64>, eval::GroupStat)],
-    where_cells: &[(f64, f64)],
-    exposure_index: &dyn Fn(usize) -> u64,
-) -> String {
-    let w: Vec<String> = largest
-        .iter()
-        .zip(where_cells)
-        .map(|((k, g), (f, t))| {
-            let mut after = eval::cell_illumination(k).map_or(String::new(), |a| {
-                format!(" after the illumination at exposure {}", exposure_index(a))
-            });
-            if eval::cell_next_to_brighter(k) {
-                after.push_str(", next to a far brighter pixel");
-            }
-            format!(
-                "fluence >= {f:.3e} e-, t >= {t:.0} s{after}: measured {:.3} vs predicted {:.3} e-/s (z {:.1})",
-                g.measured_p95_e_per_s, g.predicted_p95_e_per_s, g.z
-            )
-        })
-        .collect();
-    w.join("; ")
-}
-
-/// The verdict's clause on a field shared by neighbouring pixels, empty without one.
-fn field_sentence(spatial: Option<&super::spatial::Coherence>) -> String {
-    spatial.filter(|c| c.coherent).map_or(String::new(), |c| {
-        format!(
-            "; and the residuals carry a field shared by neighbouring pixels: a {:.0}-pixel \
-             map of one illumination's residual predicts {:.0} % of another's (R^2; \
-             threshold {:.2}), so the trap density varies across the array in patches, \
-             which no library effect carries (the model's populations is a quadratic \
-             surface over the whole array){}",
-            c.best_length_px,
-            100.0 * c.best_r2,
-            c.threshold,
-            match (c.highest, c.lowest) {
-                (Some(((y, x), hi)), Some(((y0, x0), lo))) => format!(
-                    "; measured against predicted, x{hi:.2} around (y {y}, x {x}) and \
-                     x{lo:.2} around (y {y0}, x {x0}) (the map averaged over the \
-                     illuminations, relative to its fluence bin)"
-                ),
-                _ => String::new(),
-            }
-        )
-    })
-}
-
-/// The verdict's sentence on the data-driven term: offered with its command, or why not.
-/// `class`: the covariate's class.
-fn data_term_sentence(
-    t: Option<&super::data_term::DataTerm>,
-    class: &str,
-    params: &ModelParams,
-) -> String {
-    let Some(t) = t else {
-        return match super::data_term::held(class, params) {
-            Some(d) => format!(
-                ". The model already holds the data-driven term along it ({}): the \
-                 residual it leaves still depends on this covariate",
-                d.name
-            ),
-            None => ". No data-driven term follows this covariate".into(),
-        };
-    };
-    let gain = t
-        .held_out
-        .as_ref()
-        .map_or("no held-out check".to_string(), |h| {
-            format!("held-out gain {:.2}", h.gain)
-        });
-    if t.offered {
-        format!(
-            ". A data-driven term along it ({}: a smooth function of the covariate fitted \
-             from these data) lowers the residual RMS from {:.2} to {:.2} (dBIC {:.1}, {gain}); \
-             add it with: {}{}",
-            t.effect,
-            t.rms_before,
-            t.rms_after,
-            t.delta_bic,
-            t.command,
-            margin_note(t.measure_command.as_deref(), params)
-        )
-    } else {
-        format!(
-            ". A data-driven term along it ({}) does not predict held-out data either \
-             (dBIC {:.1}, {gain}): not offered",
-            t.effect, t.delta_bic
-        )
-    }
-}
-
 /// One candidate's refit: its place in the ranking (by score) and what the refit gave.
 struct Refitted {
     rank: usize,
@@ -998,166 +720,6 @@ fn joint_check(
         }
     }
     Ok(fits.into_iter().map(|(joint, _)| joint).collect())
-}
-
-/// What is known to limit a diagnosis against `params`.
-fn cautions(params: &ModelParams) -> Vec<String> {
-    let mut c = Vec::new();
-    if crate::calib::cn_fitted_to_campaign(params) {
-        c.push(
-            "the model's C_n were fitted to this campaign (persist fit --fit-cn): they have \
-             taken in the decay-shape part of any missing effect (a hidden short_tau_boost \
-             was found at 3 of 3 seeds against a model without --fit-cn, at none with it \
-             before the capacity fix; docs/validation/diagnose_matrix.md); diagnose against a model \
-             fitted without --fit-cn too"
-                .to_string(),
-        );
-    }
-    if crate::calib::level_fitted_to_campaign(params) {
-        c.push(
-            "the model's knot level was fitted to this campaign (persist fit \
-             --fit-amplification): it has taken in the level part of any missing effect (a \
-             hidden short_tau_boost was declared at 1 of 3 seeds against such a model, at 3 \
-             of 3 with the level fixed; measured with examples/diagnose_matrix); diagnose \
-             against a model with a fixed --amplification too"
-                .to_string(),
-        );
-    }
-    c
-}
-
-/// The printed ranking.
-pub fn render(d: &Diagnosis) -> String {
-    let mut s = format!(
-        "persist diagnose: statistic {}, {} pixels, {} cells in {} groups, {} illumination events, \
-         residual RMS {:.2} ({} cells{}{})\npixel reference (the flexible base with each pixel's own \
-         amplitude and decay shape): residual RMS {:.2} over {} cells\nthreshold {:.2} (95 % of the largest score over {} bootstrap replicas \
-         from the fitted model; median {:.2}; the score ranks, it does not decide)\n\
-         {:<16} {:>10} {:>6} {:>9} {:>15} {:>9} {:>15}  covariate\n",
-        d.statistic_reason,
-        d.pixels_sampled,
-        d.cells,
-        d.groups,
-        d.events,
-        d.residual_rms_normalised,
-        d.residual_cells.describe(),
-        d.cell_statistic.note(),
-        match d.refit {
-            Refit::Full => "; candidates refitted with the model's own effects (--refit full)",
-            Refit::Candidate => "; candidates refitted alone (--refit candidate)",
-        },
-        d.pixel_reference.residual_rms_normalised,
-        d.pixel_reference.cells,
-        d.threshold,
-        d.bootstrap_replicas,
-        d.bootstrap_median_max,
-        "effect",
-        "score",
-        "pass",
-        "dBIC",
-        "RMS",
-        "held-out",
-        "(moved cells)"
-    );
-    for c in &d.ranking {
-        s += &format!(
-            "{:<16} {:>10.2} {:>6} {:>9} {:>15} {:>9} {:>15}  {}{}\n",
-            c.effect,
-            c.score,
-            c.passes_score,
-            c.delta_bic.map_or("-".into(), |v| format!("{v:.1}")),
-            match (c.rms_before, c.rms_after) {
-                (Some(a), Some(b)) => format!("{a:.2}->{b:.2}"),
-                _ => "-".into(),
-            },
-            c.held_out
-                .as_ref()
-                .map_or("-".into(), |h| format!("{:+.0}%", -100.0 * h.gain)),
-            c.held_out.as_ref().map_or("-".into(), |h| format!(
-                "{:+.0}% of {}",
-                -100.0 * h.gain_moved_cells,
-                h.moved_cells
-            )),
-            c.covariate,
-            if c.significant {
-                "  SIGNIFICANT"
-            } else if c.refused_no_field {
-                "  (passes the gates, but the residuals carry no field shared by neighbours)"
-            } else {
-                ""
-            }
-        );
-    }
-    for c in d.contrasts.iter().filter(|c| !c.testable) {
-        s += &format!(
-            "{:<16} untestable, needs {} ({})\n",
-            c.effects.join(", "),
-            c.needs.as_deref().unwrap_or("-"),
-            c.why
-        );
-    }
-    if !d.dependences.is_empty() {
-        s += "what the base's residual depends on (share of its sum of squares inside the \
-              fluence x time cells; permutations' largest; z):\n";
-        for x in &d.dependences {
-            s += &format!(
-                "  {:<26} {:>6.2} % {:>6.2} % {:>7.1}  {}{}\n",
-                x.class,
-                100.0 * x.r2,
-                100.0 * x.r2_null_max,
-                x.z,
-                x.effects.join(", "),
-                if x.depends { "  DEPENDS" } else { "" }
-            );
-        }
-    }
-    if !d.joint.is_empty() {
-        s += "joint check (no effect significant alone; the leader refitted with each other):\n";
-        for j in &d.joint {
-            s += &format!(
-                "{:<32} {:>9.1} {:>9.1} {:>15} {:>9}{}\n",
-                format!("{} + {}", j.effects[0], j.effects[1]),
-                j.delta_bic,
-                j.delta_bic_over_leader,
-                format!("{:.2}->{:.2}", j.rms_before, j.rms_after),
-                j.held_out
-                    .as_ref()
-                    .map_or("-".into(), |h| format!("{:+.0}%", -100.0 * h.gain)),
-                if j.significant { "  SIGNIFICANT" } else { "" }
-            );
-        }
-    }
-    if let Some(c) = &d.spatial {
-        s += &format!(
-            "spatial coherence: a map of one illumination's residual smoothed over {} px \
-             predicts R^2 {} of another's (unsmoothed {:.2}; {} pairs, {} pixels per \
-             illumination): {}\n",
-            c.r2_smoothed
-                .iter()
-                .map(|(l, _)| format!("{l:.0}"))
-                .collect::<Vec<_>>()
-                .join("/"),
-            c.r2_smoothed
-                .iter()
-                .map(|(_, r)| format!("{r:.2}"))
-                .collect::<Vec<_>>()
-                .join("/"),
-            c.r2_raw,
-            c.pairs,
-            c.pixels_per_event,
-            if c.coherent {
-                format!("a field shared by neighbours (>= {:.2})", c.threshold)
-            } else {
-                format!("none shared by neighbours (< {:.2})", c.threshold)
-            }
-        );
-    }
-    s += &d.verdict;
-    for c in &d.cautions {
-        s += "\ncaution: ";
-        s += c;
-    }
-    s
 }
 
 #[cfg(test)]

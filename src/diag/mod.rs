@@ -12,8 +12,11 @@
 //!   the held-out check;
 //! - [`score`]: the score test and its bootstrap threshold;
 //! - [`contrast`] and [`base`]: what the data can test, and what a flexible base's
-//!   residual depends on;
-//! - [`data_term`]: the data-driven term offered along that covariate.
+//!   residual depends on; [`separate`]: whether two such kinds can be told apart;
+//! - [`data_term`]: the data-driven term offered along that covariate;
+//! - [`finding`]: what a diagnosis decided, as data; [`verdict`] puts it into words
+//!   once the reference is resolved ([`diagnose`] decides, [`reference`](mod@reference)
+//!   chooses what it decides against).
 
 pub use crate::measure::{data, eval, spread};
 
@@ -25,8 +28,11 @@ pub mod config;
 pub mod contrast;
 pub mod data_term;
 pub mod diagnose;
+pub mod finding;
 pub mod reference;
 pub mod refit;
 pub mod report;
 pub mod score;
+pub mod separate;
 pub mod spatial;
+pub mod verdict;

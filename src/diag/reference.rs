@@ -59,7 +59,7 @@
 
 use super::data::Sequence;
 use super::diagnose::{self, Config, Diagnosis};
-use super::{command, refit};
+use super::{command, refit, verdict};
 use crate::calib::effects::Free;
 use crate::calib::{CalibConfig, Preset};
 use crate::error::{Error, ErrorKind, Result};
@@ -190,25 +190,14 @@ pub fn diagnose_with(
     })?;
     let described_path = model_path.with_extension("measured.json");
     let mut d = diagnose::diagnose(&described, seq, cfg, input, &described_path)?;
-    let mut verdict = std::mem::take(&mut d.verdict);
-    let mut hold = |command: &mut String, measured_with: &Option<String>| {
-        let Some(held) = measured_with else {
-            return None;
-        };
-        let measure = std::mem::replace(
+    // each effect measured against the description goes into the user's model at the
+    // values measured, held; the command that measures them is kept beside it
+    let hold = |command: &mut String, measured_with: &Option<String>| {
+        let held = measured_with.as_ref()?;
+        Some(std::mem::replace(
             command,
             command::fit_command(input, model_path, params, &[held.as_str()], cfg),
-        );
-        verdict = verdict.replacen(
-            &measure,
-            &format!(
-                "{command} (the effect at the values measured against the measurements' \
-                 description, held, so the model keeps its flagging calibration; to measure \
-                 it: {measure})"
-            ),
-            1,
-        );
-        Some(measure)
+        ))
     };
     for c in d.ranking.iter_mut() {
         if let Some(m) = hold(&mut c.command, &c.measured_with) {
@@ -220,7 +209,7 @@ pub fn diagnose_with(
             t.measure_command = Some(m);
         }
     }
-    d.verdict = verdict;
+    d.verdict = verdict::verdict(&d, &described, true);
     Ok(Diagnosed {
         reference: ReferenceUsed {
             kind,
@@ -266,7 +255,7 @@ pub fn run(
     Ok(format!(
         "{lit}tested against: {}\n{}",
         d.reference.why,
-        diagnose::render(&d.diagnosis)
+        verdict::render(&d.diagnosis)
     ))
 }
 

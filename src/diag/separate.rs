@@ -1,0 +1,195 @@
+//! Whether two kinds the residual depends on can be told apart in these data.
+//!
+//! In a campaign the illuminations differ in duration, flux, temperature and history at
+//! once, so the base's residual can depend on two event-level covariates
+//! ([`super::contrast`]) because it depends on one of them. Each is then tested *given
+//! the other*: the same permutation test, with the blocks permuted only among those
+//! alike in the other covariate (same fluence bin and the same bin of the other), and
+//! the statistic summed over cells split by the other's bins. A covariate that still
+//! explains the residual there carries something the other does not.
+//!
+//! | A given B | B given A | what the data say |
+//! |---|---|---|
+//! | depends | not | the kind is A (B only follows it) |
+//! | not | depends | the kind is B: it is named first |
+//! | not | not | confounded: no pair of illuminations differs in one and not the other |
+//! | depends | depends | both: each explains what the other does not |
+//!
+//! "Depends" is the marginal test's rule ([`super::contrast`]): above every
+//! permutation, with an excess of at least [`MIN_R2`] of the residual's sum of squares.
+//! When two covariates split the events alike, no stratum of one holds two values of
+//! the other, the permutations change nothing, and neither depends given the other.
+//!
+//! # Invariants
+//! - Only the two leading event-level classes that depend are compared; the order of
+//!   [`super::contrast::dependences`] changes only by moving the second one first when
+//!   the data name it and not the first.
+//! - Deterministic for a seed: the permutations use the stream of the marginal test.
+
+use super::contrast::{
+    base_residual, block_sums, blocks, covariate_bins, permutation_null, pixel_level, CellSums,
+    Dependence, MIN_R2,
+};
+use super::data::Sequence;
+use super::eval::Samples;
+use serde::Serialize;
+use std::collections::BTreeMap;
+
+/// One class's dependence given another's covariate.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct Given {
+    /// The share of the residual's sum of squares the class explains beyond the
+    /// permutations' mean, inside the other's bins.
+    pub excess_r2: f64,
+    /// `(T - mean) / sd` of the permutations (0 when they all agree).
+    pub z: f64,
+    /// Above every permutation with an excess of at least [`MIN_R2`].
+    pub depends: bool,
+    /// Blocks in strata where the class takes two values or more: what the test has.
+    pub blocks_with_contrast: usize,
+}
+
+/// What the data say of two kinds (module docs' table).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Told {
+    First,
+    Second,
+    Confounded,
+    Both,
+}
+
+/// The two leading event-level classes that depend, each tested given the other.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct Separation {
+    /// In the marginal test's order.
+    pub classes: [String; 2],
+    pub first_given_second: Given,
+    pub second_given_first: Given,
+    pub told: Told,
+}
+
+impl Separation {
+    /// The class the data name, if they name one.
+    pub fn named(&self) -> Option<&str> {
+        match self.told {
+            Told::First => Some(&self.classes[0]),
+            Told::Second => Some(&self.classes[1]),
+            Told::Confounded | Told::Both => None,
+        }
+    }
+}
+
+/// The separation of the two leading event-level classes of `deps` that depend
+/// (module docs), and `deps` with the second moved first when only it depends given
+/// the other. `None` with fewer than two such classes.
+pub fn separate(
+    seq: &Sequence,
+    s: &Samples,
+    pred: &[f64],
+    deps: &mut [Dependence],
+    seed: u64,
+) -> Option<Separation> {
+    let lead: Vec<usize> = (0..deps.len())
+        .filter(|&i| deps[i].depends && !pixel_level(&deps[i].class))
+        .take(2)
+        .collect();
+    let [i, j] = lead[..] else {
+        return None;
+    };
+    let bl = blocks(s);
+    let e = base_residual(s, pred, false);
+    let xa = covariate_bins(seq, s, &deps[i].class, &bl);
+    let xb = covariate_bins(seq, s, &deps[j].class, &bl);
+    let first_given_second = given(s, &e, &bl, &xa, &xb, seed);
+    let second_given_first = given(s, &e, &bl, &xb, &xa, seed);
+    let told = match (first_given_second.depends, second_given_first.depends) {
+        (true, false) => Told::First,
+        (false, true) => Told::Second,
+        (false, false) => Told::Confounded,
+        (true, true) => Told::Both,
+    };
+    let out = Separation {
+        classes: [deps[i].class.clone(), deps[j].class.clone()],
+        first_given_second,
+        second_given_first,
+        told,
+    };
+    if told == Told::Second {
+        deps[i..=j].rotate_right(1);
+    }
+    Some(out)
+}
+
+/// The dependence on `x` given `cond` (module docs): the blocks with a bin in both.
+fn given(
+    s: &Samples,
+    e: &[f64],
+    blocks: &[(usize, usize, i64)],
+    x: &[Option<i64>],
+    cond: &[Option<i64>],
+    seed: u64,
+) -> Given {
+    let x: Vec<Option<i64>> = x
+        .iter()
+        .zip(cond)
+        .map(|(a, c)| a.filter(|_| c.is_some()))
+        .collect();
+    let (per_block, ss) = block_sums(s, e, &x, blocks, false);
+    let stat = |xs: &[Option<i64>]| explained(&per_block, xs, cond);
+    let t = stat(&x);
+    let null = permutation_null(&x, blocks, false, Some(cond), seed, stat);
+    let n = null.len() as f64;
+    let mean = null.iter().sum::<f64>() / n;
+    let sd = (null.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / (n - 1.0).max(1.0)).sqrt();
+    let max = null.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+    let ss = ss.max(1e-12);
+    // relative tolerance: permutations that change nothing give `t` again, up to rounding
+    let above = t > max + 1e-9 * t.abs();
+    Given {
+        excess_r2: (t - mean) / ss,
+        z: if sd > 1e-9 * t.abs() {
+            (t - mean) / sd
+        } else {
+            0.0
+        },
+        depends: above && (t - mean) / ss >= MIN_R2,
+        blocks_with_contrast: with_contrast(blocks, &x, cond),
+    }
+}
+
+/// `T` of the module docs of [`super::contrast`], with the cells also split by the
+/// bins of `cond`.
+fn explained(per_block: &[CellSums], x: &[Option<i64>], cond: &[Option<i64>]) -> f64 {
+    let mut g: BTreeMap<(usize, i64, i64), (f64, f64)> = BTreeMap::new();
+    for (b, entries) in per_block.iter().enumerate() {
+        let (Some(xb), Some(cb)) = (x[b], cond[b]) else {
+            continue;
+        };
+        for &(id, a, n) in entries {
+            let q = g.entry((id, cb, xb)).or_insert((0.0, 0.0));
+            q.0 += a;
+            q.1 += n;
+        }
+    }
+    g.values().map(|(a, n)| a * a / n).sum()
+}
+
+/// Blocks in strata (fluence bin x bin of `cond`) where `x` takes two values or more.
+fn with_contrast(blocks: &[(usize, usize, i64)], x: &[Option<i64>], cond: &[Option<i64>]) -> usize {
+    let mut strata: BTreeMap<(i64, i64), (Vec<i64>, usize)> = BTreeMap::new();
+    for (b, &(_, _, f)) in blocks.iter().enumerate() {
+        if let (Some(xb), Some(cb)) = (x[b], cond[b]) {
+            let q = strata.entry((f, cb)).or_default();
+            if !q.0.contains(&xb) {
+                q.0.push(xb);
+            }
+            q.1 += 1;
+        }
+    }
+    strata
+        .values()
+        .filter(|(values, _)| values.len() >= 2)
+        .map(|(_, n)| n)
+        .sum()
+}

@@ -1,0 +1,462 @@
+//! The words of `persist diagnose`: its verdict and its printed ranking, built from
+//! the decisions ([`super::finding`]) once the reference is resolved
+//! ([`super::reference`]).
+//!
+//! # Invariants
+//! - Nothing here decides: every sentence reads fields of a [`Diagnosis`] (or of the
+//!   model diagnosed) and no number is computed but for display.
+//! - The verdict names the first significant candidate of the ranking, else a
+//!   significant pair of the joint check, else the covariate the residual depends on
+//!   (with the data-driven term offered or refused), else where the largest residuals
+//!   are.
+
+use super::command::margin_note;
+use super::config::{Decide, Refit};
+use super::contrast;
+use super::finding::{Candidate, Diagnosis, Joint};
+use super::separate::{Separation, Told};
+use crate::model::params::ModelParams;
+
+/// The verdict of `d`, a diagnosis of the model `params`. `held`: the commands that
+/// add an effect to the user's model carry its values measured against the
+/// measurements' description, held (`persist diagnose --reference measured`, module
+/// docs of [`super::reference`]); each is printed with the command that measures them.
+pub fn verdict(d: &Diagnosis, params: &ModelParams, held: bool) -> String {
+    let winner = d.dependences.iter().find(|w| w.depends);
+    match d.ranking.iter().find(|c| c.significant) {
+        None if d.joint.first().is_some_and(|j| j.significant) => {
+            joint_sentence(&d.joint[0], params)
+        }
+        Some(c) => {
+            let class = contrast::class_of(&c.effect, &c.covariate);
+            candidate_sentence(c, params, held) + &separation_sentence(d.separation.as_ref(), class)
+        }
+        None if winner.is_some() && d.decide == Decide::Contrast => {
+            let w = winner.expect("checked");
+            confounded_prefix(d.separation.as_ref(), &w.class)
+                + &dependence_sentence(w)
+                + &separation_sentence(d.separation.as_ref(), &w.class)
+                + &data_term_sentence(d.data_term.as_ref(), &w.class, params, held)
+        }
+        None => format!(
+            "no library effect is significant; the residual RMS is {:.2}, largest at: {}{}",
+            d.residual_rms_normalised,
+            largest_sentence(d),
+            field_sentence(d.spatial.as_ref())
+        ),
+    }
+}
+
+/// The command that adds an effect, and how its values were come by: held at the
+/// values measured against the description (`held`, `measure` the command that
+/// measures them), or with the note on the flagging margin ([`margin_note`]).
+fn add_clause(command: &str, measure: Option<&str>, held: bool, params: &ModelParams) -> String {
+    match measure {
+        Some(m) if held => format!(
+            "{command} (the effect at the values measured against the measurements' \
+             description, held, so the model keeps its flagging calibration; to measure \
+             it: {m})"
+        ),
+        _ => format!("{command}{}", margin_note(measure, params)),
+    }
+}
+
+/// The verdict on a significant pair of the joint check.
+fn joint_sentence(j: &Joint, params: &ModelParams) -> String {
+    format!(
+        "no library effect is significant alone, but {} and {} are together \
+         (dBIC {:.1} against the model, {:.1} against {} alone; held-out gain {:.2}): \
+         neither accounts for the residual without the other, so they act \
+         together; add both with: {}{}",
+        j.effects[0],
+        j.effects[1],
+        j.delta_bic,
+        j.delta_bic_over_leader,
+        j.effects[0],
+        j.held_out.as_ref().map_or(f64::NAN, |h| h.gain),
+        j.command,
+        margin_note(j.measure_command.as_deref(), params)
+    )
+}
+
+/// The verdict on a significant candidate.
+fn candidate_sentence(c: &Candidate, params: &ModelParams, held: bool) -> String {
+    format!(
+        "missing effect: {} (the evidence is in the residual against {}{}); add it with: {}",
+        c.effect,
+        c.covariate,
+        if c.held_out.is_none() {
+            "; no held-out check: too few sampled pixels to split into halves"
+        } else {
+            ""
+        },
+        add_clause(
+            &c.command,
+            c.measure_command.as_deref(),
+            held && c.measured_with.is_some(),
+            params
+        )
+    )
+}
+
+/// The verdict when the residual depends on `w`'s covariate and no library effect on
+/// it predicts held-out data.
+fn dependence_sentence(w: &contrast::Dependence) -> String {
+    format!(
+        "the base's residual depends on {} (it explains {:.1} % of the residual's sum \
+         of squares inside the fluence x time cells, {:.1} % at most over {} \
+         permutations; z {:.1}), but no library effect acting on it ({}) predicts \
+         held-out data: the missing physics is of this kind in another form. The \
+         residual by {}: {}",
+        w.class,
+        100.0 * w.r2,
+        100.0 * w.r2_null_max,
+        w.permutations,
+        w.z,
+        w.effects.join(", "),
+        w.class,
+        w.by_bin
+            .iter()
+            .map(|(b, n, e)| format!("{b}: {e:+.2} ({n} pixel-events)"))
+            .collect::<Vec<_>>()
+            .join("; ")
+    )
+}
+
+/// "A or B: confounded in these data. " when `class` is one of a confounded pair.
+fn confounded_prefix(sep: Option<&Separation>, class: &str) -> String {
+    match sep {
+        Some(p) if p.told == Told::Confounded && p.classes.iter().any(|c| c == class) => {
+            format!(
+                "{} or {}: confounded in these data. ",
+                p.classes[0], p.classes[1]
+            )
+        }
+        _ => String::new(),
+    }
+}
+
+/// The verdict's clause on the separation of the two leading kinds
+/// ([`super::separate`]) when `class` is one of them: which the data name, or that no
+/// illuminations tell them apart and the measurement that would.
+fn separation_sentence(sep: Option<&Separation>, class: &str) -> String {
+    let Some(p) = sep.filter(|p| p.classes.iter().any(|c| c == class)) else {
+        return String::new();
+    };
+    let [a, b] = &p.classes;
+    let (ga, gb) = (&p.first_given_second, &p.second_given_first);
+    let given = |x: &str, y: &str, g: &super::separate::Given| {
+        format!(
+            "{x} given {y}: {:+.1} % beyond its permutations (z {:.1}, {} pixel-events \
+             where it varies)",
+            100.0 * g.excess_r2,
+            g.z,
+            g.blocks_with_contrast
+        )
+    };
+    let (ta, tb) = (given(a, b, ga), given(b, a, gb));
+    match p.told {
+        Told::First | Told::Second => {
+            let (named, other) = if p.told == Told::First {
+                (a, b)
+            } else {
+                (b, a)
+            };
+            format!(
+                ". Of {a} and {b}, on which the residual depends alike, the data name \
+                 {named}: it explains the residual among illuminations alike in {other}, \
+                 and {other} does not among those alike in {named} ({ta}; {tb})"
+            )
+        }
+        Told::Both => {
+            format!(". The residual depends on {a} and on {b}, each beyond the other ({ta}; {tb})")
+        }
+        Told::Confounded => format!(
+            ". The residual depends on {a} and on {b}, and neither explains it among \
+             illuminations alike in the other ({ta}; {tb}): these illuminations cannot \
+             tell them apart. The measurement that separates them: {}",
+            separating_measurement(a, b)
+        ),
+    }
+}
+
+/// The measurement that tells two event-level kinds apart.
+fn separating_measurement(a: &str, b: &str) -> String {
+    let has = |x: &str| a == x || b == x;
+    if has("integration_length") {
+        "equal illuminations followed by dark integrations of different lengths \
+         (persist simulate lab --campaign --dark-lengths varied writes such a campaign)"
+            .into()
+    } else if has("temperature") {
+        format!(
+            "illuminations alike but for the temperature, and alike but for the {} \
+             (persist simulate lab --campaign --temperatures apart writes such a campaign)",
+            if has("illumination_time") {
+                "duration"
+            } else {
+                "history"
+            }
+        )
+    } else {
+        "illuminations of equal fluence and equal history (each after darks long enough \
+         to empty the traps, or after equally bright ones at the same gap) that differ in \
+         duration, for example 481 s at one flux and 120 s at four times it"
+            .into()
+    }
+}
+
+/// Where the largest cell residuals are, for the verdict with nothing found.
+fn largest_sentence(d: &Diagnosis) -> String {
+    let w: Vec<String> = d
+        .largest_residuals
+        .iter()
+        .zip(&d.largest_residual_cells)
+        .zip(&d.largest_residual_places)
+        .map(|((g, (f, t)), place)| {
+            let mut after = place
+                .illumination_exposure
+                .map_or(String::new(), |i| format!(" after the illumination at exposure {i}"));
+            if place.next_to_brighter {
+                after.push_str(", next to a far brighter pixel");
+            }
+            format!(
+                "fluence >= {f:.3e} e-, t >= {t:.0} s{after}: measured {:.3} vs predicted {:.3} e-/s (z {:.1})",
+                g.measured_p95_e_per_s, g.predicted_p95_e_per_s, g.z
+            )
+        })
+        .collect();
+    w.join("; ")
+}
+
+/// The verdict's clause on a field shared by neighbouring pixels, empty without one.
+fn field_sentence(spatial: Option<&super::spatial::Coherence>) -> String {
+    spatial.filter(|c| c.coherent).map_or(String::new(), |c| {
+        format!(
+            "; and the residuals carry a field shared by neighbouring pixels: a {:.0}-pixel \
+             map of one illumination's residual predicts {:.0} % of another's (R^2; \
+             threshold {:.2}), so the trap density varies across the array in patches, \
+             which no library effect carries (the model's populations is a quadratic \
+             surface over the whole array){}",
+            c.best_length_px,
+            100.0 * c.best_r2,
+            c.threshold,
+            match (c.highest, c.lowest) {
+                (Some(((y, x), hi)), Some(((y0, x0), lo))) => format!(
+                    "; measured against predicted, x{hi:.2} around (y {y}, x {x}) and \
+                     x{lo:.2} around (y {y0}, x {x0}) (the map averaged over the \
+                     illuminations, relative to its fluence bin)"
+                ),
+                _ => String::new(),
+            }
+        )
+    })
+}
+
+/// The verdict's sentence on the data-driven term: offered with its command, or why not.
+/// `class`: the covariate's class.
+fn data_term_sentence(
+    t: Option<&super::data_term::DataTerm>,
+    class: &str,
+    params: &ModelParams,
+    held: bool,
+) -> String {
+    let Some(t) = t else {
+        return match super::data_term::held(class, params) {
+            Some(d) => format!(
+                ". The model already holds the data-driven term along it ({}): the \
+                 residual it leaves still depends on this covariate",
+                d.name
+            ),
+            None => ". No data-driven term follows this covariate".into(),
+        };
+    };
+    let gain = t
+        .held_out
+        .as_ref()
+        .map_or("no held-out check".to_string(), |h| {
+            format!("held-out gain {:.2}", h.gain)
+        });
+    if t.offered {
+        format!(
+            ". A data-driven term along it ({}: a smooth function of the covariate fitted \
+             from these data) lowers the residual RMS from {:.2} to {:.2} (dBIC {:.1}, {gain}); \
+             add it with: {}",
+            t.effect,
+            t.rms_before,
+            t.rms_after,
+            t.delta_bic,
+            add_clause(
+                &t.command,
+                t.measure_command.as_deref(),
+                held && t.measured_with.is_some(),
+                params
+            )
+        )
+    } else {
+        format!(
+            ". A data-driven term along it ({}) does not predict held-out data either \
+             (dBIC {:.1}, {gain}): not offered",
+            t.effect, t.delta_bic
+        )
+    }
+}
+
+/// What is known to limit a diagnosis against `params`.
+pub fn cautions(params: &ModelParams) -> Vec<String> {
+    let mut c = Vec::new();
+    if crate::calib::cn_fitted_to_campaign(params) {
+        c.push(
+            "the model's C_n were fitted to this campaign (persist fit --fit-cn): they have \
+             taken in the decay-shape part of any missing effect (a hidden short_tau_boost \
+             was found at 3 of 3 seeds against a model without --fit-cn, at none with it \
+             before the capacity fix; docs/validation/diagnose_matrix.md); diagnose against a model \
+             fitted without --fit-cn too"
+                .to_string(),
+        );
+    }
+    if crate::calib::level_fitted_to_campaign(params) {
+        c.push(
+            "the model's knot level was fitted to this campaign (persist fit \
+             --fit-amplification): it has taken in the level part of any missing effect (a \
+             hidden short_tau_boost was declared at 1 of 3 seeds against such a model, at 3 \
+             of 3 with the level fixed; measured with examples/diagnose_matrix); diagnose \
+             against a model with a fixed --amplification too"
+                .to_string(),
+        );
+    }
+    c
+}
+
+/// The printed ranking.
+pub fn render(d: &Diagnosis) -> String {
+    let mut s = format!(
+        "persist diagnose: statistic {}, {} pixels, {} cells in {} groups, {} illumination events, \
+         residual RMS {:.2} ({} cells{}{})\npixel reference (the flexible base with each pixel's own \
+         amplitude and decay shape): residual RMS {:.2} over {} cells\nthreshold {:.2} (95 % of the largest score over {} bootstrap replicas \
+         from the fitted model; median {:.2}; the score ranks, it does not decide)\n\
+         {:<16} {:>10} {:>6} {:>9} {:>15} {:>9} {:>15}  covariate\n",
+        d.statistic_reason,
+        d.pixels_sampled,
+        d.cells,
+        d.groups,
+        d.events,
+        d.residual_rms_normalised,
+        d.residual_cells.describe(),
+        d.cell_statistic.note(),
+        match d.refit {
+            Refit::Full => "; candidates refitted with the model's own effects (--refit full)",
+            Refit::Candidate => "; candidates refitted alone (--refit candidate)",
+        },
+        d.pixel_reference.residual_rms_normalised,
+        d.pixel_reference.cells,
+        d.threshold,
+        d.bootstrap_replicas,
+        d.bootstrap_median_max,
+        "effect",
+        "score",
+        "pass",
+        "dBIC",
+        "RMS",
+        "held-out",
+        "(moved cells)"
+    );
+    for c in &d.ranking {
+        s += &format!(
+            "{:<16} {:>10.2} {:>6} {:>9} {:>15} {:>9} {:>15}  {}{}\n",
+            c.effect,
+            c.score,
+            c.passes_score,
+            c.delta_bic.map_or("-".into(), |v| format!("{v:.1}")),
+            match (c.rms_before, c.rms_after) {
+                (Some(a), Some(b)) => format!("{a:.2}->{b:.2}"),
+                _ => "-".into(),
+            },
+            c.held_out
+                .as_ref()
+                .map_or("-".into(), |h| format!("{:+.0}%", -100.0 * h.gain)),
+            c.held_out.as_ref().map_or("-".into(), |h| format!(
+                "{:+.0}% of {}",
+                -100.0 * h.gain_moved_cells,
+                h.moved_cells
+            )),
+            c.covariate,
+            if c.significant {
+                "  SIGNIFICANT"
+            } else if c.refused_no_field {
+                "  (passes the gates, but the residuals carry no field shared by neighbours)"
+            } else {
+                ""
+            }
+        );
+    }
+    for c in d.contrasts.iter().filter(|c| !c.testable) {
+        s += &format!(
+            "{:<16} untestable, needs {} ({})\n",
+            c.effects.join(", "),
+            c.needs.as_deref().unwrap_or("-"),
+            c.why
+        );
+    }
+    if !d.dependences.is_empty() {
+        s += "what the base's residual depends on (share of its sum of squares inside the \
+              fluence x time cells; permutations' largest; z):\n";
+        for x in &d.dependences {
+            s += &format!(
+                "  {:<26} {:>6.2} % {:>6.2} % {:>7.1}  {}{}\n",
+                x.class,
+                100.0 * x.r2,
+                100.0 * x.r2_null_max,
+                x.z,
+                x.effects.join(", "),
+                if x.depends { "  DEPENDS" } else { "" }
+            );
+        }
+    }
+    if !d.joint.is_empty() {
+        s += "joint check (no effect significant alone; the leader refitted with each other):\n";
+        for j in &d.joint {
+            s += &format!(
+                "{:<32} {:>9.1} {:>9.1} {:>15} {:>9}{}\n",
+                format!("{} + {}", j.effects[0], j.effects[1]),
+                j.delta_bic,
+                j.delta_bic_over_leader,
+                format!("{:.2}->{:.2}", j.rms_before, j.rms_after),
+                j.held_out
+                    .as_ref()
+                    .map_or("-".into(), |h| format!("{:+.0}%", -100.0 * h.gain)),
+                if j.significant { "  SIGNIFICANT" } else { "" }
+            );
+        }
+    }
+    if let Some(c) = &d.spatial {
+        s += &format!(
+            "spatial coherence: a map of one illumination's residual smoothed over {} px \
+             predicts R^2 {} of another's (unsmoothed {:.2}; {} pairs, {} pixels per \
+             illumination): {}\n",
+            c.r2_smoothed
+                .iter()
+                .map(|(l, _)| format!("{l:.0}"))
+                .collect::<Vec<_>>()
+                .join("/"),
+            c.r2_smoothed
+                .iter()
+                .map(|(_, r)| format!("{r:.2}"))
+                .collect::<Vec<_>>()
+                .join("/"),
+            c.r2_raw,
+            c.pairs,
+            c.pixels_per_event,
+            if c.coherent {
+                format!("a field shared by neighbours (>= {:.2})", c.threshold)
+            } else {
+                format!("none shared by neighbours (< {:.2})", c.threshold)
+            }
+        );
+    }
+    s += &d.verdict;
+    for c in &d.cautions {
+        s += "\ncaution: ";
+        s += c;
+    }
+    s
+}
