@@ -9,10 +9,10 @@
 //! - The child is the `persist` executable itself, run as `persist guarded-read WHAT
 //!   PATH`: it reads and validates the file with the same library functions the stage
 //!   uses in-process ([`crate::product::read`], [`crate::fits`], [`crate::checkpoint`])
-//!   and answers on its standard output with one frame ([`Answer`] as JSON, then the
-//!   arrays' raw bytes). The stage uses the answer, never its own reading of the file:
-//!   an input's arrays are handed back, bit for bit (floats travel as their bits), so a
-//!   library fault that corrupts memory without crashing stays in the child.
+//!   and answers on its standard output with one frame (the private `Answer` as JSON,
+//!   then the arrays' raw bytes). The stage uses the answer, never its own reading of
+//!   the file: an input's arrays are handed back, bit for bit (floats travel as their
+//!   bits), so a library fault that corrupts memory without crashing stays in the child.
 //! - A checkpoint is only checked in the child (fully loaded, every array), then loaded
 //!   in-process: the stage wrote it, and its state arrays are large.
 //! - Limits, set by the child on itself before it opens the file (passed as arguments):
