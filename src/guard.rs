@@ -228,13 +228,29 @@ pub fn load_checkpoint(
     guard: Option<&Guard>,
     path: &Path,
 ) -> Result<(checkpoint::CheckpointMeta, crate::model::State)> {
-    if let Some(g) = guard {
-        match ask(g, What::Checkpoint, path, &FitsConfig::default())? {
-            (Answer::Checked, _) => {}
-            (a, _) => return Err(unexpected(path, &a)),
-        }
-    }
+    check_checkpoint(guard, path)?;
     checkpoint::load(path)
+}
+
+/// A checkpoint's metadata ([`checkpoint::load_meta`]), the file checked first in the
+/// child when guarded (as [`load_checkpoint`] checks it).
+pub fn load_checkpoint_meta(
+    guard: Option<&Guard>,
+    path: &Path,
+) -> Result<(checkpoint::CheckpointMeta, f64)> {
+    check_checkpoint(guard, path)?;
+    checkpoint::load_meta(path)
+}
+
+/// With a guard, the whole checkpoint loaded in the child ([`What::Checkpoint`]).
+fn check_checkpoint(guard: Option<&Guard>, path: &Path) -> Result<()> {
+    let Some(g) = guard else {
+        return Ok(());
+    };
+    match ask(g, What::Checkpoint, path, &FitsConfig::default())? {
+        (Answer::Checked, _) => Ok(()),
+        (a, _) => Err(unexpected(path, &a)),
+    }
 }
 
 fn read_sequence_here(path: &Path, fits: &FitsConfig) -> Result<(ExposureMeta, bool)> {
