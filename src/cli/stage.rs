@@ -162,8 +162,8 @@ pub struct StatusArgs {
     /// ... taken every this many seconds (two years / 4 x 10^5).
     #[arg(long, default_value_t = 157.8, value_parser = positive_seconds)]
     pub project_interval_s: f64,
-    /// The checkpoints are read as `persist run` reads them (checked first in the
-    /// reader guard's child process).
+    // the checkpoints are read as `persist run` reads them (checked first in the reader
+    // guard's child process)
     #[command(flatten)]
     pub reader: ReaderGuardArgs,
 }
