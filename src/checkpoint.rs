@@ -455,30 +455,34 @@ pub fn load_meta(path: &Path) -> Result<(CheckpointMeta, f64)> {
     if v.attr_str("product") != Some(PRODUCT) {
         return Err(Error::invalid("product", "not a checkpoint").path(path));
     }
+    meta_of(v).map_err(|e| e.path(path))
+}
+
+/// The meta data and `t_reset_unix_s` in a checkpoint's root attributes (the error
+/// without the file's path).
+fn meta_of(v: View<'_>) -> Result<(CheckpointMeta, f64)> {
     let text = |f: &str| v.attr_str(f).unwrap_or_default().to_owned();
     let detector = v
         .attr_i64("detector")
         .and_then(DetectorId::new)
-        .ok_or_else(|| Error::invalid("detector", "missing or out of 1..=6").path(path))?;
+        .ok_or_else(|| Error::invalid("detector", "missing or out of 1..=6"))?;
     let exposure_index = v
         .attr("exposure_index")
         .and_then(serde_json::Value::as_u64)
-        .ok_or_else(|| Error::invalid("exposure_index", "missing or negative").path(path))?;
+        .ok_or_else(|| Error::invalid("exposure_index", "missing or negative"))?;
     let t_reset = v
         .attr_f64("t_reset_unix_s")
-        .ok_or_else(|| Error::invalid("t_reset_unix_s", "missing or not finite").path(path))?;
-    Ok((
-        CheckpointMeta {
-            detector,
-            exposure_index,
-            model_id: text("model_id"),
-            model_name: text("model_name"),
-            model_json: text("model_json"),
-            stage_json: text("stage_json"),
-            software_version: text("software_version"),
-        },
-        t_reset,
-    ))
+        .ok_or_else(|| Error::invalid("t_reset_unix_s", "missing or not finite"))?;
+    let meta = CheckpointMeta {
+        detector,
+        exposure_index,
+        model_id: text("model_id"),
+        model_name: text("model_name"),
+        model_json: text("model_json"),
+        stage_json: text("stage_json"),
+        software_version: text("software_version"),
+    };
+    Ok((meta, t_reset))
 }
 
 /// `State::check` messages look like `amplitudes_e: holds ...`: name the field.
@@ -581,27 +585,7 @@ fn check_layout(
     if !errors.is_empty() {
         return Err(errors);
     }
-    let text = |f: &str| v.attr_str(f).unwrap_or_default().to_owned();
-    let detector = v
-        .attr_i64("detector")
-        .and_then(DetectorId::new)
-        .ok_or_else(|| one(Error::invalid("detector", "missing or out of 1..=6")))?;
-    let exposure_index = v
-        .attr("exposure_index")
-        .and_then(serde_json::Value::as_u64)
-        .ok_or_else(|| one(Error::invalid("exposure_index", "missing or negative")))?;
-    let t_reset = v
-        .attr_f64("t_reset_unix_s")
-        .ok_or_else(|| one(Error::invalid("t_reset_unix_s", "missing or not finite")))?;
-    let meta = CheckpointMeta {
-        detector,
-        exposure_index,
-        model_id: text("model_id"),
-        model_name: text("model_name"),
-        model_json: text("model_json"),
-        stage_json: text("stage_json"),
-        software_version: text("software_version"),
-    };
+    let (meta, t_reset) = meta_of(v).map_err(one)?;
     check_meta(&meta).map_err(one)?;
     Ok((meta, t_reset))
 }

@@ -9,10 +9,10 @@
 //! - The child is the `persist` executable itself, run as `persist guarded-read WHAT
 //!   PATH`: it reads and validates the file with the same library functions the stage
 //!   uses in-process ([`crate::product::read`], [`crate::fits`], [`crate::checkpoint`])
-//!   and answers on its standard output with one frame ([`Answer`] as JSON, then the
-//!   arrays' raw bytes). The stage uses the answer, never its own reading of the file:
-//!   an input's arrays are handed back, bit for bit (floats travel as their bits), so a
-//!   library fault that corrupts memory without crashing stays in the child.
+//!   and answers on its standard output with one frame (the private `Answer` as JSON,
+//!   then the arrays' raw bytes). The stage uses the answer, never its own reading of
+//!   the file: an input's arrays are handed back, bit for bit (floats travel as their
+//!   bits), so a library fault that corrupts memory without crashing stays in the child.
 //! - A checkpoint is only checked in the child (fully loaded, every array), then loaded
 //!   in-process: the stage wrote it, and its state arrays are large.
 //! - Limits, set by the child on itself before it opens the file (passed as arguments):
@@ -228,13 +228,29 @@ pub fn load_checkpoint(
     guard: Option<&Guard>,
     path: &Path,
 ) -> Result<(checkpoint::CheckpointMeta, crate::model::State)> {
-    if let Some(g) = guard {
-        match ask(g, What::Checkpoint, path, &FitsConfig::default())? {
-            (Answer::Checked, _) => {}
-            (a, _) => return Err(unexpected(path, &a)),
-        }
-    }
+    check_checkpoint(guard, path)?;
     checkpoint::load(path)
+}
+
+/// A checkpoint's metadata ([`checkpoint::load_meta`]), the file checked first in the
+/// child when guarded (as [`load_checkpoint`] checks it).
+pub fn load_checkpoint_meta(
+    guard: Option<&Guard>,
+    path: &Path,
+) -> Result<(checkpoint::CheckpointMeta, f64)> {
+    check_checkpoint(guard, path)?;
+    checkpoint::load_meta(path)
+}
+
+/// With a guard, the whole checkpoint loaded in the child ([`What::Checkpoint`]).
+fn check_checkpoint(guard: Option<&Guard>, path: &Path) -> Result<()> {
+    let Some(g) = guard else {
+        return Ok(());
+    };
+    match ask(g, What::Checkpoint, path, &FitsConfig::default())? {
+        (Answer::Checked, _) => Ok(()),
+        (a, _) => Err(unexpected(path, &a)),
+    }
 }
 
 fn read_sequence_here(path: &Path, fits: &FitsConfig) -> Result<(ExposureMeta, bool)> {

@@ -129,7 +129,7 @@ pub fn write_scripts(plan: &Plan, o: &BatchOptions) -> Result<Scripts> {
     );
     let write = |name: &str, text: &str| -> Result<PathBuf> {
         let p = w.join(name);
-        crate::tile::write_text_atomic(&p, text)?;
+        crate::textfile::write_text(&p, text)?;
         use std::os::unix::fs::PermissionsExt;
         std::fs::set_permissions(&p, std::fs::Permissions::from_mode(0o755))
             .map_err(|e| Error::io(&p, e))?;

@@ -409,7 +409,7 @@ impl Plan {
         let path = self.work.join(PLAN_FILE);
         let text = serde_json::to_string_pretty(self)
             .map_err(|e| Error::new(ErrorKind::Io, e.to_string()).path(&path))?;
-        write_text_atomic(&path, &text)?;
+        crate::textfile::write_text(&path, &text)?;
         Ok(path)
     }
 
@@ -460,18 +460,6 @@ impl Plan {
                 .join(format!("state_s{k:03}_t{tile:03}.h5")),
         }
     }
-}
-
-/// Write a small text file atomically (temporary name, fsync, rename, directory fsync).
-pub fn write_text_atomic(path: &Path, text: &str) -> Result<()> {
-    use std::io::Write;
-    let tmp = h5io::temp_path(path);
-    let mut f = std::fs::File::create(&tmp).map_err(|e| Error::io(&tmp, e))?;
-    f.write_all(text.as_bytes())
-        .and_then(|_| f.sync_all())
-        .map_err(|e| Error::io(&tmp, e))?;
-    std::fs::rename(&tmp, path).map_err(|e| Error::io(path, e))?;
-    h5io::sync_dir(path)
 }
 
 /// What one exposure of a tile job recorded (the same in every tile of a detector).

@@ -95,11 +95,17 @@ fn each_crashing_input_is_quarantined_the_other_eleven_published_and_the_restart
 /// A reader stand-in that crashes (SIGSEGV) on exposure 5, hangs on exposure 7 and
 /// answers with the real reader otherwise.
 fn faulty_reader(dir: &Path) -> PathBuf {
+    reader_crashing_on(dir, "*exp0005*")
+}
+
+/// A reader stand-in that crashes (SIGSEGV) on the paths matching the shell pattern
+/// `crash`, hangs on exposure 7 and answers with the real reader otherwise.
+fn reader_crashing_on(dir: &Path, crash: &str) -> PathBuf {
     let script = dir.join("reader.sh");
     std::fs::write(
         &script,
         format!(
-            "#!/bin/sh\ncase \"$3\" in\n*exp0005*) kill -SEGV $$ ;;\n*exp0007*) exec sleep 60 ;;\nesac\nexec '{}' \"$@\"\n",
+            "#!/bin/sh\ncase \"$3\" in\n{crash}) kill -SEGV $$ ;;\n*exp0007*) exec sleep 60 ;;\nesac\nexec '{}' \"$@\"\n",
             env!("CARGO_BIN_EXE_persist")
         ),
     )
@@ -213,4 +219,42 @@ fn an_unreadable_checkpoint_falls_back_to_the_one_before_it() {
     // And the next restart is clean.
     let (code, err) = run_batch(&input, root, &["--checkpoint-every", "4"]);
     assert_eq!(code, 0, "{err}");
+}
+
+/// `persist status` reads a checkpoint as the stage does: a reader that crashes on it
+/// makes a listed problem naming the file, and the rest of the status is still given;
+/// without the guard the same checkpoint is read in-process.
+#[test]
+fn status_reads_checkpoints_through_the_guard() {
+    let tmp = tempfile::tempdir().unwrap();
+    let input = input_with(tmp.path(), &fixtures().join("l1_det1_exp0005.h5"), false);
+    let root = tmp.path();
+    let (code, err) = run_batch(&input, root, &["--checkpoint-every", "4"]);
+    assert_eq!(code, 0, "{err}");
+    let (out, ckpt) = (root.join("out"), root.join("ckpt"));
+    let status = |guard: Option<&persist::guard::Guard>| {
+        persist::stage::status::status(&out, &ckpt, Some(&input), None, guard)
+    };
+    let here = status(None);
+    assert!(here.problems.is_empty(), "{:?}", here.problems);
+    let guard = persist::guard::Guard::new(reader_crashing_on(root, "*ckpt_det1_*"));
+    let crashed = status(Some(&guard));
+    assert_eq!(crashed.problems.len(), 1, "{:?}", crashed.problems);
+    let p = &crashed.problems[0];
+    assert!(
+        p.contains("reader crashed: SIGSEGV") && p.contains("ckpt_det1_0000000011.h5"),
+        "{p}"
+    );
+    let d = &crashed.detectors[0];
+    assert_eq!((d.detector, d.last_processed), (1, Some(11)));
+    let real = persist::guard::Guard::new(env!("CARGO_BIN_EXE_persist").into());
+    // the checkpoint's age is the clock's; the rest is the files'
+    let ageless = |st: persist::stage::status::Status| {
+        let mut d = st.detectors;
+        d.iter_mut().for_each(|d| d.checkpoint_age_s = None);
+        serde_json::to_value(&d).unwrap()
+    };
+    let guarded = status(Some(&real));
+    assert!(guarded.problems.is_empty(), "{:?}", guarded.problems);
+    assert_eq!(ageless(guarded), ageless(here));
 }

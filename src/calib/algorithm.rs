@@ -136,6 +136,38 @@ impl Default for CalibConfig {
     }
 }
 
+/// What a caller states on top of a [`Preset`] (`persist fit`'s options): a `None` or an
+/// empty list takes the preset's value ([`Preset::config_stated`]).
+///
+/// The coverage rule: a stated amplification, or a fitted one (`fit_amplification`), is
+/// the knots' margin, so the preset's coverage calibration, which would set that margin
+/// again, is not applied unless a coverage is stated too; `no_coverage` applies none.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct Stated {
+    pub amplification: Option<f64>,
+    pub t_min_s: Option<f64>,
+    pub decay_offset_s: Option<f64>,
+    /// Decay rates `1/tau_n`, 1/s; empty: the preset's.
+    pub rates_per_s: Vec<f64>,
+    pub coverage: Option<f64>,
+    pub no_coverage: bool,
+    /// The knots' common factor is fitted (`--fit-amplification`).
+    pub fit_amplification: bool,
+}
+
+impl Stated {
+    /// The coverage to calibrate to, given the preset's `preset` (the coverage rule of
+    /// the type's docs).
+    pub fn coverage_over(&self, preset: Option<f64>) -> Option<f64> {
+        let margin_stated = self.amplification.is_some() || self.fit_amplification;
+        if self.no_coverage || (self.coverage.is_none() && margin_stated) {
+            None
+        } else {
+            self.coverage.or(preset)
+        }
+    }
+}
+
 /// A named starting point of `persist fit` (`--preset`): a calibration configuration
 /// and the effects fitted with it.
 ///
@@ -183,6 +215,24 @@ impl Preset {
                 coverage: None,
                 ..CalibConfig::default()
             },
+        }
+    }
+
+    /// The preset's configuration with the options a caller states (`persist fit`'s)
+    /// in place of its own ([`Stated`]); the residual cells stay the library's defaults.
+    pub fn config_stated(self, s: &Stated) -> CalibConfig {
+        let p = self.config();
+        CalibConfig {
+            amplification: s.amplification.unwrap_or(p.amplification),
+            t_min_s: s.t_min_s.unwrap_or(p.t_min_s),
+            decay_offset_s: s.decay_offset_s.unwrap_or(p.decay_offset_s),
+            rates_per_s: if s.rates_per_s.is_empty() {
+                p.rates_per_s.clone()
+            } else {
+                s.rates_per_s.clone()
+            },
+            coverage: s.coverage_over(p.coverage),
+            ..p
         }
     }
 
@@ -887,6 +937,49 @@ mod tests {
         assert_eq!("readout".parse::<Preset>().unwrap(), Preset::Readout);
         let e = "r14".parse::<Preset>().unwrap_err().to_string();
         assert!(e.contains("--preset") && e.contains("r14"), "{e}");
+    }
+
+    /// The coverage rule of [`Stated`]: the preset's coverage unless an amplification is
+    /// stated or fitted; a stated coverage wins over both; `no_coverage` clears it.
+    #[test]
+    fn stated_margin_means_no_preset_coverage() {
+        let paper = Preset::Paper.config().coverage;
+        assert_eq!(paper, Some(0.95));
+        let cov = |s: Stated| Preset::Paper.config_stated(&s).coverage;
+        assert_eq!(cov(Stated::default()), paper);
+        let amp = Stated {
+            amplification: Some(1.1),
+            ..Stated::default()
+        };
+        assert_eq!(cov(amp.clone()), None);
+        assert_eq!(Preset::Paper.config_stated(&amp).amplification, 1.1);
+        let fitted = Stated {
+            fit_amplification: true,
+            ..Stated::default()
+        };
+        assert_eq!(cov(fitted.clone()), None);
+        let both = Stated {
+            coverage: Some(0.9),
+            ..fitted
+        };
+        assert_eq!(cov(both), Some(0.9));
+        let off = Stated {
+            no_coverage: true,
+            ..Stated::default()
+        };
+        assert_eq!(cov(off), None);
+        assert_eq!(
+            Preset::Readout.config_stated(&Stated::default()).coverage,
+            None
+        );
+        let t = Stated {
+            t_min_s: Some(3.0),
+            rates_per_s: vec![0.5, 0.05],
+            ..Stated::default()
+        };
+        let c = Preset::Readout.config_stated(&t);
+        assert_eq!((c.t_min_s, c.decay_offset_s), (3.0, 0.2));
+        assert_eq!(c.rates_per_s, [0.5, 0.05]);
     }
 
     /// Under `--cell-statistic population` the knots leave out the shot noise and the

@@ -216,27 +216,20 @@ pub(super) fn fit(a: &FitArgs) -> persist::Result<ExitCode> {
             "--input: required without --from-verify",
         )
     })?;
-    let p = a.preset.config();
+    let stated = persist::calib::Stated {
+        amplification: a.amplification,
+        t_min_s: a.t_min_s,
+        decay_offset_s: a.decay_offset_s,
+        rates_per_s: a.rates_per_s.clone(),
+        coverage: a.coverage,
+        no_coverage: a.no_coverage,
+        fit_amplification: a.fit_amplification,
+    };
     let cfg = persist::calib::CalibConfig {
-        amplification: a.amplification.unwrap_or(p.amplification),
-        t_min_s: a.t_min_s.unwrap_or(p.t_min_s),
-        decay_offset_s: a.decay_offset_s.unwrap_or(p.decay_offset_s),
-        rates_per_s: if a.rates_per_s.is_empty() {
-            p.rates_per_s
-        } else {
-            a.rates_per_s.clone()
-        },
         cells: a.cells.cells,
         cell_statistic: a.cells.cell_statistic,
         background: a.cells.background,
-        coverage: if a.no_coverage
-            || (a.coverage.is_none() && (a.amplification.is_some() || a.fit_amplification))
-        {
-            None
-        } else {
-            a.coverage.or(p.coverage)
-        },
-        ..p
+        ..a.preset.config_stated(&stated)
     };
     let report_path = a
         .report

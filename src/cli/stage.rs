@@ -94,6 +94,14 @@ pub struct RunArgs {
     /// over the header's ESCONV.
     #[arg(long = "fits-gain", value_parser = persist::fits::parse_gain)]
     pub fits_gain: Vec<(u8, f64)>,
+    #[command(flatten)]
+    pub reader: ReaderGuardArgs,
+}
+
+/// The reader guard's switch and limits ([`persist::guard`]), for `persist run` and
+/// `persist status`.
+#[derive(Args, Debug, Clone)]
+pub struct ReaderGuardArgs {
     /// Read every input and checkpoint in-process, without first reading it in an
     /// isolated child process (the reader guard, docs/operations.md).
     #[arg(long)]
@@ -104,6 +112,22 @@ pub struct RunArgs {
     /// The reader guard's limit of address space per file read, MiB.
     #[arg(long, default_value_t = persist::guard::DEFAULT_MEMORY_MIB, value_parser = clap::value_parser!(u64).range(64..))]
     pub reader_memory_mib: u64,
+}
+
+impl ReaderGuardArgs {
+    /// The guard these options ask for, run through this executable; `None` with
+    /// `--no-reader-guard`.
+    pub fn guard(&self) -> persist::Result<Option<persist::guard::Guard>> {
+        if self.no_reader_guard {
+            return Ok(None);
+        }
+        let exe = std::env::current_exe().map_err(|e| Error::new(ErrorKind::Io, e.to_string()))?;
+        Ok(Some(persist::guard::Guard {
+            exe,
+            timeout: Duration::from_secs_f64(self.reader_timeout_s),
+            memory_bytes: self.reader_memory_mib << 20,
+        }))
+    }
 }
 
 #[derive(Args, Debug)]
@@ -138,6 +162,10 @@ pub struct StatusArgs {
     /// ... taken every this many seconds (two years / 4 x 10^5).
     #[arg(long, default_value_t = 157.8, value_parser = positive_seconds)]
     pub project_interval_s: f64,
+    // the checkpoints are read as `persist run` reads them (checked first in the reader
+    // guard's child process)
+    #[command(flatten)]
+    pub reader: ReaderGuardArgs,
 }
 
 /// `persist status`.
@@ -151,6 +179,7 @@ pub(super) fn status(args: &StatusArgs) -> persist::Result<ExitCode> {
         &args.checkpoints,
         args.input.as_deref(),
         quarantine.as_deref(),
+        args.reader.guard()?.as_ref(),
     );
     if args.projection {
         st.projection = stage::status::project(
@@ -221,16 +250,7 @@ pub(super) fn run_stage(args: &RunArgs) -> persist::Result<ExitCode> {
         },
         gains: args.fits_gain.iter().copied().collect(),
     };
-    let guard = if args.no_reader_guard {
-        None
-    } else {
-        let exe = std::env::current_exe().map_err(|e| Error::new(ErrorKind::Io, e.to_string()))?;
-        Some(persist::guard::Guard {
-            exe,
-            timeout: Duration::from_secs_f64(args.reader_timeout_s),
-            memory_bytes: args.reader_memory_mib << 20,
-        })
-    };
+    let guard = args.reader.guard()?;
     // A missing input is the stage's error to report (exit 1), not a usage error.
     if worker.is_none() && !args.watch && !args.one_process && args.input.is_dir() {
         let dets = stage::workers::detectors(&args.input, &fits, guard.as_ref())?;

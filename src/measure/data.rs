@@ -849,7 +849,8 @@ fn low_fluence_pixels(
     p
 }
 
-/// Share of the unsaturated pixels, by fluence, that [`low_fluence_pixels`] keeps.
+/// Share of the unsaturated pixels, by fluence, that the private `low_fluence_pixels`
+/// keeps.
 pub const LOW_FLUENCE_SHARE: f64 = 0.25;
 
 fn good(e: &Exposure) -> impl Iterator<Item = Option<f64>> + '_ {

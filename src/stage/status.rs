@@ -8,6 +8,10 @@
 //! index, with `--input`) and the indices missing before them, and the quarantined files
 //! (their reason files: refused inputs, and checkpoints a resume set aside as unreadable,
 //! under `CHECKPOINTS/.quarantine`).
+//!
+//! A checkpoint is read as the stage reads it: with a guard, checked whole in the reader
+//! guard's child process first ([`crate::guard::load_checkpoint_meta`]), so a library
+//! crash on a malformed checkpoint is a problem listed, not the end of `status`.
 
 use crate::checkpoint;
 use crate::error::Error;
@@ -110,6 +114,7 @@ pub fn status(
     checkpoints: &Path,
     input: Option<&Path>,
     quarantine: Option<&Path>,
+    guard: Option<&crate::guard::Guard>,
 ) -> Status {
     let mut st = Status::default();
     let mut dets: BTreeMap<u8, DetectorStatus> = BTreeMap::new();
@@ -143,7 +148,7 @@ pub fn status(
             checkpoint: Some(path.clone()),
             ..Default::default()
         };
-        match checkpoint::load_meta(&path) {
+        match crate::guard::load_checkpoint_meta(guard, &path) {
             Ok((meta, _)) => match serde_json::from_str::<Bookkeeping>(&meta.stage_json) {
                 Ok(b) => {
                     ds.crossed_gaps = b.crossed;
