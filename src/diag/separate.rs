@@ -136,9 +136,22 @@ fn given(
         .map(|(a, c)| a.filter(|_| c.is_some()))
         .collect();
     let (per_block, ss) = block_sums(s, e, &x, blocks, false);
-    let stat = |xs: &[Option<i64>]| explained(&per_block, xs, cond);
-    let t = stat(&x);
-    let null = permutation_null(&x, blocks, false, Some(cond), seed, stat);
+    given_sums(&per_block, ss, blocks, &x, cond, seed)
+}
+
+/// [`given`] on the residual summed per block and cell ([`block_sums`]), `ss` its sum
+/// of squares; `x` has no bin where `cond` has none.
+fn given_sums(
+    per_block: &[CellSums],
+    ss: f64,
+    blocks: &[(usize, usize, i64)],
+    x: &[Option<i64>],
+    cond: &[Option<i64>],
+    seed: u64,
+) -> Given {
+    let stat = |xs: &[Option<i64>]| explained(per_block, xs, cond);
+    let t = stat(x);
+    let null = permutation_null(x, blocks, false, Some(cond), seed, stat);
     let n = null.len() as f64;
     let mean = null.iter().sum::<f64>() / n;
     let sd = (null.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / (n - 1.0).max(1.0)).sqrt();
@@ -154,7 +167,7 @@ fn given(
             0.0
         },
         depends: above && (t - mean) / ss >= MIN_R2,
-        blocks_with_contrast: with_contrast(blocks, &x, cond),
+        blocks_with_contrast: with_contrast(blocks, x, cond),
     }
 }
 
@@ -192,4 +205,71 @@ fn with_contrast(blocks: &[(usize, usize, i64)], x: &[Option<i64>], cond: &[Opti
         .filter(|(values, _)| values.len() >= 2)
         .map(|(_, n)| n)
         .sum()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// 400 pixel-events of one fluence bin and one cell, residual +-1 by `a`'s bin
+    /// (with a small deterministic spread); `b` is independent of `a` or equal to it.
+    fn case(b_equals_a: bool) -> (Given, Given) {
+        let n = 400;
+        let blocks: Vec<(usize, usize, i64)> = (0..n).map(|i| (i % 7, i, 0)).collect();
+        let a: Vec<Option<i64>> = (0..n).map(|i| Some((i % 2) as i64)).collect();
+        let b: Vec<Option<i64>> = if b_equals_a {
+            a.clone()
+        } else {
+            (0..n).map(|i| Some(((i / 2) % 2) as i64)).collect()
+        };
+        let r = |i: usize| {
+            (if i % 2 == 1 { 1.0 } else { -1.0 }) + 0.3 * (((i * 37) % 11) as f64 / 10.0 - 0.5)
+        };
+        let per_block: Vec<CellSums> = (0..n).map(|i| vec![(0, r(i), 1.0)]).collect();
+        let ss: f64 = (0..n).map(|i| r(i) * r(i)).sum();
+        (
+            given_sums(&per_block, ss, &blocks, &a, &b, 1),
+            given_sums(&per_block, ss, &blocks, &b, &a, 1),
+        )
+    }
+
+    /// The residual follows `a`: among events alike in `b`, `a` still explains it; among
+    /// events alike in `a`, `b` explains nothing.
+    #[test]
+    fn the_covariate_the_residual_follows_is_the_one_that_depends_given_the_other() {
+        let (a_given_b, b_given_a) = case(false);
+        assert!(a_given_b.depends, "{a_given_b:?}");
+        assert!(a_given_b.excess_r2 > 0.5, "{a_given_b:?}");
+        assert!(!b_given_a.depends, "{b_given_a:?}");
+        assert_eq!(a_given_b.blocks_with_contrast, 400);
+    }
+
+    /// Two covariates that split the events alike: no stratum of one holds two values
+    /// of the other, and neither depends given the other.
+    #[test]
+    fn covariates_that_split_the_events_alike_are_confounded() {
+        let (a_given_b, b_given_a) = case(true);
+        assert!(!a_given_b.depends && !b_given_a.depends);
+        assert_eq!(a_given_b.blocks_with_contrast, 0);
+        assert_eq!(a_given_b.z, 0.0);
+    }
+
+    #[test]
+    fn the_named_class_follows_what_was_told() {
+        let g = Given {
+            excess_r2: 0.0,
+            z: 0.0,
+            depends: false,
+            blocks_with_contrast: 0,
+        };
+        let mut s = Separation {
+            classes: ["illumination_time".into(), "earlier_illuminations".into()],
+            first_given_second: g,
+            second_given_first: g,
+            told: Told::Second,
+        };
+        assert_eq!(s.named(), Some("earlier_illuminations"));
+        s.told = Told::Confounded;
+        assert_eq!(s.named(), None);
+    }
 }

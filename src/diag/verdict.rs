@@ -460,3 +460,49 @@ pub fn render(d: &Diagnosis) -> String {
     }
     s
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::diag::separate::Given;
+
+    fn pair(told: Told) -> Separation {
+        let g = |depends| Given {
+            excess_r2: if depends { 0.05 } else { 0.0 },
+            z: if depends { 12.0 } else { 0.0 },
+            depends,
+            blocks_with_contrast: 300,
+        };
+        Separation {
+            classes: ["illumination_time".into(), "earlier_illuminations".into()],
+            first_given_second: g(told == Told::First || told == Told::Both),
+            second_given_first: g(told == Told::Second || told == Told::Both),
+            told,
+        }
+    }
+
+    /// Confounded kinds are named together with the measurement that separates them;
+    /// a kind the data name is said to be named; a class outside the pair gets nothing.
+    #[test]
+    fn confounded_kinds_are_named_together_with_the_measurement_that_separates_them() {
+        let c = pair(Told::Confounded);
+        assert_eq!(
+            confounded_prefix(Some(&c), "earlier_illuminations"),
+            "illumination_time or earlier_illuminations: confounded in these data. "
+        );
+        let s = separation_sentence(Some(&c), "illumination_time");
+        assert!(s.contains("equal fluence and equal history"), "{s}");
+        assert!(s.contains("differ in duration"), "{s}");
+        let named = separation_sentence(Some(&pair(Told::Second)), "illumination_time");
+        assert!(
+            named.contains("the data name earlier_illuminations"),
+            "{named}"
+        );
+        assert_eq!(
+            confounded_prefix(Some(&pair(Told::Second)), "illumination_time"),
+            ""
+        );
+        assert_eq!(separation_sentence(Some(&c), "temperature"), "");
+        assert_eq!(separation_sentence(None, "temperature"), "");
+    }
+}
