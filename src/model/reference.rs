@@ -51,7 +51,12 @@ pub fn step(
         let count = &mut state.release_count[(y, x)];
         if k.er_enabled && high[(y, x)] {
             let m = image[(y, x)];
-            if k.release_step(count, m, pred[(y, x)]) {
+            *count = if m.is_finite() && f64::from(m) < k.er_threshold {
+                count.saturating_add(1)
+            } else {
+                0
+            };
+            if *count >= k.er_consecutive {
                 state.amplitudes_e.slice_mut(s![y, x, ..]).fill(0.0);
                 *count = 0;
                 high[(y, x)] = false;
