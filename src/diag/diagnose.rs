@@ -263,10 +263,11 @@ pub fn diagnose(
         &super::base::predict_scaled(seq, &samples, &base.current).cells(&samples),
     );
     let mut dependences = contrast::dependences(seq, &samples, &flexible, &contrasts, cfg.seed);
-    // two kinds that both depend, each given the other: the one the data name first
+    // the two leading kinds above their permutations, each given the other: the one
+    // the data name comes first
     let separation =
         super::separate::separate(seq, &samples, &flexible, &mut dependences, cfg.seed);
-    let winner = dependences.iter().find(|d| d.depends);
+    let winner = super::separate::leading(&dependences, separation.as_ref());
     let scored = score_tests(
         params,
         seq,

@@ -22,7 +22,7 @@ use crate::model::params::ModelParams;
 /// measurements' description, held (`persist diagnose --reference measured`, module
 /// docs of [`super::reference`]); each is printed with the command that measures them.
 pub fn verdict(d: &Diagnosis, params: &ModelParams, held: bool) -> String {
-    let winner = d.dependences.iter().find(|w| w.depends);
+    let winner = super::separate::leading(&d.dependences, d.separation.as_ref());
     match d.ranking.iter().find(|c| c.significant) {
         None if d.joint.first().is_some_and(|j| j.significant) => {
             joint_sentence(&d.joint[0], params)
