@@ -585,25 +585,10 @@ pub fn dependences(
                 .clone();
             let x = covariate_bins(seq, s, &c.class, &blocks);
             let (per_block, ss) = block_sums(s, &e, &x, &blocks, by_event);
-            let stat = |xs: &[Option<i64>]| -> f64 {
-                let mut g: BTreeMap<(usize, i64), (f64, f64)> = BTreeMap::new();
-                for (b, entries) in per_block.iter().enumerate() {
-                    let Some(xb) = xs[b] else { continue };
-                    for &(id, a, n) in entries {
-                        let q = g.entry((id, xb)).or_insert((0.0, 0.0));
-                        q.0 += a;
-                        q.1 += n;
-                    }
-                }
-                g.values().map(|(a, n)| a * a / n).sum::<f64>()
-            };
+            let stat = |xs: &[Option<i64>]| explained(&per_block, xs, None);
             let t = stat(&x);
             let null = permutation_null(&x, &blocks, by_event, None, seed, stat);
-            let mean = null.iter().sum::<f64>() / null.len() as f64;
-            let sd = (null.iter().map(|v| (v - mean).powi(2)).sum::<f64>()
-                / (null.len() as f64 - 1.0).max(1.0))
-            .sqrt();
-            let max = null.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+            let (mean, sd, max) = null_summary(&null);
             let ss = ss.max(1e-12);
             let z = if sd > 0.0 { (t - mean) / sd } else { 0.0 };
             Dependence {
@@ -723,6 +708,37 @@ pub(super) fn permutation_null(
             stat(&xp)
         })
         .collect()
+}
+
+/// `T` (module docs): the residual summed per cell and covariate bin `x`, squared over
+/// its samples; with `given`, the cells are also split by its bins and blocks without
+/// one are left out.
+pub(super) fn explained(
+    per_block: &[CellSums],
+    x: &[Option<i64>],
+    given: Option<&[Option<i64>]>,
+) -> f64 {
+    let mut g: BTreeMap<(usize, i64, i64), (f64, f64)> = BTreeMap::new();
+    for (b, entries) in per_block.iter().enumerate() {
+        let (Some(xb), Some(gb)) = (x[b], given.map_or(Some(0), |g| g[b])) else {
+            continue;
+        };
+        for &(id, a, n) in entries {
+            let q = g.entry((id, gb, xb)).or_insert((0.0, 0.0));
+            q.0 += a;
+            q.1 += n;
+        }
+    }
+    g.values().map(|(a, n)| a * a / n).sum()
+}
+
+/// The permutations' mean, standard deviation and largest value.
+pub(super) fn null_summary(null: &[f64]) -> (f64, f64, f64) {
+    let n = null.len() as f64;
+    let mean = null.iter().sum::<f64>() / n;
+    let sd = (null.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / (n - 1.0).max(1.0)).sqrt();
+    let max = null.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+    (mean, sd, max)
 }
 
 /// Per covariate bin: the blocks in it, and the sum and number of their residual

@@ -35,8 +35,8 @@
 //! - Deterministic for a seed: the permutations use the stream of the marginal test.
 
 use super::contrast::{
-    base_residual, block_sums, blocks, covariate_bins, permutation_null, pixel_level, CellSums,
-    Dependence,
+    base_residual, block_sums, blocks, covariate_bins, explained, null_summary, permutation_null,
+    pixel_level, CellSums, Dependence,
 };
 use super::data::Sequence;
 use super::eval::Samples;
@@ -170,13 +170,10 @@ fn given_sums(
     cond: &[Option<i64>],
     seed: u64,
 ) -> Given {
-    let stat = |xs: &[Option<i64>]| explained(per_block, xs, cond);
+    let stat = |xs: &[Option<i64>]| explained(per_block, xs, Some(cond));
     let t = stat(x);
     let null = permutation_null(x, blocks, false, Some(cond), seed, stat);
-    let n = null.len() as f64;
-    let mean = null.iter().sum::<f64>() / n;
-    let sd = (null.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / (n - 1.0).max(1.0)).sqrt();
-    let max = null.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+    let (mean, sd, max) = null_summary(&null);
     let ss = ss.max(1e-12);
     // relative tolerance: permutations that change nothing give `t` again, up to rounding
     let above = t > max + 1e-9 * t.abs();
@@ -190,23 +187,6 @@ fn given_sums(
         depends: above,
         blocks_with_contrast: with_contrast(blocks, x, cond),
     }
-}
-
-/// `T` of the module docs of [`super::contrast`], with the cells also split by the
-/// bins of `cond`.
-fn explained(per_block: &[CellSums], x: &[Option<i64>], cond: &[Option<i64>]) -> f64 {
-    let mut g: BTreeMap<(usize, i64, i64), (f64, f64)> = BTreeMap::new();
-    for (b, entries) in per_block.iter().enumerate() {
-        let (Some(xb), Some(cb)) = (x[b], cond[b]) else {
-            continue;
-        };
-        for &(id, a, n) in entries {
-            let q = g.entry((id, cb, xb)).or_insert((0.0, 0.0));
-            q.0 += a;
-            q.1 += n;
-        }
-    }
-    g.values().map(|(a, n)| a * a / n).sum()
 }
 
 /// Blocks in strata (fluence bin x bin of `cond`) where `x` takes two values or more.
