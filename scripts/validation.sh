@@ -36,6 +36,11 @@
 #                                               nothing-hidden sequence (two generators x
 #                                               single/campaign x dark pixels x seeds 1-3;
 #                                               about 15 minutes; not in the default set)
+#   kinds  docs/validation/kinds.md             scripts/kinds_table.sh: the kind `diagnose`
+#                                               names on the second generator's campaigns,
+#                                               nothing hidden and event-level hidden forms,
+#                                               seeds 1-5 (about 20 minutes; not in the
+#                                               default set)
 # Without arguments every page is regenerated. Release builds (PERSIST_BIN=path skips the
 # build of the binary); run it on a quiet machine
 # (the header records the load average at the start).
@@ -51,8 +56,8 @@ if [[ ${#pages[@]} -eq 0 ]]; then
 fi
 for p in "${pages[@]}"; do
     case $p in
-        floor|bench|matrix|verify|verify_bench|family|family128|family_heldout|reference|flag_quality) ;;
-        *) echo "validation.sh: unknown page '$p' (floor, bench, matrix, verify, verify_bench, family, family128, family_heldout, reference, flag_quality)" >&2; exit 2 ;;
+        floor|bench|matrix|verify|verify_bench|family|family128|family_heldout|reference|kinds|flag_quality) ;;
+        *) echo "validation.sh: unknown page '$p' (floor, bench, matrix, verify, verify_bench, family, family128, family_heldout, reference, kinds, flag_quality)" >&2; exit 2 ;;
     esac
 done
 
@@ -339,6 +344,21 @@ page_reference() {
         scripts/validation_header.sh "The pixel reference on data with nothing hidden" \
             "make validation PAGES=reference (scripts/reference_table.sh)"
         PERSIST_BIN=$persist WORK=$tmp/reference scripts/reference_table.sh
+    } > "$page.tmp"
+    mv "$page.tmp" "$page"
+    echo "wrote $page" >&2
+}
+
+# kinds: the kind diagnose names, from its first step alone (its own script).
+page_kinds() {
+    local page=$out_dir/kinds.md
+    cargo build --release --quiet --example dependence_scan
+    echo "kinds: scripts/kinds_table.sh" >&2
+    {
+        scripts/validation_header.sh "The kind diagnose names, on the second generator's campaigns" \
+            "make validation PAGES=kinds (scripts/kinds_table.sh)"
+        PERSIST_BIN=$persist SCAN_BIN=$root/target/release/examples/dependence_scan \
+            WORK=$tmp/kinds scripts/kinds_table.sh
     } > "$page.tmp"
     mv "$page.tmp" "$page"
     echo "wrote $page" >&2

@@ -257,16 +257,25 @@ pub fn diagnose(
     let cells = make_cells(&samples, &base.current, statistic);
     enough_cells(&cells, statistic, events, input)?;
     let (contrasts, tests) = testable_tests(params, seq, &samples, cfg.decide);
-    // what the flexible base's residual depends on, by permutation
+    // what the residuals of the flexible base and of the pixel reference depend on, by
+    // permutation
     let flexible = super::base::predict(seq, &samples, &base.current);
-    let pixel_reference = PixelReference::of(
-        &super::base::predict_scaled(seq, &samples, &base.current).cells(&samples),
-    );
-    let mut dependences = contrast::dependences(seq, &samples, &flexible, &contrasts, cfg.seed);
+    let scaled = super::base::predict_scaled(seq, &samples, &base.current);
+    let pixel_reference = PixelReference::of(&scaled.cells(&samples));
+    let bases = contrast::Bases {
+        flexible: &flexible,
+        pixel_reference: &scaled.prediction,
+    };
+    let mut dependences = contrast::dependences(seq, &samples, bases, &contrasts, cfg.seed);
     // the two leading kinds above their permutations, each given the other: the one
     // the data name comes first
-    let separation =
-        super::separate::separate(seq, &samples, &flexible, &mut dependences, cfg.seed);
+    let separation = super::separate::separate(
+        seq,
+        &samples,
+        &scaled.prediction,
+        &mut dependences,
+        cfg.seed,
+    );
     let winner = super::separate::leading(&dependences, separation.as_ref());
     let scored = score_tests(
         params,

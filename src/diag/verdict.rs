@@ -168,9 +168,12 @@ fn separation_sentence(sep: Option<&Separation>, class: &str) -> String {
                  and {other} does not among those alike in {named} ({ta}; {tb})"
             )
         }
-        Told::Both => {
-            format!(". The residual depends on {a} and on {b}, each beyond the other ({ta}; {tb})")
-        }
+        Told::Both => format!(
+            ". The residual depends on {a} and on {b}, each beyond the other ({ta}; {tb}): \
+             one effect acting through both, or one of each. The measurement that shows \
+             each on its own: {}",
+            separating_measurement(a, b)
+        ),
         Told::Confounded => format!(
             ". The residual depends on {a} and on {b}, and neither explains it among \
              illuminations alike in the other ({ta}; {tb}): these illuminations cannot \
@@ -471,6 +474,7 @@ mod tests {
             excess_r2: if depends { 0.05 } else { 0.0 },
             z: if depends { 12.0 } else { 0.0 },
             depends,
+            above_permutations: depends,
             blocks_with_contrast: 300,
         };
         Separation {
