@@ -114,8 +114,9 @@ pub struct LabArgs {
     pub repeats: usize,
     /// Whether the campaign tells the illumination's duration from its history:
     /// `mixed` (the campaign the other options make) or `apart` (three illuminations
-    /// appended at 80 K, 481 s, 120 s at four times the flux and 481 s, each of the last
-    /// two after an equally bright one 1 h before, so that two illuminations of equal
+    /// appended at 80 K, 481 s, 120 s at four times the flux and 481 s, each followed by
+    /// 3 h of darks, so that the last two, each after an equally bright one 3 h before,
+    /// are two illuminations of equal
     /// fluence and equal history differ in duration; `persist::sim::lab`, "Durations
     /// apart").
     #[arg(long, default_value_t = persist::sim::lab::Durations::default(),

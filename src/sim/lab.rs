@@ -123,11 +123,11 @@
 //!
 //! | # | illuminated | flux scale | fluence (x the pattern's e-/s) | darks after |
 //! |---|---|---|---|---|
-//! | +1 | 481 s | 1 | 481 | 20 (1 h) |
-//! | +2 | 120 s | 4 | 480 | 20 (1 h) |
+//! | +1 | 481 s | 1 | 481 | 60 (3 h) |
+//! | +2 | 120 s | 4 | 480 | 60 (3 h) |
 //! | +3 | 481 s | 1 | 481 | 60 (3 h) |
 //!
-//! +2 and +3 have equal fluence (to 0.2 %) and equal history, each 1 h after an
+//! +2 and +3 have equal fluence (to 0.2 %) and equal history, each 3 h after an
 //! illumination of that fluence, and differ in duration; +1, +3 and illumination 1 have
 //! equal duration and fluence and differ in history (illumination 1 has none, +1 comes
 //! after the campaign's last illumination), so that each kind also shows on its own.
@@ -468,8 +468,8 @@ pub enum Durations {
     #[default]
     Mixed,
     /// Three illuminations appended: 481 s x1, 120 s x4 and 481 s x1 at the reference
-    /// temperature, the last two of equal fluence after equally bright ones at the same
-    /// gap ([`Durations::apply`]).
+    /// temperature, each followed by 3 h of darks, the last two of equal fluence after
+    /// equally bright ones at the same gap ([`Durations::apply`]).
     Apart,
 }
 
@@ -477,32 +477,28 @@ pub enum Durations {
 struct Appended {
     t_illuminated_s: f64,
     flux_scale: f64,
-    darks_after: usize,
 }
 
-/// `--durations apart`: 481 s x1, then 120 s x4 (480 s x1's fluence) and 481 s x1, each
-/// after 1 h of darks behind one of these two; 3 h of darks after the last.
+/// `--durations apart`: 481 s x1, then 120 s x4 (480 s x1's fluence) and 481 s x1,
+/// each followed by [`DURATIONS_DARKS`].
 const DURATIONS_APART: [Appended; 3] = [
     Appended {
         t_illuminated_s: 481.0,
         flux_scale: 1.0,
-        darks_after: DURATIONS_GAP_DARKS,
     },
     Appended {
         t_illuminated_s: 120.0,
         flux_scale: 4.0,
-        darks_after: DURATIONS_GAP_DARKS,
     },
     Appended {
         t_illuminated_s: 481.0,
         flux_scale: 1.0,
-        darks_after: DURATIONS_TAIL_DARKS,
     },
 ];
-/// The dark integrations between the illuminations `--durations apart` appends (1 h of
-/// 180 s darks) and after the last of them (3 h).
-const DURATIONS_GAP_DARKS: usize = 20;
-const DURATIONS_TAIL_DARKS: usize = 60;
+/// The dark integrations after each illumination `--durations apart` appends (3 h of
+/// 180 s darks): the gap before the next and the hours over which the slow traps
+/// release what a longer illumination put in them.
+const DURATIONS_DARKS: usize = 60;
 
 impl Durations {
     /// `campaign` with this choice of durations: with `Apart`, [`DURATIONS_APART`]
@@ -517,7 +513,7 @@ impl Durations {
             campaign.extend(DURATIONS_APART.iter().map(|a| Illumination {
                 t_illuminated_s: a.t_illuminated_s,
                 flux_scale: a.flux_scale,
-                darks_after: a.darks_after,
+                darks_after: DURATIONS_DARKS,
                 ..first.clone()
             }));
         }
@@ -1108,13 +1104,13 @@ mod tests {
         // each appended one is illumination 1 but for its length, flux and darks
         for a in &apart[5..] {
             assert_eq!(
+                a.clone(),
                 Illumination {
-                    t_illuminated_s: 481.0,
-                    flux_scale: 1.0,
-                    darks_after: 20,
-                    ..a.clone()
-                },
-                mixed[0]
+                    t_illuminated_s: a.t_illuminated_s,
+                    flux_scale: a.flux_scale,
+                    darks_after: 60,
+                    ..mixed[0].clone()
+                }
             );
         }
         let fluence = |i: &Illumination| i.t_illuminated_s * i.flux_scale;
@@ -1126,9 +1122,9 @@ mod tests {
             (pair[0].t_illuminated_s, pair[1].t_illuminated_s),
             (120.0, 481.0)
         );
-        // its history: equally bright illuminations, 1 h before each
+        // its history: equally bright illuminations, 3 h before each
         assert!((fluence(&before[0]) / fluence(&before[1]) - 1.0).abs() < 0.005);
-        assert_eq!((gap_s(&before[0]), gap_s(&before[1])), (3600.0, 3600.0));
+        assert_eq!((gap_s(&before[0]), gap_s(&before[1])), (10800.0, 10800.0));
         // equal duration and fluence, other histories: illumination 1 (none), +1 (after
         // the 481 s x1/4 one), +3 (after the 120 s x4 one)
         for k in [5, 7] {
@@ -1203,7 +1199,7 @@ mod tests {
             vec![481.0, 240.0, 240.0, 120.0, 481.0, 481.0, 120.0, 481.0]
         );
         let gap = |k: usize| ill[k + 1].0 - (ill[k].0 + ill[k].1);
-        assert!((gap(5) - 3600.0).abs() < 1e-6 && (gap(6) - 3600.0).abs() < 1e-6);
+        assert!((gap(5) - 10800.0).abs() < 1e-6 && (gap(6) - 10800.0).abs() < 1e-6);
     }
 
     #[test]
