@@ -24,6 +24,7 @@
 //! `--dark-lengths uniform|varied` (`persist simulate lab --campaign --dark-lengths`),
 //! `--temperatures mixed|apart` (`persist simulate lab --campaign --temperatures`),
 //! `--repeats N` (`persist simulate lab --campaign --repeats`),
+//! `--durations mixed|apart` (`persist simulate lab --campaign --durations`),
 //! `--first-seed S` (default 1: the seeds are S, S+1, ...),
 //! `--skip-baseline`, `--skip-single`, `--skip-pair`, `--joint` (`persist diagnose --joint`;
 //! the pair table then shows round 1's joint check when nothing is declared alone).
@@ -291,6 +292,7 @@ const VALUE_OPTIONS: &[&str] = &[
     "--dark-lengths",
     "--temperatures",
     "--repeats",
+    "--durations",
     "--out",
     "--effects",
     "--pair",
@@ -363,6 +365,8 @@ fn main() {
         temperatures: arg(&args, "--temperatures")
             .map_or(lab::Temperatures::default(), |v| v.parse().unwrap()),
         repeats: arg(&args, "--repeats").map_or(0, |v| v.parse().unwrap()),
+        durations: arg(&args, "--durations")
+            .map_or(lab::Durations::default(), |v| v.parse().unwrap()),
     };
     let campaign = options.illuminations();
     // the campaign's `persist simulate lab` flags beyond `--campaign`

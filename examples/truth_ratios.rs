@@ -7,14 +7,14 @@
 //! `temperature` do).
 //!
 //! ```sh
-//! target/release/examples/truth_ratios [--size 64] [--seed 1] [--spots centred] [--temperatures mixed] EFFECT[+EFFECT] ...
+//! target/release/examples/truth_ratios [--size 64] [--seed 1] [--spots centred] [--temperatures mixed] [--durations mixed] EFFECT[+EFFECT] ...
 //! ```
 //! Each argument is one hidden set, effects joined by `+` (e.g. `soak temperature
 //! soak+temperature`). `--fluence LO,HI` averages only the pixels whose true fluence
 //! (flux times illuminated time) in the last illumination lies in `[LO, HI)` e-, as
 //! `examples/model_ratios --fluence` does with the measured fluence.
 use persist::sim::effect::EffectSpec;
-use persist::sim::lab::{self, Illumination, LabConfig, Spots, Temperatures};
+use persist::sim::lab::{self, Durations, Illumination, LabConfig, Spots, Temperatures};
 
 /// Per exposure: (kind, mean true persistence e-/s over the pixels of the fluence band,
 /// every pixel without one, focal-plane temperature K). A pixel has no fluence before
@@ -74,7 +74,9 @@ fn main() {
     let temperatures: Temperatures = opt("--temperatures").map_or(Temperatures::default(), |v| {
         v.parse().expect("--temperatures")
     });
-    let campaign = temperatures.apply(spots.campaign());
+    let durations: Durations =
+        opt("--durations").map_or(Durations::default(), |v| v.parse().expect("--durations"));
+    let campaign = durations.apply(temperatures.apply(spots.campaign()));
     let band = opt("--fluence").map(|v| {
         let (lo, hi) = v.split_once(',').expect("--fluence LO,HI");
         (lo.parse().expect("LO"), hi.parse().expect("HI"))

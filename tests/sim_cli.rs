@@ -81,6 +81,8 @@ fn bad_arguments_are_named_and_nothing_is_written() {
         (vec!["lab", "--dark-lengths", "varied"], "--campaign"),
         (vec!["lab", "--campaign", "--dark-lengths", "long"], "long"),
         (vec!["lab", "--repeats", "2"], "--campaign"),
+        (vec!["lab", "--durations", "apart"], "--campaign"),
+        (vec!["lab", "--campaign", "--durations", "long"], "long"),
         (vec!["lab", "--campaign", "--repeats", "21"], "21"),
         (vec!["sky", "--detectors", "7"], "--detectors"),
         (vec!["sky", "--exposures", "0"], "--exposures"),

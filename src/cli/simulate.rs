@@ -112,6 +112,16 @@ pub struct LabArgs {
           value_parser = clap::builder::RangedU64ValueParser::<usize>::new()
               .range(0..=persist::sim::lab::MAX_REPEATS as u64))]
     pub repeats: usize,
+    /// Whether the campaign tells the illumination's duration from its history:
+    /// `mixed` (the campaign the other options make) or `apart` (three illuminations
+    /// appended at 80 K, 481 s, 120 s at four times the flux and 481 s, each followed by
+    /// 3 h of darks, so that the last two, each after an equally bright one 3 h before,
+    /// are two illuminations of equal
+    /// fluence and equal history differ in duration; `persist::sim::lab`, "Durations
+    /// apart").
+    #[arg(long, default_value_t = persist::sim::lab::Durations::default(),
+          value_parser = parse_flag::<persist::sim::lab::Durations>, requires = "campaign")]
+    pub durations: persist::sim::lab::Durations,
     /// Switch on a truth effect: NAME[:param=value,...] (repeatable). Names: blooming,
     /// capacity, ipc, linefit_bias, populations, short_tau_boost, soak, temperature.
     #[arg(long = "effect")]
@@ -222,6 +232,7 @@ pub(super) fn simulate(scenario: SimScenario) -> persist::Result<ExitCode> {
                         dark_lengths: a.dark_lengths,
                         temperatures: a.temperatures,
                         repeats: a.repeats,
+                        durations: a.durations,
                     }
                     .illuminations()
                 }),

@@ -203,7 +203,8 @@ fn separating_measurement(a: &str, b: &str) -> String {
     } else {
         "illuminations of equal fluence and equal history (each after darks long enough \
          to empty the traps, or after equally bright ones at the same gap) that differ in \
-         duration, for example 481 s at one flux and 120 s at four times it"
+         duration, for example 481 s at one flux and 120 s at four times it (persist \
+         simulate lab --campaign --durations apart writes such a campaign)"
             .into()
     }
 }
@@ -497,6 +498,12 @@ mod tests {
         let s = separation_sentence(Some(&c), "illumination_time");
         assert!(s.contains("equal fluence and equal history"), "{s}");
         assert!(s.contains("differ in duration"), "{s}");
+        assert!(
+            s.contains(
+                "(persist simulate lab --campaign --durations apart writes such a campaign)"
+            ),
+            "{s}"
+        );
         let named = separation_sentence(Some(&pair(Told::Second)), "illumination_time");
         assert!(
             named.contains("the data name earlier_illuminations"),

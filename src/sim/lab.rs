@@ -107,6 +107,48 @@
 //! length and the tail show at 80 K on their own. With `--spots shifted` or `pinholes`
 //! the sixth illumination takes the fifth's spot.
 //!
+//! # Durations apart (`--durations apart`, [`Durations::apply`])
+//! `diagnose` bins an illumination's history by the fluence of the illumination before
+//! it, in the pixel, and the time from that one's end (half-decades of each;
+//! `diag::contrast`). In the default campaign no two illuminations of equal fluence and
+//! equal history differ in duration: the 120 s x4 illumination (4) shares its history
+//! with the 240 s repeat (3), but has twice its fluence (and, at the default
+//! temperatures, another temperature), and
+//! the 481 s ones (1, 5) have neither the fluence nor the history of any other. An
+//! effect of the illumination's duration (the simulator's `soak`: slow capture, so that
+//! a longer illumination of the same fluence fills more of the slow traps) and one of
+//! the charge the traps still hold (its `capacity`) then split the illuminations alike,
+//! and `diagnose` can only call them confounded. The apart campaign appends three
+//! illuminations at the reference temperature (illumination 1's):
+//!
+//! | # | illuminated | flux scale | fluence (x the pattern's e-/s) | darks after |
+//! |---|---|---|---|---|
+//! | +1 | 481 s | 1 | 481 | 60 (3 h) |
+//! | +2 | 120 s | 4 | 480 | 60 (3 h) |
+//! | +3 | 481 s | 1 | 481 | 60 (3 h) |
+//!
+//! +2 and +3 have equal fluence (to 0.2 %) and equal history, each 3 h after an
+//! illumination of that fluence, and differ in duration; +1, +3 and illumination 1 have
+//! equal duration and fluence and differ in history (illumination 1 has none, +1 comes
+//! after the campaign's last illumination), so that each kind also shows on its own.
+//! The traps are not emptied in between: their emission times reach 10^6 s
+//! (`sim::traps`), so after any gap a laboratory can afford the traps still release the
+//! earlier charge, about as `1/t`, and equal history is an equally bright illumination
+//! at the same gap. Those two illuminations differ themselves in duration (481 s before
+//! +2, 120 s before +3): under an effect of the duration the charge they leave differs
+//! too, which the binning of history does not see. With a hidden `soak` (capture 10
+//! times slower) the true current over the same seed's without it, array means at 64 x
+//! 64 (`examples/truth_ratios --size 64 --durations apart soak`): 1 h after the
+//! shutter 0.838 after +2 (120 s) against 0.899 after +3 (481 s) and 0.897 after +1,
+//! 3 h after 0.710 against 0.796 and 0.791. The duration moves the current by about 10
+//! % at hours; the history, at equal duration, by under 1 %.
+//!
+//! The three come after every other option's illuminations (after `--temperatures
+//! apart`'s sixth and after the `--repeats`), and each is a copy of illumination 1 but
+//! for its length, flux and dark count: its temperature, its spot (centred, also with
+//! `--spots shifted`), the pinholes of `--spots pinholes`, the floor of `--spots paper`
+//! and, with `--dark-lengths varied`, its 180 s darks.
+//!
 //! # The paper's pattern (`--spots paper`, [`PaperPattern`])
 //! The pinhole pattern leaves most of the array below 3,000 e- (its floor is 0.05
 //! e-/s), so `fit`, `compare` and `diagnose` find "background pixels" that were never
@@ -423,6 +465,69 @@ impl Temperatures {
 
 choices!(Temperatures, "--temperatures", Mixed => "mixed", Apart => "apart");
 
+/// Whether the campaign tells the illumination's duration from its history (`persist
+/// simulate lab --durations`; module docs, "Durations apart").
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub enum Durations {
+    /// The campaign as the other options make it.
+    #[default]
+    Mixed,
+    /// Three illuminations appended: 481 s x1, 120 s x4 and 481 s x1 at the reference
+    /// temperature, each followed by 3 h of darks, the last two of equal fluence after
+    /// equally bright ones at the same gap ([`Durations::apply`]).
+    Apart,
+}
+
+/// One illumination `--durations apart` appends (module docs, "Durations apart").
+struct Appended {
+    t_illuminated_s: f64,
+    flux_scale: f64,
+}
+
+/// `--durations apart`: 481 s x1, then 120 s x4 (480 s x1's fluence) and 481 s x1,
+/// each followed by [`DURATIONS_DARKS`].
+const DURATIONS_APART: [Appended; 3] = [
+    Appended {
+        t_illuminated_s: 481.0,
+        flux_scale: 1.0,
+    },
+    Appended {
+        t_illuminated_s: 120.0,
+        flux_scale: 4.0,
+    },
+    Appended {
+        t_illuminated_s: 481.0,
+        flux_scale: 1.0,
+    },
+];
+/// The dark integrations after each illumination `--durations apart` appends (3 h of
+/// 180 s darks): the gap before the next and the hours over which the slow traps
+/// release what a longer illumination put in them.
+const DURATIONS_DARKS: usize = 60;
+
+impl Durations {
+    /// `campaign` with this choice of durations: with `Apart`, [`DURATIONS_APART`]
+    /// appended, each illumination 1's copy (its temperature, spot, pinholes and darks)
+    /// but for its length, flux and dark count. Nothing before them is changed; an
+    /// empty campaign is returned as it is.
+    pub fn apply(self, mut campaign: Vec<Illumination>) -> Vec<Illumination> {
+        let Some(first) = campaign.first().cloned() else {
+            return campaign;
+        };
+        if self == Durations::Apart {
+            campaign.extend(DURATIONS_APART.iter().map(|a| Illumination {
+                t_illuminated_s: a.t_illuminated_s,
+                flux_scale: a.flux_scale,
+                darks_after: DURATIONS_DARKS,
+                ..first.clone()
+            }));
+        }
+        campaign
+    }
+}
+
+choices!(Durations, "--durations", Mixed => "mixed", Apart => "apart");
+
 /// `--repeats N` (module docs, "Repeated illuminations"): what each added illumination
 /// is, and its dark gap.
 const REPEAT_T_ILLUMINATED_S: f64 = 240.0;
@@ -452,25 +557,27 @@ pub fn repeat(mut campaign: Vec<Illumination>, n: usize) -> Vec<Illumination> {
 }
 
 /// The campaign options of `persist simulate lab --campaign` together: where the
-/// spot is, how long the darks are, where the temperatures are and how many repeats.
-/// One place that builds the campaign they describe and names them back as flags.
+/// spot is, how long the darks are, where the temperatures are, how many repeats and
+/// whether the durations are apart. One place that builds the campaign they describe
+/// and names them back as flags.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
 pub struct CampaignOptions {
     pub spots: Spots,
     pub dark_lengths: DarkLengths,
     pub temperatures: Temperatures,
     pub repeats: usize,
+    pub durations: Durations,
 }
 
 impl CampaignOptions {
     /// The campaign's illuminations: the spots' campaign, then the dark lengths, the
-    /// temperatures and the repeats applied in that order.
+    /// temperatures, the repeats and the durations applied in that order.
     pub fn illuminations(&self) -> Vec<Illumination> {
-        repeat(
+        self.durations.apply(repeat(
             self.temperatures
                 .apply(self.dark_lengths.apply(self.spots.campaign())),
             self.repeats,
-        )
+        ))
     }
 
     /// The `persist simulate lab` flags beyond `--campaign` that give these options,
@@ -489,6 +596,9 @@ impl CampaignOptions {
         }
         if self.repeats != d.repeats {
             f += &format!(" --repeats {}", self.repeats);
+        }
+        if self.durations != d.durations {
+            f += &format!(" --durations {}", self.durations);
         }
         f
     }
@@ -969,6 +1079,132 @@ mod tests {
             o.flags(),
             " --spots shifted --temperatures apart --repeats 2"
         );
+        // the durations come last, after the temperatures' sixth and the repeats
+        let o = CampaignOptions {
+            durations: Durations::Apart,
+            ..o
+        };
+        assert_eq!(
+            o.illuminations(),
+            Durations::Apart.apply(repeat(
+                Temperatures::Apart.apply(Spots::Shifted.campaign()),
+                2
+            ))
+        );
+        assert_eq!(
+            o.flags(),
+            " --spots shifted --temperatures apart --repeats 2 --durations apart"
+        );
+    }
+
+    /// `--durations apart`: two appended illuminations of equal fluence and equal
+    /// history (as `diagnose` bins it: the fluence before and the gap) that differ in
+    /// duration, and three of equal duration and fluence that differ in history.
+    #[test]
+    fn durations_apart_append_equal_fluence_and_history_of_different_durations() {
+        let mixed = Illumination::default_campaign();
+        let apart = Durations::Apart.apply(mixed.clone());
+        assert_eq!(apart.len(), 8);
+        assert_eq!(apart[..5], mixed[..5]);
+        // each appended one is illumination 1 but for its length, flux and darks
+        for a in &apart[5..] {
+            assert_eq!(
+                a.clone(),
+                Illumination {
+                    t_illuminated_s: a.t_illuminated_s,
+                    flux_scale: a.flux_scale,
+                    darks_after: 60,
+                    ..mixed[0].clone()
+                }
+            );
+        }
+        let fluence = |i: &Illumination| i.t_illuminated_s * i.flux_scale;
+        let gap_s = |i: &Illumination| i.darks_after as f64 * i.dark_s.unwrap_or(180.0);
+        let (before, pair) = (&apart[5..7], &apart[6..8]);
+        // the pair: fluence within 0.5 %, durations four times apart
+        assert!((fluence(&pair[0]) / fluence(&pair[1]) - 1.0).abs() < 0.005);
+        assert_eq!(
+            (pair[0].t_illuminated_s, pair[1].t_illuminated_s),
+            (120.0, 481.0)
+        );
+        // its history: equally bright illuminations, 3 h before each
+        assert!((fluence(&before[0]) / fluence(&before[1]) - 1.0).abs() < 0.005);
+        assert_eq!((gap_s(&before[0]), gap_s(&before[1])), (10800.0, 10800.0));
+        // equal duration and fluence, other histories: illumination 1 (none), +1 (after
+        // the 481 s x1/4 one), +3 (after the 120 s x4 one)
+        for k in [5, 7] {
+            assert_eq!(
+                (apart[k].t_illuminated_s, fluence(&apart[k])),
+                (481.0, fluence(&mixed[0]))
+            );
+        }
+        assert_ne!(fluence(&apart[4]), fluence(&apart[6]));
+        assert_eq!(Durations::Mixed.apply(mixed.clone()), mixed);
+        assert_eq!(Durations::Apart.apply(Vec::new()), Vec::new());
+        assert_eq!("apart".parse::<Durations>().unwrap(), Durations::Apart);
+        assert!("long".parse::<Durations>().is_err());
+        // with the other options: illumination 1's temperature, spot, pinholes and darks
+        for (spots, lengths) in [
+            (Spots::Shifted, DarkLengths::Varied),
+            (Spots::Pinholes, DarkLengths::Uniform),
+        ] {
+            let o = CampaignOptions {
+                spots,
+                dark_lengths: lengths,
+                temperatures: Temperatures::Apart,
+                repeats: 1,
+                durations: Durations::Apart,
+            };
+            let c = o.illuminations();
+            let n = c.len();
+            assert_eq!(
+                c[..n - 3],
+                CampaignOptions {
+                    durations: Durations::Mixed,
+                    ..o
+                }
+                .illuminations()[..]
+            );
+            for a in &c[n - 3..] {
+                assert_eq!(
+                    (
+                        a.temp_k,
+                        a.spot_offset,
+                        a.points,
+                        a.dark_s,
+                        a.after_shutter_s
+                    ),
+                    (80.0, [0.0, 0.0], spots == Spots::Pinholes, None, None)
+                );
+            }
+        }
+    }
+
+    /// The exposures of `--durations apart` carry the durations, and the time from the
+    /// end of each of the pair's earlier illuminations to its start is the same.
+    #[test]
+    fn durations_apart_exposures_keep_the_pair_at_the_same_gap() {
+        let cfg = LabConfig {
+            size: 8,
+            campaign: Some(Durations::Apart.apply(Illumination::default_campaign())),
+            ..LabConfig::default()
+        };
+        let mut ill = Vec::new();
+        run(&cfg, |e| {
+            if e.kind == "illuminated" {
+                let m = &e.exposure.meta;
+                ill.push((m.t_start.0, m.t_exposure_s, m.t_illuminated_s()));
+            }
+            Ok(())
+        })
+        .unwrap();
+        let t: Vec<f64> = ill.iter().map(|i| i.2).collect();
+        assert_eq!(
+            t,
+            vec![481.0, 240.0, 240.0, 120.0, 481.0, 481.0, 120.0, 481.0]
+        );
+        let gap = |k: usize| ill[k + 1].0 - (ill[k].0 + ill[k].1);
+        assert!((gap(5) - 10800.0).abs() < 1e-6 && (gap(6) - 10800.0).abs() < 1e-6);
     }
 
     #[test]
