@@ -11,6 +11,7 @@
 //! ```sh
 //! target/release/examples/flag_quality [--size 128] [--seed 1] [--exposures 1143]
 //!     [--windows 2500,5000,10000,20000,40000] [--lab-darks 30] [--release-consecutive N]
+//!     [--release-rule consecutive] [--release-sigma Z]
 //! ```
 //! Prints the page's body (markdown) on stdout.
 use ndarray::Array2;
@@ -90,19 +91,43 @@ fn main() -> persist::Result<()> {
     // `persist::pixmap::eval::PAPER_DARKS_AFTER_FIRST`)
     let lab_darks: usize = arg(&args, "--lab-darks", 30);
     // early release of the coverage-calibrated model after this many exposures in a row
-    // (the model's default when absent)
+    // (`rule: consecutive`; the model's rule when absent)
     let release: Option<u8> = args
         .iter()
         .position(|a| a == "--release-consecutive")
         .and_then(|i| args.get(i + 1))
         .and_then(|v| v.parse().ok());
+    // early release of every model by the paper-style count instead of the evidence sum
+    // (`--release-rule consecutive`), or with this evidence (`--release-sigma`)
+    let consecutive_rule = args
+        .iter()
+        .position(|a| a == "--release-rule")
+        .and_then(|i| args.get(i + 1))
+        .is_some_and(|v| v == "consecutive");
+    let sigma: Option<f64> = args
+        .iter()
+        .position(|a| a == "--release-sigma")
+        .and_then(|i| args.get(i + 1))
+        .and_then(|v| v.parse().ok());
+    let with_rule = |mut p: ModelParams| {
+        if consecutive_rule {
+            p.early_release.rule = persist::model::ReleaseRule::Consecutive;
+        }
+        if let Some(z) = sigma {
+            p.early_release.evidence_sigma = z;
+        }
+        p
+    };
     let mut campaign = persist::pixmap::eval::lab_campaign();
     campaign[0].darks_after = lab_darks;
     let (_, seq) = persist::pixmap::eval::lab_sequence_of(size, seed, true, campaign)?;
     let (lab, _) = persist::calib::calibrate(&seq, &persist::calib::CalibConfig::default())?;
+    let lab = with_rule(lab);
     let cov = CoverageConfig::default();
-    let (mut covered, rep) = coverage::apply(&lab, &seq, &cov)?;
+    let (covered, rep) = coverage::apply(&lab, &seq, &cov)?;
+    let mut covered = with_rule(covered);
     if let Some(n) = release {
+        covered.early_release.rule = persist::model::ReleaseRule::Consecutive;
         covered.early_release.consecutive = n;
     }
     let reshaped_cfg = CoverageConfig {
@@ -110,6 +135,7 @@ fn main() -> persist::Result<()> {
         ..cov.clone()
     };
     let (reshaped, rep_reshaped) = coverage::apply(&lab, &seq, &reshaped_cfg)?;
+    let reshaped = with_rule(reshaped);
     let map = |p: &ModelParams| -> persist::Result<Model> {
         let m = persist::pixmap::build(&seq, p, &persist::pixmap::MapConfig::default())?;
         let r = persist::pixmap::file::response(&m, 1.0)
@@ -125,7 +151,7 @@ fn main() -> persist::Result<()> {
     let mut flaggers: Vec<(String, Flagger)> = vec![
         (
             "paper's default model".into(),
-            model(Model::new(ModelParams::default())?),
+            model(Model::new(with_rule(ModelParams::default()))?),
         ),
         (
             "`fit --no-coverage` (95th percentile x 1.2)".into(),
@@ -211,10 +237,16 @@ fn main() -> persist::Result<()> {
     println!(
         "Detector 1, {size} x {size} pixels, seed {seed}: the laboratory sequence of \
          `persist::pixmap::eval::lab_campaign` with {lab_darks} darks of 180 s after the first \
-         illumination, then {exposures} sky exposures; early release of the coverage-calibrated \
-         model after {} exposures in a row; counted from exposure {FROM_EXPOSURE} on, \
-         non-functional pixels left out. Computed in {:.0} s.\n",
-        covered.early_release.consecutive,
+         illumination, then {exposures} sky exposures; early release {}; counted from \
+         exposure {FROM_EXPOSURE} on, non-functional pixels left out. Computed in {:.0} s.\n",
+        release_rule(
+            &covered.early_release,
+            if release.is_some() {
+                "of the coverage-calibrated model"
+            } else {
+                "of every model"
+            }
+        ),
         started.elapsed().as_secs_f64()
     );
     println!(
@@ -253,4 +285,19 @@ fn main() -> persist::Result<()> {
         println!("| {thr} e-/s | {} |", cells.join(" | "));
     }
     Ok(())
+}
+
+/// The early release of the coverage-calibrated model (that of `who`), in words.
+fn release_rule(er: &persist::model::EarlyRelease, who: &str) -> String {
+    match er.rule {
+        persist::model::ReleaseRule::Consecutive => format!(
+            "{who} after {} exposures in a row measured below its threshold \
+             (`rule: consecutive`)",
+            er.consecutive
+        ),
+        persist::model::ReleaseRule::Evidence => format!(
+            "{who} at an evidence of {} noise sigma (`rule: evidence`)",
+            er.evidence_sigma
+        ),
+    }
 }

@@ -309,17 +309,19 @@ TEXT
         "$bin" --seed 2
         echo
         cat <<'TEXT'
-## Where the late misses come from: early release (seed 1)
+## Early release: evidence against the count of three (seed 1)
 
-The same run with the coverage-calibrated model releasing a pixel only after 6
-exposures in a row measured below the early-release threshold instead of the model's
-3 (`early_release.consecutive`); the other rows are unchanged. A pixel whose true
-current sits just above 0.1 e-/s is measured below it about half the time on the
-sky's noise, three times in a row within a few exposures: released, its amplitudes
-are zero and it stays unflagged whatever the margin.
+The models above release a flagged pixel when its measurements, less the background,
+add up to 3 noise sigmas of evidence that its persistence is below both the threshold
+and its prediction (`early_release.rule: evidence`, docs/model.md "Early release").
+Here every model releases by the paper-style count instead: after 3 exposures in a
+row measured below the threshold (`rule: consecutive`). On the sky's noise (about
+0.12 e-/s per pixel) a pixel whose true current sits just above 0.1 e-/s is measured
+below it about half the time, three times in a row within a few exposures: released,
+its amplitudes are zero and it stays unflagged whatever the margin.
 
 TEXT
-        "$bin" --seed 1 --release-consecutive 6
+        "$bin" --seed 1 --release-rule consecutive
         echo
         cat <<'TEXT'
 ## The paper's 14 h of laboratory darks (seed 1)

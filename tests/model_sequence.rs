@@ -5,8 +5,8 @@ use ndarray::{array, Array2};
 use persist::flags::{bits, pbits};
 use persist::model::params::{TransientProvenance, TransientRule};
 use persist::model::{
-    reference, EarlyRelease, Input, Knot, Model, ModelParams, Output, State, StepSummary, Term,
-    Thresholds,
+    reference, EarlyRelease, Input, Knot, Model, ModelParams, Output, ReleaseRule, State,
+    StepSummary, Term, Thresholds,
 };
 use proptest::prelude::*;
 
@@ -14,7 +14,8 @@ use proptest::prelude::*;
 /// `C = [0.1, 0.01] /s`, rates `[0.1, 0.001] /s` (tau 10 s and 1000 s);
 /// knots (1e5 e-, 100 e-), (2e5 e-, 1000 e-): `A_k = F/1000` below 1e5 e-,
 /// `100 + 9 (F - 1e5)/1000` up to 2e5 e-, 1000 beyond (the maximum);
-/// thresholds 0.1 / 0.01 e-/s; early release below 0.5 e-/s three times running.
+/// thresholds 0.1 / 0.01 e-/s; early release below 0.5 e-/s three times running
+/// (`rule: consecutive`, whose count these hand-worked cases follow).
 fn hand_model() -> Model {
     Model::new(ModelParams {
         name: "hand".into(),
@@ -47,6 +48,7 @@ fn hand_model() -> Model {
             threshold_e_per_s: 0.5,
             consecutive: 3,
             subtract_background: true,
+            rule: ReleaseRule::Consecutive,
             ..EarlyRelease::default()
         },
         ..ModelParams::default()
@@ -377,6 +379,18 @@ proptest! {
         fused_matches_reference(&model, &seq)?;
     }
 
+    /// The same with the paper-style count (`rule: consecutive`).
+    #[test]
+    fn fused_step_matches_reference_counting_consecutive(
+        seq in prop::collection::vec(exp_strategy(12), 1..25),
+    ) {
+        let mut params = ModelParams::default();
+        params.early_release.threshold_e_per_s = 5.0;
+        params.early_release.rule = ReleaseRule::Consecutive;
+        let model = Model::new(params).unwrap();
+        fused_matches_reference(&model, &seq)?;
+    }
+
     /// The same with a measured transient rule (below the table's maximum).
     #[test]
     fn fused_step_matches_reference_with_a_transient_rule(
@@ -481,13 +495,15 @@ fn fused_matches_reference(model: &Model, seq: &[Exp]) -> Result<(), TestCaseErr
 }
 
 /// Early release on a sky: a pixel flagged after a transient, measuring only the
-/// 1.0 e-/s sky (+0.05), is released after three exposures when the background (the
-/// image median) is subtracted, and never without it (1.05 > 0.1 e-/s).
+/// 1.0 e-/s sky (+0.05), is released after three exposures (`rule: consecutive`) when
+/// the background (the image median) is subtracted, and never without it
+/// (1.05 > 0.1 e-/s).
 #[test]
 fn early_release_subtracts_the_sky_level() {
     for (subtract, released_at) in [(true, Some(3u64)), (false, None)] {
         let mut params = ModelParams::default();
         params.early_release.subtract_background = subtract;
+        params.early_release.rule = ReleaseRule::Consecutive;
         let mut r = Run::new(Model::new(params).unwrap(), 4, 4);
         r.background = None; // estimated from the image: 1.0 e-/s
         let sky = Array2::from_elem((4, 4), 1.0f32);
@@ -509,6 +525,83 @@ fn early_release_subtracts_the_sky_level() {
             "subtract_background = {subtract}"
         );
     }
+}
+
+/// The evidence rule (the default: 3 noise sigma) on a 4 x 8 sky whose 28 quiet pixels
+/// measure 0.75, 1.0 or 1.25 e-/s (13, 2 and 13 of them): background 1.0 e-/s (their
+/// median), noise 1.4826 x 0.25 e-/s (their median absolute deviation, 0.25). Four
+/// pixels lit at 1e4 e-/s stay flagged high for the 30 exposures that follow (checked),
+/// measured, less the background:
+/// - 0.1 e-/s - 1 sigma each time: 1 sigma of evidence a time, released at the 3rd;
+/// - 0.1 e-/s - sigma / 2: released at the 6th (`consecutive` would at the 3rd);
+/// - the threshold, to f32 rounding: never released;
+/// - 1 sigma below and above the threshold in turn: never released (the count rule
+///   needs a run, so it would not either; the evidence rule, because it cancels).
+#[test]
+fn evidence_releases_pixels_measured_below_and_keeps_those_at_the_threshold() {
+    let (ny, nx) = (4, 8);
+    let sigma = 1.4826 * 0.25;
+    let quiet = |i: usize| match i {
+        0..13 => 0.75f32,
+        13..15 => 1.0,
+        _ => 1.25,
+    };
+    let sky = |levels: [f32; 4]| {
+        Array2::from_shape_fn((ny, nx), |(y, x)| {
+            let i = y * nx + x;
+            if i < 4 {
+                levels[i]
+            } else {
+                quiet(i - 4)
+            }
+        })
+    };
+    for (rule, expected) in [
+        (ReleaseRule::Evidence, [Some(3u64), Some(6), None, None]),
+        (ReleaseRule::Consecutive, [Some(3u64), Some(3), None, None]),
+    ] {
+        let mut params = ModelParams::default();
+        params.early_release.rule = rule;
+        let mut r = Run::new(Model::new(params).unwrap(), ny, nx);
+        r.background = None; // estimated by the step
+        r.step(0, 0.0, sky([1e4; 4]), Array2::zeros((ny, nx)));
+        let mut released = [None; 4];
+        for k in 1..=30u64 {
+            let at = |below_sigma: f64| (1.1 - below_sigma * sigma) as f32;
+            let turn = if k % 2 == 1 { 1.0 } else { -1.0 };
+            let image = sky([at(1.0), at(0.5), at(0.0), at(turn)]);
+            r.step(k, k as f64 * 130.0, image, Array2::zeros((ny, nx)));
+            for (x, first) in released.iter_mut().enumerate() {
+                let f = r.pflags[(0, x)];
+                if f & pbits::RELEASED != 0 {
+                    first.get_or_insert(k);
+                } else if first.is_none() {
+                    assert_ne!(f & pbits::HIGH, 0, "{rule:?}: pixel {x} flagged at {k}");
+                }
+            }
+        }
+        assert_eq!(released, expected, "{rule:?}");
+    }
+}
+
+#[test]
+fn noise_is_the_quiet_pixels_robust_deviation() {
+    use persist::model::step::noise_e_per_s;
+    use persist::model::BackgroundEstimate::ImageMedian;
+    // 0.75 / 1.0 / 1.25 e-/s: the median 1.0, every deviation 0.25 but one
+    let image = array![
+        [0.75f32, 1.0, 1.25],
+        [0.75, 1.25, 1.0],
+        [f32::NAN, 0.75, 1.25]
+    ];
+    let none = ndarray::Array3::<f64>::zeros((3, 3, 0));
+    let got = noise_e_per_s(ImageMedian, &image.view(), &none, &[], 0.01);
+    assert!((got - 1.4826 * 0.25).abs() < 1e-12, "{got}");
+    let empty = Array2::from_elem((2, 2), f32::NAN);
+    assert_eq!(
+        noise_e_per_s(ImageMedian, &empty.view(), &none, &[], 0.01),
+        0.0
+    );
 }
 
 #[test]
@@ -533,7 +626,7 @@ fn sky_level_is_the_median_of_finite_pixels() {
 /// and the 16 others the 0.02 e-/s dark current. The image median is 0.6: with
 /// `image_median` the lit pixels pass `0.6 < 0.1 + 0.6` and are released at the third
 /// dark exposure; with `quiet_pixels` the background is the 16 unlit pixels' 0.02 e-/s,
-/// `0.6 > 0.12`, and nothing is released.
+/// `0.6 > 0.12`, and nothing is released (`rule: consecutive`).
 #[test]
 fn a_lit_median_pixel_does_not_release_persistent_pixels() {
     use persist::model::BackgroundEstimate;
@@ -543,6 +636,7 @@ fn a_lit_median_pixel_does_not_release_persistent_pixels() {
     ] {
         let mut params = ModelParams::default();
         params.early_release.background = estimate;
+        params.early_release.rule = ReleaseRule::Consecutive;
         let mut r = Run::new(Model::new(params).unwrap(), 8, 8);
         r.background = None; // estimated by the step
         let lit = |y: usize, _x: usize| y < 6;

@@ -186,6 +186,14 @@ impl Sequence {
         Ok(seq)
     }
 
+    /// A laboratory sequence: some exposure states its illumination time
+    /// (`t_illuminated_s`); else sky data, every exposure an illumination.
+    pub fn is_laboratory(&self) -> bool {
+        self.exposures
+            .iter()
+            .any(|e| e.meta.t_illuminated_s.is_some())
+    }
+
     /// The same sequence with its background measured by `b` (module docs).
     pub fn with_background(mut self, b: Background) -> Sequence {
         if b != self.background {
@@ -199,10 +207,7 @@ impl Sequence {
     /// (module docs).
     fn measure_background(&mut self) {
         let (ny, nx) = (self.ny, self.nx);
-        let lab = self
-            .exposures
-            .iter()
-            .any(|e| e.meta.t_illuminated_s.is_some());
+        let lab = self.is_laboratory();
         let line = lab && self.background == Background::Line;
         let mut max_fluence = Array2::<f64>::zeros((ny, nx));
         let mut last_fluence: Option<Array2<f64>> = None;
@@ -511,10 +516,7 @@ impl Sequence {
     /// empty (spread 0 everywhere) on sky data or when no exposure follows the first
     /// illumination.
     pub fn population_spread(&self) -> PopulationSpread {
-        let lab = self
-            .exposures
-            .iter()
-            .any(|e| e.meta.t_illuminated_s.is_some());
+        let lab = self.is_laboratory();
         let Some(&a) = self.illuminations.first() else {
             return PopulationSpread::default();
         };

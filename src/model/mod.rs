@@ -24,7 +24,9 @@ pub mod step;
 
 pub use decay::ExpSum;
 pub use effect_step::StepContext;
-pub use params::{BackgroundEstimate, EarlyRelease, Knot, ModelParams, Term, Thresholds};
+pub use params::{
+    BackgroundEstimate, EarlyRelease, Knot, ModelParams, ReleaseRule, Term, Thresholds,
+};
 pub use pixel_response::PixelResponse;
 pub use response::Response;
 pub use state::State;

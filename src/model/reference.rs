@@ -51,12 +51,7 @@ pub fn step(
         let count = &mut state.release_count[(y, x)];
         if k.er_enabled && high[(y, x)] {
             let m = image[(y, x)];
-            *count = if m.is_finite() && f64::from(m) < k.er_threshold {
-                count.saturating_add(1)
-            } else {
-                0
-            };
-            if *count >= k.er_consecutive {
+            if k.release_step(count, m, pred[(y, x)]) {
                 state.amplitudes_e.slice_mut(s![y, x, ..]).fill(0.0);
                 *count = 0;
                 high[(y, x)] = false;

@@ -1,7 +1,8 @@
 //! The per-detector model state carried from exposure to exposure.
 //!
 //! Invariants: every amplitude is finite and >= 0 (inputs are sanitised before they
-//! reach it, see [`crate::model::step`]); `release_count < consecutive`; `pending` holds
+//! reach it, see [`crate::model::step`]); `release_count` below the count that releases
+//! (`consecutive`, or `evidence_sigma` in quarter sigmas); `pending` holds
 //! only [`PENDING_MAX_AMPLITUDE`]; `t_reset` is `None` exactly when no exposure has been
 //! absorbed yet, and then every amplitude is zero.
 
@@ -17,8 +18,10 @@ pub struct State {
     /// `A_n` in electrons, shape `[ny, nx, n_terms]` (term index fastest, so one pixel's
     /// amplitudes are contiguous and a row of pixels is one contiguous block).
     pub amplitudes_e: Array3<f64>,
-    /// Consecutive exposures flagged high with a measured current below the early-release
-    /// threshold. `[ny, nx]`
+    /// Early release's count (`Kernel::release_step` in [`crate::model::step`]): the
+    /// evidence so far in quarter noise sigmas (`rule: evidence`), or the consecutive
+    /// exposures flagged high with a measured current below the early-release threshold
+    /// (`rule: consecutive`). `[ny, nx]`
     pub release_count: Array2<u8>,
     /// Per-pixel bits carried to the next exposure. `[ny, nx]`
     pub pending: Array2<u8>,

@@ -35,7 +35,7 @@
 use super::decay::ExpSum;
 pub use super::fluence::FlagBits;
 use super::fluence::{extrapolated_fluence_e, pixel_fluence, PixelFluence};
-use super::params::{BackgroundEstimate, ModelParams};
+use super::params::{BackgroundEstimate, ModelParams, ReleaseRule};
 use super::pixel_response::PixelResponse;
 use super::response::Response;
 use super::state::{State, PENDING_MAX_AMPLITUDE};
@@ -152,9 +152,9 @@ impl Model {
     pub fn quiet_rows(&self, input: &Input<'_>) -> Option<usize> {
         let er = &self.params.early_release;
         let reads_state = er.enabled
-            && er.subtract_background
             && er.background == BackgroundEstimate::QuietPixels
-            && input.background_e_per_s.is_none();
+            && ((er.subtract_background && input.background_e_per_s.is_none())
+                || er.rule == ReleaseRule::Evidence);
         reads_state.then(|| {
             let (ny, nx) = input.image_e_per_s.dim();
             quiet_row_stride(ny, nx)
@@ -220,7 +220,8 @@ impl Model {
     /// would on the whole array.
     pub fn is_pixel_local(&self) -> bool {
         let er = &self.params.early_release;
-        !(er.enabled && er.subtract_background) && self.effects.iter().all(|e| e.is_pixel_local())
+        let array_wide = er.subtract_background || er.rule == ReleaseRule::Evidence;
+        !(er.enabled && array_wide) && self.effects.iter().all(|e| e.is_pixel_local())
     }
 
     /// The paper's fused kernel: one exposure of a model without effects (module
@@ -359,19 +360,27 @@ impl Model {
             }
         };
         let er = &self.params.early_release;
-        // Comparing `m - background < threshold` is comparing `m < threshold + background`.
-        let background = if er.enabled && er.subtract_background {
-            input.background_e_per_s.unwrap_or_else(|| {
-                background_e_per_s(
-                    er.background,
-                    &input.image_e_per_s,
-                    &state.amplitudes_e,
-                    &w,
-                    self.params.thresholds.low_e_per_s,
-                )
-            })
+        // The sample of quiet pixels gives the background (when not given) and the noise
+        // (when the rule asks for it); computed only when used.
+        let needs_background = er.enabled && er.subtract_background;
+        let needs_noise = er.enabled && er.rule == ReleaseRule::Evidence;
+        let given = input.background_e_per_s.filter(|_| needs_background);
+        let mut sample = if (needs_background && given.is_none()) || needs_noise {
+            quiet_sample(
+                er.background,
+                &input.image_e_per_s,
+                &state.amplitudes_e,
+                &w,
+                self.params.thresholds.low_e_per_s,
+            )
         } else {
-            0.0
+            Vec::new()
+        };
+        // Comparing `m - background < threshold` is comparing `m < threshold + background`.
+        let background = match (needs_background, given) {
+            (false, _) => 0.0,
+            (true, Some(b)) => b,
+            (true, None) => median_f32(&mut sample),
         };
         if !background.is_finite() {
             return Err(Error::invalid(
@@ -379,6 +388,11 @@ impl Model {
                 format!("must be finite, got {background}"),
             ));
         }
+        let noise_e_per_s = if needs_noise {
+            robust_sigma_f32(&mut sample)
+        } else {
+            0.0
+        };
         Ok(Kernel {
             n: self.n_terms(),
             w,
@@ -388,7 +402,13 @@ impl Model {
             low: self.params.thresholds.low_e_per_s,
             er_enabled: er.enabled,
             er_threshold: er.threshold_e_per_s + background,
-            er_consecutive: er.consecutive,
+            er_background: background,
+            er_noise: noise_e_per_s.max(f64::MIN_POSITIVE),
+            er_rule: er.rule,
+            er_release_at: match er.rule {
+                ReleaseRule::Consecutive => er.consecutive,
+                ReleaseRule::Evidence => er.evidence_quarter_sigmas(),
+            },
             response: &self.response,
             a_max: self.response.max_e(),
             a_transient: self.params.transient_amplitude_e(),
@@ -443,14 +463,18 @@ pub fn quiet_row_stride(ny: usize, nx: usize) -> usize {
 /// varies slowly across an array; stars and persistence are a minority of pixels).
 /// 0 when no pixel is finite. [`BackgroundEstimate::ImageMedian`].
 pub fn sky_level_e_per_s(image: &ArrayView2<'_, f32>) -> f64 {
+    median_f32(&mut sky_sample(image))
+}
+
+/// The finite pixels of the regular sample [`sky_level_e_per_s`] takes the median of.
+fn sky_sample(image: &ArrayView2<'_, f32>) -> Vec<f32> {
     let stride = image.len().div_ceil(BACKGROUND_SAMPLE).max(1);
-    let mut sample: Vec<f32> = image
+    image
         .iter()
         .step_by(stride)
         .copied()
         .filter(|v| v.is_finite())
-        .collect();
-    median_f32(&mut sample)
+        .collect()
 }
 
 /// The early-release background of an exposure, e-/s ([`BackgroundEstimate`]):
@@ -465,13 +489,49 @@ pub fn background_e_per_s(
     w: &[f64],
     low_e_per_s: f64,
 ) -> f64 {
+    median_f32(&mut quiet_sample(
+        estimate,
+        image,
+        amplitudes_e,
+        w,
+        low_e_per_s,
+    ))
+}
+
+/// The noise of an exposure's measured currents, e-/s: the robust standard deviation
+/// (1.4826 x the median absolute deviation from the median) of the pixels whose median
+/// is [`background_e_per_s`] (same arguments). 0 when no sampled pixel is finite.
+pub fn noise_e_per_s(
+    estimate: BackgroundEstimate,
+    image: &ArrayView2<'_, f32>,
+    amplitudes_e: &ndarray::Array3<f64>,
+    w: &[f64],
+    low_e_per_s: f64,
+) -> f64 {
+    robust_sigma_f32(&mut quiet_sample(
+        estimate,
+        image,
+        amplitudes_e,
+        w,
+        low_e_per_s,
+    ))
+}
+
+/// The finite measured currents [`background_e_per_s`] takes the median of.
+fn quiet_sample(
+    estimate: BackgroundEstimate,
+    image: &ArrayView2<'_, f32>,
+    amplitudes_e: &ndarray::Array3<f64>,
+    w: &[f64],
+    low_e_per_s: f64,
+) -> Vec<f32> {
     let amps = match (estimate, amplitudes_e.as_slice()) {
         (BackgroundEstimate::QuietPixels, Some(a))
             if !w.is_empty() && a.len() == image.len() * w.len() =>
         {
             a
         }
-        _ => return sky_level_e_per_s(image),
+        _ => return sky_sample(image),
     };
     let n = w.len();
     let (ny, nx) = image.dim();
@@ -491,18 +551,25 @@ pub fn background_e_per_s(
         }
     }
     if sample.is_empty() {
-        return 0.0;
+        return Vec::new();
     }
     // at least the 1/256 of the sample (and 16 pixels) with the lowest prediction
     let m = (sample.len() / 256).max(16).min(sample.len());
     let (_, mth, _) = sample.select_nth_unstable_by(m - 1, |a, b| a.0.total_cmp(&b.0));
     let cut = mth.0.max(low_e_per_s);
-    let mut quiet: Vec<f32> = sample
+    sample
         .iter()
         .filter(|(p, _)| *p <= cut)
         .map(|(_, v)| *v)
-        .collect();
-    median_f32(&mut quiet)
+        .collect()
+}
+
+/// 1.4826 x the median absolute deviation of `v` from its median (the standard
+/// deviation of normal noise), `v` reordered; 0 when empty.
+fn robust_sigma_f32(v: &mut [f32]) -> f64 {
+    let m = median_f32(v);
+    let mut dev: Vec<f32> = v.iter().map(|&x| (f64::from(x) - m).abs() as f32).collect();
+    1.4826 * median_f32(&mut dev)
 }
 
 /// The median (upper middle element) of `v`, reordered; 0 when empty.
@@ -563,7 +630,14 @@ pub(crate) struct Kernel<'m> {
     pub low: f64,
     pub er_enabled: bool,
     pub er_threshold: f64,
-    pub er_consecutive: u8,
+    /// The background the threshold includes, e-/s.
+    pub er_background: f64,
+    /// The exposure's noise ([`noise_e_per_s`]; 0 when the rule does not use it), at
+    /// least the smallest positive `f64`.
+    pub er_noise: f64,
+    pub er_rule: ReleaseRule,
+    /// The release count that releases: `consecutive`, or the evidence in quarter sigmas.
+    pub er_release_at: u8,
     pub response: &'m Response,
     pub a_max: f64,
     /// `A_k` of a `TRANSIENT` pixel ([`ModelParams::transient_amplitude_e`]).
@@ -754,12 +828,7 @@ impl Kernel<'_> {
         // 3. early release
         let mut released = false;
         if self.er_enabled && high {
-            if m.is_finite() && f64::from(m) < self.er_threshold {
-                *count = count.saturating_add(1);
-            } else {
-                *count = 0;
-            }
-            if *count >= self.er_consecutive {
+            if self.release_step(count, m, pred) {
                 a.fill(0.0);
                 *count = 0;
                 high = false;
@@ -776,6 +845,34 @@ impl Kernel<'_> {
             low,
             released,
         }
+    }
+
+    /// One exposure of early release for a pixel flagged high, measured `m` (raw, e-/s),
+    /// predicted `pred`: updates its release `count` ([`crate::model::EarlyRelease`]) and
+    /// tells whether it is released. A non-finite measurement resets the count.
+    /// - `consecutive`: one more when `m`, less the background, is below the threshold,
+    ///   else 0;
+    /// - `evidence`: the count is the evidence in quarter noise sigmas, `max(0, count +
+    ///   4 (min(threshold, pred) - (m - background)) / noise)`, rounded, at most 255.
+    #[inline(always)]
+    pub(crate) fn release_step(&self, count: &mut u8, m: f32, pred: f64) -> bool {
+        if !m.is_finite() {
+            *count = 0;
+            return false;
+        }
+        let m = f64::from(m);
+        *count = match self.er_rule {
+            ReleaseRule::Consecutive if m < self.er_threshold => count.saturating_add(1),
+            ReleaseRule::Consecutive => 0,
+            ReleaseRule::Evidence => {
+                // `er_threshold` holds the background; so does the reference
+                let reference = self.er_threshold.min(pred + self.er_background);
+                let quarters = f64::from(*count) + 4.0 * (reference - m) / self.er_noise;
+                // finite operands; an infinite quotient (noise 0) clamps to 0 or 255
+                quarters.round().clamp(0.0, 255.0) as u8
+            }
+        };
+        *count >= self.er_release_at
     }
 
     /// The outputs of one pixel after steps 4-5: whether this exposure's response was

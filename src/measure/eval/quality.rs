@@ -7,8 +7,9 @@
 //! keeps read noise (`sigma_k` ~ 0.1 e-/s per pixel, the paper's noise level) from
 //! counting as a flag error. Fractions are of all samples, and missed also of the
 //! samples measured above `thr + 2 sigma_k`. Flags come from the model as the stage
-//! runs it (early release included); residuals from the same model with early release
-//! off (a release zeroes a prediction the physics still has).
+//! runs it (early release included; on a laboratory sequence against its measured dark
+//! level, [`super::predict`]); residuals from the same model with early release off (a
+//! release zeroes a prediction the physics still has).
 
 use super::cells::key_of;
 use super::samples::Samples;

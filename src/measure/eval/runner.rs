@@ -17,6 +17,19 @@ pub struct Prediction {
 /// Run `params` over the whole sequence; predictions at the samples. `early_release`
 /// false switches it off (residuals), true keeps the model file's setting (flags).
 ///
+/// On a laboratory sequence ([`Sequence::is_laboratory`]) early release subtracts the
+/// sequence's measured dark level `b_k` ([`Sequence::background_e_per_s`], measured
+/// from the background pixels or the darks) as the exposure's background, as the stage
+/// subtracts a background it is given. The step's own estimate, the median of the
+/// pixels it predicts quiet, measures persistence there: a laboratory illumination
+/// lights every pixel, so the quiet pixels are the least-lit ones and, after the first
+/// release, the released ones (their amplitudes zeroed), whose persistence the
+/// median then takes for background (campaign of `tests/coverage_after_effect.rs`:
+/// 0.37-0.80 e-/s in the first dark after an illumination, 0.09-0.13 e-/s in the
+/// second, where the dark level is 0.014-0.018 e-/s), and the pixels released
+/// against it are truly well above the threshold. On sky data the step estimates it,
+/// as in the stage.
+///
 /// A model whose pixels do not see one another ([`Model::is_pixel_local`]) runs on the
 /// sampled pixels alone, gathered into an array of their own ([`Layout::Gathered`]);
 /// any other on the whole array, advancing the sampled pixels and what they read
@@ -87,6 +100,7 @@ pub fn predict_in(
         }
         a
     });
+    let lab = seq.is_laboratory();
     let mut row = 0;
     for (k, e) in seq.exposures.iter().enumerate() {
         let image = if gathered {
@@ -108,7 +122,7 @@ pub fn predict_in(
             t_exposure_s: e.meta.t_exposure_s,
             t_illuminated_s: e.meta.t_illuminated_s(),
             history_incomplete: false,
-            background_e_per_s: None,
+            background_e_per_s: lab.then(|| seq.background_e_per_s[k]),
         };
         model.step_with(
             &mut st,
