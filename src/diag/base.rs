@@ -34,9 +34,9 @@
 //! its fluence dependence, the response around saturation and the mix of trap
 //! populations stands from the data. `persist diagnose` prints its RMS; nothing-hidden
 //! sequences of both truth generators: `docs/validation/reference_rms.md` (`make
-//! validation PAGES=reference`). It does not yet decide anything: the effects are
-//! still refitted and gated against the measurements' description
-//! ([`super::reference`]).
+//! validation PAGES=reference`). Event-level covariates are tested against it
+//! ([`super::contrast`], "Two bases"); the effects are still refitted and gated against
+//! the measurements' description ([`super::reference`]).
 
 use super::data::{fluence, Sequence, BACKGROUND_FLUENCE_E};
 use super::eval::Samples;

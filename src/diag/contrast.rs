@@ -605,6 +605,15 @@ impl<'a> Bases<'a> {
     }
 }
 
+/// What `class` is tested against, in words.
+pub fn base_name(class: &str) -> &'static str {
+    if pixel_level(class) {
+        "the flexible base"
+    } else {
+        "the pixel reference"
+    }
+}
+
 /// The smallest share of its base's residual sum of squares a class's covariate must
 /// explain beyond the permutations' mean (module docs).
 pub fn min_r2(class: &str) -> f64 {

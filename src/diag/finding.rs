@@ -82,7 +82,8 @@ pub struct Diagnosis {
     /// Per contrast class: whether the data can test it, else the measurement that
     /// would ([`contrast::testability`]). Untestable classes' effects are not scored.
     pub contrasts: Vec<contrast::Testability>,
-    /// What the flexible base's residual depends on, ranked ([`contrast::dependences`]).
+    /// What the residual depends on, ranked ([`contrast::dependences`]): event-level
+    /// classes against the pixel reference, pixel-level ones against the flexible base.
     pub dependences: Vec<contrast::Dependence>,
     /// The two leading event-level kinds the residual depends on, each tested given the
     /// other ([`super::separate`]).

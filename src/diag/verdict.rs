@@ -103,11 +103,12 @@ fn candidate_sentence(c: &Candidate, params: &ModelParams, held: bool) -> String
 /// it predicts held-out data.
 fn dependence_sentence(w: &contrast::Dependence) -> String {
     format!(
-        "the base's residual depends on {} (it explains {:.1} % of the residual's sum \
+        "the residual of {} depends on {} (it explains {:.1} % of the residual's sum \
          of squares inside the fluence x time cells, {:.1} % at most over {} \
          permutations; z {:.1}), but no library effect acting on it ({}) predicts \
          held-out data: the missing physics is of this kind in another form. The \
          residual by {}: {}",
+        contrast::base_name(&w.class),
         w.class,
         100.0 * w.r2,
         100.0 * w.r2_null_max,
@@ -402,8 +403,9 @@ pub fn render(d: &Diagnosis) -> String {
         );
     }
     if !d.dependences.is_empty() {
-        s += "what the base's residual depends on (share of its sum of squares inside the \
-              fluence x time cells; permutations' largest; z):\n";
+        s += "what the residual depends on (share of its sum of squares inside the \
+              fluence x time cells; permutations' largest; z; event-level kinds against \
+              the pixel reference, pixel-level ones against the flexible base):\n";
         for x in &d.dependences {
             s += &format!(
                 "  {:<26} {:>6.2} % {:>6.2} % {:>7.1}  {}{}\n",
