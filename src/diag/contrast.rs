@@ -48,8 +48,9 @@
 //! examples/dependence_scan on the second generator's campaigns (64 x 64, seeds 1-5,
 //! nothing hidden, with and without dark pixels): against the flexible base the history
 //! explained up to 0.73 % beyond its permutations (z 25); against the pixel reference
-//! no event-level class explained more than [`MIN_R2_EVENT`], while hidden soak,
-//! temperature and capacity led with 0.5-23 % (z 80-340). The pixel reference takes in
+//! no event-level class explained more than 0.39 %, while the classes of hidden soak,
+//! temperature and capacity explained 0.49-23 % (docs/validation/kinds.md, `make
+//! validation PAGES=kinds`). [`MIN_R2_EVENT`] lies between. The pixel reference takes in
 //! position (hidden trap-density fields vanish from it), so pixel-level classes stay
 //! on the flexible base.
 //!
