@@ -8,7 +8,7 @@
 
 mod common;
 
-use common::{persist_ok, read_json};
+use common::{family_campaign, persist_ok, read_json};
 
 /// Per model of `summary`, at 0.1 e-/s: (coverage of the samples measured above,
 /// over-flagged per sample).
@@ -35,20 +35,7 @@ fn the_margin_is_re_derived_after_an_effect() {
     let tmp = tempfile::tempdir().unwrap();
     let path = |n: &str| tmp.path().join(n).to_str().unwrap().to_string();
     let lab = path("lab");
-    persist_ok(&[
-        "simulate",
-        "family",
-        "--out",
-        &lab,
-        "--seed",
-        "4",
-        "--size",
-        "64",
-        "--sequence",
-        "campaign",
-        "--hidden",
-        "capacity:langmuir",
-    ]);
+    family_campaign(&lab, 64, 4, &["--hidden", "capacity:langmuir"]);
     let fit = |out: &str, extra: &[&str]| {
         let mut a = vec!["fit", "--input", &lab, "--out", out];
         a.extend_from_slice(extra);

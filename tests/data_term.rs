@@ -5,7 +5,7 @@
 
 mod common;
 
-use common::{persist_ok, read_json};
+use common::{family_campaign, persist_ok, read_json};
 use persist::flags::bits;
 use std::path::Path;
 
@@ -20,25 +20,6 @@ fn rms_line(out: &str) -> (f64, f64) {
         .filter_map(|w| w.parse().ok())
         .collect();
     (v[0], v[1])
-}
-
-/// `persist simulate family --sequence campaign` at 32 x 32 with one hidden effect.
-fn family_campaign(out: &str, seed: u64, hidden: &str) {
-    let seed = seed.to_string();
-    persist_ok(&[
-        "simulate",
-        "family",
-        "--out",
-        out,
-        "--seed",
-        &seed,
-        "--size",
-        "32",
-        "--sequence",
-        "campaign",
-        "--hidden",
-        hidden,
-    ]);
 }
 
 /// Pixel-exposures flagged PERSIST by `persist run` with `model` on `input`.
@@ -142,7 +123,7 @@ fn the_duration_term_stands_in_for_soak_and_changes_the_flags() {
 fn a_data_driven_term_fitted_from_its_defaults_leaves_them() {
     let tmp = tempfile::tempdir().unwrap();
     let p = |s: &str| tmp.path().join(s).to_str().unwrap().to_string();
-    family_campaign(&p("fam"), 2, "temperature:arrhenius");
+    family_campaign(&p("fam"), 32, 2, &["--hidden", "temperature:arrhenius"]);
     let fit = |out: &str, with: &str| {
         let text = persist_ok(&[
             "fit",
@@ -188,7 +169,7 @@ fn a_data_driven_term_fitted_from_its_defaults_leaves_them() {
 fn diagnose_offers_the_term_and_its_command_writes_it() {
     let tmp = tempfile::tempdir().unwrap();
     let p = |s: &str| tmp.path().join(s).to_str().unwrap().to_string();
-    family_campaign(&p("fam"), 2, "capacity:ceiling");
+    family_campaign(&p("fam"), 32, 2, &["--hidden", "capacity:ceiling"]);
     persist_ok(&["fit", "--input", &p("fam"), "--out", &p("m.json")]);
     // `diagnose` of `model` with its defaults: its JSON and its text
     let diagnose = |model: &str, json: &str| {

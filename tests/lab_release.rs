@@ -17,25 +17,14 @@
 
 mod common;
 
-use common::{persist_ok, read_json};
+use common::{family_campaign, persist_ok, read_json};
 
 #[test]
 fn early_release_on_a_laboratory_sequence_misses_few_more_than_none() {
     let tmp = tempfile::tempdir().unwrap();
     let path = |n: &str| tmp.path().join(n).to_str().unwrap().to_string();
     let lab = path("lab");
-    persist_ok(&[
-        "simulate",
-        "family",
-        "--out",
-        &lab,
-        "--seed",
-        "5",
-        "--size",
-        "64",
-        "--sequence",
-        "campaign",
-    ]);
+    family_campaign(&lab, 64, 5, &[]);
     let (m, m_off) = (path("m.json"), path("m_off.json"));
     persist_ok(&["fit", "--input", &lab, "--out", &m]);
     let mut off = read_json(&m);

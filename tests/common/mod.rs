@@ -304,6 +304,25 @@ pub fn lab_campaign(out: &str, size: u32, seed: u64, extra: &[&str]) {
     persist_ok(&a);
 }
 
+/// `persist simulate family --size SIZE --seed SEED --sequence campaign [EXTRA...] --out
+/// OUT`: a campaign of the second truth generator (`persist::trapgen`).
+pub fn family_campaign(out: &str, size: u32, seed: u64, extra: &[&str]) {
+    let (size, seed) = (size.to_string(), seed.to_string());
+    let mut a = vec![
+        "simulate",
+        "family",
+        "--size",
+        &size,
+        "--seed",
+        &seed,
+        "--sequence",
+        "campaign",
+    ];
+    a.extend(extra);
+    a.extend(["--out", out]);
+    persist_ok(&a);
+}
+
 /// Residual cells pooled over the illuminations into the same fluence x time cells, each
 /// compared by its 95th percentile (`levels`) rather than per illumination and paired
 /// (the defaults): tests that pin a figure measured on these cells pass them.
