@@ -215,8 +215,9 @@ use crate::model::params::ModelParams;
 use rayon::prelude::*;
 use std::path::Path;
 
-/// Candidates refitted at most: the library effects acting on the covariates the base's
-/// residual depends on, in the order of that dependence.
+/// Event-level candidates refitted at most: the library effects acting on the
+/// event-level covariates the residual depends on, in the order of that dependence (the
+/// effects of a pixel-level class that depends are refitted besides).
 pub const REFIT: usize = 4;
 
 /// Candidates refitted with [`Decide::Score`] (by score, above the threshold).
@@ -546,13 +547,25 @@ fn chosen_for_refit(
     ranking: &[Candidate],
 ) -> Vec<usize> {
     match decide {
-        Decide::Contrast => dependences
-            .iter()
-            .filter(|d| d.refits())
-            .flat_map(|d| &d.effects)
-            .filter_map(|name| ranking.iter().position(|c| &c.effect == name))
-            .take(REFIT)
-            .collect(),
+        Decide::Contrast => {
+            // event-level effects up to REFIT; a pixel-level class that depends is
+            // refitted whatever the event-level ones ahead of it
+            let mut event = 0;
+            let mut out = Vec::new();
+            for d in dependences.iter().filter(|d| d.refits()) {
+                let pixel = contrast::pixel_level(&d.class);
+                for name in &d.effects {
+                    if !pixel && event == REFIT {
+                        break;
+                    }
+                    if let Some(i) = ranking.iter().position(|c| &c.effect == name) {
+                        event += usize::from(!pixel);
+                        out.push(i);
+                    }
+                }
+            }
+            out
+        }
         Decide::Score => ranking
             .iter()
             .enumerate()
