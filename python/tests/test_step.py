@@ -1,6 +1,7 @@
 """`Model.step` from Python runs the stage's own step: on the same products it gives
 exactly the stage's /persistence planes, flags and checkpoint state."""
 
+import json
 import os
 
 import numpy as np
@@ -112,10 +113,21 @@ def test_step_inputs_are_checked():
         model.step(state, img, None, 100.0, 10.0, exposure_index=0)
 
 
-def test_nan_never_enters_the_state():
+def model_without_release(tmp_path):
+    """The default model with early release off: on these uniform, noiseless images the
+    evidence rule (released once the measured deficit reaches 3 sigma of the quiet
+    pixels' spread, here zero) would release every pixel, and these tests are about
+    the state and its planes."""
+    m = json.loads(persist.Model.default().to_json())
+    m["early_release"]["enabled"] = False
+    (tmp_path / "no_release.json").write_text(json.dumps(m))
+    return persist.Model.from_file(tmp_path / "no_release.json")
+
+
+def test_nan_never_enters_the_state(tmp_path):
     """A NaN pixel adds the maximum amplitude (unknown fluence) and is flagged next
     time; the state stays finite (the crate's invariant, seen from Python)."""
-    model = persist.Model.default()
+    model = model_without_release(tmp_path)
     state = persist.State(model, (4, 4))
     img = np.full((4, 4), 1.0, np.float32)
     img[1, 2] = np.nan
@@ -142,11 +154,11 @@ def test_image_is_read_in_place_from_any_layout():
     assert (ra.current_e_per_s > 0).any()
 
 
-def test_results_stay_valid_and_planes_are_reused():
+def test_results_stay_valid_and_planes_are_reused(tmp_path):
     """A result's arrays are views of planes the state keeps: they never change while
     the caller holds them, and once dropped the planes serve a later step (no
     allocation in a stepping loop)."""
-    model = persist.Model.default()
+    model = model_without_release(tmp_path)
     state = persist.State(model, (32, 32))
     img = np.full((32, 32), 5e4, np.float32)
     r1 = model.step(state, img, None, 112.0, 0.0)
