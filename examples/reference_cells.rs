@@ -7,6 +7,10 @@
 //! ```sh
 //! target/release/examples/reference_cells LAB_DIR MODEL.json [ROWS]
 //! ```
+//!
+//! `XP_CELL="[EVENT, FLUENCE BIN, TIME BIN]"` also prints every sample of that cell:
+//! its pixel's fluence in each illumination (`S`: flagged `OVERFLOW`), the measured
+//! and reference currents, the noise and the leverage.
 use persist::diag::config::Config;
 use persist::diag::data::Sequence;
 use persist::diag::eval::{self, Samples};
@@ -85,6 +89,27 @@ fn main() {
             p95,
             tail
         );
+    }
+    if let Ok(k) = std::env::var("XP_CELL") {
+        for (key, m) in &groups {
+            if format!("{key:?}") == k {
+                for &i in m {
+                    let (y, x) = s.pixels[i % s.npix()];
+                    let hist: Vec<String> = seq
+                        .illuminations
+                        .iter()
+                        .map(|&a| {
+                            let e = &seq.exposures[a];
+                            let f = persist::diag::data::fluence(e)[(y, x)];
+                            let o = e.flags[(y, x)] & persist::flags::bits::OVERFLOW != 0;
+                            format!("{a}:{:.0}k{}", f / 1e3, if o { "S" } else { "" })
+                        })
+                        .collect();
+                    println!("{}", hist.join(" "));
+                    println!("i {i} px {:?} meas {:.4} pred {:.4} sigma {:.4} h {:.3} noise {:.4} shot {:.5}", s.pixels[i % s.npix()], s.measured[i], r.prediction[i], r.sigma[i], r.leverage[i], s.noise[i / s.npix()], s.shot_var_per_e_per_s[i / s.npix()]);
+                }
+            }
+        }
     }
     println!("rms {:.2} over {} cells", eval::rms(&cells), cells.len());
 }

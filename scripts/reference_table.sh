@@ -18,11 +18,12 @@ cat <<'TEXT'
 What `persist diagnose` prints as "pixel reference": the flexible base (the model's
 prediction plus a free response per fluence knot, saturated pixels with knots of their
 own, over a fixed grid of decay rates) times each pixel's own factor, quadratic in the
-log of the time since the illumination (its amplitude and decay shape), fitted to the
-input; its paired cell residuals against the noise measured from the data (exposure noise
-from the background pixels, or from pairs of late darks when every pixel is lit, plus
-the shot noise of the predicted current, less each sample's leverage in its pixel's
-fit). Default commands: `persist fit --input DIR --out M.json`, then `persist diagnose
+log of the time since the illumination (its amplitude and decay shape) and in the log of
+the illumination's fluence (its response: its own saturation onset), fitted to the
+input; the paired statistic of its residuals, each divided by the noise measured from
+the data (exposure noise from the background pixels, or from pairs of late darks when
+every pixel is lit, plus the shot noise of the predicted current, less the sample's
+leverage in its pixel's fit). Default commands: `persist fit --input DIR --out M.json`, then `persist diagnose
 --input DIR --model M.json`. The description's RMS is the line "residual RMS" of the
 same run (the measurements' description `diagnose` tests effects against).
 

@@ -23,19 +23,24 @@
 //!
 //! # Pixel reference
 //! [`predict_scaled`] multiplies the base by each pixel's own factor, quadratic in the
-//! log of the time since the illumination, plus an amplitude of its own for the share
+//! log of the time since the illumination and quadratic in the log of the
+//! illumination's fluence (the pixel's own response: its full well moves its
+//! saturation onset), plus an amplitude of its own for the share
 //! of its current that comes from illuminations that saturated it (the saturated
 //! traps' population, which a campaign that saturates a pixel in some illuminations and
 //! not in others shows apart), and gives the pixels saturated in an illumination knots
 //! of their own; it is weighted by the measurement noise alone (exposure noise and the
 //! shot noise of the reference's own current). Its residuals are those of each pixel, not of a
-//! population's 95th percentile: compared with the noise less each sample's leverage
+//! population's 95th percentile: each divided by its noise less its leverage
 //! ([`Scaled::cells`]), they measure how far a description that absorbs the decay law,
 //! its fluence dependence, the response around saturation and the mix of trap
 //! populations stands from the data. `persist diagnose` prints its RMS; nothing-hidden
 //! sequences of both truth generators: `docs/validation/reference_rms.md` (`make
 //! validation PAGES=reference`). Event-level covariates are tested against it
-//! ([`super::contrast`], "Two bases"); the effects are still refitted and gated against
+//! ([`super::contrast`], "Two bases"): what it leaves them is how a pixel's
+//! illuminations of equal fluence differ (duration, history, temperature); an effect
+//! acting only on the one illumination of its fluence at a pixel is taken in by the
+//! pixel's response terms; the effects are still refitted and gated against
 //! the measurements' description ([`super::reference`]).
 
 use super::data::{fluence, Sequence, BACKGROUND_FLUENCE_E};
@@ -230,26 +235,31 @@ pub const TILT_REFERENCE_S: f64 = 1000.0;
 /// Per-pixel terms of [`predict_scaled`]: `L^0 .. L^(PIXEL_TERMS - 1)`.
 pub const PIXEL_TERMS: usize = 3;
 
-/// Per-pixel terms of [`predict_scaled`] in all: the powers of `L` and the amplitude
-/// after a saturating illumination.
-const ALL_PIXEL_TERMS: usize = PIXEL_TERMS + 1;
+/// Per-pixel terms of [`predict_scaled`] in all: the powers of `L`, the amplitude
+/// after a saturating illumination, and the response's slope and curvature in log
+/// fluence.
+const ALL_PIXEL_TERMS: usize = PIXEL_TERMS + 3;
 
 /// The regressors of sample `i`'s factor: `L^0 .. L^(PIXEL_TERMS - 1)`, then `sat`
-/// ([`saturated_share`]).
-fn pixel_regressors(l: f64, sat: f64) -> [f64; ALL_PIXEL_TERMS] {
+/// ([`saturated_share`]), then `fl` and `fl^2` ([`fluence_tilt`]).
+fn pixel_regressors(l: f64, sat: f64, fl: f64) -> [f64; ALL_PIXEL_TERMS] {
     std::array::from_fn(|j| {
         if j < PIXEL_TERMS {
             l.powi(j as i32)
-        } else {
+        } else if j == PIXEL_TERMS {
             sat
+        } else if j == PIXEL_TERMS + 1 {
+            fl
+        } else {
+            fl * fl
         }
     })
 }
 
 /// Each pixel's factor at sample `i` from its terms `c` ([`pixel_regressors`]).
-fn pixel_factor(c: &[f64], l: f64, sat: f64) -> f64 {
+fn pixel_factor(c: &[f64], l: f64, sat: f64, fl: f64) -> f64 {
     c.iter()
-        .zip(pixel_regressors(l, sat))
+        .zip(pixel_regressors(l, sat, fl))
         .map(|(c, x)| c * x)
         .sum()
 }
@@ -306,9 +316,56 @@ fn saturated_share(seq: &Sequence, s: &Samples, maps: &[Map]) -> Vec<f64> {
         .collect()
 }
 
-/// The base with a per-pixel amplitude and decay shape: `f_p(L) * (pred +
-/// correction)`, `f_p(L) = sum_j c_pj L^j` over [`PIXEL_TERMS`] powers of `L = ln(t /
-/// TILT_REFERENCE_S)` (`t` since the last illumination), the correction as
+/// Per sample: the natural log of the fluence of the illumination it follows, less
+/// its pixel's mean over the usable samples; 0 for a pixel whose fluences span less
+/// than a tenth of an e-fold (its amplitude alone then stands for it). A pixel's
+/// response is the population's shifted and bent: its own full well moves the
+/// saturation onset (on the simulator's campaign, pixels at 195-198 ke- in the
+/// bright illuminations, just below the flag, show 1.5-2 times the population's current
+/// in the first dark after the half-fluence ones, 7 % of such a cell beyond 4 sigma
+/// without these terms).
+fn fluence_tilt(s: &Samples) -> Vec<f64> {
+    let np = s.npix().max(1);
+    let lf: Vec<f64> = s
+        .fluence_e
+        .iter()
+        .map(|&f| {
+            if f.is_finite() && f > BACKGROUND_FLUENCE_E {
+                f.ln()
+            } else {
+                f64::NAN
+            }
+        })
+        .collect();
+    let mut acc = vec![(0.0f64, 0usize, f64::INFINITY, f64::NEG_INFINITY); np];
+    for (i, &v) in lf.iter().enumerate() {
+        if v.is_finite() {
+            let a = &mut acc[i % np];
+            a.0 += v;
+            a.1 += 1;
+            a.2 = a.2.min(v);
+            a.3 = a.3.max(v);
+        }
+    }
+    lf.iter()
+        .enumerate()
+        .map(|(i, &v)| {
+            let a = acc[i % np];
+            if v.is_finite() && a.1 > 0 && a.3 - a.2 >= 0.1 {
+                v - a.0 / a.1 as f64
+            } else {
+                0.0
+            }
+        })
+        .collect()
+}
+
+/// The base with a per-pixel amplitude, decay shape and response: `f_p * (pred +
+/// correction)`, `f_p = sum_j c_pj L^j + c_s sat + c_f fl + c_ff fl^2` over
+/// [`PIXEL_TERMS`] powers of `L = ln(t / TILT_REFERENCE_S)` (`t` since the last
+/// illumination), the share `sat` of the current from saturating illuminations
+/// ([`saturated_share`]) and the log fluence `fl` about the pixel's mean
+/// ([`fluence_tilt`]), the correction as
 /// [`predict`]'s (with knots of their own for the pixels saturated in the
 /// illumination: the response around saturation) and `c_p` each sampled pixel's own
 /// (the mix of trap populations: pixels of one fluence and history differ by a factor
@@ -323,6 +380,7 @@ pub fn predict_scaled(seq: &Sequence, s: &Samples, pred: &[f64]) -> Scaled {
     const K: usize = ALL_PIXEL_TERMS;
     let maps = fluence_maps(seq, true);
     let sat = saturated_share(seq, s, &maps);
+    let fl = fluence_tilt(s);
     let np = s.npix().max(1);
     let tilt: Vec<f64> = (0..s.len())
         .map(|i| (s.t_since_s[i / np].max(1.0) / TILT_REFERENCE_S).ln())
@@ -343,7 +401,7 @@ pub fn predict_scaled(seq: &Sequence, s: &Samples, pred: &[f64]) -> Scaled {
                 continue;
             }
             let w = 1.0 / measurement_variance(s, i, scale[i] * u).max(1e-12);
-            let x = pixel_regressors(tilt[i], sat[i]).map(|r| u * r);
+            let x = pixel_regressors(tilt[i], sat[i], fl[i]).map(|r| u * r);
             let (ata, atb) = &mut normal[i % np];
             for a in 0..K {
                 atb[a] += w * m * x[a];
@@ -366,7 +424,7 @@ pub fn predict_scaled(seq: &Sequence, s: &Samples, pred: &[f64]) -> Scaled {
             })
             .collect();
         scale = (0..s.len())
-            .map(|i| pixel_factor(&terms[i % np], tilt[i], sat[i]).max(0.0))
+            .map(|i| pixel_factor(&terms[i % np], tilt[i], sat[i], fl[i]).max(0.0))
             .collect();
     }
     let prediction: Vec<f64> = unscaled.iter().zip(&scale).map(|(u, c)| c * u).collect();
@@ -385,7 +443,7 @@ pub fn predict_scaled(seq: &Sequence, s: &Samples, pred: &[f64]) -> Scaled {
             };
             let u = unscaled[i];
             let w = 1.0 / sigma[i].powi(2).max(1e-12);
-            let x = pixel_regressors(tilt[i], sat[i]).map(|r| u * r);
+            let x = pixel_regressors(tilt[i], sat[i], fl[i]).map(|r| u * r);
             let mut h = 0.0;
             for a in 0..K {
                 for b in 0..K {
@@ -446,19 +504,61 @@ pub struct Scaled {
 }
 
 impl Scaled {
+    /// The noise of sample `i`'s residual: `sigma_i sqrt(1 - h_i)`.
+    fn residual_sd(&self, i: usize) -> f64 {
+        self.sigma[i] * (1.0 - self.leverage[i]).max(0.0).sqrt()
+    }
+
     /// The reference's cells ([`crate::measure::eval::cell_z`]'s keys): the paired
-    /// statistic, each residual's noise `sigma_i sqrt(1 - h_i)`.
+    /// statistic of the normalised residuals `(measured_i - reference_i) / (sigma_i
+    /// sqrt(1 - h_i))` against unit normal noise, so that every sample counts against its
+    /// own noise. A cell mixes samples of very different noise: a pixel's first dark
+    /// after a bright illumination carries most of its fit's weight (leverage near 1, a
+    /// residual noise a few hundredths of an e-/s) beside pixels whose fit it barely
+    /// steers; the statistic on the residuals themselves would judge the noisy ones by
+    /// the quiet ones' spread. The figures (95th percentiles, median) are those of the
+    /// measurements and predictions; `sigma_e_per_s` is the statistic's `sigma_q` times
+    /// the cell's median residual noise.
     pub fn cells(&self, s: &Samples) -> Vec<(Vec<i64>, crate::measure::eval::GroupStat)> {
-        crate::measure::eval::groups_by(
+        use crate::measure::eval;
+        let cells = eval::groups_by(
             s,
             &self.prediction,
             s.cells.keys(),
-            crate::measure::eval::CellStatistic::Paired,
+            eval::CellStatistic::Paired,
             |i| {
-                let sd = self.sigma[i] * (1.0 - self.leverage[i]).max(0.0).sqrt();
+                let sd = self.residual_sd(i);
                 (0.0, sd, sd)
             },
-        )
+        );
+        let mut normalised: std::collections::BTreeMap<Vec<i64>, (Vec<f64>, Vec<f64>)> =
+            Default::default();
+        for i in 0..s.len() {
+            let (m, p, sd) = (s.measured[i], self.prediction[i], self.residual_sd(i));
+            if !(m.is_finite() && p.is_finite() && sd > 0.0) {
+                continue;
+            }
+            if let Some(key) = eval::key_of(s, s.cells.keys(), i) {
+                let e = normalised.entry(key).or_default();
+                e.0.push((m - p) / sd);
+                e.1.push(sd);
+            }
+        }
+        let unit_p95 = eval::noise_p95(&[1.0]);
+        cells
+            .into_iter()
+            .filter_map(|(key, mut stat)| {
+                let (r, sd) = normalised.get(&key)?;
+                if r.len() < 10 {
+                    return None;
+                }
+                let (_, sigma_q, z) = eval::paired_z(r, 1.0, unit_p95);
+                stat.n = r.len();
+                stat.sigma_e_per_s = sigma_q * crate::stats::median(sd);
+                stat.z = z;
+                Some((key, stat))
+            })
+            .collect()
     }
 }
 

@@ -40,9 +40,10 @@
 //! # Two bases
 //! Pixel-level classes are tested against the flexible base. Event-level classes are
 //! tested against the pixel reference ([`super::base::predict_scaled`]): the flexible
-//! base times each pixel's own amplitude and decay shape. A pixel's factor is shared by
-//! every illumination of that pixel, so it cannot take in what differs from one
-//! illumination to the next (duration, temperature, history), while it takes in the
+//! base times each pixel's own amplitude, decay shape and response in fluence. A
+//! pixel's factor is shared by every illumination of that pixel, so it cannot take in
+//! what differs between its illuminations of equal fluence (duration, temperature,
+//! history), while it takes in the
 //! per-pixel trap populations and the misfit of the decay law that otherwise follow the
 //! illumination pattern into every event-level covariate. Measured with
 //! examples/dependence_scan on the second generator's campaigns (64 x 64, seeds 1-5,

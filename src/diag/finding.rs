@@ -142,7 +142,7 @@ pub struct Diagnosis {
 }
 
 /// The pixel reference's fit ([`super::base::predict_scaled`]): the flexible base with
-/// each pixel's own amplitude and decay shape, its residuals against the noise
+/// each pixel's own amplitude, decay shape and response, its residuals against the noise
 /// measured from the data (the exposure noise and the shot noise, less each sample's
 /// leverage in its pixel's fit).
 #[derive(Debug, Clone, Serialize)]

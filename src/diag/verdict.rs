@@ -336,8 +336,8 @@ pub fn cautions(params: &ModelParams) -> Vec<String> {
 pub fn render(d: &Diagnosis) -> String {
     let mut s = format!(
         "persist diagnose: statistic {}, {} pixels, {} cells in {} groups, {} illumination events, \
-         residual RMS {:.2} ({} cells{}{})\npixel reference (the flexible base with each pixel's own \
-         amplitude and decay shape): residual RMS {:.2} over {} cells\nthreshold {:.2} (95 % of the largest score over {} bootstrap replicas \
+         residual RMS {:.2} ({} cells{}{})\npixel reference (the flexible base with each pixel's own amplitude, \
+         decay shape and response): residual RMS {:.2} over {} cells\nthreshold {:.2} (95 % of the largest score over {} bootstrap replicas \
          from the fitted model; median {:.2}; the score ranks, it does not decide)\n\
          {:<16} {:>10} {:>6} {:>9} {:>15} {:>9} {:>15}  covariate\n",
         d.statistic_reason,
