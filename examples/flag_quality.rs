@@ -13,9 +13,10 @@
 //! ```sh
 //! target/release/examples/flag_quality [--size 128] [--seed 1] [--exposures 1143]
 //!     [--windows 2500,5000,10000,20000,40000] [--lab-darks 30] [--release-consecutive N]
-//!     [--release-rule consecutive] [--release-sigma Z]
+//!     [--release-rule consecutive] [--release-sigma Z] [--no-causes]
 //! ```
-//! Prints the page's body (markdown) on stdout.
+//! Prints the page's body (markdown) on stdout (`--no-causes`: without the tables of
+//! where the errors are).
 use ndarray::Array2;
 use persist::calib::coverage::{self, CoverageConfig};
 use persist::flag_causes::{CauseInput, CauseTally};
@@ -191,7 +192,17 @@ fn main() -> persist::Result<()> {
         ),
         (
             "`fit --with refill` (95 % coverage)".into(),
-            model(Model::new(refilled)?),
+            model(Model::new(refilled.clone())?),
+        ),
+        (
+            "`fit --with refill`, release keeps the threshold".into(),
+            model(Model::new(ModelParams {
+                early_release: persist::model::EarlyRelease {
+                    keep: persist::model::ReleaseKeep::Threshold,
+                    ..refilled.early_release
+                },
+                ..refilled
+            })?),
         ),
     ];
     for w in &windows {
@@ -217,15 +228,22 @@ fn main() -> persist::Result<()> {
     };
     // where the errors are (`persist::flag_causes`): the coverage-calibrated model's,
     // without and with `refill`
-    let explained = [3, 6];
-    let mut causes = explained.map(|_| {
-        CauseTally::new(
-            th.high_e_per_s,
-            th.low_e_per_s,
-            sky.detector.full_well_e,
-            FROM_EXPOSURE,
-        )
-    });
+    let explained: &[usize] = if args.iter().any(|a| a == "--no-causes") {
+        &[]
+    } else {
+        &[3, 7]
+    };
+    let mut causes: Vec<CauseTally> = explained
+        .iter()
+        .map(|_| {
+            CauseTally::new(
+                th.high_e_per_s,
+                th.low_e_per_s,
+                sky.detector.full_well_e,
+                FROM_EXPOSURE,
+            )
+        })
+        .collect();
     persist::sim::sky::run(&sky, |s| {
         let e = &s.exposure;
         let fluence = s.true_flux.mapv(|f| f * e.meta.t_exposure_s as f32);
