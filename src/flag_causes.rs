@@ -212,13 +212,13 @@ impl CauseTally {
                 "| {axis}: {label} | {} ",
                 pct(self.counts[0][i].samples, t[0].samples)
             );
-            for k in 0..2 {
-                let c = &self.counts[k][i];
+            for (counts, total) in self.counts.iter().zip(&t) {
+                let c = &counts[i];
                 row += &format!(
                     "| {} ({}) | {} ({}) ",
-                    pct(c.over_flagged, t[k].over_flagged),
+                    pct(c.over_flagged, total.over_flagged),
                     pct(c.over_flagged, c.samples),
-                    pct(c.missed, t[k].missed),
+                    pct(c.missed, total.missed),
                     pct(c.missed, c.above),
                 );
             }
@@ -263,13 +263,13 @@ mod tests {
         assert_eq!(c[1][RATIO_AT].missed, 1);
         assert_eq!(c[1][RATIO_AT + 5].over_flagged, 1);
         // every axis partitions the samples
-        for k in 0..2 {
+        for per_category in c {
             for (a, b) in [
                 (KIND_AT, TIME_AT),
                 (TIME_AT, RELEASE_AT),
                 (RELEASE_AT, RATIO_AT),
             ] {
-                let n: u64 = c[k][a..b].iter().map(|x| x.samples).sum();
+                let n: u64 = per_category[a..b].iter().map(|x| x.samples).sum();
                 assert_eq!(n, 2);
             }
         }
