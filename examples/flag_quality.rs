@@ -6,16 +6,20 @@
 //! per-pixel map; the sky run of the same detector is flagged by them, by the paper's
 //! default model and by time-window flaggers (a pixel saturated in the last W s),
 //! counted from exposure 200 on against the true persistence current
-//! (`persist::flag_quality`).
+//! (`persist::flag_quality`); and `persist fit --with refill` calibrated to the same
+//! coverage. Where the errors of the default `fit` and of `fit --with refill` are:
+//! `persist::flag_causes`.
 //!
 //! ```sh
 //! target/release/examples/flag_quality [--size 128] [--seed 1] [--exposures 1143]
 //!     [--windows 2500,5000,10000,20000,40000] [--lab-darks 30] [--release-consecutive N]
-//!     [--release-rule consecutive] [--release-sigma Z]
+//!     [--release-rule consecutive] [--release-sigma Z] [--no-causes]
 //! ```
-//! Prints the page's body (markdown) on stdout.
+//! Prints the page's body (markdown) on stdout (`--no-causes`: without the tables of
+//! where the errors are).
 use ndarray::Array2;
 use persist::calib::coverage::{self, CoverageConfig};
+use persist::flag_causes::{CauseInput, CauseTally};
 use persist::flag_quality::{table, TruthTally, FROM_EXPOSURE};
 use persist::model::{Model, ModelParams};
 
@@ -32,7 +36,11 @@ enum Flagger {
 }
 
 impl Flagger {
-    fn step(&mut self, e: &persist::product::Exposure) -> persist::Result<Array2<u8>> {
+    /// The persistence flags and the predicted current (zero for a window).
+    fn step(
+        &mut self,
+        e: &persist::product::Exposure,
+    ) -> persist::Result<(Array2<u8>, Array2<f32>)> {
         let (ny, nx) = e.image.dim();
         match self {
             Flagger::Model { model, state } => {
@@ -40,7 +48,7 @@ impl Flagger {
                 let mut cur = Array2::<f32>::zeros((ny, nx));
                 let mut pf = Array2::<u8>::zeros((ny, nx));
                 persist::pixmap::step_exposure(model, st, e, None, &mut cur, &mut pf)?;
-                Ok(pf)
+                Ok((pf, cur))
             }
             Flagger::Window { window_s, last_s } => {
                 let last = last_s.get_or_insert_with(|| Array2::from_elem((ny, nx), f64::MIN));
@@ -59,7 +67,7 @@ impl Flagger {
                         last[p] = end;
                     }
                 }
-                Ok(pf)
+                Ok((pf, Array2::zeros((ny, nx))))
             }
         }
     }
@@ -136,6 +144,21 @@ fn main() -> persist::Result<()> {
     };
     let (reshaped, rep_reshaped) = coverage::apply(&lab, &seq, &reshaped_cfg)?;
     let reshaped = with_rule(reshaped);
+    // `persist fit --with refill`: the overlap of old and new filling measured on the
+    // same laboratory sequence, then the coverage calibration
+    let (refill_lab, _, refill_fit) = persist::calib::command::fit_params(
+        &seq,
+        &persist::calib::CalibConfig::default(),
+        &["refill".to_string()],
+        Default::default(),
+    )?;
+    let (refilled, _) = coverage::apply(&refill_lab, &seq, &cov)?;
+    let refilled = with_rule(refilled);
+    let beta = refill_fit
+        .iter()
+        .flat_map(|f| &f.params)
+        .find(|q| q.effect == "refill" && q.name == "beta")
+        .map_or_else(String::new, |q| format!("{:.2} +- {:.2}", q.value, q.sigma));
     let map = |p: &ModelParams| -> persist::Result<Model> {
         let m = persist::pixmap::build(&seq, p, &persist::pixmap::MapConfig::default())?;
         let r = persist::pixmap::file::response(&m, 1.0)
@@ -167,6 +190,20 @@ fn main() -> persist::Result<()> {
             "95 % coverage, decay reshaped".into(),
             model(Model::new(reshaped)?),
         ),
+        (
+            "`fit --with refill` (95 % coverage)".into(),
+            model(Model::new(refilled.clone())?),
+        ),
+        (
+            "`fit --with refill`, release keeps the threshold".into(),
+            model(Model::new(ModelParams {
+                early_release: persist::model::EarlyRelease {
+                    keep: persist::model::ReleaseKeep::Threshold,
+                    ..refilled.early_release
+                },
+                ..refilled
+            })?),
+        ),
     ];
     for w in &windows {
         flaggers.push((
@@ -189,47 +226,41 @@ fn main() -> persist::Result<()> {
         seed,
         ..Default::default()
     };
-    // where the covered model's misses are: by time since the pixel's last exposure of
-    // more than 1e5 e- true fluence, per threshold, (truly above, missed)
-    const EDGES_S: [f64; 4] = [1000.0, 5600.0, 20000.0, 86400.0];
-    let mut last_bright: Option<Array2<f64>> = None;
-    let mut by_time = [[(0u64, 0u64); 6]; 2];
-    let covered_index = 3;
+    // where the errors are (`persist::flag_causes`): the coverage-calibrated model's,
+    // without and with `refill`
+    let explained: &[usize] = if args.iter().any(|a| a == "--no-causes") {
+        &[]
+    } else {
+        &[3, 7]
+    };
+    let mut causes: Vec<CauseTally> = explained
+        .iter()
+        .map(|_| {
+            CauseTally::new(
+                th.high_e_per_s,
+                th.low_e_per_s,
+                sky.detector.full_well_e,
+                FROM_EXPOSURE,
+            )
+        })
+        .collect();
     persist::sim::sky::run(&sky, |s| {
         let e = &s.exposure;
-        let t = e.meta.t_start.0;
-        let lb =
-            last_bright.get_or_insert_with(|| Array2::from_elem(e.image.dim(), f64::NEG_INFINITY));
+        let fluence = s.true_flux.mapv(|f| f * e.meta.t_exposure_s as f32);
         for (i, ((_, f), tally)) in flaggers.iter_mut().zip(tallies.iter_mut()).enumerate() {
-            let pf = f.step(e)?;
+            let (pf, cur) = f.step(e)?;
             tally.add_pflags(e.meta.exposure_index, &pf, &s.true_persistence, &e.flags);
-            if i != covered_index || e.meta.exposure_index < FROM_EXPOSURE {
-                continue;
-            }
-            for ((p, tr), fl) in s.true_persistence.indexed_iter().zip(&e.flags) {
-                if fl & persist::flags::bits::NONFUNC != 0 {
-                    continue;
-                }
-                let dt = t - lb[p];
-                let b = if dt.is_finite() {
-                    EDGES_S.iter().position(|&x| dt < x).unwrap_or(4)
-                } else {
-                    5
-                };
-                for (k, (thr, bits)) in [(th.high_e_per_s, 1u8), (th.low_e_per_s, 3)]
-                    .into_iter()
-                    .enumerate()
-                {
-                    if f64::from(*tr) >= thr {
-                        by_time[k][b].0 += 1;
-                        by_time[k][b].1 += u64::from(pf[p] & bits == 0);
-                    }
-                }
-            }
-        }
-        for (p, f) in s.true_flux.indexed_iter() {
-            if f64::from(*f) * e.meta.t_exposure_s > 1e5 {
-                lb[p] = t + e.meta.t_exposure_s;
+            if let Some(j) = explained.iter().position(|&k| k == i) {
+                causes[j].add(&CauseInput {
+                    exposure_index: e.meta.exposure_index,
+                    t_start_s: e.meta.t_start.0,
+                    t_exposure_s: e.meta.t_exposure_s,
+                    pflags: &pf,
+                    predicted_e_per_s: &cur,
+                    truth_e_per_s: &s.true_persistence,
+                    true_fluence_e: &fluence,
+                    flags: &e.flags,
+                });
             }
         }
         Ok(())
@@ -269,20 +300,25 @@ fn main() -> persist::Result<()> {
         .collect();
     println!("{}", table(&rows));
     println!(
-        "Where the misses of `{}` are: by time since the pixel's last exposure of more than \
-         1e5 e- (true fluence), truly above the threshold (missed).\n",
-        flaggers[covered_index].0
+        "`persist fit --with refill` measures on the laboratory sequence how much of an \
+         illumination's filling adds to the charge its traps still hold (`refill`'s `beta`: \
+         0 adds, the paper's sum; 1 takes the larger, a trap cannot fill twice): `beta` = \
+         {beta}.\n"
     );
-    println!(
-        "| threshold | < 1000 s | 1000-5600 s | 5600-20000 s | 20000-86400 s | later | never |"
-    );
-    println!("|---|---|---|---|---|---|---|");
-    for (k, thr) in [th.high_e_per_s, th.low_e_per_s].iter().enumerate() {
-        let cells: Vec<String> = by_time[k]
-            .iter()
-            .map(|(a, m)| format!("{a} ({:.1} %)", 100.0 * *m as f64 / (*a).max(1) as f64))
-            .collect();
-        println!("| {thr} e-/s | {} |", cells.join(" | "));
+    for (j, c) in explained.iter().zip(&causes) {
+        println!(
+            "Where the errors of {} are: its over-flagged and missed pixel-exposures by the \
+             kind of the pixel's last event (saturating: true fluence at least the full well; \
+             bright: at least {} % of it; `TRANSIENT`: the on-board flag), the time since \
+             that event, whether early release acted since, and the ratio of predicted to \
+             true current (`persist::flag_causes`). Each cell: the category's share of the \
+             threshold's over-flagged (or missed) pixel-exposures, and in brackets the \
+             over-flagged fraction of the category's pixel-exposures (or the missed fraction \
+             of its truly above ones).\n",
+            flaggers[*j].0,
+            100.0 * persist::flag_causes::BRIGHT_FRACTION
+        );
+        println!("{}", c.table());
     }
     Ok(())
 }

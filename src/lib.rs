@@ -38,6 +38,7 @@ pub mod demo;
 pub mod diag;
 pub mod error;
 pub mod fits;
+pub mod flag_causes;
 pub mod flag_quality;
 pub mod flags;
 pub mod fuzz;

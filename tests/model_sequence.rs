@@ -5,8 +5,8 @@ use ndarray::{array, Array2};
 use persist::flags::{bits, pbits};
 use persist::model::params::{TransientProvenance, TransientRule};
 use persist::model::{
-    reference, EarlyRelease, Input, Knot, Model, ModelParams, Output, ReleaseRule, State,
-    StepSummary, Term, Thresholds,
+    reference, EarlyRelease, Input, Knot, Model, ModelParams, Output, ReleaseKeep, ReleaseRule,
+    State, StepSummary, Term, Thresholds,
 };
 use proptest::prelude::*;
 
@@ -391,6 +391,18 @@ proptest! {
         fused_matches_reference(&model, &seq)?;
     }
 
+    /// The same with released pixels keeping the threshold (`keep: threshold`).
+    #[test]
+    fn fused_step_matches_reference_keeping_the_threshold(
+        seq in prop::collection::vec(exp_strategy(12), 1..25),
+    ) {
+        let mut params = ModelParams::default();
+        params.early_release.threshold_e_per_s = 5.0;
+        params.early_release.keep = ReleaseKeep::Threshold;
+        let model = Model::new(params).unwrap();
+        fused_matches_reference(&model, &seq)?;
+    }
+
     /// The same with a measured transient rule (below the table's maximum).
     #[test]
     fn fused_step_matches_reference_with_a_transient_rule(
@@ -582,6 +594,58 @@ fn evidence_releases_pixels_measured_below_and_keeps_those_at_the_threshold() {
         }
         assert_eq!(released, expected, "{rule:?}");
     }
+}
+
+/// What a released pixel keeps (`early_release.keep`): the hand model's pixel 0 lit at
+/// 1.5e5 e- (A = 550 e- on both terms), then measured at 0 e-/s every 200 s until it is
+/// released (the third dark, `rule: consecutive`). Reset to zero, its prediction is 0
+/// from then on. Kept at the threshold, it is 0.1 e-/s at the release; the 10 s term
+/// long gone, the next prediction is `0.1 exp(-0.001 x 200 s)`, and it keeps decaying by
+/// that factor, never flagged high, flagged low while above 0.01 e-/s.
+#[test]
+fn a_released_pixel_keeps_zero_or_the_threshold() {
+    let mut after = Vec::new();
+    for keep in [ReleaseKeep::Zero, ReleaseKeep::Threshold] {
+        let mut params = hand_model().params().clone();
+        params.early_release.keep = keep;
+        let mut r = Run::new(Model::new(params).unwrap(), 1, 2);
+        r.step(0, 0.0, array![[1500.0f32, 0.0]], Array2::zeros((1, 2)));
+        let mut released_at = None;
+        let mut predicted = Vec::new();
+        for k in 1..=8u64 {
+            r.step(
+                k,
+                200.0 * k as f64,
+                array![[0.0f32, 0.0]],
+                Array2::zeros((1, 2)),
+            );
+            if r.pflags[(0, 0)] & pbits::RELEASED != 0 {
+                assert!(r.current[(0, 0)] > 0.1, "{keep:?}: flagged high before");
+                released_at = Some(k);
+            } else if released_at.is_some() {
+                let p = f64::from(r.current[(0, 0)]);
+                assert_eq!(r.pflags[(0, 0)] & pbits::HIGH, 0, "{keep:?} at {k}");
+                assert_eq!(
+                    r.pflags[(0, 0)] & pbits::LOW != 0,
+                    p > 0.01,
+                    "{keep:?} at {k}"
+                );
+                predicted.push(r.current[(0, 0)]);
+            }
+        }
+        assert_eq!(released_at, Some(3), "{keep:?}");
+        after.push(predicted);
+    }
+    assert!(after[0].iter().all(|p| *p == 0.0), "{:?}", after[0]);
+    let factor = (-0.001f64 * 200.0).exp();
+    for (i, p) in after[1].iter().enumerate() {
+        let want = 0.1 * factor.powi(i as i32 + 1);
+        assert!(
+            (f64::from(*p) / want - 1.0).abs() < 1e-5,
+            "{i}: {p} against {want}"
+        );
+    }
+    assert!(after[1].iter().all(|p| *p > 0.01), "{:?}", after[1]);
 }
 
 #[test]

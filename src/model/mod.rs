@@ -25,7 +25,7 @@ pub mod step;
 pub use decay::ExpSum;
 pub use effect_step::StepContext;
 pub use params::{
-    BackgroundEstimate, EarlyRelease, Knot, ModelParams, ReleaseRule, Term, Thresholds,
+    BackgroundEstimate, EarlyRelease, Knot, ModelParams, ReleaseKeep, ReleaseRule, Term, Thresholds,
 };
 pub use pixel_response::PixelResponse;
 pub use response::Response;

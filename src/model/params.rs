@@ -131,6 +131,40 @@ pub struct EarlyRelease {
     /// (default 3; > 0 and at most 63.75, the count's 255 quarter sigmas).
     #[serde(default = "default_evidence_sigma")]
     pub evidence_sigma: f64,
+    /// What a released pixel keeps of its amplitudes ([`ReleaseKeep`], default `zero`,
+    /// the paper's; not written when `zero`, so the identity of a model without it is
+    /// unchanged).
+    #[serde(default, skip_serializing_if = "ReleaseKeep::is_zero")]
+    pub keep: ReleaseKeep,
+}
+
+/// What early release leaves of a released pixel's amplitudes (`Kernel::release_amplitudes`
+/// in [`crate::model::step`]).
+///
+/// The evidence that releases a pixel shows that its persistence is below the release
+/// threshold, not that it is zero. Reset to zero (the paper's), a released pixel is
+/// predicted quiet from then on: on the demo's detector (`examples/flag_quality.rs`,
+/// `persist::flag_causes`) over 90 % of the pixel-exposures missed at 0.01 e-/s, and
+/// nearly all missed at 0.1 e-/s, are pixels early release acted on since their last
+/// event. Scaled to the threshold instead, the prediction starts from the bound the
+/// evidence gives and follows the model's decay law from there: the pixel is no longer
+/// flagged high, and flagged low as long as that bound says its persistence may still
+/// be above the low threshold.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ReleaseKeep {
+    /// Amplitudes reset to zero (the paper).
+    #[default]
+    Zero,
+    /// Amplitudes scaled by `threshold / prediction` (the high flag threshold), so that
+    /// the prediction of the exposure that releases is the threshold.
+    Threshold,
+}
+
+impl ReleaseKeep {
+    pub fn is_zero(&self) -> bool {
+        *self == ReleaseKeep::Zero
+    }
 }
 
 /// How a flagged pixel's measurements decide its early release
@@ -208,6 +242,7 @@ impl Default for EarlyRelease {
             background: BackgroundEstimate::default(),
             rule: ReleaseRule::default(),
             evidence_sigma: default_evidence_sigma(),
+            keep: ReleaseKeep::default(),
         }
     }
 }

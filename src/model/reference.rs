@@ -52,7 +52,9 @@ pub fn step(
         if k.er_enabled && high[(y, x)] {
             let m = image[(y, x)];
             if k.release_step(count, m, pred[(y, x)]) {
-                state.amplitudes_e.slice_mut(s![y, x, ..]).fill(0.0);
+                let mut a = state.amplitudes_e.slice_mut(s![y, x, ..]);
+                let a = a.as_slice_mut().expect("a pixel's terms are contiguous");
+                k.release_amplitudes(a, pred[(y, x)]);
                 *count = 0;
                 high[(y, x)] = false;
                 low[(y, x)] = false;

@@ -11,7 +11,9 @@
 //!    it: by default the median over the pixels the model predicts quiet), is finite
 //!    and below the early-release threshold counts one more; at `consecutive` it is
 //!    released: its amplitudes become zero, it is not flagged in this exposure, it is marked
-//!    `RELEASED`. A non-finite measurement or an unflagged pixel resets the count;
+//!    `RELEASED` (with `keep: threshold`, [`super::params::ReleaseKeep`], its amplitudes
+//!    are scaled so that its prediction is the high threshold instead). A non-finite
+//!    measurement or an unflagged pixel resets the count;
 //! 4. **decay** the amplitudes over `t_elapsed = t_reset(k+1) - t_reset(k)`;
 //! 5. **respond**: add this exposure's `A_k` to every term.
 //!
@@ -35,7 +37,7 @@
 use super::decay::ExpSum;
 pub use super::fluence::FlagBits;
 use super::fluence::{extrapolated_fluence_e, pixel_fluence, PixelFluence};
-use super::params::{BackgroundEstimate, ModelParams, ReleaseRule};
+use super::params::{BackgroundEstimate, ModelParams, ReleaseKeep, ReleaseRule};
 use super::pixel_response::PixelResponse;
 use super::response::Response;
 use super::state::{State, PENDING_MAX_AMPLITUDE};
@@ -405,6 +407,7 @@ impl Model {
             er_background: background,
             er_noise: noise_e_per_s.max(f64::MIN_POSITIVE),
             er_rule: er.rule,
+            er_keep: er.keep,
             er_release_at: match er.rule {
                 ReleaseRule::Consecutive => er.consecutive,
                 ReleaseRule::Evidence => er.evidence_quarter_sigmas(),
@@ -636,6 +639,7 @@ pub(crate) struct Kernel<'m> {
     /// least the smallest positive `f64`.
     pub er_noise: f64,
     pub er_rule: ReleaseRule,
+    pub er_keep: ReleaseKeep,
     /// The release count that releases: `consecutive`, or the evidence in quarter sigmas.
     pub er_release_at: u8,
     pub response: &'m Response,
@@ -829,7 +833,7 @@ impl Kernel<'_> {
         let mut released = false;
         if self.er_enabled && high {
             if self.release_step(count, m, pred) {
-                a.fill(0.0);
+                self.release_amplitudes(a, pred);
                 *count = 0;
                 high = false;
                 low = false;
@@ -844,6 +848,23 @@ impl Kernel<'_> {
             high,
             low,
             released,
+        }
+    }
+
+    /// What early release leaves of a released pixel's amplitudes `a`, predicted `pred`
+    /// ([`ReleaseKeep`]): zero, or scaled so that the prediction is the high threshold
+    /// (unchanged when it is not above it).
+    #[inline(always)]
+    pub(crate) fn release_amplitudes(&self, a: &mut [f64], pred: f64) {
+        match self.er_keep {
+            ReleaseKeep::Zero => a.fill(0.0),
+            ReleaseKeep::Threshold if pred > self.high => {
+                let scale = self.high / pred;
+                for v in a.iter_mut() {
+                    *v *= scale;
+                }
+            }
+            ReleaseKeep::Threshold => {}
         }
     }
 
