@@ -36,6 +36,13 @@
 #                                               nothing-hidden sequence (two generators x
 #                                               single/campaign x dark pixels x seeds 1-3;
 #                                               about 15 minutes; not in the default set)
+#   offers docs/validation/offers.md            scripts/offers_table.sh: what the addition
+#                                               `diagnose` offers, run as printed, does to
+#                                               the pixel reference's RMS on the second
+#                                               generator's hidden campaigns, against the
+#                                               nothing-hidden baseline, seeds 1-5
+#                                               ($OFFERS_SEEDS; about two hours; not in the
+#                                               default set)
 #   kinds  docs/validation/kinds.md             scripts/kinds_table.sh: the kind `diagnose`
 #                                               names on the second generator's campaigns,
 #                                               nothing hidden and event-level hidden forms,
@@ -56,8 +63,8 @@ if [[ ${#pages[@]} -eq 0 ]]; then
 fi
 for p in "${pages[@]}"; do
     case $p in
-        floor|bench|matrix|verify|verify_bench|family|family128|family_heldout|reference|kinds|flag_quality) ;;
-        *) echo "validation.sh: unknown page '$p' (floor, bench, matrix, verify, verify_bench, family, family128, family_heldout, reference, kinds, flag_quality)" >&2; exit 2 ;;
+        floor|bench|matrix|verify|verify_bench|family|family128|family_heldout|reference|kinds|offers|flag_quality) ;;
+        *) echo "validation.sh: unknown page '$p' (floor, bench, matrix, verify, verify_bench, family, family128, family_heldout, reference, kinds, offers, flag_quality)" >&2; exit 2 ;;
     esac
 done
 
@@ -373,6 +380,20 @@ page_kinds() {
             "make validation PAGES=kinds (scripts/kinds_table.sh)"
         PERSIST_BIN=$persist SCAN_BIN=$root/target/release/examples/dependence_scan \
             WORK=$tmp/kinds scripts/kinds_table.sh
+    } > "$page.tmp"
+    mv "$page.tmp" "$page"
+    echo "wrote $page" >&2
+}
+
+# offers: what the offered addition does to the pixel reference (its own script).
+page_offers() {
+    local page=$out_dir/offers.md
+    echo "offers: scripts/offers_table.sh" >&2
+    {
+        scripts/validation_header.sh "What the offered addition does, on the second generator's campaigns" \
+            "make validation PAGES=offers (scripts/offers_table.sh; SEEDS=\"${OFFERS_SEEDS:-1 2 3 4 5}\")"
+        PERSIST_BIN=$persist SEEDS="${OFFERS_SEEDS:-1 2 3 4 5}" WORK=$tmp/offers \
+            scripts/offers_table.sh
     } > "$page.tmp"
     mv "$page.tmp" "$page"
     echo "wrote $page" >&2

@@ -5,14 +5,15 @@
 //! three knots over the range of the covariate the data hold, their values fitted
 //! jointly with the model's own effects on the same samples and cells as the library
 //! candidates, judged by the same held-out check. It is offered (its `fit` command in the
-//! verdict and in `data_term`) when it passes the gates a library effect must pass: a
-//! held-out gain of at least [`super::refit::HELD_OUT_MIN_GAIN`] and a `delta_BIC`
-//! below [`super::refit::DBIC_MAX`] (measured with examples/family_matrix at 64 x 64:
-//! with any positive gain accepted, a term was offered on a campaign with nothing hidden,
-//! gain 0.065, and on the weak soak form, 0.056; the capacity and capture forms gave
-//! 0.37 to 0.51);
-//! it is never declared a missing *effect*: it names no physics, only where the data
-//! want more or less than the model gives, along the covariate that was found.
+//! verdict and in `data_term`) when [`super::offer`] chooses it among the refitted
+//! candidates: the best held-out gain against the pixel reference. (Against the
+//! measurements' description, with its gates of a held-out gain of at least
+//! [`super::refit::HELD_OUT_MIN_GAIN`] and a `delta_BIC` below
+//! [`super::refit::DBIC_MAX`], measured with examples/family_matrix at 64 x 64: with any
+//! positive gain accepted, a term was offered on a campaign with nothing hidden, gain
+//! 0.065, and on the weak soak form, 0.056; the capacity and capture forms gave 0.37 to
+//! 0.51.) It is never declared a missing *effect*: it names no physics, only where the
+//! data want more or less than the model gives, along the covariate that was found.
 //! Knot ranges from the data: illumination durations and focal-plane temperatures
 //! from the sampled events (a single value gives no term: the class is then
 //! untestable); the held charge and the neighbours' excess keep the term's defaults
@@ -25,9 +26,7 @@ use super::command::{fit_command, measure_command};
 use super::config::Config;
 use super::data::Sequence;
 use super::eval::Samples;
-use super::refit::{
-    delta_bic, fit_candidate, held_out, held_with_arg, own_effects, HeldOut, DBIC_MAX,
-};
+use super::refit::{delta_bic, fit_candidate, held_out, held_with_arg, own_effects, HeldOut};
 use crate::error::Result;
 use crate::model::effect::EffectDef;
 use crate::model::effects::smooth;
@@ -47,7 +46,7 @@ pub struct DataTerm {
     pub rms_before: f64,
     pub rms_after: f64,
     pub held_out: Option<HeldOut>,
-    /// Whether the verdict offers it (module docs).
+    /// Whether the verdict offers it: set by [`super::offer`]'s choice (module docs).
     pub offered: bool,
     /// The term at the values fitted here, every value held (`fit --with` form).
     #[serde(skip_serializing_if = "Option::is_none")]
@@ -175,7 +174,6 @@ pub fn offer(
         samples,
         cfg.refit,
     )?;
-    let offered = dbic < DBIC_MAX && ho.as_ref().is_none_or(|h| h.passes);
     Ok(Some(DataTerm {
         class: class.to_string(),
         effect: name.clone(),
@@ -186,7 +184,7 @@ pub fn offer(
         rms_before: (rss0 / m.max(1) as f64).sqrt(),
         rms_after: f.residual_rms_normalised_after,
         held_out: ho,
-        offered,
+        offered: false,
         measured_with: held_with_arg(&fitted, &name),
     }))
 }

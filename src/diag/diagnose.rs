@@ -307,7 +307,7 @@ pub fn diagnose(
         &base.current,
         seq,
         &samples,
-        cfg.refit,
+        (cfg.refit, cfg.decide),
     )?;
     // the leader: the first refitted (`refit` in the order of the dependence, `results`
     // in its order)
@@ -342,7 +342,7 @@ pub fn diagnose(
     };
     // no library effect on the covariate the residual depends on predicts held-out
     // data: the data-driven term along it ([`super::data_term`])
-    let data_term = match winner {
+    let mut data_term = match winner {
         Some(w)
             if cfg.decide == Decide::Contrast
                 && !ranking.iter().any(|c| c.significant)
@@ -361,6 +361,21 @@ pub fn diagnose(
         }
         _ => None,
     };
+    // a kind named and nothing significant: the candidate that predicts held-out data
+    // best against the pixel reference ([`super::offer`])
+    let offer = match winner {
+        Some(_)
+            if cfg.decide == Decide::Contrast
+                && !ranking.iter().any(|c| c.significant)
+                && !joint.first().is_some_and(|j| j.significant) =>
+        {
+            super::offer::choose(&ranking, data_term.as_ref())
+        }
+        _ => None,
+    };
+    if let Some(t) = data_term.as_mut() {
+        t.offered = offer.as_ref().is_some_and(|o| o.data_term);
+    }
     order_ranking(&mut ranking, cfg.decide);
     let residual = spread::model_cell_z(params, &samples, &base.current);
     let rms = eval::rms(&residual);
@@ -412,6 +427,7 @@ pub fn diagnose(
         joint,
         spatial,
         data_term,
+        offer,
         verdict: String::new(),
         cautions: cautions(params),
     };
@@ -586,7 +602,7 @@ fn refit_candidates(
     base_current: &[f64],
     seq: &Sequence,
     samples: &Samples,
-    refit: Refit,
+    (refit, decide): (Refit, Decide),
 ) -> Result<Vec<Refitted>> {
     let (params, own_refit, own) = model;
     chosen
@@ -598,7 +614,9 @@ fn refit_candidates(
             // the candidate's parameters are the ones added
             let k = f.params.iter().filter(|p| &p.effect == name).count();
             let dbic = delta_bic(rss0, rss1, k, f.cells);
-            let ho = if dbic < DBIC_MAX {
+            // with the contrast decision every refitted candidate is held out: the
+            // offer is judged there against the pixel reference ([`super::offer`])
+            let ho = if dbic < DBIC_MAX || decide == Decide::Contrast {
                 held_out(
                     params,
                     base_current,

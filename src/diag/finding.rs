@@ -129,6 +129,11 @@ pub struct Diagnosis {
     /// library effect acting on it predicts held-out data ([`super::data_term`]).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub data_term: Option<super::data_term::DataTerm>,
+    /// What the verdict offers when it names a kind and nothing is significant: the
+    /// refitted candidate or data-driven term that predicts held-out data best against
+    /// the pixel reference ([`super::offer`]).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub offer: Option<super::offer::Offer>,
     /// Where each of [`Self::largest_residuals`] lies besides its cell.
     #[serde(skip)]
     pub largest_residual_places: Vec<Place>,

@@ -13,7 +13,8 @@
 //! - [`score`]: the score test and its bootstrap threshold;
 //! - [`contrast`] and [`base`]: what the data can test, and what a flexible base's
 //!   residual depends on; [`separate`]: whether two such kinds can be told apart;
-//! - [`data_term`]: the data-driven term offered along that covariate;
+//! - [`data_term`]: the data-driven term offered along that covariate; [`offer`]: which
+//!   refitted candidate is offered, judged held out against the pixel reference;
 //! - [`finding`]: what a diagnosis decided, as data; [`verdict`] puts it into words
 //!   once the reference is resolved ([`diagnose`] decides, [`reference`](mod@reference)
 //!   chooses what it decides against).
@@ -29,6 +30,7 @@ pub mod contrast;
 pub mod data_term;
 pub mod diagnose;
 pub mod finding;
+pub mod offer;
 pub mod reference;
 pub mod refit;
 pub mod report;

@@ -171,6 +171,57 @@ pub struct HeldOut {
     pub rms_before_moved: f64,
     pub rms_after_moved: f64,
     pub gain_moved_cells: f64,
+    /// The same halves against the pixel reference ([`super::base::predict_scaled`],
+    /// fitted on each test half alone on the prediction without and with the
+    /// candidate); None when a fold's cells differ.
+    pub pixel_reference: Option<PixelHeldOut>,
+}
+
+/// The held-out check against the pixel reference: what the candidate fitted on one
+/// half does to the pixel reference of the other half ([`HeldOut::pixel_reference`]).
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct PixelHeldOut {
+    /// Pooled over the folds' test cells.
+    pub rms_before: f64,
+    pub rms_after: f64,
+    /// `1 - rms_after / rms_before`.
+    pub gain: f64,
+    /// Each fold's gain, in fold order.
+    pub fold_gains: Vec<f64>,
+}
+
+/// The folds' pixel-reference sums, pooled; a fold without them spoils the pool.
+#[derive(Debug, Clone, Default)]
+struct PixelSums {
+    all: HeldOutSums,
+    fold_gains: Vec<f64>,
+    incomplete: bool,
+}
+
+impl PixelSums {
+    fn add(&mut self, fold: Option<HeldOutSums>) {
+        match fold {
+            Some(f) => {
+                let (b, a) = f.rms_all();
+                self.fold_gains.push(1.0 - a / b);
+                self.all.add(&f);
+            }
+            None => self.incomplete = true,
+        }
+    }
+
+    fn result(&self) -> Option<PixelHeldOut> {
+        if self.incomplete || self.all.cells == 0 {
+            return None;
+        }
+        let (rms_before, rms_after) = self.all.rms_all();
+        Some(PixelHeldOut {
+            rms_before,
+            rms_after,
+            gain: 1.0 - rms_after / rms_before,
+            fold_gains: self.fold_gains.clone(),
+        })
+    }
 }
 
 /// Held-out check of the effects `names` (one candidate, or a pair in the joint check;
@@ -232,35 +283,39 @@ pub fn held_out(
         }
     };
     // the two folds in parallel, combined in fold order
-    let fold = |h: usize| -> Result<Option<HeldOutSums>> {
+    let fold = |h: usize| -> Result<(Option<HeldOutSums>, Option<HeldOutSums>)> {
         let (fs, ts, ts_base) = split(h);
-        let (fitted, before) = if own.is_empty() {
+        let (fitted, before, before_current) = if own.is_empty() {
             let names: Vec<String> = names.iter().map(|n| n.to_string()).collect();
             let (fitted, _) =
                 crate::calib::effects::fit(start.unwrap_or(params), &names, seq, &fs)?;
             // `params`' own prediction of the test samples: already computed
             let before = spread::model_cell_z(params, &ts, &ts_base);
-            (fitted, before)
+            (fitted, before, ts_base)
         } else {
             // the model's own effects refitted on the fit half's samples, alone and
             // with the candidate (both fits start from values fitted on all samples)
             let base = refit_own(params, &own, seq, &fs)?;
             let (fitted, _) = fit_candidate(&base, &own, start, names, seq, &fs)?;
-            let before =
-                spread::model_cell_z(&base, &ts, &eval::predict(&base, seq, &ts, false)?.current);
-            (fitted, before)
+            let current = eval::predict(&base, seq, &ts, false)?.current;
+            let before = spread::model_cell_z(&base, &ts, &current);
+            (fitted, before, current)
         };
-        let after = spread::model_cell_z(
-            &fitted,
-            &ts,
-            &eval::predict(&fitted, seq, &ts, false)?.current,
-        );
-        Ok(HeldOutSums::of(&before, &after))
+        let after_current = eval::predict(&fitted, seq, &ts, false)?.current;
+        let after = spread::model_cell_z(&fitted, &ts, &after_current);
+        // the pixel reference fitted on the test half alone, on either prediction
+        let pixel = |current: &[f64]| super::base::predict_scaled(seq, &ts, current).cells(&ts);
+        Ok((
+            HeldOutSums::of(&before, &after),
+            HeldOutSums::of(&pixel(&before_current), &pixel(&after_current)),
+        ))
     };
     let (f0, f1) = rayon::join(|| fold(0), || fold(1));
     let mut folds = Vec::new();
     let mut all = HeldOutSums::default();
-    for (h, r) in [f0?, f1?].into_iter().enumerate() {
+    let mut pixel = PixelSums::default();
+    for (h, (r, p)) in [f0?, f1?].into_iter().enumerate() {
+        pixel.add(p);
         let Some(r) = r else { continue };
         let (fit_ev, test_ev) = if by_pixels {
             (&events, &events)
@@ -291,6 +346,7 @@ pub fn held_out(
         rms_after: ra,
         gain,
         passes: gain >= HELD_OUT_MIN_GAIN,
+        pixel_reference: pixel.result(),
         moved_cells: all.moved,
         rms_before_moved: rbm,
         rms_after_moved: ram,

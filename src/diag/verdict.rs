@@ -14,6 +14,8 @@ use super::command::margin_note;
 use super::config::{Decide, Refit};
 use super::contrast;
 use super::finding::{Candidate, Diagnosis, Joint};
+use super::offer::OFFER_MIN_GAIN;
+use super::refit::HELD_OUT_MIN_GAIN;
 use super::separate::{Separation, Told};
 use crate::model::params::ModelParams;
 
@@ -36,7 +38,10 @@ pub fn verdict(d: &Diagnosis, params: &ModelParams, held: bool) -> String {
             confounded_prefix(d.separation.as_ref(), &w.class)
                 + &dependence_sentence(w)
                 + &separation_sentence(d.separation.as_ref(), &w.class)
-                + &data_term_sentence(d.data_term.as_ref(), &w.class, params, held)
+                + &match &d.offer {
+                    Some(o) => offer_sentence(o, d, params, held),
+                    None => data_term_sentence(d.data_term.as_ref(), &w.class, params, held),
+                }
         }
         None => format!(
             "no library effect is significant; the residual RMS is {:.2}, largest at: {}{}",
@@ -100,14 +105,15 @@ fn candidate_sentence(c: &Candidate, params: &ModelParams, held: bool) -> String
 }
 
 /// The verdict when the residual depends on `w`'s covariate and no library effect on
-/// it predicts held-out data.
+/// it passes the gates against the measurements' description.
 fn dependence_sentence(w: &contrast::Dependence) -> String {
     format!(
         "the residual of {} depends on {} (it explains {:.1} % of the residual's sum \
          of squares inside the fluence x time cells, {:.1} % at most over {} \
-         permutations; z {:.1}), but no library effect acting on it ({}) predicts \
-         held-out data: the missing physics is of this kind in another form. The \
-         residual by {}: {}",
+         permutations; z {:.1}), but no library effect acting on it ({}) passes the \
+         gates against the measurements' description (dBIC and a held-out gain of \
+         {HELD_OUT_MIN_GAIN}): the missing physics may be of this kind in another form. \
+         The residual by {}: {}",
         contrast::base_name(&w.class),
         w.class,
         100.0 * w.r2,
@@ -257,6 +263,55 @@ fn field_sentence(spatial: Option<&super::spatial::Coherence>) -> String {
     })
 }
 
+/// The verdict's sentence on the offer ([`super::offer`]): what it is, what it does to
+/// the pixel reference held out, and the command that adds it (the candidate's, or the
+/// data-driven term's).
+fn offer_sentence(
+    o: &super::offer::Offer,
+    d: &Diagnosis,
+    params: &ModelParams,
+    held: bool,
+) -> String {
+    let (what, command, measure, measured) = if o.data_term {
+        let Some(t) = d.data_term.as_ref() else {
+            return String::new();
+        };
+        (
+            format!(
+                "the data-driven term along it ({}: a smooth function of the covariate \
+                 fitted from these data)",
+                t.effect
+            ),
+            &t.command,
+            t.measure_command.as_deref(),
+            t.measured_with.is_some(),
+        )
+    } else {
+        let Some(c) = d.ranking.iter().find(|c| c.effect == o.effect) else {
+            return String::new();
+        };
+        (
+            format!(
+                "the library effect {} (acting on {})",
+                c.effect, c.covariate
+            ),
+            &c.command,
+            c.measure_command.as_deref(),
+            c.measured_with.is_some(),
+        )
+    };
+    let p = &o.pixel_reference;
+    format!(
+        ". Offered: {what}, which predicts held-out data better than the pixel reference \
+         alone (fitted on one half, the pixel reference's RMS on the other {:.2} -> {:.2}, \
+         gain {:.2}); add it with: {}",
+        p.rms_before,
+        p.rms_after,
+        p.gain,
+        add_clause(command, measure, held && measured, params)
+    )
+}
+
 /// The verdict's sentence on the data-driven term: offered with its command, or why not.
 /// `class`: the covariate's class.
 fn data_term_sentence(
@@ -300,7 +355,8 @@ fn data_term_sentence(
     } else {
         format!(
             ". A data-driven term along it ({}) does not predict held-out data either \
-             (dBIC {:.1}, {gain}): not offered",
+             (dBIC {:.1}, {gain}; against the pixel reference, no refitted candidate \
+             gains {OFFER_MIN_GAIN} held out): not offered",
             t.effect, t.delta_bic
         )
     }
