@@ -59,6 +59,9 @@ const KNOTS_PER_DECADE: f64 = 5.0;
 /// Knots from 10^LOG_F_MIN to 10^LOG_F_MAX e-.
 const LOG_F_MIN: f64 = 3.0;
 const LOG_F_MAX: f64 = 7.0;
+/// The correction's normal equations are summed over this many chunks of samples, in
+/// parallel, then added in order (deterministic).
+const FIT_CHUNKS: usize = 16;
 /// Samples used in the fit at most.
 pub const MAX_FIT_SAMPLES: usize = 300_000;
 
@@ -187,8 +190,12 @@ fn fit_correction(
         .collect();
     let stride = usable.len().div_ceil(MAX_FIT_SAMPLES).max(1);
     let fit: Vec<usize> = usable.iter().copied().step_by(stride).collect();
-    let (ata, atb) = fit
-        .par_chunks(4096)
+    // a fixed number of chunks, summed in their order: the same sums whatever the
+    // threads (rayon's `reduce` follows its work stealing, and the last bits of a float
+    // sum follow the order)
+    let chunk = fit.len().div_ceil(FIT_CHUNKS).max(1);
+    let partial: Vec<(Vec<f64>, Vec<f64>)> = fit
+        .par_chunks(chunk)
         .map(|chunk| {
             let mut ata = vec![0.0; p * p];
             let mut atb = vec![0.0; p];
@@ -210,14 +217,12 @@ fn fit_correction(
             }
             (ata, atb)
         })
-        .reduce(
-            || (vec![0.0; p * p], vec![0.0; p]),
-            |(mut a, mut b), (c, d)| {
-                a.iter_mut().zip(c).for_each(|(x, y)| *x += y);
-                b.iter_mut().zip(d).for_each(|(x, y)| *x += y);
-                (a, b)
-            },
-        );
+        .collect();
+    let (mut ata, mut atb) = (vec![0.0; p * p], vec![0.0; p]);
+    for (a, b) in partial {
+        ata.iter_mut().zip(a).for_each(|(x, y)| *x += y);
+        atb.iter_mut().zip(b).for_each(|(x, y)| *x += y);
+    }
     let trace: f64 = (0..p).map(|j| ata[j * p + j]).sum::<f64>() / p as f64;
     let mut m = ata;
     for j in 0..p {
