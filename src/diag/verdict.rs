@@ -435,11 +435,13 @@ pub fn render(d: &Diagnosis) -> String {
             c.held_out
                 .as_ref()
                 .map_or("-".into(), |h| format!("{:+.0}%", -100.0 * h.gain)),
-            c.held_out.as_ref().map_or("-".into(), |h| format!(
-                "{:+.0}% of {}",
-                -100.0 * h.gain_moved_cells,
-                h.moved_cells
-            )),
+            c.held_out.as_ref().map_or("-".into(), |h| {
+                if h.moved_cells == 0 || !h.gain_moved_cells.is_finite() {
+                    "none moved".into()
+                } else {
+                    format!("{:+.0}% of {}", -100.0 * h.gain_moved_cells, h.moved_cells)
+                }
+            }),
             c.covariate,
             if c.significant {
                 "  SIGNIFICANT"
