@@ -133,7 +133,7 @@ pub struct Diagnosis {
     /// refitted candidate or data-driven term that predicts held-out data best against
     /// the pixel reference ([`super::offer`]).
     #[serde(skip_serializing_if = "Option::is_none")]
-    pub offer: Option<super::offer::Offer>,
+    pub offer: Option<Offer>,
     /// Where each of [`Self::largest_residuals`] lies besides its cell.
     #[serde(skip)]
     pub largest_residual_places: Vec<Place>,
@@ -169,4 +169,16 @@ impl PixelReference {
             largest_residuals: worst,
         }
     }
+}
+
+/// The addition `persist diagnose` offers ([`super::offer`], its rule).
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct Offer {
+    /// The library effect's name, or the data-driven term's.
+    pub effect: String,
+    /// Whether it is the data-driven term ([`super::finding::Diagnosis::data_term`]),
+    /// else a candidate of the ranking.
+    pub data_term: bool,
+    /// Its held-out check against the pixel reference.
+    pub pixel_reference: super::refit::PixelHeldOut,
 }

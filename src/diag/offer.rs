@@ -27,26 +27,14 @@
 
 use super::data_term::DataTerm;
 use super::finding::Candidate;
+pub use super::finding::Offer;
 use super::refit::PixelHeldOut;
-use serde::Serialize;
 
 /// The least pooled held-out gain against the pixel reference an offer needs. A
 /// chosen value, not calibrated by permutations: on the second generator's hidden
 /// campaigns the additions that halved the excess over the nothing-hidden baseline
 /// gained more (docs/validation/offers.md).
 pub const OFFER_MIN_GAIN: f64 = 0.02;
-
-/// The addition offered (module docs).
-#[derive(Debug, Clone, PartialEq, Serialize)]
-pub struct Offer {
-    /// The library effect's name, or the data-driven term's.
-    pub effect: String,
-    /// Whether it is the data-driven term ([`super::finding::Diagnosis::data_term`]),
-    /// else a candidate of the ranking.
-    pub data_term: bool,
-    /// Its held-out check against the pixel reference.
-    pub pixel_reference: PixelHeldOut,
-}
 
 /// Whether a held-out check against the pixel reference supports an offer.
 fn passes(p: &PixelHeldOut) -> bool {
