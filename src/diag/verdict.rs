@@ -40,7 +40,7 @@ pub fn verdict(d: &Diagnosis, params: &ModelParams, held: bool) -> String {
                 + &separation_sentence(d.separation.as_ref(), &w.class)
                 + &match &d.offer {
                     Some(o) => offer_sentence(o, d, params, held),
-                    None => data_term_sentence(d.data_term.as_ref(), &w.class, params, held),
+                    None => data_term_sentence(d.data_term.as_ref(), &w.class, params),
                 }
         }
         None => format!(
@@ -312,13 +312,13 @@ fn offer_sentence(
     )
 }
 
-/// The verdict's sentence on the data-driven term: offered with its command, or why not.
+/// The verdict's sentence on the data-driven term when nothing is offered (an offered
+/// term is [`offer_sentence`]'s): held by the model already, absent, or why not offered.
 /// `class`: the covariate's class.
 fn data_term_sentence(
     t: Option<&super::data_term::DataTerm>,
     class: &str,
     params: &ModelParams,
-    held: bool,
 ) -> String {
     let Some(t) = t else {
         return match super::data_term::held(class, params) {
@@ -336,30 +336,12 @@ fn data_term_sentence(
         .map_or("no held-out check".to_string(), |h| {
             format!("held-out gain {:.2}", h.gain)
         });
-    if t.offered {
-        format!(
-            ". A data-driven term along it ({}: a smooth function of the covariate fitted \
-             from these data) lowers the residual RMS from {:.2} to {:.2} (dBIC {:.1}, {gain}); \
-             add it with: {}",
-            t.effect,
-            t.rms_before,
-            t.rms_after,
-            t.delta_bic,
-            add_clause(
-                &t.command,
-                t.measure_command.as_deref(),
-                held && t.measured_with.is_some(),
-                params
-            )
-        )
-    } else {
-        format!(
-            ". A data-driven term along it ({}) does not predict held-out data either \
-             (dBIC {:.1}, {gain}; against the pixel reference, no refitted candidate \
-             gains {OFFER_MIN_GAIN} held out): not offered",
-            t.effect, t.delta_bic
-        )
-    }
+    format!(
+        ". A data-driven term along it ({}) does not predict held-out data either \
+         (dBIC {:.1}, {gain}; against the pixel reference, no refitted candidate \
+         gains {OFFER_MIN_GAIN} held out): not offered",
+        t.effect, t.delta_bic
+    )
 }
 
 /// What is known to limit a diagnosis against `params`.
