@@ -45,7 +45,12 @@ fn main() {
         .collect();
     let contrasts = contrast::testability(&seq, &s, &library);
     let flexible = persist::diag::base::predict(&seq, &s, &base.current);
-    let scaled = persist::diag::base::predict_scaled(&seq, &s, &base.current);
+    let scaled = persist::diag::base::predict_scaled(
+        &seq,
+        &s,
+        &base.current,
+        &persist::model::response::Response::new(&model.amplitude_knots),
+    );
     let bases = Bases {
         flexible: &flexible,
         pixel_reference: &scaled.prediction,

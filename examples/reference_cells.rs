@@ -32,7 +32,12 @@ fn main() {
         persist::diag::reference::describe(&model, &seq, &cfg).expect("description")
     };
     let base = eval::predict(&model, &seq, &s, false).expect("predict");
-    let r = persist::diag::base::predict_scaled(&seq, &s, &base.current);
+    let r = persist::diag::base::predict_scaled(
+        &seq,
+        &s,
+        &base.current,
+        &persist::model::response::Response::new(&model.amplitude_knots),
+    );
     let cells = r.cells(&s);
     let mut groups: std::collections::BTreeMap<Vec<i64>, Vec<usize>> = Default::default();
     for i in 0..s.len() {

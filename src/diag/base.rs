@@ -45,6 +45,7 @@
 
 use super::data::{fluence, Sequence, BACKGROUND_FLUENCE_E};
 use super::eval::Samples;
+use crate::model::response::Response;
 use ndarray::Array2;
 use rayon::prelude::*;
 
@@ -271,11 +272,14 @@ fn pixel_factor(c: &[f64], l: f64, sat: f64, fl: f64) -> f64 {
 
 /// Per sample: the share of its persistence current that comes from illuminations
 /// that saturated the pixel (`OVERFLOW`), each illumination `a` weighted as the
-/// paper's 1/t law has it, `F_a / t(a, k)`; for a pixel whose sampled shares are not
+/// paper's 1/t law has it, by the amplitude the model's response gives its fluence,
+/// `A(F_a) / t(a, k)` (the response's rise around saturation: on the paper's Table 1 a
+/// saturating illumination leaves about three times the amplitude per electron of an
+/// unsaturated one); for a pixel whose sampled shares are not
 /// all on one side of one half, else 0 (the saturated traps' amplitude is then a term
 /// of its own, which a pixel always or never saturated cannot separate from its
 /// overall amplitude).
-fn saturated_share(seq: &Sequence, s: &Samples, maps: &[Map]) -> Vec<f64> {
+fn saturated_share(seq: &Sequence, s: &Samples, maps: &[Map], response: &Response) -> Vec<f64> {
     let np = s.npix().max(1);
     let share = |i: usize| -> f64 {
         let (row, (y, x)) = (i / np, s.pixels[i % np]);
@@ -286,7 +290,7 @@ fn saturated_share(seq: &Sequence, s: &Samples, maps: &[Map]) -> Vec<f64> {
             if !(f.is_finite() && f > BACKGROUND_FLUENCE_E) {
                 continue;
             }
-            let w = f / seq.t_mid_after_s(m.illumination, k).max(1.0);
+            let w = response.amplitude_e(f) / seq.t_mid_after_s(m.illumination, k).max(1.0);
             all += w;
             if m.overflow.as_ref().is_some_and(|o| o[(y, x)]) {
                 sat += w;
@@ -369,7 +373,8 @@ fn fluence_tilt(s: &Samples) -> Vec<f64> {
 /// correction)`, `f_p = sum_j c_pj L^j + c_s sat + c_f fl + c_ff fl^2` over
 /// [`PIXEL_TERMS`] powers of `L = ln(t / TILT_REFERENCE_S)` (`t` since the last
 /// illumination), the share `sat` of the current from saturating illuminations
-/// ([`saturated_share`]) and the log fluence `fl` about the pixel's mean
+/// ([`saturated_share`], its illuminations weighed by `response`, the model's
+/// amplitude per fluence) and the log fluence `fl` about the pixel's mean
 /// ([`fluence_tilt`]), the correction as
 /// [`predict`]'s (with knots of their own for the pixels saturated in the
 /// illumination: the response around saturation) and `c_p` each sampled pixel's own
@@ -381,10 +386,10 @@ fn fluence_tilt(s: &Samples) -> Vec<f64> {
 /// measurement's variance (exposure noise and the prediction's shot noise). Returns
 /// the predictions, each sample's noise and its leverage in its pixel's fit (`h_i`:
 /// under the fit, a residual's variance is `sigma_i^2 (1 - h_i)`).
-pub fn predict_scaled(seq: &Sequence, s: &Samples, pred: &[f64]) -> Scaled {
+pub fn predict_scaled(seq: &Sequence, s: &Samples, pred: &[f64], response: &Response) -> Scaled {
     const K: usize = ALL_PIXEL_TERMS;
     let maps = fluence_maps(seq, true);
-    let sat = saturated_share(seq, s, &maps);
+    let sat = saturated_share(seq, s, &maps, response);
     let fl = fluence_tilt(s);
     let np = s.npix().max(1);
     let tilt: Vec<f64> = (0..s.len())

@@ -261,7 +261,8 @@ pub fn diagnose(
     // what the residuals of the flexible base and of the pixel reference depend on, by
     // permutation
     let flexible = super::base::predict(seq, &samples, &base.current);
-    let scaled = super::base::predict_scaled(seq, &samples, &base.current);
+    let response = crate::model::response::Response::new(&params.amplitude_knots);
+    let scaled = super::base::predict_scaled(seq, &samples, &base.current, &response);
     let pixel_reference = PixelReference::of(&scaled.cells(&samples));
     let bases = contrast::Bases {
         flexible: &flexible,

@@ -282,6 +282,8 @@ pub fn held_out(
             )
         }
     };
+    // the user's model's response weighs the illuminations in both pixel references
+    let response = crate::model::response::Response::new(&params.amplitude_knots);
     // the two folds in parallel, combined in fold order
     let fold = |h: usize| -> Result<(Option<HeldOutSums>, Option<HeldOutSums>)> {
         let (fs, ts, ts_base) = split(h);
@@ -304,7 +306,8 @@ pub fn held_out(
         let after_current = eval::predict(&fitted, seq, &ts, false)?.current;
         let after = spread::model_cell_z(&fitted, &ts, &after_current);
         // the pixel reference fitted on the test half alone, on either prediction
-        let pixel = |current: &[f64]| super::base::predict_scaled(seq, &ts, current).cells(&ts);
+        let pixel =
+            |current: &[f64]| super::base::predict_scaled(seq, &ts, current, &response).cells(&ts);
         Ok((
             HeldOutSums::of(&before, &after),
             HeldOutSums::of(&pixel(&before_current), &pixel(&after_current)),
