@@ -34,7 +34,8 @@ pub(super) fn fit_command(
     if let Some(p) = preset {
         s += &format!(" --preset {p}");
     }
-    let from_preset = preset.map_or(&[][..], |p| p.effects());
+    // the effects `fit` adds by itself: the preset's (the default one's without)
+    let from_preset = preset.unwrap_or_default().effects();
     for e in params
         .effects
         .iter()
@@ -164,14 +165,16 @@ mod tests {
     /// The command that adds a candidate keeps the model's own effects and the
     /// diagnosis's cells (it named the candidate alone, so following it dropped them),
     /// naming the cells only where they differ from `fit`'s defaults, which are the
-    /// library's: per illumination, paired.
+    /// library's: per illumination, paired. `refill`, which `fit` fits by itself (its
+    /// default preset's), is not repeated.
     #[test]
     fn the_suggested_fit_keeps_the_model_s_effects_and_cells() {
         let mut p = ModelParams::default();
         p.effects.push(EffectSpec::named("refill"));
+        p.effects.push(EffectSpec::named("chord"));
         let cmd =
             |cfg: &Config| fit_command(Path::new("lab"), Path::new("m.json"), &p, &["soak"], cfg);
-        let base = "persist fit --input lab --out m+soak.json --with refill --with soak";
+        let base = "persist fit --input lab --out m+soak.json --with chord --with soak";
         assert_eq!(
             (Config::default().cells, Config::default().cell_statistic),
             (eval::Cells::Illumination, eval::CellStatistic::Paired)
@@ -200,7 +203,7 @@ mod tests {
                 &["temperature", "soak"],
                 &Config::default()
             ),
-            "persist fit --input lab --out m+temperature+soak.json --with refill \
+            "persist fit --input lab --out m+temperature+soak.json --with chord \
              --with temperature --with soak"
         );
     }
