@@ -33,6 +33,13 @@ use persist::model::{Model, ModelParams};
 use persist::sim::sky::SkyConfig;
 use std::path::Path;
 
+/// The model `persist fit` writes by default (`persist::calib::Preset::Paper`).
+const DEFAULT_FIT: &str =
+    "`persist fit`, its default: `refill`, 95 % coverage, release keeps the threshold";
+/// The paper's calibration at 95 % coverage without `refill`, released pixels reset to
+/// zero (the paper's sum and release).
+const NO_REFILL: &str = "no `refill`, 95 % coverage";
+
 enum Flagger {
     Model {
         model: Box<Model>,
@@ -216,45 +223,42 @@ fn main() -> persist::Result<()> {
             model(Model::new(keeping(&with_rule(ModelParams::default())))?),
         ),
         (
-            "`fit --no-coverage` (95th percentile x 1.2)".into(),
+            "no `refill`, 95th percentile x 1.2 (`--no-coverage`)".into(),
             model(Model::new(lab.clone())?),
         ),
-        ("`fit --no-coverage` + map".into(), model(map(&lab)?)),
         (
-            "`fit` (95 % coverage, the default)".into(),
-            model(Model::new(covered.clone())?),
+            "no `refill`, 95th percentile x 1.2, + map".into(),
+            model(map(&lab)?),
         ),
+        (format!("{NO_REFILL}"), model(Model::new(covered.clone())?)),
         (
-            format!("`fit` (95 % coverage, the default){in_flight}"),
+            format!("{NO_REFILL}{in_flight}"),
             model(Model::new(covered_rule.clone())?),
         ),
         (
-            "`fit` (95 % coverage), release keeps the threshold".into(),
+            format!("{NO_REFILL}, release keeps the threshold"),
             model(Model::new(covered_keep)?),
         ),
         (
-            format!("`fit` (95 % coverage), release keeps the threshold{in_flight}"),
+            format!("{NO_REFILL}, release keeps the threshold{in_flight}"),
             model(Model::new(covered_keep_rule.clone())?),
         ),
-        ("`fit` (95 % coverage) + map".into(), model(map(&covered)?)),
+        (format!("{NO_REFILL} + map"), model(map(&covered)?)),
         (
-            "95 % coverage, decay reshaped".into(),
+            format!("{NO_REFILL}, decay reshaped"),
             model(Model::new(reshaped)?),
         ),
         (
-            "`fit --with refill` (95 % coverage)".into(),
+            "`refill`, 95 % coverage, release to zero".into(),
             model(Model::new(refilled.clone())?),
         ),
         (
-            format!("`fit --with refill`{in_flight}"),
+            format!("`refill`, 95 % coverage, release to zero{in_flight}"),
             model(Model::new(refilled_rule.clone())?),
         ),
+        (DEFAULT_FIT.into(), model(Model::new(refilled_keep)?)),
         (
-            "`fit --with refill`, release keeps the threshold".into(),
-            model(Model::new(refilled_keep)?),
-        ),
-        (
-            format!("`fit --with refill`, release keeps the threshold{in_flight}"),
+            format!("{DEFAULT_FIT}{in_flight}"),
             model(Model::new(refilled_keep_rule.clone())?),
         ),
     ];
@@ -277,13 +281,10 @@ fn main() -> persist::Result<()> {
     let explained: Vec<usize> = if args.iter().any(|a| a == "--no-causes") {
         vec![]
     } else {
-        [
-            "`fit` (95 % coverage, the default)".to_string(),
-            format!("`fit --with refill`, release keeps the threshold{in_flight}"),
-        ]
-        .iter()
-        .filter_map(|n| flaggers.iter().position(|(f, _)| f == n))
-        .collect()
+        [NO_REFILL.to_string(), format!("{DEFAULT_FIT}{in_flight}")]
+            .iter()
+            .filter_map(|n| flaggers.iter().position(|(f, _)| f == n))
+            .collect()
     };
     let mut causes: Vec<CauseTally> = explained
         .iter()
@@ -367,16 +368,13 @@ fn main() -> persist::Result<()> {
         FROM_EXPOSURE - 1
     );
     for (name, rule) in [
-        ("`fit` (95 % coverage, the default)", &covered_rule),
+        (NO_REFILL, &covered_rule),
         (
-            "`fit` (95 % coverage), release keeps the threshold",
+            format!("{NO_REFILL}, release keeps the threshold").as_str(),
             &covered_keep_rule,
         ),
-        ("`fit --with refill`", &refilled_rule),
-        (
-            "`fit --with refill`, release keeps the threshold",
-            &refilled_keep_rule,
-        ),
+        ("`refill`, 95 % coverage, release to zero", &refilled_rule),
+        (DEFAULT_FIT, &refilled_keep_rule),
     ] {
         println!("- {name}: {}", said(rule));
     }

@@ -180,7 +180,8 @@ impl Stated {
 ///   0.01 e-/s fall from 37 % to 1-4 % and the over-flagging at both thresholds does
 ///   not rise (docs/validation/flag_quality.md); either alone does worse (`refill`
 ///   alone misses as many; the threshold kept without `refill` doubles the
-///   over-flagging at 0.01 e-/s). `--with refill:beta=0` is the paper's sum.
+///   over-flagging at 0.01 e-/s). `--with refill:beta=0 --release-keep zero` is the
+///   paper's sum and release.
 /// - [`Preset::Readout`]: the reference against which the hidden-effect matrix is
 ///   measured (the readout reference), for comparing a model
 ///   with measurements: the knots at the measured level (amplification 1.0; the paper's

@@ -124,12 +124,13 @@ pub fn fit_params(
     Ok((params, cal, ef))
 }
 
-/// `persist fit`: calibrate, fit the `--with` effects (and what `free` frees: the `C_n`
-/// or the knots' level, [`effects`] module docs), write the model and the report.
+/// `persist fit`: calibrate, fit the preset's and the `--with` effects (and what `free`
+/// frees: the `C_n` or the knots' level, [`effects`] module docs), calibrate the flags to
+/// the coverage, set what early release keeps (`keep`), write the model and the report.
 pub fn run(
     input: &std::path::Path,
     cfg: &CalibConfig,
-    (preset, with): (Preset, &[String]),
+    (preset, with, keep): (Preset, &[String], crate::model::params::ReleaseKeep),
     (free, coverage_stated): (effects::Free, bool),
     out: &std::path::Path,
     report_path: &std::path::Path,
@@ -153,11 +154,11 @@ pub fn run(
         );
     }
     // the margin last, after every effect (coverage module docs), then what early
-    // release keeps (the preset's: the flag counts of docs/validation/flag_quality.md
-    // are of models made in this order)
+    // release keeps (`keep`, by default the preset's: the flag counts of
+    // docs/validation/flag_quality.md are of models made in this order)
     let (mut params, covered, not_covered) =
         to_coverage(params, &seq, cfg, coverage_stated).map_err(|e| e.path(input))?;
-    params.early_release.keep = preset.release_keep();
+    params.early_release.keep = keep;
     let samples = cfg.samples(&seq);
     let pr = crate::measure::eval::predict(&params, &seq, &samples, false)?;
     let cells = crate::measure::spread::model_cell_z(&params, &samples, &pr.current);
