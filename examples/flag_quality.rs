@@ -233,7 +233,7 @@ fn main() -> persist::Result<()> {
         (format!("{NO_REFILL}"), model(Model::new(covered.clone())?)),
         (
             format!("{NO_REFILL}{in_flight}"),
-            model(Model::new(covered_rule.clone())?),
+            model(Model::new(covered_rule.0.clone())?),
         ),
         (
             format!("{NO_REFILL}, release keeps the threshold"),
@@ -241,7 +241,7 @@ fn main() -> persist::Result<()> {
         ),
         (
             format!("{NO_REFILL}, release keeps the threshold{in_flight}"),
-            model(Model::new(covered_keep_rule.clone())?),
+            model(Model::new(covered_keep_rule.0.clone())?),
         ),
         (format!("{NO_REFILL} + map"), model(map(&covered)?)),
         (
@@ -254,12 +254,12 @@ fn main() -> persist::Result<()> {
         ),
         (
             format!("`refill`, 95 % coverage, release to zero{in_flight}"),
-            model(Model::new(refilled_rule.clone())?),
+            model(Model::new(refilled_rule.0.clone())?),
         ),
         (DEFAULT_FIT.into(), model(Model::new(refilled_keep)?)),
         (
             format!("{DEFAULT_FIT}{in_flight}"),
-            model(Model::new(refilled_keep_rule.clone())?),
+            model(Model::new(refilled_keep_rule.0.clone())?),
         ),
     ];
     for w in &windows {
@@ -415,9 +415,14 @@ fn measured_span(sky: &SkyConfig, dir: &Path) -> persist::Result<std::path::Path
 /// `params` with the transient rule measured in flight the way operations would: the
 /// stage flags the products of `sim` with `params`, `persist verify` measures its
 /// outputs, and `persist fit --from-verify` (`persist::verify::transient::run`) writes the
-/// rule into a model file in `dir`, read back. Refused (an error) when the report gives
-/// no rule.
-fn measured_rule(sim: &Path, params: &ModelParams, dir: &Path) -> persist::Result<ModelParams> {
+/// rule into a model file in `dir`, read back. When the report gives no rule (too few
+/// hits measured), `fit --from-verify` refuses and the model keeps the table's maximum,
+/// as in operations: `params` and the reason.
+fn measured_rule(
+    sim: &Path,
+    params: &ModelParams,
+    dir: &Path,
+) -> persist::Result<(ModelParams, Option<String>)> {
     let run = persist::stage::RunConfig {
         input: sim.to_path_buf(),
         output: dir.join("output"),
@@ -437,14 +442,25 @@ fn measured_rule(sim: &Path, params: &ModelParams, dir: &Path) -> persist::Resul
     let report = persist::verify::run(sim, &run.output, &persist::verify::VerifyParams::default())?;
     persist::verify::write_report(&report, &dir.join("report"))?;
     let model = dir.join("model.json");
-    persist::verify::transient::run(&dir.join("report").join("report.json"), params, &model)?;
-    persist::model_file::load(&model)
+    match persist::verify::transient::run(&dir.join("report").join("report.json"), params, &model) {
+        Ok(_) => Ok((persist::model_file::load(&model)?, None)),
+        Err(e) if e.context.field.as_deref() == Some("/transients") => {
+            Ok((params.clone(), Some(e.message)))
+        }
+        Err(e) => Err(e),
+    }
 }
 
-/// The measured rule of `p`, in words (without the report's temporary path).
-fn said(p: &ModelParams) -> String {
+/// The measured rule of `p` (or why there is none), in words (without the report's
+/// temporary path).
+fn said((p, refused): &(ModelParams, Option<String>)) -> String {
     p.transient.as_ref().map_or_else(
-        || "no rule".to_string(),
+        || {
+            format!(
+                "{}: the table's maximum stays",
+                refused.as_deref().unwrap_or("no rule")
+            )
+        },
         |t| {
             format!(
                 "{:.1} e- (the flown {:.1} e- x {:.4}, from {} hits at their first exposure)",
