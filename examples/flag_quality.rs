@@ -230,7 +230,7 @@ fn main() -> persist::Result<()> {
             "no `refill`, 95th percentile x 1.2, + map".into(),
             model(map(&lab)?),
         ),
-        (format!("{NO_REFILL}"), model(Model::new(covered.clone())?)),
+        (NO_REFILL.to_string(), model(Model::new(covered.clone())?)),
         (
             format!("{NO_REFILL}{in_flight}"),
             model(Model::new(covered_rule.0.clone())?),
