@@ -10,6 +10,14 @@
 //! coverage. Where the errors of the default `fit` and of `fit --with refill` are:
 //! `persist::flag_causes`.
 //!
+//! The rows "+ transient rule measured in flight" give a model the transient rule the
+//! way operations would ([`measured_rule`]): the sky's exposures before the counted
+//! ones (0 to `FROM_EXPOSURE - 1`) written as products, flagged by the stage with that
+//! model, measured by `persist verify` and turned into the rule by `persist fit
+//! --from-verify` (`persist::verify::transient::run`, the CLI's function); then the whole
+//! run is flagged with the model that carries the rule and counted from `FROM_EXPOSURE`
+//! on. Nothing there reads the simulator's cosmic-ray charges or its truth.
+//!
 //! ```sh
 //! target/release/examples/flag_quality [--size 128] [--seed 1] [--exposures 1143]
 //!     [--windows 2500,5000,10000,20000,40000] [--lab-darks 30] [--release-consecutive N]
@@ -22,6 +30,15 @@ use persist::calib::coverage::{self, CoverageConfig};
 use persist::flag_causes::{CauseInput, CauseTally};
 use persist::flag_quality::{table, TruthTally, FROM_EXPOSURE};
 use persist::model::{Model, ModelParams};
+use persist::sim::sky::SkyConfig;
+use std::path::Path;
+
+/// The model `persist fit` writes by default (`persist::calib::Preset::Paper`).
+const DEFAULT_FIT: &str =
+    "`persist fit`, its default: `refill`, 95 % coverage, release keeps the threshold";
+/// The paper's calibration at 95 % coverage without `refill`, released pixels reset to
+/// zero (the paper's sum and release).
+const NO_REFILL: &str = "no `refill`, 95 % coverage";
 
 enum Flagger {
     Model {
@@ -171,38 +188,78 @@ fn main() -> persist::Result<()> {
         model: Box::new(m),
         state: None,
     };
+    let sky = SkyConfig {
+        size,
+        detectors: 1,
+        exposures,
+        seed,
+        ..Default::default()
+    };
+    // early release keeping the threshold (`early_release.keep: threshold`)
+    let keeping = |p: &ModelParams| ModelParams {
+        early_release: persist::model::EarlyRelease {
+            keep: persist::model::ReleaseKeep::Threshold,
+            ..p.early_release
+        },
+        ..p.clone()
+    };
+    let covered_keep = keeping(&covered);
+    let refilled_keep = keeping(&refilled);
+    // the transient rule measured in flight on the exposures before the counted ones
+    let work = tempfile::tempdir().map_err(|e| persist::Error::io(&std::env::temp_dir(), e))?;
+    let span = measured_span(&sky, work.path())?;
+    let covered_rule = measured_rule(&span, &covered, &work.path().join("fit"))?;
+    let covered_keep_rule = measured_rule(&span, &covered_keep, &work.path().join("fit-keep"))?;
+    let refilled_rule = measured_rule(&span, &refilled, &work.path().join("refill"))?;
+    let refilled_keep_rule = measured_rule(&span, &refilled_keep, &work.path().join("keep"))?;
+    let in_flight = " + transient rule measured in flight";
     let mut flaggers: Vec<(String, Flagger)> = vec![
         (
             "paper's default model".into(),
             model(Model::new(with_rule(ModelParams::default()))?),
         ),
         (
-            "`fit --no-coverage` (95th percentile x 1.2)".into(),
+            "paper's default model, release keeps the threshold".into(),
+            model(Model::new(keeping(&with_rule(ModelParams::default())))?),
+        ),
+        (
+            "no `refill`, 95th percentile x 1.2 (`--no-coverage`)".into(),
             model(Model::new(lab.clone())?),
         ),
-        ("`fit --no-coverage` + map".into(), model(map(&lab)?)),
         (
-            "`fit` (95 % coverage, the default)".into(),
-            model(Model::new(covered.clone())?),
+            "no `refill`, 95th percentile x 1.2, + map".into(),
+            model(map(&lab)?),
         ),
-        ("`fit` (95 % coverage) + map".into(), model(map(&covered)?)),
+        (NO_REFILL.to_string(), model(Model::new(covered.clone())?)),
         (
-            "95 % coverage, decay reshaped".into(),
+            format!("{NO_REFILL}{in_flight}"),
+            model(Model::new(covered_rule.0.clone())?),
+        ),
+        (
+            format!("{NO_REFILL}, release keeps the threshold"),
+            model(Model::new(covered_keep)?),
+        ),
+        (
+            format!("{NO_REFILL}, release keeps the threshold{in_flight}"),
+            model(Model::new(covered_keep_rule.0.clone())?),
+        ),
+        (format!("{NO_REFILL} + map"), model(map(&covered)?)),
+        (
+            format!("{NO_REFILL}, decay reshaped"),
             model(Model::new(reshaped)?),
         ),
         (
-            "`fit --with refill` (95 % coverage)".into(),
+            "`refill`, 95 % coverage, release to zero".into(),
             model(Model::new(refilled.clone())?),
         ),
         (
-            "`fit --with refill`, release keeps the threshold".into(),
-            model(Model::new(ModelParams {
-                early_release: persist::model::EarlyRelease {
-                    keep: persist::model::ReleaseKeep::Threshold,
-                    ..refilled.early_release
-                },
-                ..refilled
-            })?),
+            format!("`refill`, 95 % coverage, release to zero{in_flight}"),
+            model(Model::new(refilled_rule.0.clone())?),
+        ),
+        (DEFAULT_FIT.into(), model(Model::new(refilled_keep)?)),
+        (
+            format!("{DEFAULT_FIT}{in_flight}"),
+            model(Model::new(refilled_keep_rule.0.clone())?),
         ),
     ];
     for w in &windows {
@@ -219,19 +276,15 @@ fn main() -> persist::Result<()> {
         .iter()
         .map(|_| TruthTally::new(th.high_e_per_s, th.low_e_per_s, FROM_EXPOSURE))
         .collect();
-    let sky = persist::sim::sky::SkyConfig {
-        size,
-        detectors: 1,
-        exposures,
-        seed,
-        ..Default::default()
-    };
     // where the errors are (`persist::flag_causes`): the coverage-calibrated model's,
     // without and with `refill`
-    let explained: &[usize] = if args.iter().any(|a| a == "--no-causes") {
-        &[]
+    let explained: Vec<usize> = if args.iter().any(|a| a == "--no-causes") {
+        vec![]
     } else {
-        &[3, 7]
+        [NO_REFILL.to_string(), format!("{DEFAULT_FIT}{in_flight}")]
+            .iter()
+            .filter_map(|n| flaggers.iter().position(|(f, _)| f == n))
+            .collect()
     };
     let mut causes: Vec<CauseTally> = explained
         .iter()
@@ -305,6 +358,27 @@ fn main() -> persist::Result<()> {
          0 adds, the paper's sum; 1 takes the larger, a trap cannot fill twice): `beta` = \
          {beta}.\n"
     );
+    println!(
+        "The transient rule measured in flight (rows \"{in_flight}\"): the sky's exposures \
+         0 to {} of the same run, flagged by the stage with the model, `persist verify` on \
+         them and `persist fit --from-verify` on its report (the 95th percentile of \
+         measured / predicted at the first exposure after each hit, the upper end of its \
+         95 % interval, times the model's transient amplitude; the exposure after a hit \
+         stays flagged whatever the rule):\n",
+        FROM_EXPOSURE - 1
+    );
+    for (name, rule) in [
+        (NO_REFILL, &covered_rule),
+        (
+            format!("{NO_REFILL}, release keeps the threshold").as_str(),
+            &covered_keep_rule,
+        ),
+        ("`refill`, 95 % coverage, release to zero", &refilled_rule),
+        (DEFAULT_FIT, &refilled_keep_rule),
+    ] {
+        println!("- {name}: {}", said(rule));
+    }
+    println!();
     for (j, c) in explained.iter().zip(&causes) {
         println!(
             "Where the errors of {} are: its over-flagged and missed pixel-exposures by the \
@@ -321,6 +395,79 @@ fn main() -> persist::Result<()> {
         println!("{}", c.table());
     }
     Ok(())
+}
+
+/// The sky's exposures before the counted ones (`FROM_EXPOSURE`), written as products
+/// with their truth into `dir/sim`: the survey plan and the detector's draws are
+/// sequential, so a run of `FROM_EXPOSURE` exposures is the full run's first ones.
+fn measured_span(sky: &SkyConfig, dir: &Path) -> persist::Result<std::path::PathBuf> {
+    let sim = dir.join("sim");
+    let mut writer = persist::sim::output::Writer::new(&sim)?;
+    let span = SkyConfig {
+        exposures: FROM_EXPOSURE.min(sky.exposures),
+        ..sky.clone()
+    };
+    let description = persist::sim::sky::run(&span, |s| writer.write(&s))?;
+    writer.finish(description)?;
+    Ok(sim)
+}
+
+/// `params` with the transient rule measured in flight the way operations would: the
+/// stage flags the products of `sim` with `params`, `persist verify` measures its
+/// outputs, and `persist fit --from-verify` (`persist::verify::transient::run`) writes the
+/// rule into a model file in `dir`, read back. When the report gives no rule (too few
+/// hits measured), `fit --from-verify` refuses and the model keeps the table's maximum,
+/// as in operations: `params` and the reason.
+fn measured_rule(
+    sim: &Path,
+    params: &ModelParams,
+    dir: &Path,
+) -> persist::Result<(ModelParams, Option<String>)> {
+    let run = persist::stage::RunConfig {
+        input: sim.to_path_buf(),
+        output: dir.join("output"),
+        checkpoints: dir.join("checkpoints"),
+        model: Model::new(params.clone())?,
+        from_checkpoint: None,
+        allow_model_change: false,
+        checkpoint_every: FROM_EXPOSURE,
+        checkpoint_idle: std::time::Duration::ZERO,
+        retention: Default::default(),
+        processed_utc: persist::stage::processing_time(),
+    };
+    let ran = persist::stage::run(&run, &|_| {});
+    if let Some(e) = ran.errors.into_iter().next() {
+        return Err(e);
+    }
+    let report = persist::verify::run(sim, &run.output, &persist::verify::VerifyParams::default())?;
+    persist::verify::write_report(&report, &dir.join("report"))?;
+    let model = dir.join("model.json");
+    match persist::verify::transient::run(&dir.join("report").join("report.json"), params, &model) {
+        Ok(_) => Ok((persist::model_file::load(&model)?, None)),
+        Err(e) if e.context.field.as_deref() == Some("/transients") => {
+            Ok((params.clone(), Some(e.message)))
+        }
+        Err(e) => Err(e),
+    }
+}
+
+/// The measured rule of `p` (or why there is none), in words (without the report's
+/// temporary path).
+fn said((p, refused): &(ModelParams, Option<String>)) -> String {
+    p.transient.as_ref().map_or_else(
+        || {
+            format!(
+                "{}: the table's maximum stays",
+                refused.as_deref().unwrap_or("no rule")
+            )
+        },
+        |t| {
+            format!(
+                "{:.1} e- (the flown {:.1} e- x {:.4}, from {} hits at their first exposure)",
+                t.amplitude_e, t.measured.flown_amplitude_e, t.measured.ratio, t.measured.events
+            )
+        },
+    )
 }
 
 /// The early release of the coverage-calibrated model (that of `who`), in words.

@@ -295,28 +295,40 @@ page_flag_quality() {
 What the flags cost and miss, counted the way a user evaluating the stage would: every
 pixel-exposure from exposure 200 on, non-functional pixels left out, against the
 simulator's true persistence current (`persist::flag_quality`, the same counts
-`persist demo` prints). The models: the paper's default; `persist fit` of the same
-detector's laboratory sequence, calibrated to 95 % coverage (its default,
-`persist::calib::coverage`: the margin the laboratory data ask for at 0.1 and 0.01 e-/s
-in every time bin and band of measured current) and with `--no-coverage` (the paper's
-95th percentile x 1.2), each with and without the per-pixel map (`persist::pixmap`,
-margin 1); the coverage calibration with the decay reshaped in time; and `persist fit
---with refill` (the overlap of an illumination's filling with the charge its traps still
-hold, measured on the same laboratory sequence), calibrated to the same coverage, with
-early release resetting a released pixel to zero (the paper's) and keeping the threshold
-(`early_release.keep: threshold`, docs/model.md "Early release"). The baselines: time-window flaggers (a pixel saturated in the last W seconds flagged at
-both thresholds, as jwst's persistence step and snowblind do), for several W. The
-laboratory sequence keeps a corner of size/8 x size/8 pixels dark (the measured
-currents' dark level and noise come from it). Below each table, where the errors of the
-default `fit` and of `fit --with refill` are (`persist::flag_causes`; the truth only
-counts): by the kind of the pixel's last event, the time since it, whether early release
-acted since, and predicted / true. For the default `fit`, most over-flagging at 0.01 e-/s
-follows unsaturated sources (the paper's sum adds every exposure's filling to the charge
-still trapped, and predicts 2-10 times the truth hours later: `refill` takes most of it
-away), most at 0.1 e-/s is the first 1000 s after a `TRANSIENT` (the table's maximum
-amplitude), and over 90 % of the misses at both thresholds are pixels early release acted
-on since their last event (amplitudes reset to zero: keeping the threshold instead takes
-most of the misses at 0.01 e-/s away, and costs over-flagging after `TRANSIENT`s).
+`persist demo` prints). The models, each fitted on the same detector's laboratory
+sequence: `persist fit`'s default (the paper's calibration with `refill`, the overlap of
+an illumination's filling with the charge its traps still hold, measured on the
+sequence; the flags calibrated to 95 % coverage, `persist::calib::coverage`: the margin
+the laboratory data ask for at 0.1 and 0.01 e-/s in every time bin and band of measured
+current; early release keeping the threshold, `early_release.keep: threshold`,
+docs/model.md "Early release"); its parts apart: without `refill` (the paper's sum of
+fillings) and released pixels reset to zero (the paper's), with either alone; without
+`refill` at the paper's 95th percentile x 1.2 (`--no-coverage`), each of those two with
+and without the per-pixel map (`persist::pixmap`, margin 1), and with the decay
+reshaped in time; and the paper's default model. Rows "+ transient rule measured in
+flight" give a model the transient rule the way operations would: `persist verify` on
+the stage's outputs of the same sky run's exposures 0-199 (before the counted ones,
+flagged with that model), then `persist fit --from-verify` on its report; the rule
+reads what the exposures after each `TRANSIENT` measure, not the simulator's
+cosmic-ray charges. The baselines: time-window flaggers (a pixel saturated in the last
+W seconds flagged at both thresholds, as jwst's persistence step and snowblind do), for
+several W. The laboratory sequence keeps a corner of size/8 x size/8 pixels dark (the
+measured currents' dark level and noise come from it). Below each table, where the
+errors are (`persist::flag_causes`; the truth only counts) for the model without
+`refill` and for `fit`'s default with the measured transient rule: by the kind of the
+pixel's last event, the time since it, whether early release acted since, and
+predicted / true. Without `refill`, most over-flagging at 0.01 e-/s follows unsaturated
+sources (the paper's sum adds every exposure's filling to the charge still trapped, and
+predicts 2-10 times the truth hours later) and over 90 % of the misses at both
+thresholds are pixels early release acted on since their last event (amplitudes reset
+to zero). Either alone does not help: `refill` alone misses as many, the threshold kept
+without `refill` doubles the over-flagging at 0.01 e-/s; together they take most of
+the misses at 0.01 e-/s away and flag less at both thresholds, on both seeds: hence
+`fit`'s default. Most of the over-flagging at 0.1 e-/s is the first 1000 s after a
+`TRANSIENT`, with the transient rule measured in flight as well: the rule cuts the
+transient amplitude over tenfold (the simulator's hits leave no persistence of their
+own), but the exposure after a hit stays flagged whatever the rule, and the rule is a
+95th percentile of noisy measurements, which errs high (`persist::verify::transient`).
 
 ## The demo's detector (seed 1)
 

@@ -13,9 +13,10 @@
 //! and seed: the same pixels) in the laboratory ([`crate::pixmap::eval::lab_sequence`]:
 //! the paper's pattern with a dark corner for the dark level and noise, three
 //! illuminations and 1.5 h of darks after the first), fits
-//! it as `persist fit` does by default (the paper's calibration, then the flags
-//! calibrated to 95 % coverage, [`crate::calib::coverage`]), and flags the sky with that
-//! model. Then it counts the flags against the simulator's truth
+//! it as `persist fit` does by default ([`crate::calib::Preset::Paper`]: the paper's
+//! calibration with `refill` fitted, then the flags calibrated to 95 % coverage,
+//! [`crate::calib::coverage`], and early release keeping the threshold), and flags the
+//! sky with that model. Then it counts the flags against the simulator's truth
 //! ([`crate::flag_quality`], from exposure [`crate::flag_quality::FROM_EXPOSURE`] on)
 //! and runs `persist verify` on the stage's outputs.
 
@@ -152,9 +153,19 @@ fn model_of(cfg: &DemoConfig, progress: &dyn Fn(&str)) -> Result<(ModelParams, S
         cfg.size, cfg.size, cfg.seed
     ));
     let (_, seq) = crate::pixmap::eval::lab_sequence(cfg.size, cfg.seed, true)?;
-    progress("fitting it (the paper's calibration, then the flags' coverage)");
-    let (params, cal) = crate::calib::calibrate(&seq, &crate::calib::CalibConfig::default())?;
-    let (params, cov) = crate::calib::coverage::apply(&params, &seq, &cfg.coverage)?;
+    progress(
+        "fitting it as `persist fit` does by default (the paper's calibration with `refill`, \
+         the flags' coverage, early release keeping the threshold)",
+    );
+    let preset = crate::calib::Preset::Paper;
+    let (params, cal, _) = crate::calib::command::fit_params(
+        &seq,
+        &preset.config(),
+        &preset.with(&[]),
+        Default::default(),
+    )?;
+    let (mut params, cov) = crate::calib::coverage::apply(&params, &seq, &cfg.coverage)?;
+    params.early_release.keep = preset.release_keep();
     let text = format!(
         "fitted on the laboratory sequence: {} knots, then\n{}",
         cal.knots.len(),

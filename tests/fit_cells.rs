@@ -68,8 +68,9 @@ fn illumination_cells_recover_the_hidden_activation_energy() {
 
 /// Regression: `persist fit --with
 /// temperature` under the paper's preset fits the effect against knots at 1.2 times the
-/// measured level, and the activation energy takes that flagging margin in: 1.25 eV on
-/// this campaign (1.20 eV at 128 x 128, where the flags it gives miss 1.1 % of all
+/// measured level, and the activation energy takes that flagging margin in: 0.137 eV on
+/// this campaign with the preset's `refill` fitted jointly (the paper's calibration
+/// alone: 1.25 eV, and 1.20 eV at 128 x 128, where the flags it gives miss 1.1 % of all
 /// samples at 0.1 e-/s against 0.23 % for the readout preset's). `fit` warns, naming
 /// the margin and the way out; against `--preset readout` (the knots at the measured
 /// level) the same fit recovers the truth's 0.25 eV (measured 0.250) and does not warn.
@@ -107,7 +108,7 @@ fn an_effect_fitted_against_the_paper_margin_takes_it_in_and_fit_warns() {
     let (paper, warned) = fit("paper.json", "paper");
     let (readout, quiet) = fit("readout.json", "readout");
     println!("activation: paper preset {paper:.3} eV, readout {readout:.3} eV (truth 0.25)");
-    assert!(paper > 0.6, "{paper}");
+    assert!((paper - 0.25).abs() > 0.1, "{paper}");
     assert!(
         warned.contains("flagging margin") && warned.contains("--preset readout"),
         "{warned}"

@@ -149,9 +149,11 @@ fn pinned_parameters_are_held_recorded_and_suggested_again() {
     let cmds = suggested_fits(&lab, &out, &path("d.json"));
     for c in &cmds {
         assert!(
-            c.contains("--with refill --with chord:strength=0.5,first_read_s=1.5 --with "),
+            c.contains(" --with chord:strength=0.5,first_read_s=1.5 --with "),
             "{c}"
         );
+        // `refill` is `fit`'s own (its default preset's)
+        assert!(!c.contains("--with refill"), "{c}");
         // and the calibration options (it named none, so following it calibrated with
         // the paper's 1.2 and 1/(t+1) instead)
         assert!(
@@ -239,8 +241,11 @@ fn the_readout_preset_is_the_long_form_and_is_suggested_back() {
             "0.2",
             "--rates-per-s",
             &rates,
-            // the readout preset compares with measurements: no coverage margin
+            // the readout preset compares with measurements: no coverage margin, and
+            // released pixels reset to zero
             "--no-coverage",
+            "--release-keep",
+            "zero",
         ],
     );
     assert_eq!(preset, long);

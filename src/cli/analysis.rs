@@ -51,7 +51,9 @@ pub struct FitArgs {
     #[arg(long)]
     pub report: Option<PathBuf>,
     /// Starting point: `paper` (the paper's calibration, for flagging: the options'
-    /// defaults below) or `readout` (for comparing with measurements, the reference of
+    /// defaults below, with `--with refill` and the model's early release keeping the
+    /// threshold, docs/model.md "Early release"; `--with refill:beta=0 --release-keep
+    /// zero` is the paper's sum and release) or `readout` (for comparing with measurements, the reference of
     /// the hidden-effect matrix: `--amplification 1 --t-min-s 1 --decay-offset-s 0.2`,
     /// thirteen rates 10^(-0.4 k) 1/s, `--with refill` and the on-board slope measured on
     /// the first dark: `--with
@@ -89,6 +91,11 @@ pub struct FitArgs {
     /// Keep the knots at the amplification (no coverage calibration).
     #[arg(long)]
     pub no_coverage: bool,
+    /// What early release leaves of a released pixel in the model written
+    /// (`early_release.keep`, docs/model.md "Early release"): `zero` (the paper's) or
+    /// `threshold` [default: the preset's; paper: threshold, readout: zero].
+    #[arg(long, value_parser = super::parse::release_keep)]
+    pub release_keep: Option<persist::model::ReleaseKeep>,
     #[command(flatten)]
     pub cells: CellArgs,
 }
@@ -252,7 +259,11 @@ pub(super) fn fit(a: &FitArgs) -> persist::Result<ExitCode> {
     let r = persist::calib::run(
         input,
         &cfg,
-        (a.preset, &a.with),
+        (
+            a.preset,
+            &a.with,
+            a.release_keep.unwrap_or(a.preset.release_keep()),
+        ),
         (free, a.coverage.is_some()),
         &a.out,
         &report_path,

@@ -17,6 +17,13 @@ pub(super) fn nonnegative_seconds(s: &str) -> Result<f64, String> {
     }
 }
 
+/// What early release keeps (`early_release.keep` of the model file: `zero` or
+/// `threshold`).
+pub(super) fn release_keep(s: &str) -> Result<persist::model::ReleaseKeep, String> {
+    serde_json::from_value(serde_json::Value::String(s.to_string()))
+        .map_err(|_| format!("`{s}`: expected zero or threshold"))
+}
+
 /// A flag's value through the library's `FromStr` (whose error names the flag and the
 /// values it takes).
 pub(super) fn parse_flag<T: std::str::FromStr<Err = Error>>(s: &str) -> Result<T, String> {

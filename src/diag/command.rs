@@ -10,8 +10,8 @@ use std::path::Path;
 /// The `persist fit` command that adds effect `name` to the model at `model_path`: its
 /// own effects and the candidate, the calibration options the model records
 /// ([`crate::model::params::Calibration`]: `--amplification`, `--t-min-s`,
-/// `--decay-offset-s`, `--rates-per-s`, `--fit-cn`, `--fit-amplification`) where they
-/// are not `fit`'s defaults, and the residual cells of this diagnosis when they are not
+/// `--decay-offset-s`, `--rates-per-s`, `--fit-cn`, `--fit-amplification`) and what its
+/// early release keeps (`--release-keep`) where they are not `fit`'s defaults, and the residual cells of this diagnosis when they are not
 /// the defaults. A model without that record (written by hand, or by `fit` before
 /// 2026-11-24) gets `fit`'s defaults.
 pub(super) fn fit_command(
@@ -34,7 +34,8 @@ pub(super) fn fit_command(
     if let Some(p) = preset {
         s += &format!(" --preset {p}");
     }
-    let from_preset = preset.map_or(&[][..], |p| p.effects());
+    // the effects `fit` adds by itself: the preset's (the default one's without)
+    let from_preset = preset.unwrap_or_default().effects();
     for e in params
         .effects
         .iter()
@@ -45,6 +46,13 @@ pub(super) fn fit_command(
         s += &format!(" --with {e}");
     }
     s += &calibration_args(params.calibration.as_ref());
+    let keep = params.early_release.keep;
+    if keep != preset.unwrap_or_default().release_keep() {
+        s += match keep {
+            crate::model::ReleaseKeep::Zero => " --release-keep zero",
+            crate::model::ReleaseKeep::Threshold => " --release-keep threshold",
+        };
+    }
     // `fit`'s defaults are the library's (src/cli/analysis.rs takes them from there)
     if cfg.cells != eval::Cells::default() {
         s += &format!(" --cells {}", cfg.cells);
@@ -164,14 +172,26 @@ mod tests {
     /// The command that adds a candidate keeps the model's own effects and the
     /// diagnosis's cells (it named the candidate alone, so following it dropped them),
     /// naming the cells only where they differ from `fit`'s defaults, which are the
-    /// library's: per illumination, paired.
+    /// library's: per illumination, paired. `refill`, which `fit` fits by itself (its
+    /// default preset's), is not repeated.
     #[test]
     fn the_suggested_fit_keeps_the_model_s_effects_and_cells() {
         let mut p = ModelParams::default();
         p.effects.push(EffectSpec::named("refill"));
+        p.effects.push(EffectSpec::named("chord"));
+        // released pixels reset to zero (the paper's): not `fit`'s default, said
+        assert!(fit_command(
+            Path::new("lab"),
+            Path::new("m.json"),
+            &p,
+            &[],
+            &Config::default()
+        )
+        .ends_with(" --with chord --release-keep zero"));
+        p.early_release.keep = crate::model::ReleaseKeep::Threshold;
         let cmd =
             |cfg: &Config| fit_command(Path::new("lab"), Path::new("m.json"), &p, &["soak"], cfg);
-        let base = "persist fit --input lab --out m+soak.json --with refill --with soak";
+        let base = "persist fit --input lab --out m+soak.json --with chord --with soak";
         assert_eq!(
             (Config::default().cells, Config::default().cell_statistic),
             (eval::Cells::Illumination, eval::CellStatistic::Paired)
@@ -200,7 +220,7 @@ mod tests {
                 &["temperature", "soak"],
                 &Config::default()
             ),
-            "persist fit --input lab --out m+temperature+soak.json --with refill \
+            "persist fit --input lab --out m+temperature+soak.json --with chord \
              --with temperature --with soak"
         );
     }
