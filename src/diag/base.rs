@@ -130,11 +130,12 @@ fn relative_variance(s: &Samples, i: usize, p: f64) -> f64 {
     s.noise[i / s.npix().max(1)].powi(2) + (0.1 * p).powi(2)
 }
 
-/// The variance of a measurement of sample `i` at current `p`: its exposure noise and
-/// the current's shot noise ([`Samples::shot_var_per_e_per_s`]).
-fn measurement_variance(s: &Samples, i: usize, p: f64) -> f64 {
+/// The variance of a measurement of sample `i` at current `p`: its exposure noise
+/// (`noise`, per row of `s`) and the current's shot noise
+/// ([`Samples::shot_var_per_e_per_s`]).
+fn measurement_variance(noise: &[f64], s: &Samples, i: usize, p: f64) -> f64 {
     let row = i / s.npix().max(1);
-    s.noise[row].powi(2) + s.shot_var_per_e_per_s[row] * p.max(0.0)
+    noise[row].powi(2) + s.shot_var_per_e_per_s[row] * p.max(0.0)
 }
 
 /// One illumination's fluence map, and which pixels saturated in it when their
@@ -390,8 +391,8 @@ fn fluence_tilt(s: &Samples) -> Vec<f64> {
 /// under the fit, a residual's variance is `sigma_i^2 (1 - h_i)`).
 pub fn predict_scaled(seq: &Sequence, s: &Samples, pred: &[f64], response: &Response) -> Scaled {
     const K: usize = ALL_PIXEL_TERMS;
-    let pooled = pooled_noise(seq, s);
-    let s = &pooled;
+    let noise = pooled_noise(seq, s);
+    let variance = |s: &Samples, i: usize, p: f64| measurement_variance(&noise, s, i, p);
     let maps = fluence_maps(seq, true);
     let sat = saturated_share(seq, s, &maps, response);
     let fl = fluence_tilt(s);
@@ -404,7 +405,7 @@ pub fn predict_scaled(seq: &Sequence, s: &Samples, pred: &[f64], response: &Resp
     let mut normal = Vec::new();
     for pass in 0..=SCALE_PASSES {
         if pass > 0 {
-            if let Some(coef) = fit_correction(seq, s, &maps, pred, &scale, measurement_variance) {
+            if let Some(coef) = fit_correction(seq, s, &maps, pred, &scale, variance) {
                 unscaled = corrected(seq, s, &maps, pred, &coef);
             }
         }
@@ -414,7 +415,7 @@ pub fn predict_scaled(seq: &Sequence, s: &Samples, pred: &[f64], response: &Resp
             if !(m.is_finite() && u.is_finite()) {
                 continue;
             }
-            let w = 1.0 / measurement_variance(s, i, scale[i] * u).max(1e-12);
+            let w = 1.0 / variance(s, i, scale[i] * u).max(1e-12);
             let x = pixel_regressors(tilt[i], sat[i], fl[i]).map(|r| u * r);
             let (ata, atb) = &mut normal[i % np];
             for a in 0..K {
@@ -443,7 +444,7 @@ pub fn predict_scaled(seq: &Sequence, s: &Samples, pred: &[f64], response: &Resp
     }
     let prediction: Vec<f64> = unscaled.iter().zip(&scale).map(|(u, c)| c * u).collect();
     let sigma: Vec<f64> = (0..s.len())
-        .map(|i| measurement_variance(s, i, prediction[i]).sqrt())
+        .map(|i| variance(s, i, prediction[i]).sqrt())
         .collect();
     // leverage of each sample in its pixel's fit (the last pass's normal equations)
     let inverse: Vec<Option<Vec<f64>>> = normal
@@ -479,13 +480,13 @@ pub fn predict_scaled(seq: &Sequence, s: &Samples, pred: &[f64], response: &Resp
     }
 }
 
-/// `s` with each exposure's noise replaced by the median over its sampled exposures of
-/// the same integration length: the read noise does not change from one dark to the
+/// Each row's exposure noise of `s`, replaced by the median over its sampled exposures
+/// of the same integration length where that is measured: the read noise does not change from one dark to the
 /// next, and one exposure's estimate scatters (1.4826 MAD of the background pixels: a
 /// corner of 8 x 8 dark pixels at 64 x 64 gives it about 13 % per exposure, which
 /// widens the normalised residuals by 4-6 % and takes the simulator's single
 /// illumination with dark pixels, seed 3, from 1.40 to 1.94).
-fn pooled_noise(seq: &Sequence, s: &Samples) -> Samples {
+fn pooled_noise(seq: &Sequence, s: &Samples) -> Vec<f64> {
     let length = |row: usize| seq.exposures[s.exposures[row]].meta.t_exposure_s.to_bits();
     let mut by_length: std::collections::BTreeMap<u64, Vec<f64>> = Default::default();
     for (row, &n) in s.noise.iter().enumerate() {
@@ -493,13 +494,15 @@ fn pooled_noise(seq: &Sequence, s: &Samples) -> Samples {
             by_length.entry(length(row)).or_default().push(n);
         }
     }
-    let mut out = s.clone();
-    for (row, n) in out.noise.iter_mut().enumerate() {
-        if let Some(v) = by_length.get(&length(row)) {
-            *n = crate::stats::median(v);
-        }
-    }
-    out
+    let pooled: std::collections::BTreeMap<u64, f64> = by_length
+        .into_iter()
+        .map(|(length, v)| (length, crate::stats::median(&v)))
+        .collect();
+    s.noise
+        .iter()
+        .enumerate()
+        .map(|(row, &n)| pooled.get(&length(row)).copied().unwrap_or(n))
+        .collect()
 }
 
 /// `m` (`n x n`) plus a ridge of 1e-9 of its mean diagonal: a term with no samples
