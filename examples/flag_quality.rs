@@ -4,7 +4,10 @@
 //! gives the lab-calibrated model (the paper's 95th percentile x 1.2) and the same
 //! calibrated to 95 % coverage (`persist::calib::coverage`), each with and without the
 //! per-pixel map; the sky run of the same detector is flagged by them, by the paper's
-//! default model and by time-window flaggers (a pixel saturated in the last W s),
+//! default model, by time-window flaggers (a pixel saturated in the last W s) and by HST
+//! WFC3's persistence model with its published constants and 16 h look-back
+//! (`persist::flag_quality::Wfc3Flagger`; kslong/Persistence `subtract_persist.py`,
+//! `calc_persist` and `do_dataset`; Long, Baggett & MacKenty, WFC3 ISR 2015-15),
 //! counted from exposure 200 on against the true persistence current
 //! (`persist::flag_quality`); and `persist fit --with refill` calibrated to the same
 //! coverage. Where the errors of the default `fit` and of `fit --with refill` are:
@@ -39,6 +42,8 @@ const DEFAULT_FIT: &str =
 /// The paper's calibration at 95 % coverage without `refill`, released pixels reset to
 /// zero (the paper's sum and release).
 const NO_REFILL: &str = "no `refill`, 95 % coverage";
+/// HST WFC3's model ([`Flagger::Wfc3`]).
+const WFC3: &str = "WFC3 A-gamma (closed form, published constants, 16 h look-back)";
 
 enum Flagger {
     Model {
@@ -50,6 +55,10 @@ enum Flagger {
         window_s: f64,
         last_s: Option<Array2<f64>>,
     },
+    /// HST WFC3's persistence model with its published constants and 16 h look-back
+    /// (kslong/Persistence `subtract_persist.py`, `calc_persist` and `do_dataset`; Long,
+    /// Baggett & MacKenty, WFC3 ISR 2015-15): `persist::flag_quality::Wfc3Flagger`.
+    Wfc3(Box<persist::flag_quality::Wfc3Flagger>),
 }
 
 impl Flagger {
@@ -86,6 +95,7 @@ impl Flagger {
                 }
                 Ok((pf, Array2::zeros((ny, nx))))
             }
+            Flagger::Wfc3(w) => Ok(w.step(e)),
         }
     }
 }
@@ -272,6 +282,14 @@ fn main() -> persist::Result<()> {
         ));
     }
     let th = ModelParams::default().thresholds;
+    flaggers.push((
+        WFC3.into(),
+        Flagger::Wfc3(Box::new(persist::flag_quality::Wfc3Flagger::new(
+            persist::flag_quality::Wfc3Params::PUBLISHED,
+            th.high_e_per_s,
+            th.low_e_per_s,
+        ))),
+    ));
     let mut tallies: Vec<TruthTally> = flaggers
         .iter()
         .map(|_| TruthTally::new(th.high_e_per_s, th.low_e_per_s, FROM_EXPOSURE))

@@ -312,7 +312,14 @@ flagged with that model), then `persist fit --from-verify` on its report; the ru
 reads what the exposures after each `TRANSIENT` measure, not the simulator's
 cosmic-ray charges. The baselines: time-window flaggers (a pixel saturated in the last
 W seconds flagged at both thresholds, as jwst's persistence step and snowblind do), for
-several W. The laboratory sequence keeps a corner of size/8 x size/8 pixels dark (the
+several W; and HST WFC3's persistence model in closed form (kslong/Persistence
+`subtract_persist.py`, `calc_persist` and `do_dataset`; Long, Baggett & MacKenty, WFC3
+ISR 2015-15; `persist::flag_quality::Wfc3Flagger`): per pixel the largest, over the
+exposures that ended in the last 16 h, of 0.3 e-/s (x / 83,400 e-)^0.159 / (exp((83,400
+e- - x) / 18,500 e-) + 1) (dt / 1000 s)^-1.022, x that exposure's extrapolated fluence
+and dt the time from its end to the middle of the exposure flagged. Its constants are
+WFC3's published ones in electrons as they are, not rescaled to this detector's full
+well (200,000 e-). The laboratory sequence keeps a corner of size/8 x size/8 pixels dark (the
 measured currents' dark level and noise come from it). Below each table, where the
 errors are (`persist::flag_causes`; the truth only counts) for the model without
 `refill` and for `fit`'s default with the measured transient rule: by the kind of the
