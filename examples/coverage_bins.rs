@@ -66,7 +66,7 @@ fn main() -> persist::Result<()> {
         let mut above: BTreeMap<i64, Vec<(f64, f64)>> = BTreeMap::new();
         for r in 0..samples.exposures.len() {
             let (t, sigma) = (samples.t_since_s[r], samples.noise[r]);
-            if !(t > 0.0) {
+            if t.is_nan() || t <= 0.0 {
                 continue;
             }
             let b = (t.log10() * bins_per_decade).floor() as i64;
