@@ -56,9 +56,9 @@ fn coverage_reaches_its_target_and_a_lowered_model_fails_it() {
 /// More laboratory data of the same detector must not make the calibrated flags worse:
 /// the paper's 14 h of darks (280 after the first illumination) against the demo's
 /// 1.5 h (30), 64 x 64, seed 1. Counted per single sample, the latest bins at 0.01 e-/s
-/// (noise about 0.02 e-/s per dark) were mostly noise excursions of pixels truly below
-/// the threshold, and flagging 95 % of them took 15 times the knots (the module docs of
-/// `persist::calib::coverage`, "Rule"); a pixel's mean over a bin's darks is not.
+/// (noise about 0.02 e-/s per dark) hold many noise excursions of pixels truly below
+/// the threshold, and flagging 95 % of them takes 15 times the knots (the module docs of
+/// `persist::calib::coverage`, "Rule"); a pixel's mean over a bin's darks does not.
 #[test]
 fn a_longer_laboratory_sequence_does_not_raise_the_margin() {
     let cfg = CoverageConfig::default();

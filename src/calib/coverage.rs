@@ -24,12 +24,12 @@
 //!
 //! Why means and not single samples: noise alone puts a share `Phi(-noise_sigmas)`
 //! (2.3 %) of the samples truly at the threshold above `thr + 2 sigma_k`, and late in a
-//! long sequence nearly every sample is truly below 0.01 e-/s with a noise of twice
-//! it. With single samples, on the paper's 14 h of darks (simulated detector, 64 x 64,
-//! seed 1; `examples/coverage_bins.rs 280 64 1 truth`) 26 % of the samples measured above 0.01 e-/s at
-//! 31,623-56,234 s are truly below it (3,636 of 13,848), predicted below it as they
-//! should be, and flagging 95 % of them took 15 times the knots: the model then flagged
-//! nearly every pixel-exposure. A unit's mean over the bin's `n` darks has `sqrt(n)`
+//! long sequence most samples are truly below 0.01 e-/s, with a noise of twice it. With
+//! single samples, on the paper's 14 h of darks (simulated detector, 64 x 64, seed 1;
+//! `examples/coverage_bins.rs 280 64 1 truth`) 26 % of the samples measured above
+//! 0.01 e-/s at 31,623-56,234 s are truly below it (3,636 of 13,848), predicted below it
+//! as they should be, and flagging 95 % of them takes 15 times the knots: a model that
+//! flags nearly every pixel-exposure. A unit's mean over the bin's `n` darks has `sqrt(n)`
 //! times less noise, so more darks make the count cleaner, not noisier. A bin's
 //! **coverage** is the share of its units measured above whose mean prediction is
 //! above `thr`; its **required scale** is the factor `s` on the predictions that
