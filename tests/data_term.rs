@@ -206,7 +206,9 @@ fn diagnose_offers_the_candidate_that_predicts_the_pixel_reference_and_its_comma
         "{text}"
     );
     let gain = o["pixel_reference"]["gain"].as_f64().unwrap();
-    assert!(gain >= persist::diag::offer::OFFER_MIN_GAIN, "{o}");
+    let permuted = o["pixel_reference"]["permuted_gains"].as_array().unwrap();
+    assert_eq!(permuted.len(), persist::diag::refit::PERMUTATIONS, "{o}");
+    assert!(permuted.iter().all(|g| g.as_f64().unwrap() < gain), "{o}");
     let name = o["effect"].as_str().unwrap();
     let term = &d["data_term"];
     assert_eq!(

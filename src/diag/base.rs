@@ -111,6 +111,17 @@ fn features(seq: &Sequence, s: &Samples, maps: &[Map], i: usize, out: &mut Vec<(
             }
         }
     }
+    // one entry per parameter: illuminations of one pixel at neighbouring fluences share
+    // knots, and the normal equations' cost is the square of the entries
+    out.sort_unstable_by_key(|&(a, _)| a);
+    out.dedup_by(|next, kept| {
+        if next.0 == kept.0 {
+            kept.1 += next.1;
+            true
+        } else {
+            false
+        }
+    });
 }
 
 /// The base's prediction of every sample: the model's prediction `pred` plus the
@@ -390,16 +401,9 @@ fn fluence_tilt(s: &Samples) -> Vec<f64> {
 /// the predictions, each sample's noise and its leverage in its pixel's fit (`h_i`:
 /// under the fit, a residual's variance is `sigma_i^2 (1 - h_i)`).
 pub fn predict_scaled(seq: &Sequence, s: &Samples, pred: &[f64], response: &Response) -> Scaled {
-    const K: usize = ALL_PIXEL_TERMS;
-    let noise = pooled_noise(seq, s);
-    let variance = |s: &Samples, i: usize, p: f64| measurement_variance(&noise, s, i, p);
+    let terms = PixelTerms::new(seq, s, response);
+    let variance = |s: &Samples, i: usize, p: f64| measurement_variance(&terms.noise, s, i, p);
     let maps = fluence_maps(seq, true);
-    let sat = saturated_share(seq, s, &maps, response);
-    let fl = fluence_tilt(s);
-    let np = s.npix().max(1);
-    let tilt: Vec<f64> = (0..s.len())
-        .map(|i| (s.t_since_s[i / np].max(1.0) / TILT_REFERENCE_S).ln())
-        .collect();
     let mut scale = vec![1.0; s.len()];
     let mut unscaled = pred.to_vec();
     let mut normal = Vec::new();
@@ -409,14 +413,79 @@ pub fn predict_scaled(seq: &Sequence, s: &Samples, pred: &[f64], response: &Resp
                 unscaled = corrected(seq, s, &maps, pred, &coef);
             }
         }
-        // per pixel: the normal equations of its terms
-        normal = vec![(vec![0.0f64; K * K], vec![0.0f64; K]); np];
-        for (i, (&m, &u)) in s.measured.iter().zip(&unscaled).enumerate() {
+        (scale, normal) = terms.pass(s, &unscaled, &scale);
+    }
+    terms.finish(s, pred, unscaled, scale, &normal)
+}
+
+/// [`predict_scaled`] of `pred` with the shared correction held at `held`'s (a fit of
+/// the same samples `s`): only each pixel's terms are refitted (as many passes). A
+/// prediction compared with another on this footing differs only by what each pixel's
+/// own terms can take in; it costs a small part of a full fit.
+pub fn predict_scaled_held(
+    seq: &Sequence,
+    s: &Samples,
+    pred: &[f64],
+    response: &Response,
+    held: &Scaled,
+) -> Scaled {
+    let terms = PixelTerms::new(seq, s, response);
+    let unscaled: Vec<f64> = pred
+        .iter()
+        .zip(&held.correction)
+        .map(|(p, c)| p + c)
+        .collect();
+    let mut scale = vec![1.0; s.len()];
+    let mut normal = Vec::new();
+    for _ in 0..=SCALE_PASSES {
+        (scale, normal) = terms.pass(s, &unscaled, &scale);
+    }
+    terms.finish(s, pred, unscaled, scale, &normal)
+}
+
+/// The per-pixel part of [`predict_scaled`]: the regressors of every sample and the
+/// pooled noise.
+struct PixelTerms {
+    noise: Vec<f64>,
+    sat: Vec<f64>,
+    fl: Vec<f64>,
+    tilt: Vec<f64>,
+}
+
+/// Per pixel, the normal equations of its terms.
+type Normal = Vec<(Vec<f64>, Vec<f64>)>;
+
+impl PixelTerms {
+    fn new(seq: &Sequence, s: &Samples, response: &Response) -> PixelTerms {
+        let maps = fluence_maps(seq, true);
+        let np = s.npix().max(1);
+        PixelTerms {
+            noise: pooled_noise(seq, s),
+            sat: saturated_share(seq, s, &maps, response),
+            fl: fluence_tilt(s),
+            tilt: (0..s.len())
+                .map(|i| (s.t_since_s[i / np].max(1.0) / TILT_REFERENCE_S).ln())
+                .collect(),
+        }
+    }
+
+    fn variance(&self, s: &Samples, i: usize, p: f64) -> f64 {
+        measurement_variance(&self.noise, s, i, p)
+    }
+
+    /// One fit of every pixel's terms on `unscaled`, each sample weighted at its
+    /// prediction under `scale` (the previous pass's): the new scale and the normal
+    /// equations.
+    fn pass(&self, s: &Samples, unscaled: &[f64], scale: &[f64]) -> (Vec<f64>, Normal) {
+        const K: usize = ALL_PIXEL_TERMS;
+        let np = s.npix().max(1);
+        let mut normal: Normal = vec![(vec![0.0f64; K * K], vec![0.0f64; K]); np];
+        for (i, (&m, &u)) in s.measured.iter().zip(unscaled).enumerate() {
             if !(m.is_finite() && u.is_finite()) {
                 continue;
             }
-            let w = 1.0 / variance(s, i, scale[i] * u).max(1e-12);
-            let x = pixel_regressors(tilt[i], sat[i], fl[i]).map(|r| u * r);
+            let w = 1.0 / self.variance(s, i, scale[i] * u).max(1e-12);
+            let x = pixel_regressors(self.tilt[i], self.sat[i], self.fl[i]).map(|r| u * r);
             let (ata, atb) = &mut normal[i % np];
             for a in 0..K {
                 atb[a] += w * m * x[a];
@@ -438,45 +507,61 @@ pub fn predict_scaled(seq: &Sequence, s: &Samples, pred: &[f64], response: &Resp
                 }
             })
             .collect();
-        scale = (0..s.len())
-            .map(|i| pixel_factor(&terms[i % np], tilt[i], sat[i], fl[i]).max(0.0))
+        let scale = (0..s.len())
+            .map(|i| pixel_factor(&terms[i % np], self.tilt[i], self.sat[i], self.fl[i]).max(0.0))
             .collect();
+        (scale, normal)
     }
-    let prediction: Vec<f64> = unscaled.iter().zip(&scale).map(|(u, c)| c * u).collect();
-    let sigma: Vec<f64> = (0..s.len())
-        .map(|i| variance(s, i, prediction[i]).sqrt())
-        .collect();
-    // leverage of each sample in its pixel's fit (the last pass's normal equations)
-    let inverse: Vec<Option<Vec<f64>>> = normal
-        .iter()
-        .map(|(ata, _)| inverse_spd(&ridged(ata, K), K))
-        .collect();
-    let leverage = (0..s.len())
-        .map(|i| {
-            let Some(inv) = &inverse[i % np] else {
-                return 0.0;
-            };
-            let u = unscaled[i];
-            let w = 1.0 / sigma[i].powi(2).max(1e-12);
-            let x = pixel_regressors(tilt[i], sat[i], fl[i]).map(|r| u * r);
-            let mut h = 0.0;
-            for a in 0..K {
-                for b in 0..K {
-                    h += x[a] * inv[a * K + b] * x[b];
+
+    /// The predictions, noise and leverage of the last pass.
+    fn finish(
+        &self,
+        s: &Samples,
+        pred: &[f64],
+        unscaled: Vec<f64>,
+        scale: Vec<f64>,
+        normal: &Normal,
+    ) -> Scaled {
+        const K: usize = ALL_PIXEL_TERMS;
+        let prediction: Vec<f64> = unscaled.iter().zip(&scale).map(|(u, c)| c * u).collect();
+        let sigma: Vec<f64> = (0..s.len())
+            .map(|i| self.variance(s, i, prediction[i]).sqrt())
+            .collect();
+        // leverage of each sample in its pixel's fit (the last pass's normal equations)
+        let inverse: Vec<Option<Vec<f64>>> = normal
+            .iter()
+            .map(|(ata, _)| inverse_spd(&ridged(ata, K), K))
+            .collect();
+        let np = s.npix().max(1);
+        let leverage = (0..s.len())
+            .map(|i| {
+                let Some(inv) = &inverse[i % np] else {
+                    return 0.0;
+                };
+                let u = unscaled[i];
+                let w = 1.0 / sigma[i].powi(2).max(1e-12);
+                let x = pixel_regressors(self.tilt[i], self.sat[i], self.fl[i]).map(|r| u * r);
+                let mut h = 0.0;
+                for a in 0..K {
+                    for b in 0..K {
+                        h += x[a] * inv[a * K + b] * x[b];
+                    }
                 }
-            }
-            let h = w * h;
-            if h.is_finite() {
-                h.clamp(0.0, 1.0)
-            } else {
-                0.0
-            }
-        })
-        .collect();
-    Scaled {
-        prediction,
-        sigma,
-        leverage,
+                let h = w * h;
+                if h.is_finite() {
+                    h.clamp(0.0, 1.0)
+                } else {
+                    0.0
+                }
+            })
+            .collect();
+        let correction = unscaled.iter().zip(pred).map(|(u, p)| u - p).collect();
+        Scaled {
+            prediction,
+            sigma,
+            leverage,
+            correction,
+        }
     }
 }
 
@@ -541,6 +626,9 @@ pub struct Scaled {
     pub sigma: Vec<f64>,
     /// Per sample: its leverage `h_i` in its pixel's fit.
     pub leverage: Vec<f64>,
+    /// Per sample: the shared correction added to the prediction before each pixel's
+    /// terms, e-/s ([`predict_scaled_held`] holds it).
+    pub correction: Vec<f64>,
 }
 
 impl Scaled {

@@ -37,6 +37,15 @@ pub const MOVED_Z: f64 = 1.0;
 /// illumination event).
 pub const MIN_HELD_OUT_PIXELS: usize = 50;
 
+/// How many times the candidate's predicted change is moved to other samples
+/// ([`permuted_change`]) to calibrate the pixel reference's held-out gain: a gain
+/// larger than every permuted one has a chance of at most `1 / (PERMUTATIONS + 1)`
+/// (0.05) when the change carries nothing about where it is applied.
+pub const PERMUTATIONS: usize = 19;
+
+/// The seed of the permutations (ChaCha8; the fold's index is added).
+const PERMUTATION_SEED: u64 = 0x5eed_0f_9e71;
+
 /// The model's own effects that a [`Refit::Full`] refits (those with fitted
 /// parameters); none for [`Refit::Candidate`].
 pub(super) fn own_effects(params: &ModelParams, refit: Refit) -> Vec<String> {
@@ -188,6 +197,43 @@ pub struct PixelHeldOut {
     pub gain: f64,
     /// Each fold's gain, in fold order.
     pub fold_gains: Vec<f64>,
+    /// The pooled gain with the shared correction held at the fit without the
+    /// candidate ([`super::base::predict_scaled_held`]): each pixel's own terms
+    /// refitted, as for the permutations (NaN when not computed).
+    pub gain_held: f64,
+    /// The pooled gain of each of the [`PERMUTATIONS`] permuted changes
+    /// ([`permuted_change`]), the correction held as for `gain_held`; empty when a fold
+    /// does not gain (not computed).
+    pub permuted_gains: Vec<f64>,
+}
+
+impl PixelHeldOut {
+    /// The largest permuted gain (NaN when none was computed).
+    pub fn permuted_max(&self) -> f64 {
+        self.permuted_gains.iter().copied().fold(f64::NAN, f64::max)
+    }
+
+    /// Whether the candidate predicts the held-out halves: it gains in each fold and,
+    /// on the footing of the permutations (`gain_held`), more than every permutation
+    /// of its change (a chance of at most `1 / (PERMUTATIONS + 1)` when the change is
+    /// unrelated to where it is applied).
+    pub fn beats_permutations(&self) -> bool {
+        self.gain > 0.0
+            && self.fold_gains.iter().all(|&g| g > 0.0)
+            && self.permuted_gains.len() == PERMUTATIONS
+            && self.gain_held > self.permuted_max()
+    }
+}
+
+/// One fold's pixel-reference sums: the candidate's change, and with the shared
+/// correction held ([`super::base::predict_scaled_held`]) the change and its
+/// permutations (in permutation order; None and empty when not computed).
+struct PixelFold {
+    real: Option<HeldOutSums>,
+    /// The candidate's change with the shared correction held (what the permutations
+    /// are compared with).
+    held: Option<HeldOutSums>,
+    null: Vec<Option<HeldOutSums>>,
 }
 
 /// The folds' pixel-reference sums, pooled; a fold without them spoils the pool.
@@ -195,18 +241,47 @@ pub struct PixelHeldOut {
 struct PixelSums {
     all: HeldOutSums,
     fold_gains: Vec<f64>,
+    /// Per permutation, pooled over the folds (None once a fold lacks it).
+    null: Vec<Option<HeldOutSums>>,
+    /// The candidate's change with the correction held, pooled (None once a fold lacks
+    /// it).
+    held: Option<HeldOutSums>,
     incomplete: bool,
 }
 
 impl PixelSums {
-    fn add(&mut self, fold: Option<HeldOutSums>) {
-        match fold {
+    fn add(&mut self, fold: PixelFold) {
+        let first = self.fold_gains.is_empty() && !self.incomplete;
+        match fold.real {
             Some(f) => {
                 let (b, a) = f.rms_all();
                 self.fold_gains.push(1.0 - a / b);
                 self.all.add(&f);
             }
             None => self.incomplete = true,
+        }
+        self.held = match (first, self.held.take(), fold.held) {
+            (true, _, h) => h,
+            (false, Some(mut p), Some(f)) => {
+                p.add(&f);
+                Some(p)
+            }
+            _ => None,
+        };
+        if first {
+            self.null = fold.null;
+        } else if self.null.len() == fold.null.len() {
+            for (pooled, f) in self.null.iter_mut().zip(fold.null) {
+                *pooled = match (pooled.take(), f) {
+                    (Some(mut p), Some(f)) => {
+                        p.add(&f);
+                        Some(p)
+                    }
+                    _ => None,
+                };
+            }
+        } else {
+            self.null.clear();
         }
     }
 
@@ -215,13 +290,70 @@ impl PixelSums {
             return None;
         }
         let (rms_before, rms_after) = self.all.rms_all();
+        let gain = |n: &HeldOutSums| 1.0 - n.rms_all().1 / n.rms_all().0;
+        let permuted_gains = self
+            .null
+            .iter()
+            .map(|n| n.as_ref().map(gain))
+            .collect::<Option<Vec<f64>>>()
+            .unwrap_or_default();
         Some(PixelHeldOut {
             rms_before,
             rms_after,
             gain: 1.0 - rms_after / rms_before,
             fold_gains: self.fold_gains.clone(),
+            gain_held: self.held.as_ref().map_or(f64::NAN, gain),
+            permuted_gains,
         })
     }
+}
+
+/// The candidate's predicted change `after - before` moved to other samples of `s`
+/// and added to `before`: the pixels' changes permuted at random among the pixels
+/// and, when `s` holds more than one illumination event, the events' changes shifted
+/// cyclically by a random nonzero step (a row takes the change of the row at the same
+/// position after the other event's illumination, or that event's last row). A
+/// candidate's change that follows its covariate (fluence, neighbours, duration,
+/// history) lands where the covariate differs; one that carries nothing about where it
+/// applies predicts as well moved as in place. A change that is not finite moves as
+/// zero; a `before` that is not finite stays so.
+fn permuted_change(
+    s: &Samples,
+    before: &[f64],
+    after: &[f64],
+    rng: &mut rand_chacha::ChaCha8Rng,
+) -> Vec<f64> {
+    use rand::seq::SliceRandom;
+    use rand::Rng;
+    let np = s.npix();
+    let mut events = s.event.clone();
+    events.sort_unstable();
+    events.dedup();
+    let blocks: Vec<Vec<usize>> = events
+        .iter()
+        .map(|&e| (0..s.event.len()).filter(|&r| s.event[r] == e).collect())
+        .collect();
+    let shift = if blocks.len() > 1 {
+        rng.random_range(1..blocks.len())
+    } else {
+        0
+    };
+    let mut source_row = vec![0; s.event.len()];
+    for (b, rows) in blocks.iter().enumerate() {
+        let from = &blocks[(b + shift) % blocks.len()];
+        for (k, &r) in rows.iter().enumerate() {
+            source_row[r] = from[k.min(from.len() - 1)];
+        }
+    }
+    let mut pixel: Vec<usize> = (0..np).collect();
+    pixel.shuffle(rng);
+    (0..before.len())
+        .map(|i| {
+            let j = source_row[i / np] * np + pixel[i % np];
+            let d = after[j] - before[j];
+            before[i] + if d.is_finite() { d } else { 0.0 }
+        })
+        .collect()
 }
 
 /// Held-out check of the effects `names` (one candidate, or a pair in the joint check;
@@ -285,7 +417,7 @@ pub fn held_out(
     // the user's model's response weighs the illuminations in both pixel references
     let response = crate::model::response::Response::new(&params.amplitude_knots);
     // the two folds in parallel, combined in fold order
-    let fold = |h: usize| -> Result<(Option<HeldOutSums>, Option<HeldOutSums>)> {
+    let fold = |h: usize| -> Result<(Option<HeldOutSums>, PixelFold)> {
         let (fs, ts, ts_base) = split(h);
         let (fitted, before, before_current) = if own.is_empty() {
             let names: Vec<String> = names.iter().map(|n| n.to_string()).collect();
@@ -306,11 +438,38 @@ pub fn held_out(
         let after_current = eval::predict(&fitted, seq, &ts, false)?.current;
         let after = spread::model_cell_z(&fitted, &ts, &after_current);
         // the pixel reference fitted on the test half alone, on either prediction
-        let pixel =
-            |current: &[f64]| super::base::predict_scaled(seq, &ts, current, &response).cells(&ts);
+        let scaled_before = super::base::predict_scaled(seq, &ts, &before_current, &response);
+        let pixel_before = scaled_before.cells(&ts);
+        let real = HeldOutSums::of(
+            &pixel_before,
+            &super::base::predict_scaled(seq, &ts, &after_current, &response).cells(&ts),
+        );
+        // the permutations, only where the fold gains (a fold that does not gain fails
+        // the gate whatever they give); the candidate and its permutations compared on
+        // one footing, the shared correction held at the fit without the candidate
+        let (held, null) = match real {
+            Some(r) if r.after < r.before => {
+                let held = |current: &[f64]| {
+                    super::base::predict_scaled_held(seq, &ts, current, &response, &scaled_before)
+                        .cells(&ts)
+                };
+                let held_before = held(&before_current);
+                let mut rng = <rand_chacha::ChaCha8Rng as rand::SeedableRng>::seed_from_u64(
+                    PERMUTATION_SEED + h as u64,
+                );
+                let null = (0..PERMUTATIONS)
+                    .map(|_| {
+                        let moved = permuted_change(&ts, &before_current, &after_current, &mut rng);
+                        HeldOutSums::of(&held_before, &held(&moved))
+                    })
+                    .collect();
+                (HeldOutSums::of(&held_before, &held(&after_current)), null)
+            }
+            _ => (None, Vec::new()),
+        };
         Ok((
             HeldOutSums::of(&before, &after),
-            HeldOutSums::of(&pixel(&before_current), &pixel(&after_current)),
+            PixelFold { real, held, null },
         ))
     };
     let (f0, f1) = rayon::join(|| fold(0), || fold(1));
@@ -512,6 +671,51 @@ mod tests {
         let spanning = [vec![0, 2, 4, 5], vec![1, 3, 4, 5]];
         assert!(halves_span(&["temperature"], &s, &spanning));
         assert!(!halves_span(&["soak"], &s, &spanning));
+    }
+
+    /// The permuted change keeps `before` and the set of changes: pixels permuted, and
+    /// with several events each row takes the change of the same position after
+    /// another event (never its own); a change that is not finite moves as zero.
+    #[test]
+    fn a_permuted_change_moves_the_change_to_other_pixels_and_events() {
+        let mut s = campaign_rows();
+        let np = 4;
+        s.pixels = vec![(0, 0); np];
+        let n = s.exposures.len() * np;
+        let before: Vec<f64> = (0..n).map(|i| i as f64).collect();
+        // the change codes its row (event) and pixel
+        let change = |i: usize| 100.0 * (i / np) as f64 + (i % np) as f64;
+        let after: Vec<f64> = (0..n).map(|i| before[i] + change(i)).collect();
+        let mut rng = <rand_chacha::ChaCha8Rng as rand::SeedableRng>::seed_from_u64(1);
+        let mut moved_pixel = false;
+        for _ in 0..PERMUTATIONS {
+            let m = permuted_change(&s, &before, &after, &mut rng);
+            let d: Vec<f64> = m.iter().zip(&before).map(|(a, b)| a - b).collect();
+            let mut pixels: Vec<usize> = (0..np).map(|p| (d[p] % 100.0) as usize).collect();
+            moved_pixel |= pixels.iter().enumerate().any(|(p, &q)| p != q);
+            pixels.sort_unstable();
+            assert_eq!(pixels, [0, 1, 2, 3]);
+            for r in 0..s.exposures.len() {
+                // one row per event here: the source row is another event's
+                let source = (d[r * np] / 100.0) as usize;
+                assert_ne!(source, r);
+                assert!(d[r * np..(r + 1) * np]
+                    .iter()
+                    .all(|&x| (x / 100.0) as usize == source));
+            }
+        }
+        assert!(moved_pixel);
+        // one event: rows keep their own change, only pixels move
+        s.event = vec![0; s.exposures.len()];
+        let mut nan_after = after.clone();
+        nan_after[1] = f64::NAN;
+        let m = permuted_change(&s, &before, &nan_after, &mut rng);
+        for r in 0..s.exposures.len() {
+            for p in 0..np {
+                let d = m[r * np + p] - before[r * np + p];
+                assert!(d == 0.0 || (d / 100.0) as usize == r, "{r} {p} {d}");
+            }
+        }
     }
 
     fn cell(key: i64, z: f64) -> (Vec<i64>, eval::GroupStat) {

@@ -14,8 +14,8 @@ use super::command::margin_note;
 use super::config::{Decide, Refit};
 use super::contrast;
 use super::finding::{Candidate, Diagnosis, Joint};
-use super::offer::OFFER_MIN_GAIN;
 use super::refit::HELD_OUT_MIN_GAIN;
+use super::refit::PERMUTATIONS;
 use super::separate::{Separation, Told};
 use crate::model::params::ModelParams;
 
@@ -304,10 +304,12 @@ fn offer_sentence(
     format!(
         ". Offered: {what}, which predicts held-out data better than the pixel reference \
          alone (fitted on one half, the pixel reference's RMS on the other {:.2} -> {:.2}, \
-         gain {:.2}); add it with: {}",
+         gain {:.2}, the largest of {PERMUTATIONS} permutations of its change {:.2}); add \
+         it with: {}",
         p.rms_before,
         p.rms_after,
         p.gain,
+        p.permuted_max(),
         add_clause(command, measure, held && measured, params)
     )
 }
@@ -339,7 +341,8 @@ fn data_term_sentence(
     format!(
         ". A data-driven term along it ({}) does not predict held-out data either \
          (dBIC {:.1}, {gain}; against the pixel reference, no refitted candidate \
-         gains {OFFER_MIN_GAIN} held out): not offered",
+         gains held out more than every one of {PERMUTATIONS} permutations of its \
+         change): not offered",
         t.effect, t.delta_bic
     )
 }
