@@ -44,7 +44,7 @@ pub const MIN_HELD_OUT_PIXELS: usize = 50;
 pub const PERMUTATIONS: usize = 19;
 
 /// The seed of the permutations (ChaCha8; the fold's index is added).
-const PERMUTATION_SEED: u64 = 0x5eed_0f_9e71;
+const PERMUTATION_SEED: u64 = 0x005e_ed0f_9e71;
 
 /// The model's own effects that a [`Refit::Full`] refits (those with fitted
 /// parameters); none for [`Refit::Candidate`].
