@@ -401,9 +401,9 @@ fn fluence_tilt(s: &Samples) -> Vec<f64> {
 /// the predictions, each sample's noise and its leverage in its pixel's fit (`h_i`:
 /// under the fit, a residual's variance is `sigma_i^2 (1 - h_i)`).
 pub fn predict_scaled(seq: &Sequence, s: &Samples, pred: &[f64], response: &Response) -> Scaled {
-    let terms = PixelTerms::new(seq, s, response);
-    let variance = |s: &Samples, i: usize, p: f64| measurement_variance(&terms.noise, s, i, p);
     let maps = fluence_maps(seq, true);
+    let terms = PixelTerms::new(seq, s, &maps, response);
+    let variance = |s: &Samples, i: usize, p: f64| measurement_variance(&terms.noise, s, i, p);
     let mut scale = vec![1.0; s.len()];
     let mut unscaled = pred.to_vec();
     let mut normal = Vec::new();
@@ -429,7 +429,7 @@ pub fn predict_scaled_held(
     response: &Response,
     held: &Scaled,
 ) -> Scaled {
-    let terms = PixelTerms::new(seq, s, response);
+    let terms = PixelTerms::new(seq, s, &fluence_maps(seq, true), response);
     let unscaled: Vec<f64> = pred
         .iter()
         .zip(&held.correction)
@@ -456,12 +456,11 @@ struct PixelTerms {
 type Normal = Vec<(Vec<f64>, Vec<f64>)>;
 
 impl PixelTerms {
-    fn new(seq: &Sequence, s: &Samples, response: &Response) -> PixelTerms {
-        let maps = fluence_maps(seq, true);
+    fn new(seq: &Sequence, s: &Samples, maps: &[Map], response: &Response) -> PixelTerms {
         let np = s.npix().max(1);
         PixelTerms {
             noise: pooled_noise(seq, s),
-            sat: saturated_share(seq, s, &maps, response),
+            sat: saturated_share(seq, s, maps, response),
             fl: fluence_tilt(s),
             tilt: (0..s.len())
                 .map(|i| (s.t_since_s[i / np].max(1.0) / TILT_REFERENCE_S).ln())

@@ -254,31 +254,20 @@ impl PixelSums {
         let first = self.fold_gains.is_empty() && !self.incomplete;
         match fold.real {
             Some(f) => {
-                let (b, a) = f.rms_all();
-                self.fold_gains.push(1.0 - a / b);
+                self.fold_gains.push(f.gain());
                 self.all.add(&f);
             }
             None => self.incomplete = true,
         }
-        self.held = match (first, self.held.take(), fold.held) {
-            (true, _, h) => h,
-            (false, Some(mut p), Some(f)) => {
-                p.add(&f);
-                Some(p)
-            }
-            _ => None,
-        };
         if first {
+            self.held = fold.held;
             self.null = fold.null;
-        } else if self.null.len() == fold.null.len() {
+            return;
+        }
+        self.held = HeldOutSums::pooled(self.held.take(), fold.held);
+        if self.null.len() == fold.null.len() {
             for (pooled, f) in self.null.iter_mut().zip(fold.null) {
-                *pooled = match (pooled.take(), f) {
-                    (Some(mut p), Some(f)) => {
-                        p.add(&f);
-                        Some(p)
-                    }
-                    _ => None,
-                };
+                *pooled = HeldOutSums::pooled(pooled.take(), f);
             }
         } else {
             self.null.clear();
@@ -290,19 +279,18 @@ impl PixelSums {
             return None;
         }
         let (rms_before, rms_after) = self.all.rms_all();
-        let gain = |n: &HeldOutSums| 1.0 - n.rms_all().1 / n.rms_all().0;
         let permuted_gains = self
             .null
             .iter()
-            .map(|n| n.as_ref().map(gain))
+            .map(|n| n.as_ref().map(HeldOutSums::gain))
             .collect::<Option<Vec<f64>>>()
             .unwrap_or_default();
         Some(PixelHeldOut {
             rms_before,
             rms_after,
-            gain: 1.0 - rms_after / rms_before,
+            gain: self.all.gain(),
             fold_gains: self.fold_gains.clone(),
-            gain_held: self.held.as_ref().map_or(f64::NAN, gain),
+            gain_held: self.held.as_ref().map_or(f64::NAN, HeldOutSums::gain),
             permuted_gains,
         })
     }
@@ -591,6 +579,19 @@ impl HeldOutSums {
         self.moved += o.moved;
         self.before_moved += o.before_moved;
         self.after_moved += o.after_moved;
+    }
+
+    /// Two folds' sums together; None when either is missing.
+    fn pooled(a: Option<Self>, b: Option<Self>) -> Option<Self> {
+        let (mut a, b) = (a?, b?);
+        a.add(&b);
+        Some(a)
+    }
+
+    /// `1 - RMS_after / RMS_before` over all cells.
+    fn gain(&self) -> f64 {
+        let (b, a) = self.rms_all();
+        1.0 - a / b
     }
 
     /// `(before, after)` RMS over all cells.
