@@ -271,6 +271,10 @@ fn main() -> persist::Result<()> {
             format!("{DEFAULT_FIT}{in_flight}"),
             model(Model::new(refilled_keep_rule.0.clone())?),
         ),
+        (
+            format!("{DEFAULT_FIT}{in_flight} + map"),
+            model(map(&refilled_keep_rule.0)?),
+        ),
     ];
     for w in &windows {
         flaggers.push((
@@ -440,7 +444,7 @@ fn measured_rule(
     sim: &Path,
     params: &ModelParams,
     dir: &Path,
-) -> persist::Result<(ModelParams, Option<String>)> {
+) -> persist::Result<(ModelParams, Option<String>, String)> {
     let run = persist::stage::RunConfig {
         input: sim.to_path_buf(),
         output: dir.join("output"),
@@ -459,11 +463,30 @@ fn measured_rule(
     }
     let report = persist::verify::run(sim, &run.output, &persist::verify::VerifyParams::default())?;
     persist::verify::write_report(&report, &dir.join("report"))?;
+    // what the first exposures after the hits measure, against the truth
+    let first_bin = report
+        .transients
+        .decay
+        .first()
+        .map_or_else(String::new, |b| {
+            format!(
+                "; at {:.0}-{:.0} s after a hit, {} samples: measured excess {:.3} e-/s, true {}, \
+             predicted by the flown model {:.2}",
+                b.time_lo_s,
+                b.time_hi_s,
+                b.samples,
+                b.measured.mean,
+                b.truth
+                    .as_ref()
+                    .map_or_else(|| "-".into(), |t| format!("{:.4}", t.mean)),
+                b.predicted.mean
+            )
+        });
     let model = dir.join("model.json");
     match persist::verify::transient::run(&dir.join("report").join("report.json"), params, &model) {
-        Ok(_) => Ok((persist::model_file::load(&model)?, None)),
+        Ok(_) => Ok((persist::model_file::load(&model)?, None, first_bin)),
         Err(e) if e.context.field.as_deref() == Some("/transients") => {
-            Ok((params.clone(), Some(e.message)))
+            Ok((params.clone(), Some(e.message), first_bin))
         }
         Err(e) => Err(e),
     }
@@ -471,8 +494,8 @@ fn measured_rule(
 
 /// The measured rule of `p` (or why there is none), in words (without the report's
 /// temporary path).
-fn said((p, refused): &(ModelParams, Option<String>)) -> String {
-    p.transient.as_ref().map_or_else(
+fn said((p, refused, first_bin): &(ModelParams, Option<String>, String)) -> String {
+    let rule = p.transient.as_ref().map_or_else(
         || {
             format!(
                 "{}: the table's maximum stays",
@@ -485,7 +508,8 @@ fn said((p, refused): &(ModelParams, Option<String>)) -> String {
                 t.amplitude_e, t.measured.flown_amplitude_e, t.measured.ratio, t.measured.events
             )
         },
-    )
+    );
+    format!("{rule}{first_bin}")
 }
 
 /// The early release of the coverage-calibrated model (that of `who`), in words.

@@ -568,3 +568,74 @@ fn soak_fills_a_pixel_with_no_slope_but_not_a_transient() {
     assert!(sur > 0.0 && sur_soak < 0.9 * sur, "{sur} -> {sur_soak}");
     assert_eq!(tr_soak.to_bits(), tr.to_bits());
 }
+
+/// The effect path sets the next exposure's forced flag as the fused kernel does: with a
+/// transient rule measured in flight, a hit with a slope follows the prediction and a
+/// hit without one (NaN, `SUR_ERROR`) is flagged whatever it (`MAX_AMPLITUDE`); without
+/// a rule every hit is flagged. A null effect gives the paper model's currents and flags
+/// bit for bit in both cases.
+#[test]
+fn the_effect_path_forces_the_flag_after_a_hit_as_the_fused_kernel_does() {
+    use persist::flags::{bits, pbits};
+    use persist::model::params::{TransientProvenance, TransientRule};
+    let rule = TransientRule {
+        amplitude_e: 20.0,
+        measured: TransientProvenance {
+            report: "report.json".into(),
+            report_sha256: "0".repeat(64),
+            quantile: 0.95,
+            ratio: 0.01,
+            flown_amplitude_e: 2000.0,
+            events: 1000,
+        },
+    };
+    let after_hits = |p: ModelParams| -> (Array2<f32>, Array2<u8>) {
+        let m = Model::new(p).unwrap();
+        let mut st = m.new_state(1, 3);
+        let t = bits::TRANSIENT;
+        let mut out = Default::default();
+        for k in 0..2u64 {
+            let hit = k == 0;
+            let img = if hit {
+                ndarray::array![[0.5f32, f32::NAN, 0.5]]
+            } else {
+                Array2::zeros((1, 3))
+            };
+            let mut flags = if hit {
+                ndarray::array![[t, t, t | bits::SUR_ERROR]]
+            } else {
+                Array2::zeros((1, 3))
+            };
+            let t_start_s = 100_000.0 * k as f64;
+            out = step(
+                &m,
+                &mut st,
+                &input(&img, k, t_start_s, 180.0, 180.0),
+                &StepContext::default(),
+                &mut flags,
+            )
+            .unwrap();
+        }
+        out
+    };
+    let forced = pbits::HIGH | pbits::LOW | pbits::MAX_AMPLITUDE;
+    for (measured, want) in [(true, [0, forced, forced]), (false, [forced; 3])] {
+        let mut p = paper();
+        p.transient = measured.then(|| rule.clone());
+        let (base_cur, base_flags) = after_hits(p.clone());
+        assert_eq!(
+            base_flags.row(0).to_vec(),
+            want,
+            "rule measured: {measured}"
+        );
+        let null = vec![spec("refill", serde_json::json!({"beta": 0.0}))];
+        let (cur, flags) = after_hits(ModelParams { effects: null, ..p });
+        assert_eq!(flags, base_flags, "rule measured: {measured}");
+        let bits_of = |a: &Array2<f32>| a.mapv(f32::to_bits);
+        assert_eq!(
+            bits_of(&cur),
+            bits_of(&base_cur),
+            "rule measured: {measured}"
+        );
+    }
+}

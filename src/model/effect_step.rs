@@ -433,14 +433,10 @@ pub(crate) fn step(
                         *aj = 0.0;
                     }
                 }
-                k.write_pixel(
-                    &v,
-                    kd[x] == UNKNOWN || kd[x] == NO_SLOPE,
-                    &mut p[x],
-                    &mut cur[x],
-                    &mut pf[x],
-                    &mut f[x],
-                );
+                // the next exposure is flagged whatever the prediction (`Kernel::response_of`)
+                let forced =
+                    kd[x] == NO_SLOPE || (kd[x] == UNKNOWN && !k.transient_ruled(img[x], f[x]));
+                k.write_pixel(&v, forced, &mut p[x], &mut cur[x], &mut pf[x], &mut f[x]);
                 s.above_high += v.high as u64;
                 s.above_low += v.low as u64;
                 s.released += v.released as u64;

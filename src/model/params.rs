@@ -282,9 +282,9 @@ pub struct ModelParams {
 /// The amplitude a `TRANSIENT` pixel adds to every term, measured in flight
 /// (`persist verify`'s transient measurement, written by `persist fit --from-verify`;
 /// docs/verify.md, "The transient rule"). Without it a transient takes the knot table's
-/// maximum (paper section "Transients"). Either way the exposure after the hit is
-/// flagged whatever the prediction (`MAX_AMPLITUDE`): the rule sets what the later
-/// exposures predict.
+/// maximum (paper section "Transients") and the exposure after the hit is flagged
+/// whatever the prediction (`MAX_AMPLITUDE`); with it, the rule, measured at that
+/// exposure, sets what it and the later exposures predict.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct TransientRule {

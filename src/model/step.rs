@@ -26,7 +26,9 @@
 //!   prediction; a `TRANSIENT` pixel with a finite slope and without `SUR_ERROR` adds
 //!   the model's transient rule instead ([`ModelParams::transient_amplitude_e`]: the
 //!   maximum unless the model file holds an amplitude measured in flight) or its
-//!   slope's amplitude, the larger, and the next exposure still flags it;
+//!   slope's amplitude, the larger; the next exposure flags it whatever the prediction
+//!   unless the rule was measured in flight (`persist verify` measures it at that very
+//!   exposure, so there the prediction decides);
 //! - a negative current counts as zero fluence (it is noise about zero);
 //! - otherwise the fluence is `current * t_illuminated` (ICD "Timing").
 //!
@@ -415,6 +417,7 @@ impl Model {
             response: &self.response,
             a_max: self.response.max_e(),
             a_transient: self.params.transient_amplitude_e(),
+            transient_measured: self.params.transient.is_some(),
             first: self.response.first_segment(),
             t_illuminated_s: t_illum,
             history: if input.history_incomplete {
@@ -646,6 +649,9 @@ pub(crate) struct Kernel<'m> {
     pub a_max: f64,
     /// `A_k` of a `TRANSIENT` pixel ([`ModelParams::transient_amplitude_e`]).
     pub a_transient: f64,
+    /// The transient rule was measured in flight ([`ModelParams::transient`]): the
+    /// exposure after a hit follows the prediction instead of being flagged whatever it.
+    pub transient_measured: bool,
     /// [`Response::first_segment`].
     pub first: (f64, f64, f64, f64),
     pub t_illuminated_s: f64,
@@ -654,18 +660,32 @@ pub(crate) struct Kernel<'m> {
 }
 
 impl Kernel<'_> {
-    /// `A_k` for one pixel and whether its fluence was unknown (the next exposure is
-    /// flagged whatever the prediction): a transient with a finite slope (and not a fit
+    /// A `TRANSIENT` pixel with a finite slope and without `SUR_ERROR`: it takes the
+    /// transient rule ([`Kernel::response_of`]).
+    #[inline(always)]
+    pub fn transient_with_slope(&self, current: f32, flags: u32) -> bool {
+        flags & self.bits.transient != 0 && flags & self.bits.sur_error == 0 && current.is_finite()
+    }
+
+    /// An unknown fluence whose next exposure is not flagged whatever the prediction: a
+    /// transient with a slope under a rule measured in flight ([`Kernel::response_of`]).
+    #[inline(always)]
+    pub fn transient_ruled(&self, current: f32, flags: u32) -> bool {
+        self.transient_measured && self.transient_with_slope(current, flags)
+    }
+
+    /// `A_k` for one pixel and whether the next exposure is flagged whatever the
+    /// prediction (`MAX_AMPLITUDE`): a transient with a finite slope (and not a fit
     /// error) takes the transient rule's amplitude or its slope's, the larger (a source
     /// bright enough to saturate keeps its own response when a cosmic ray also hits),
-    /// any other unknown fluence the maximum.
+    /// any other unknown fluence the maximum. Every unknown fluence forces the next
+    /// exposure's flag, except a transient under a rule measured in flight: the rule was
+    /// measured at that exposure, so its prediction decides.
     #[inline(always)]
     pub fn response_of(&self, current: f32, flags: u32) -> (f64, bool) {
         match pixel_fluence(current, flags, &self.bits, self.t_illuminated_s) {
             PixelFluence::Unknown => {
-                let transient_only = flags & self.bits.transient != 0
-                    && flags & self.bits.sur_error == 0
-                    && current.is_finite();
+                let transient_only = self.transient_with_slope(current, flags);
                 let a = if transient_only {
                     let slope = self
                         .response
@@ -674,7 +694,7 @@ impl Kernel<'_> {
                 } else {
                     self.a_max
                 };
-                (a, true)
+                (a, !(transient_only && self.transient_measured))
             }
             PixelFluence::NonFunctional => (0.0, false),
             PixelFluence::Known(fluence_e) => {

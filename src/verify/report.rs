@@ -205,8 +205,8 @@ fn transients_html(h: &mut String, t: &super::transient::TransientReport) {
         h,
         "<h2>Cosmic-ray hits</h2><p>{} hits followed, {} samples ({} rejected as sources). \
          First exposure after a hit, measured / predicted: median {}, {:.0}th percentile {} \
-         over {} hits{}.</p><p>Transient rule: {}. The exposure after a hit stays flagged \
-         whatever the prediction.</p>\
+         over {} hits{}.</p><p>Transient rule: {}. Without a rule measured in flight, the \
+         exposure after a hit is flagged whatever the prediction.</p>\
          <table><tr><th>time since hit, s</th><th>hits</th><th>samples</th>\
          <th>measured excess, e-/s</th><th>predicted, e-/s</th><th>truth, e-/s</th></tr>",
         t.hits,

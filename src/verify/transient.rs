@@ -25,9 +25,10 @@
 //! [`rule_ratio`] refuses and says why, and the model keeps the table's maximum. Nothing
 //! here knows what charge a cosmic ray deposits: only what the exposures after it measure.
 //!
-//! Whatever the rule, the exposure after a hit stays flagged whatever the prediction
+//! Without a rule the exposure after a hit stays flagged whatever the prediction
 //! (`MAX_AMPLITUDE`, [`crate::model::step`]): its persistence is not measured until that
 //! exposure, so until flight data show otherwise the first exposure is conservative.
+//! With the rule, measured at that very exposure, the prediction decides it.
 //!
 //! [`run`] is the I/O driver of `persist fit --from-verify`; the rest is pure.
 
@@ -278,7 +279,7 @@ pub fn run(report: &Path, model: &ModelParams, out: &Path) -> Result<String> {
     let t = rule.transient.as_ref().expect("set by apply");
     Ok(format!(
         "transient amplitude {:.1} e- (the flown {:.1} e- x {:.4}: {} hits, {:.0}th percentile); \
-         the exposure after a hit stays flagged. Model: {}",
+         the exposure after a hit follows the prediction. Model: {}",
         t.amplitude_e,
         t.measured.flown_amplitude_e,
         t.measured.ratio,
