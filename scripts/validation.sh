@@ -331,11 +331,16 @@ thresholds are pixels early release acted on since their last event (amplitudes 
 to zero). Either alone does not help: `refill` alone misses as many, the threshold kept
 without `refill` doubles the over-flagging at 0.01 e-/s; together they take most of
 the misses at 0.01 e-/s away and flag less at both thresholds, on both seeds: hence
-`fit`'s default. Most of the over-flagging at 0.1 e-/s is the first 1000 s after a
-`TRANSIENT`, with the transient rule measured in flight as well: the rule cuts the
-transient amplitude over tenfold (the simulator's hits leave no persistence of their
-own), but the exposure after a hit stays flagged whatever the rule, and the rule is a
-95th percentile of noisy measurements, which errs high (`persist::verify::transient`).
+`fit`'s default. Without a rule measured in flight, most of the over-flagging at 0.1
+e-/s is the first 1000 s after a `TRANSIENT`. With it, the hits are no longer where the
+over-flagging is: the simulator's hits leave no persistence of their own, and the rule
+(the 95th percentile of what the first exposure after each hit measures, sources
+screened by their extent and the measurement noise taken out in quadrature,
+`persist::verify::transient`) comes out near zero; the exposure after a hit then follows
+the prediction. What over-flagging remains at 0.1 e-/s follows bright sources within
+1000 s, predicted 1-2 times the truth (the margin); at 0.01 e-/s, mostly 2-10 times the
+truth hours after unsaturated sources (the decay's late tail). The misses at 0.1 e-/s
+are pixels early release acted on, predicted 0.5-1 times the truth.
 
 ## The demo's detector (seed 1)
 

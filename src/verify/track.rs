@@ -52,7 +52,13 @@
 //! hit's and not an earlier event's) starts a **hit**: from the reset that ends the
 //! exposure on, it is measured like a track (same sky annulus, same source screen,
 //! same control), and its samples ([`Tracker::take_hit_samples`]) carry an unknown
-//! (NaN) event fluence. A hit ends at its pixel's next `TRANSIENT`, at an event of its
+//! (NaN) event fluence. Its first sample has no earlier one to screen a source against,
+//! and the rule is read there ([`super::transient`]), so a source is screened by its
+//! extent instead: a star's light reaches the pixel's neighbours, a hit's persistence
+//! stays in the pixels it hit. The first sample is a source when the mean excess of its
+//! 4-neighbours without a track or hit of their own, predicted quiet, stands more than
+//! [`TrackParams::spike_nsigma`] noise sigmas of that mean above the sky; the next sample
+//! is then the hit's first. A hit ends at its pixel's next `TRANSIENT`, at an event of its
 //! pixel, or after [`TrackParams::hit_max_time_s`]. A hit's pixel stays sky for the
 //! annuli: it was quiet before the hit, and its persistence is what is measured.
 //!
@@ -486,6 +492,35 @@ impl Tracker {
         out
     }
 
+    /// A source on a hit's pixel at its first sample (module docs, "Cosmic-ray hits"):
+    /// the mean excess over the sky `sky` of its 4-neighbours that carry no track or
+    /// hit, are usable and were predicted quiet, above `spike_nsigma` times the noise
+    /// `sigma` of that mean. Fewer than two such neighbours: no screen.
+    fn lit_neighbours(&self, frame: &Frame, (y, x): (usize, usize), sky: f64, sigma: f64) -> bool {
+        let (ny, nx) = frame.image.dim();
+        let quiet = self.params.hit_quiet_e_per_s;
+        let (mut sum, mut n) = (0.0, 0usize);
+        let near = [
+            (y.wrapping_sub(1), x),
+            (y + 1, x),
+            (y, x.wrapping_sub(1)),
+            (y, x + 1),
+        ];
+        for (yy, xx) in near.into_iter().filter(|&(a, b)| a < ny && b < nx) {
+            let v = f64::from(frame.image[[yy, xx]]);
+            let usable = frame.flags[[yy, xx]] & UNUSABLE == 0
+                && self.tracks[[yy, xx]].is_none()
+                && self.hits[[yy, xx]].is_none()
+                && f64::from(frame.predicted[[yy, xx]]) <= quiet
+                && v.is_finite();
+            if usable {
+                sum += v - sky;
+                n += 1;
+            }
+        }
+        n >= 2 && sum / n as f64 > self.params.spike_nsigma * sigma / (n as f64).sqrt()
+    }
+
     /// One tracked pixel in `frame` (the track not ended): its sample, or why none.
     fn measure(
         &self,
@@ -509,6 +544,9 @@ impl Tracker {
         let first = tr.samples == 0;
         let last = (!first).then_some((tr.last_excess, tr.last_sigma));
         if !passes_screen(last, excess, sigma, self.params.spike_nsigma) {
+            return Some(Measured::Source);
+        }
+        if first && tr.fluence_e.is_nan() && self.lit_neighbours(frame, (y, x), sky, sigma) {
             return Some(Measured::Source);
         }
         Some(Measured::Sample(Sample {
@@ -812,6 +850,45 @@ mod tests {
             t.hits_started, 1,
             "predicted above the quiet level: no new hit"
         );
+    }
+
+    /// A hit's first sample is a source when its neighbours are lit too (a star's
+    /// light spreads, a hit's persistence does not): rejected, and the hit's next sample
+    /// is its first; a hit whose excess stays in its pixel is measured.
+    #[test]
+    fn a_hit_s_first_sample_with_lit_neighbours_is_a_source() {
+        let mut t = Tracker::new(TrackParams::default(), 20, 20);
+        let mut a = sky(1.0);
+        a.flags[[10, 10]] = bits::TRANSIENT;
+        a.flags[[4, 4]] = bits::TRANSIENT;
+        t.observe(&frame(&a, 0.0));
+        assert_eq!(t.hits_started, 2);
+        // alternate 0.9 / 1.1: sigma about 0.15
+        let mut b = sky(1.0);
+        for ((y, x), v) in b.image.indexed_iter_mut() {
+            *v = if (y + x) % 2 == 0 { 0.9 } else { 1.1 };
+        }
+        let quiet = b.image.clone();
+        b.image[[4, 4]] = 2.0; // persistence: the pixel alone
+        b.image[[10, 10]] = 3.0; // a star: its neighbours lit by about 1 e-/s
+        for (y, x) in [(9, 10), (11, 10), (10, 9), (10, 11)] {
+            b.image[[y, x]] += 1.0;
+        }
+        b.pred[[4, 4]] = 6.0;
+        b.pred[[10, 10]] = 6.0;
+        t.observe(&frame(&b, 200.0));
+        let s = t.take_hit_samples();
+        assert_eq!(s.len(), 1, "{s:?}");
+        assert_eq!((s[0].y, s[0].x), (4, 4));
+        assert!(s[0].first);
+        assert_eq!(t.hit_rejected, 1);
+        let mut c = sky(1.0);
+        c.image = quiet;
+        c.image[[10, 10]] = 1.5;
+        t.observe(&frame(&c, 400.0));
+        let s = t.take_hit_samples();
+        let star = s.iter().find(|s| (s.y, s.x) == (10, 10)).unwrap();
+        assert!(star.first, "{s:?}");
     }
 
     #[test]

@@ -15,11 +15,18 @@
 //! (the stage's prediction there is the flown model's transient amplitude times its decay
 //! law, the pixel being quiet before). The rule's factor is the stated quantile of that
 //! ratio over the hits (default [`DEFAULT_QUANTILE`], the paper's 95th percentile), taken
-//! at the upper end of its bootstrap 95 % interval ([`FirstExposure::ratio`]); the rule's
-//! amplitude is that factor times the flown amplitude ([`apply`]). The noise of each
-//! measurement widens the ratio's spread, so the quantile errs high (conservative). The
-//! later exposures follow the model's decay law; the report's decay by time since the hit
-//! says how the measurement compares there.
+//! at the upper end of its bootstrap 95 % interval ([`FirstExposure::ratio`]), with the
+//! measurement noise taken out: the noise of each measurement widens the ratio's spread,
+//! and a pixel's noise is no persistence. Its distance above the median loses, in
+//! quadrature, the same quantile of the noise alone ([`FirstExposure::noise_ratio`]: the
+//! mixture of zero-mean normals of each hit's noise / predicted), which is exact for a
+//! normal response with normal noise: hits that leave no persistence give about their
+//! median, hits that all leave the same give that, a noiseless measurement its own
+//! quantile. Sources on a hit's pixel would add a tail the noise does not explain: the
+//! first sample is screened for them by their extent ([`super::track`], "Cosmic-ray
+//! hits"). The rule's amplitude is that factor times the flown amplitude ([`apply`]).
+//! The later exposures follow the model's decay law; the report's decay by time since
+//! the hit says how the measurement compares there.
 //!
 //! With fewer than [`min_events`] hits (ten expected above the quantile) there is no rule:
 //! [`rule_ratio`] refuses and says why, and the model keeps the table's maximum. Nothing
@@ -63,6 +70,12 @@ pub struct FirstExposure {
     pub ratio: Option<(f64, f64, f64)>,
     /// The median of measured / predicted.
     pub median_ratio: Option<f64>,
+    /// The same quantile of the measurement noise alone, in units of the prediction:
+    /// of the mixture of normals of zero mean and standard deviation each hit's noise /
+    /// predicted ([`crate::measure::data::noisy_quantile`]). Absent in reports without
+    /// it: the rule then keeps the noise in.
+    #[serde(default)]
+    pub noise_ratio: Option<f64>,
     /// The same quantile of true / predicted, where the input held a truth.
     pub true_ratio: Option<f64>,
 }
@@ -101,6 +114,8 @@ pub(super) struct Acc {
     /// columns: measured excess, predicted, truth, time
     decay: BTreeMap<usize, Bin<4>>,
     first: QuantileBin,
+    /// Each first-exposure sample's noise / predicted.
+    first_noise: Vec<f64>,
     first_truth: QuantileBin,
     truth_missing: bool,
     samples: usize,
@@ -122,8 +137,9 @@ impl Acc {
             super::sample_weight(s.sigma_e_per_s),
             [measured, pred, truth, s.time_s],
         );
-        if s.first && pred > 0.0 {
+        if s.first && pred > 0.0 && (measured / pred).is_finite() {
             self.first.add(cluster, measured / pred);
+            self.first_noise.push(s.sigma_e_per_s / pred);
             self.first_truth.add(cluster, truth / pred);
         }
     }
@@ -168,6 +184,10 @@ impl Acc {
             events: self.first.samples() as u64,
             ratio: self.first.quantile(quantile, seed ^ (8 << 40)),
             median_ratio: self.first.quantile(0.5, seed ^ (9 << 40)).map(|v| v.0),
+            noise_ratio: (!self.first_noise.is_empty()).then(|| {
+                let zero = vec![0.0; self.first_noise.len()];
+                crate::measure::data::noisy_quantile(&zero, &self.first_noise, quantile).0
+            }),
             true_ratio: if has_truth {
                 self.first_truth
                     .quantile(quantile, seed ^ (10 << 40))
@@ -180,7 +200,7 @@ impl Acc {
             Ok(r) => format!(
                 "the transient amplitude times {r:.4}: the upper end of the 95 % interval of \
                  the {:.0}th percentile of measured / predicted at the first exposure after \
-                 {} hits",
+                 {} hits, less the noise's in quadrature",
                 100.0 * quantile,
                 first.events
             ),
@@ -212,9 +232,34 @@ pub fn rule_ratio(first: &FirstExposure) -> std::result::Result<f64, String> {
         ));
     }
     match first.ratio {
-        Some((_, _, hi)) if hi.is_finite() => Ok(hi.max(0.0)),
+        Some((_, _, hi)) if hi.is_finite() => Ok(without_noise(
+            hi,
+            first.median_ratio.unwrap_or(0.0),
+            first.noise_ratio.unwrap_or(0.0),
+        )),
         _ => Err("the quantile of measured / predicted is not finite".into()),
     }
+}
+
+/// The quantile of the response with the measurement noise taken out (module docs,
+/// "The rule"): the measured quantile's distance from the median, `measured - median`,
+/// less the noise's quantile `noise` in quadrature, added to the median; at least 0.
+/// Exact for a normal response measured with normal noise; a response with no spread
+/// of its own gives its median, a measurement without noise its quantile. Non-finite
+/// noise or median count as 0.
+fn without_noise(measured: f64, median: f64, noise: f64) -> f64 {
+    let median = if median.is_finite() {
+        median.min(measured)
+    } else {
+        0.0
+    };
+    let noise = if noise.is_finite() {
+        noise.max(0.0)
+    } else {
+        0.0
+    };
+    let spread = measured - median;
+    (median + (spread * spread - noise * noise).max(0.0).sqrt()).max(0.0)
 }
 
 /// `model` with the rule of the measurement `first` (module docs), `report` naming the
@@ -355,13 +400,19 @@ mod tests {
         let (q, lo, hi) = r.first.ratio.unwrap();
         assert!((q - 0.94905).abs() < 1e-9, "{q}");
         assert!(lo <= q && q <= hi && hi < 0.97, "{lo} {q} {hi}");
+        // the noise (0.05 / 6 per hit, its 95th percentile 0.0137) barely moves it:
+        // 0.5 + sqrt(0.46^2 - 0.0137^2) = 0.9598 for hi = 0.96
         let ratio = rule_ratio(&r.first).unwrap();
-        assert_eq!(ratio, hi);
+        let median = r.first.median_ratio.unwrap();
+        let noise = r.first.noise_ratio.unwrap();
+        assert!((noise - 1.644_854 * 0.05 / 6.0).abs() < 1e-6, "{noise}");
+        let want = median + ((hi - median).powi(2) - noise * noise).sqrt();
+        assert!((ratio - want).abs() < 1e-12 && ratio < hi && hi - ratio < 1e-3);
         let m = ModelParams::default();
         let sha = "a".repeat(64);
         let out = apply(&m, &[m.identity()], &r.first, ("v/report.json", &sha)).unwrap();
         let t = out.transient.as_ref().unwrap();
-        assert!((t.amplitude_e - 878.0 * hi).abs() < 1e-9);
+        assert!((t.amplitude_e - 878.0 * ratio).abs() < 1e-9);
         assert_eq!(t.measured.events, 1000);
         assert_eq!(t.measured.report, "v/report.json");
         assert_eq!(out.transient_amplitude_e(), t.amplitude_e);
@@ -372,5 +423,37 @@ mod tests {
         assert!(apply(&other, &[m.identity()], &r.first, ("r", &sha))
             .unwrap_err()
             .contains("flagged with"));
+    }
+
+    /// Hits measured with noise: 0.05 e-/s per pixel, each predicted 0.5 e-/s (noise
+    /// 0.1 of the prediction), 1000 hits drawn from a normal. Hits that leave no
+    /// persistence give a rule near zero, where the noisy quantile alone is 0.16; hits
+    /// that all leave 0.4 of the prediction give 0.4; hits whose response spreads as
+    /// N(0.4, 0.1) give its 95th percentile, 0.4 + 1.645 x 0.1 = 0.56.
+    #[test]
+    fn the_rule_takes_the_measurement_noise_out() {
+        use rand::SeedableRng;
+        use rand_distr::{Distribution, Normal};
+        let rule_of = |mean: f64, spread: f64| -> (f64, f64) {
+            let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(7);
+            let response = Normal::new(mean, spread.max(1e-300)).unwrap();
+            let noise = Normal::new(0.0, 0.05).unwrap();
+            let mut acc = Acc::default();
+            for c in 0..1000u64 {
+                let excess = 0.5 * response.sample(&mut rng) + noise.sample(&mut rng);
+                acc.add(&edges(), &hit(c, excess, 0.5), c);
+            }
+            let r = acc.summarise(&edges(), (1000, 0), DEFAULT_QUANTILE, 1);
+            (rule_ratio(&r.first).unwrap(), r.first.ratio.unwrap().2)
+        };
+        let (none, noisy) = rule_of(0.0, 0.0);
+        assert!(
+            noisy > 0.15 && none < 0.06,
+            "no persistence: {none} (noisy {noisy})"
+        );
+        let (same, _) = rule_of(0.4, 0.0);
+        assert!((same - 0.4).abs() < 0.06, "all 0.4: {same}");
+        let (spread, _) = rule_of(0.4, 0.1);
+        assert!((spread - 0.564).abs() < 0.06, "N(0.4, 0.1): {spread}");
     }
 }
