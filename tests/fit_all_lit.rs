@@ -244,3 +244,39 @@ fn lit_sequences_measure_noise_and_dark_level_from_the_darks() {
         );
     }
 }
+
+/// An exposure whose only background pixel measures no spread (a single pixel left dark
+/// in every illumination) is measured as if it had none: its noise comes from the pairs
+/// of darks, as in the sequence without that pixel, never from a constant.
+#[test]
+fn a_background_without_spread_is_measured_from_the_darks() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path().join("family1");
+    let st = std::process::Command::new(env!("CARGO_BIN_EXE_persist"))
+        .args(["simulate", "family", "--size", "64", "--seed", "1", "--out"])
+        .arg(&dir)
+        .output()
+        .unwrap();
+    assert!(
+        st.status.success(),
+        "{}",
+        String::from_utf8_lossy(&st.stderr)
+    );
+    let seq = Sequence::load(&dir).unwrap();
+    let mut exposures = seq.exposures.clone();
+    for &a in &seq.illuminations {
+        exposures[a].image[[0, 0]] = 0.0;
+    }
+    let one_dark = Sequence::from_exposures(exposures).unwrap();
+    let last = seq.exposures.len() - 1;
+    let (s, s_all_lit) = (one_dark.noise_e_per_s[last], seq.noise_e_per_s[last]);
+    println!("noise {s:.5} with one background pixel, {s_all_lit:.5} without");
+    assert!(
+        (s / s_all_lit - 1.0).abs() < 0.05,
+        "{s} against {s_all_lit}"
+    );
+    assert!(one_dark
+        .lit
+        .describe()
+        .contains("pairs of consecutive late darks"));
+}

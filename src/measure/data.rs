@@ -38,7 +38,8 @@
 //!
 //! # Every pixel lit
 //! The paper's laboratory data light every pixel, so no pixel is background after the
-//! first illumination. Then, for the exposures with no background pixel
+//! first illumination. Then, for the exposures with no background pixel, or whose
+//! background pixels show no spread (one pixel, or all equal: they measure no noise)
 //! ([`LitMeasured`], printed by `fit` and `diagnose`):
 //! - **read noise** `sigma_k`: from pairs of consecutive darks of equal length after
 //!   the same illumination, in its late window (the darks from half the block's last
@@ -274,8 +275,13 @@ impl Sequence {
                 }
             };
             background.push(if b.is_finite() { b } else { 0.0 });
+            // background pixels that give no spread (one, or all equal) measure neither:
+            // the exposure is measured as if it had none
             let s = 1.4826 * median(&dev);
-            noise.push(if s.is_finite() && s > 0.0 { s } else { 0.1 });
+            if !(s.is_finite() && s > 0.0) && !pts.is_empty() {
+                no_background.push(i);
+            }
+            noise.push(s);
         }
         // one dark level per illumination's darks: the median of their intercepts
         let mut by_illumination: std::collections::BTreeMap<usize, Vec<(usize, f64)>> =
