@@ -424,72 +424,38 @@ fn main() -> persist::Result<()> {
 /// sequential, so a run of `FROM_EXPOSURE` exposures is the full run's first ones.
 fn measured_span(sky: &SkyConfig, dir: &Path) -> persist::Result<std::path::PathBuf> {
     let sim = dir.join("sim");
-    let mut writer = persist::sim::output::Writer::new(&sim)?;
     let span = SkyConfig {
         exposures: FROM_EXPOSURE.min(sky.exposures),
         ..sky.clone()
     };
-    let description = persist::sim::sky::run(&span, |s| writer.write(&s))?;
-    writer.finish(description)?;
+    persist::sim::sky::write(&span, &sim)?;
     Ok(sim)
 }
 
-/// `params` with the transient rule measured in flight the way operations would: the
-/// stage flags the products of `sim` with `params`, `persist verify` measures its
-/// outputs, and `persist fit --from-verify` (`persist::verify::transient::run`) writes the
-/// rule into a model file in `dir`, read back. When the report gives no rule (too few
-/// hits measured), `fit --from-verify` refuses and the model keeps the table's maximum,
-/// as in operations: `params` and the reason.
+/// `params` with the transient rule measured in flight the way operations would
+/// (`persist::verify::transient::measure_in_flight`), and what the first exposures after
+/// the hits measured against the truth, in words.
 fn measured_rule(
     sim: &Path,
     params: &ModelParams,
     dir: &Path,
 ) -> persist::Result<(ModelParams, Option<String>, String)> {
-    let run = persist::stage::RunConfig {
-        input: sim.to_path_buf(),
-        output: dir.join("output"),
-        checkpoints: dir.join("checkpoints"),
-        model: Model::new(params.clone())?,
-        from_checkpoint: None,
-        allow_model_change: false,
-        checkpoint_every: FROM_EXPOSURE,
-        checkpoint_idle: std::time::Duration::ZERO,
-        retention: Default::default(),
-        processed_utc: persist::stage::processing_time(),
-    };
-    let ran = persist::stage::run(&run, &|_| {});
-    if let Some(e) = ran.errors.into_iter().next() {
-        return Err(e);
-    }
-    let report = persist::verify::run(sim, &run.output, &persist::verify::VerifyParams::default())?;
-    persist::verify::write_report(&report, &dir.join("report"))?;
-    // what the first exposures after the hits measure, against the truth
-    let first_bin = report
-        .transients
-        .decay
-        .first()
-        .map_or_else(String::new, |b| {
-            format!(
-                "; at {:.0}-{:.0} s after a hit, {} samples: measured excess {:.3} e-/s, true {}, \
+    let m = persist::verify::transient::measure_in_flight(sim, params, dir)?;
+    let first_bin = m.report.decay.first().map_or_else(String::new, |b| {
+        format!(
+            "; at {:.0}-{:.0} s after a hit, {} samples: measured excess {:.3} e-/s, true {}, \
              predicted by the flown model {:.2}",
-                b.time_lo_s,
-                b.time_hi_s,
-                b.samples,
-                b.measured.mean,
-                b.truth
-                    .as_ref()
-                    .map_or_else(|| "-".into(), |t| format!("{:.4}", t.mean)),
-                b.predicted.mean
-            )
-        });
-    let model = dir.join("model.json");
-    match persist::verify::transient::run(&dir.join("report").join("report.json"), params, &model) {
-        Ok(_) => Ok((persist::model_file::load(&model)?, None, first_bin)),
-        Err(e) if e.context.field.as_deref() == Some("/transients") => {
-            Ok((params.clone(), Some(e.message), first_bin))
-        }
-        Err(e) => Err(e),
-    }
+            b.time_lo_s,
+            b.time_hi_s,
+            b.samples,
+            b.measured.mean,
+            b.truth
+                .as_ref()
+                .map_or_else(|| "-".into(), |t| format!("{:.4}", t.mean)),
+            b.predicted.mean
+        )
+    });
+    Ok((m.params, m.refused, first_bin))
 }
 
 /// The measured rule of `p` (or why there is none), in words (without the report's

@@ -928,7 +928,7 @@ fn verify_root(scratch: &Path, size: usize, exposures: usize) -> PathBuf {
 /// detector), run the stage on them with the default model, and remove the truth: the
 /// `verify` case's data (not timed).
 pub fn prepare_verify(scratch: &Path, size: usize, exposures: usize) -> Result<PathBuf> {
-    use crate::sim::{output::Writer, sky};
+    use crate::sim::sky;
     let root = verify_root(scratch, size, exposures);
     if root.exists() {
         std::fs::remove_dir_all(&root).map_err(|e| Error::io(&root, e))?;
@@ -941,9 +941,7 @@ pub fn prepare_verify(scratch: &Path, size: usize, exposures: usize) -> Result<P
         seed: 1,
         ..sky::SkyConfig::default()
     };
-    let mut w = Writer::new(&sky_dir)?;
-    let desc = sky::run(&cfg, |e| w.write(&e))?;
-    w.finish(desc)?;
+    sky::write(&cfg, &sky_dir)?;
     let truth = sky_dir.join("truth");
     std::fs::remove_dir_all(&truth).map_err(|e| Error::io(&truth, e))?;
     let run = RunConfig {

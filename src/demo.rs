@@ -15,8 +15,12 @@
 //! illuminations and 1.5 h of darks after the first), fits
 //! it as `persist fit` does by default ([`crate::calib::Preset::Paper`]: the paper's
 //! calibration with `refill` fitted, then the flags calibrated to 95 % coverage,
-//! [`crate::calib::coverage`], and early release keeping the threshold), and flags the
-//! sky with that model. Then it counts the flags against the simulator's truth
+//! [`crate::calib::coverage`], and early release keeping the threshold; written to
+//! `lab_model.json`). In flight, the sky's first [`crate::flag_quality::FROM_EXPOSURE`]
+//! exposures are flagged with it and `persist verify` measures what follows the
+//! cosmic-ray hits; `persist fit --from-verify` writes the transient rule it measured
+//! into the model ([`crate::verify::transient::measure_in_flight`]; `model.json`), and
+//! the sky is flagged with that model. Then it counts the flags against the simulator's truth
 //! ([`crate::flag_quality`], from exposure [`crate::flag_quality::FROM_EXPOSURE`] on)
 //! and runs `persist verify` on the stage's outputs.
 
@@ -171,9 +175,50 @@ fn model_of(cfg: &DemoConfig, progress: &dyn Fn(&str)) -> Result<(ModelParams, S
         cal.knots.len(),
         cov.describe().trim_end()
     );
-    let path = cfg.out.join("model.json");
+    let path = cfg.out.join("lab_model.json");
     crate::textfile::write_text(&path, &(params.to_json_pretty() + "\n"))?;
     Ok((params, text))
+}
+
+/// The transient rule measured in flight (module docs, "The paper's workflow"): the
+/// stage and `persist verify` on the sky's first exposures (written again into
+/// `in_flight/sim`: the survey's draws are sequential, so they are the full run's
+/// first ones) flagged with the laboratory model `lab`, then `persist fit
+/// --from-verify`. The model to flag the sky with (written to `model.json`) and what
+/// was measured, in words.
+fn in_flight_rule(
+    cfg: &DemoConfig,
+    sky_cfg: &sky::SkyConfig,
+    lab: &ModelParams,
+    progress: &dyn Fn(&str),
+) -> Result<(ModelParams, String)> {
+    let n = crate::flag_quality::FROM_EXPOSURE.min(cfg.exposures);
+    progress(&format!(
+        "measuring the transient rule in flight: the stage and `persist verify` on the \
+         sky's first {n} exposures, then `persist fit --from-verify`"
+    ));
+    let dir = cfg.out.join("in_flight");
+    let sim = dir.join("sim");
+    let span = sky::SkyConfig {
+        exposures: n,
+        ..sky_cfg.clone()
+    };
+    sky::write(&span, &sim)?;
+    let m = crate::verify::transient::measure_in_flight(&sim, lab, &dir)?;
+    let text = match (&m.params.transient, &m.refused) {
+        (Some(t), _) => format!(
+            "transient rule measured in flight on the sky's first {n} exposures: {:.1} e- \
+             (the laboratory model's {:.1} e- x {:.4}, from {} hits at their first exposure)",
+            t.amplitude_e, t.measured.flown_amplitude_e, t.measured.ratio, t.measured.events
+        ),
+        (None, why) => format!(
+            "no transient rule measured in flight ({}): the table's maximum stays",
+            why.as_deref().unwrap_or("no rule")
+        ),
+    };
+    let path = cfg.out.join("model.json");
+    crate::textfile::write_text(&path, &(m.params.to_json_pretty() + "\n"))?;
+    Ok((m.params, text))
 }
 
 /// Simulate, run the stage, analyse, plot. `progress` is told what happens.
@@ -181,7 +226,7 @@ pub fn run(cfg: &DemoConfig, progress: &dyn Fn(&str)) -> Result<DemoReport> {
     if cfg.out.exists() {
         std::fs::remove_dir_all(&cfg.out).map_err(|e| Error::io(&cfg.out, e))?;
     }
-    let (model, model_source) = model_of(cfg, progress)?;
+    let (model, mut model_source) = model_of(cfg, progress)?;
     let sim_dir = cfg.out.join("sim");
     let sky_cfg = sky::SkyConfig {
         size: cfg.size,
@@ -231,6 +276,13 @@ pub fn run(cfg: &DemoConfig, progress: &dyn Fn(&str)) -> Result<DemoReport> {
         writer.write(&s)
     })?;
     writer.finish(description)?;
+    let model = if cfg.model.is_none() {
+        let (with_rule, text) = in_flight_rule(cfg, &sky_cfg, &model, progress)?;
+        model_source = format!("{model_source}\n{text}");
+        with_rule
+    } else {
+        model
+    };
 
     progress(&format!("running the stage with model `{}`", model.name));
     let run_cfg = RunConfig {

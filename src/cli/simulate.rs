@@ -255,9 +255,7 @@ pub(super) fn simulate(scenario: SimScenario) -> persist::Result<ExitCode> {
             };
             a.sky.apply(&mut cfg);
             sky::validate(&cfg)?;
-            let mut w = Writer::new(&a.out)?;
-            let desc = sky::run(&cfg, |e| w.write(&e))?;
-            let n = w.finish(desc)?;
+            let n = sky::write(&cfg, &a.out)?;
             if a.format == "fits" {
                 let opts = persist::fits::export::ExportOptions {
                     gains: a.fits_gain.iter().copied().collect(),

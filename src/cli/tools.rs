@@ -110,7 +110,8 @@ pub struct DemoArgs {
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
     /// Model file (JSON); without it the demo fits the model on a laboratory sequence of
-    /// the same simulated detector, calibrated to 95 % coverage (`persist::demo`, "The
+    /// the same simulated detector, calibrated to 95 % coverage, and measures its
+    /// transient rule in flight on the sky's first 200 exposures (`persist::demo`, "The
     /// paper's workflow"). `--model default` takes the built-in default (the paper's
     /// constants).
     #[arg(long)]

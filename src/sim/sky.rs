@@ -295,6 +295,14 @@ fn temp_at(det: u8, t: f64) -> f64 {
     80.0 + 0.02 * (2.0 * std::f64::consts::PI * t / 5640.0).sin() + 0.01 * f64::from(det - 1)
 }
 
+/// [`run`] written as products with their truth into `dir` ([`super::output::Writer`]):
+/// the number of products written.
+pub fn write(cfg: &SkyConfig, dir: &std::path::Path) -> crate::Result<usize> {
+    let mut w = super::output::Writer::new(dir)?;
+    let description = run(cfg, |e| w.write(&e))?;
+    w.finish(description)
+}
+
 /// Run the survey, detector by detector, handing each exposure to `sink`.
 pub fn run(
     cfg: &SkyConfig,

@@ -334,6 +334,55 @@ pub fn run(report: &Path, model: &ModelParams, out: &Path) -> Result<String> {
     ))
 }
 
+/// A transient rule measured in flight ([`measure_in_flight`]): the model with it (or as
+/// given, when the report gave no rule, with the reason) and what `verify` measured.
+pub struct InFlight {
+    pub params: ModelParams,
+    /// Why there is no rule (`fit --from-verify` refused); `None`: `params` holds it.
+    pub refused: Option<String>,
+    pub report: TransientReport,
+}
+
+/// The transient rule measured the way operations measure it: the stage flags the
+/// products of `sim` with `params` (its outputs and checkpoints in `dir`), `persist
+/// verify` measures them (`dir/report`), and `persist fit --from-verify` ([`run`])
+/// writes `dir/model.json`, read back. A report that gives no rule (too few hits
+/// measured) is not an error: the model keeps its transient amplitude, as in
+/// operations, and [`InFlight::refused`] says why.
+pub fn measure_in_flight(sim: &Path, params: &ModelParams, dir: &Path) -> Result<InFlight> {
+    let run_cfg = crate::stage::RunConfig {
+        input: sim.to_path_buf(),
+        output: dir.join("output"),
+        checkpoints: dir.join("checkpoints"),
+        model: crate::model::Model::new(params.clone())?,
+        from_checkpoint: None,
+        allow_model_change: false,
+        checkpoint_every: u64::MAX,
+        checkpoint_idle: std::time::Duration::ZERO,
+        retention: Default::default(),
+        processed_utc: crate::stage::processing_time(),
+    };
+    let ran = crate::stage::run(&run_cfg, &|_| {});
+    if let Some(e) = ran.errors.into_iter().next() {
+        return Err(e);
+    }
+    let report = super::run(sim, &run_cfg.output, &super::VerifyParams::default())?;
+    super::write_report(&report, &dir.join("report"))?;
+    let model = dir.join("model.json");
+    let (params, refused) = match run(&dir.join("report").join("report.json"), params, &model) {
+        Ok(_) => (crate::model_file::load(&model)?, None),
+        Err(e) if e.context.field.as_deref() == Some("/transients") => {
+            (params.clone(), Some(e.message))
+        }
+        Err(e) => return Err(e),
+    };
+    Ok(InFlight {
+        params,
+        refused,
+        report: report.transients,
+    })
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
