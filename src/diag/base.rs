@@ -418,6 +418,34 @@ pub fn predict_scaled(seq: &Sequence, s: &Samples, pred: &[f64], response: &Resp
     terms.finish(s, pred, unscaled, scale, &normal)
 }
 
+/// The pixel reference fitted to each illumination event's samples alone
+/// ([`predict_scaled`] per event: its own correction and its own pixel terms), the
+/// events' cells pooled: their normalised residual RMS, and the cells. What it leaves
+/// is what no addition acting on how a pixel's illuminations differ (duration, history,
+/// temperature, in any form) can take away from the pixel reference: a floor for the
+/// offer ([`super::offer`]). None with fewer than two events or no cell.
+pub fn per_event_rms(
+    seq: &Sequence,
+    s: &Samples,
+    pred: &[f64],
+    response: &Response,
+) -> Option<(f64, usize)> {
+    let events = s.events();
+    if events.len() < 2 {
+        return None;
+    }
+    let cells: Vec<_> = events
+        .par_iter()
+        .map(|&e| {
+            let rows = s.row_indices(|x| x == e);
+            let es = s.rows(&rows);
+            predict_scaled(seq, &es, &s.rows_of(pred, &rows), response).cells(&es)
+        })
+        .collect::<Vec<_>>()
+        .concat();
+    (!cells.is_empty()).then(|| (super::eval::rms(&cells), cells.len()))
+}
+
 /// [`predict_scaled`] of `pred` with the shared correction held at `held`'s (a fit of
 /// the same samples `s`): only each pixel's terms are refitted (as many passes). A
 /// prediction compared with another on this footing differs only by what each pixel's

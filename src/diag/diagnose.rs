@@ -263,7 +263,11 @@ pub fn diagnose(
     let flexible = super::base::predict(seq, &samples, &base.current);
     let response = crate::model::response::Response::new(&params.amplitude_knots);
     let scaled = super::base::predict_scaled(seq, &samples, &base.current, &response);
-    let pixel_reference = PixelReference::of(&scaled.cells(&samples));
+    let pixel_reference = PixelReference {
+        per_event_rms: super::base::per_event_rms(seq, &samples, &base.current, &response)
+            .map(|r| r.0),
+        ..PixelReference::of(&scaled.cells(&samples))
+    };
     let bases = contrast::Bases {
         flexible: &flexible,
         pixel_reference: &scaled.prediction,

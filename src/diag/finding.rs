@@ -156,6 +156,9 @@ pub struct PixelReference {
     pub cells: usize,
     /// Its three largest cell residuals.
     pub largest_residuals: Vec<eval::GroupStat>,
+    /// Its RMS fitted to each illumination event alone
+    /// ([`super::base::per_event_rms`]); None with one event.
+    pub per_event_rms: Option<f64>,
 }
 
 impl PixelReference {
@@ -167,6 +170,7 @@ impl PixelReference {
             residual_rms_normalised: eval::rms(cells),
             cells: cells.len(),
             largest_residuals: worst,
+            per_event_rms: None,
         }
     }
 }
