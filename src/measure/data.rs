@@ -278,7 +278,8 @@ impl Sequence {
             // background pixels that give no spread (one, or all equal) measure neither:
             // the exposure is measured as if it had none
             let s = 1.4826 * median(&dev);
-            if !(s.is_finite() && s > 0.0) && !pts.is_empty() {
+            let measured = s.is_finite() && s > 0.0;
+            if !measured && !pts.is_empty() {
                 no_background.push(i);
             }
             noise.push(s);
