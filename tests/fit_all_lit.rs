@@ -252,16 +252,7 @@ fn lit_sequences_measure_noise_and_dark_level_from_the_darks() {
 fn a_background_without_spread_is_measured_from_the_darks() {
     let tmp = tempfile::tempdir().unwrap();
     let dir = tmp.path().join("family1");
-    let st = std::process::Command::new(env!("CARGO_BIN_EXE_persist"))
-        .args(["simulate", "family", "--size", "64", "--seed", "1", "--out"])
-        .arg(&dir)
-        .output()
-        .unwrap();
-    assert!(
-        st.status.success(),
-        "{}",
-        String::from_utf8_lossy(&st.stderr)
-    );
+    common::simulate(&dir, &["family", "--size", "64", "--seed", "1"]);
     let seq = Sequence::load(&dir).unwrap();
     let mut exposures = seq.exposures.clone();
     for &a in &seq.illuminations {

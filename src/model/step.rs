@@ -694,7 +694,7 @@ impl Kernel<'_> {
                 } else {
                     self.a_max
                 };
-                (a, !(transient_only && self.transient_measured))
+                (a, !self.transient_ruled(current, flags))
             }
             PixelFluence::NonFunctional => (0.0, false),
             PixelFluence::Known(fluence_e) => {

@@ -342,12 +342,13 @@ pub fn rates_13_terms() -> String {
         .join(",")
 }
 
-/// `persist simulate lab --size SIZE --seed 1 --out DIR EXTRA...`, which must succeed.
-pub fn simulate_lab(dir: &Path, size: &str, extra: &[&str]) {
+/// `persist simulate ARGS... --out DIR`, which must succeed.
+pub fn simulate(dir: &Path, args: &[&str]) {
     let st = persist_cmd()
-        .args(["simulate", "lab", "--size", size, "--seed", "1", "--out"])
+        .arg("simulate")
+        .args(args)
+        .arg("--out")
         .arg(dir)
-        .args(extra)
         .output()
         .unwrap();
     assert!(
@@ -355,6 +356,15 @@ pub fn simulate_lab(dir: &Path, size: &str, extra: &[&str]) {
         "{}",
         String::from_utf8_lossy(&st.stderr)
     );
+}
+
+/// `persist simulate lab --size SIZE --seed 1 EXTRA... --out DIR`, which must succeed.
+pub fn simulate_lab(dir: &Path, size: &str, extra: &[&str]) {
+    let args: Vec<&str> = ["lab", "--size", size, "--seed", "1"]
+        .into_iter()
+        .chain(extra.iter().copied())
+        .collect();
+    simulate(dir, &args);
 }
 
 /// A_bin interpolated (linearly in fluence) between the fitted bins around `f`.
