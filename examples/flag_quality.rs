@@ -385,8 +385,8 @@ fn main() -> persist::Result<()> {
          0 to {} of the same run, flagged by the stage with the model, `persist verify` on \
          them and `persist fit --from-verify` on its report (the 95th percentile of \
          measured / predicted at the first exposure after each hit, the upper end of its \
-         95 % interval, times the model's transient amplitude; the exposure after a hit \
-         stays flagged whatever the rule):\n",
+         95 % interval, times the model's transient amplitude; with the rule, the exposure \
+         after a hit follows the prediction):\n",
         FROM_EXPOSURE - 1
     );
     for (name, rule) in [

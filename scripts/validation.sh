@@ -332,15 +332,19 @@ to zero). Either alone does not help: `refill` alone misses as many, the thresho
 without `refill` doubles the over-flagging at 0.01 e-/s; together they take most of
 the misses at 0.01 e-/s away and flag less at both thresholds, on both seeds: hence
 `fit`'s default. Without a rule measured in flight, most of the over-flagging at 0.1
-e-/s is the first 1000 s after a `TRANSIENT`. With it, the hits are no longer where the
-over-flagging is: the simulator's hits leave no persistence of their own, and the rule
+e-/s is the first 1000 s after a `TRANSIENT`. With it, little of the over-flagging
+follows hits: the simulator's hits leave no persistence of their own, and the rule
 (the 95th percentile of what the first exposure after each hit measures, sources
 screened by their extent and the measurement noise taken out in quadrature,
 `persist::verify::transient`) comes out near zero; the exposure after a hit then follows
 the prediction. What over-flagging remains at 0.1 e-/s follows bright sources within
 1000 s, predicted 1-2 times the truth (the margin); at 0.01 e-/s, mostly 2-10 times the
 truth hours after unsaturated sources (the decay's late tail). The misses at 0.1 e-/s
-are pixels early release acted on, predicted 0.5-1 times the truth.
+are pixels early release acted on, predicted 0.5-1 times the truth; at 4 noise sigmas
+of evidence (the default) none of them has a true current above 0.2 e-/s (the counts
+in brackets). With the per-pixel map at margin 1 a few pixel-exposures above 0.2 e-/s
+are missed without any release: on seed 1, three, where the map predicts a quarter of
+the truth.
 
 ## The demo's detector (seed 1)
 
@@ -355,7 +359,7 @@ TEXT
 ## Early release: evidence against the count of three (seed 1)
 
 The models above release a flagged pixel when its measurements, less the background,
-add up to 3 noise sigmas of evidence that its persistence is below both the threshold
+add up to 4 noise sigmas of evidence that its persistence is below both the threshold
 and its prediction (`early_release.rule: evidence`, docs/model.md "Early release").
 Here every model releases by the paper-style count instead: after 3 exposures in a
 row measured below the threshold (`rule: consecutive`). On the sky's noise (about

@@ -152,7 +152,8 @@ impl TruthTally {
 
 /// Markdown table of several flaggers' tallies, one row per flagger and threshold:
 /// flagged, over-flagged (per functional pixel-exposure), missed per band of true
-/// current (in units of the threshold: [`BANDS`]) and missed in all.
+/// current (in units of the threshold: [`BANDS`]) and missed in all. The bands from 2x
+/// up carry the count of missed pixel-exposures in brackets: there the promise is none.
 pub fn table(rows: &[(&str, &TruthTally)]) -> String {
     let named = rows.iter().any(|r| !r.0.is_empty());
     let mut s = String::new();
@@ -172,6 +173,8 @@ pub fn table(rows: &[(&str, &TruthTally)]) -> String {
             format!("{:.2} %", 100.0 * v)
         }
     };
+    let counted =
+        |q: &FlagTally, b: usize| format!("{} ({})", pct(q.missed_fraction(b)), q.missed[b]);
     for (name, t) in rows {
         for q in [&t.high, &t.low] {
             if named {
@@ -184,8 +187,8 @@ pub fn table(rows: &[(&str, &TruthTally)]) -> String {
                 pct(q.over_flag_fraction()),
                 pct(q.missed_fraction(0)),
                 pct(q.missed_fraction(1)),
-                pct(q.missed_fraction(2)),
-                pct(q.missed_fraction(3)),
+                counted(q, 2),
+                counted(q, 3),
                 pct(q.missed_fraction_all()),
             );
         }

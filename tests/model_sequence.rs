@@ -551,13 +551,13 @@ fn early_release_subtracts_the_sky_level() {
     }
 }
 
-/// The evidence rule (the default: 3 noise sigma) on a 4 x 8 sky whose 28 quiet pixels
+/// The evidence rule (the default: 4 noise sigma) on a 4 x 8 sky whose 28 quiet pixels
 /// measure 0.75, 1.0 or 1.25 e-/s (13, 2 and 13 of them): background 1.0 e-/s (their
 /// median), noise 1.4826 x 0.25 e-/s (their median absolute deviation, 0.25). Four
 /// pixels lit at 1e4 e-/s stay flagged high for the 30 exposures that follow (checked),
 /// measured, less the background:
-/// - 0.1 e-/s - 1 sigma each time: 1 sigma of evidence a time, released at the 3rd;
-/// - 0.1 e-/s - sigma / 2: released at the 6th (`consecutive` would at the 3rd);
+/// - 0.1 e-/s - 1 sigma each time: 1 sigma of evidence a time, released at the 4th;
+/// - 0.1 e-/s - sigma / 2: released at the 8th (`consecutive` would at the 3rd);
 /// - the threshold, to f32 rounding: never released;
 /// - 1 sigma below and above the threshold in turn: never released (the count rule
 ///   needs a run, so it would not either; the evidence rule, because it cancels).
@@ -581,7 +581,7 @@ fn evidence_releases_pixels_measured_below_and_keeps_those_at_the_threshold() {
         })
     };
     for (rule, expected) in [
-        (ReleaseRule::Evidence, [Some(3u64), Some(6), None, None]),
+        (ReleaseRule::Evidence, [Some(4u64), Some(8), None, None]),
         (ReleaseRule::Consecutive, [Some(3u64), Some(3), None, None]),
     ] {
         let mut params = ModelParams::default();
