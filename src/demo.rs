@@ -42,8 +42,6 @@ pub struct DemoConfig {
     /// The model; None: fitted on the laboratory sequence (module docs, "The paper's
     /// workflow").
     pub model: Option<ModelParams>,
-    /// The coverage the fitted model is calibrated to.
-    pub coverage: crate::calib::coverage::CoverageConfig,
     /// The sky survey's parameters (star counts, cosmic rays, ...); `size`, `detectors`,
     /// `exposures` and `seed` are taken from the fields above.
     pub sky: sky::SkyConfig,
@@ -57,7 +55,6 @@ impl Default for DemoConfig {
             exposures: 1143,
             seed: 1,
             model: None,
-            coverage: crate::calib::coverage::CoverageConfig::default(),
             sky: sky::SkyConfig::default(),
         }
     }
@@ -162,19 +159,27 @@ fn model_of(cfg: &DemoConfig, progress: &dyn Fn(&str)) -> Result<(ModelParams, S
          the flags' coverage, early release keeping the threshold)",
     );
     let preset = crate::calib::Preset::Paper;
-    let (params, cal, _) = crate::calib::command::fit_params(
+    let fit = crate::calib::command::fit_model(
         &seq,
         &preset.config(),
         &preset.with(&[]),
         Default::default(),
+        preset.release_keep(),
+        false,
     )?;
-    let (mut params, cov) = crate::calib::coverage::apply(&params, &seq, &cfg.coverage)?;
-    params.early_release.keep = preset.release_keep();
+    let covered = match (&fit.coverage, &fit.not_covered) {
+        (Some(c), _) => c.describe(),
+        (None, why) => format!(
+            "  flags not calibrated to a coverage: {}\n",
+            why.as_deref().unwrap_or("none asked")
+        ),
+    };
     let text = format!(
         "fitted on the laboratory sequence: {} knots, then\n{}",
-        cal.knots.len(),
-        cov.describe().trim_end()
+        fit.calibration.knots.len(),
+        covered.trim_end()
     );
+    let params = fit.params;
     let path = cfg.out.join("lab_model.json");
     crate::textfile::write_text(&path, &(params.to_json_pretty() + "\n"))?;
     Ok((params, text))

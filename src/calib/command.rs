@@ -124,6 +124,45 @@ pub fn fit_params(
     Ok((params, cal, ef))
 }
 
+/// The model `persist fit` makes of a laboratory sequence, and how it was made.
+#[derive(Debug, Clone)]
+pub struct FittedModel {
+    pub params: ModelParams,
+    pub calibration: CalibReport,
+    /// The effects' fit (`None` when nothing was fitted beyond the calibration).
+    pub effects: Option<effects::EffectFit>,
+    /// The flags' coverage calibration, when it was made.
+    pub coverage: Option<coverage::CoverageReport>,
+    /// Why the flags were not calibrated to the coverage (the preset's default coverage
+    /// on data that cannot calibrate it).
+    pub not_covered: Option<String>,
+}
+
+/// `persist fit`'s model, in its order: the calibration and the `with` effects
+/// ([`fit_params`]), the flags' margin last, after every effect (coverage module docs;
+/// a coverage `stated` by the user that the data cannot calibrate is an error), then
+/// what early release keeps (`keep`). The flag counts of
+/// docs/validation/flag_quality.md and `persist demo` are of models made this way.
+pub fn fit_model(
+    seq: &Sequence,
+    cfg: &CalibConfig,
+    with: &[String],
+    free: effects::Free,
+    keep: crate::model::params::ReleaseKeep,
+    coverage_stated: bool,
+) -> Result<FittedModel> {
+    let (params, calibration, effects) = fit_params(seq, cfg, with, free)?;
+    let (mut params, coverage, not_covered) = to_coverage(params, seq, cfg, coverage_stated)?;
+    params.early_release.keep = keep;
+    Ok(FittedModel {
+        params,
+        calibration,
+        effects,
+        coverage,
+        not_covered,
+    })
+}
+
 /// `persist fit`: calibrate, fit the preset's and the `--with` effects (and what `free`
 /// frees: the `C_n` or the knots' level, [`effects`] module docs), calibrate the flags to
 /// the coverage, set what early release keeps (`keep`), write the model and the report.
@@ -137,7 +176,13 @@ pub fn run(
 ) -> Result<String> {
     let seq = Sequence::load_with(input, cfg.background)?;
     let (with, readout) = preset.with_for(&seq, with);
-    let (params, cal, ef) = fit_params(&seq, cfg, &with, free).map_err(|e| e.path(input))?;
+    let FittedModel {
+        params,
+        calibration: cal,
+        effects: ef,
+        coverage: covered,
+        not_covered,
+    } = fit_model(&seq, cfg, &with, free, keep, coverage_stated).map_err(|e| e.path(input))?;
     if ef
         .as_ref()
         .is_some_and(|f| margin_taken_in(cfg, free, f, preset.effects()))
@@ -153,12 +198,6 @@ pub fn run(
             cfg.amplification
         );
     }
-    // the margin last, after every effect (coverage module docs), then what early
-    // release keeps (`keep`, by default the preset's: the flag counts of
-    // docs/validation/flag_quality.md are of models made in this order)
-    let (mut params, covered, not_covered) =
-        to_coverage(params, &seq, cfg, coverage_stated).map_err(|e| e.path(input))?;
-    params.early_release.keep = keep;
     let samples = cfg.samples(&seq);
     let pr = crate::measure::eval::predict(&params, &seq, &samples, false)?;
     let cells = crate::measure::spread::model_cell_z(&params, &samples, &pr.current);

@@ -133,7 +133,6 @@ pub(super) fn demo(args: &DemoArgs) -> persist::Result<ExitCode> {
             Some(p) if p == Path::new("default") => Some(ModelParams::default()),
             Some(p) => Some(load_model(Some(p))?.params().clone()),
         },
-        coverage: Default::default(),
         sky,
     };
     let r = persist::demo::run(&cfg, &|m| eprintln!("persist demo: {m}"))?;
