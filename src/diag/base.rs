@@ -155,8 +155,9 @@ impl Clock {
             for effect in effects {
                 effect.rates(&ctx, &mut c, &mut r);
             }
+            // the ratio to the term's own rate (1 exactly where a hook changes nothing)
             for ((q, r), tau) in q.iter_mut().zip(r).zip(TAU_S) {
-                let v = r * tau;
+                let v = r / (1.0 / tau);
                 if v.is_finite() && v > 0.0 {
                     *q = v;
                 }
