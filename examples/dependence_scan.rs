@@ -44,9 +44,11 @@ fn main() {
         .map(|d| (d.name, d.covariate))
         .collect();
     let contrasts = contrast::testability(&seq, &s, &library);
-    let flexible = persist::diag::base::predict(&seq, &s, &base.current);
+    let clock = persist::diag::base::Clock::of_model(&model, &seq);
+    let flexible = persist::diag::base::predict(&seq, &clock, &s, &base.current);
     let scaled = persist::diag::base::predict_scaled(
         &seq,
+        &clock,
         &s,
         &base.current,
         &persist::model::response::Response::new(&model.amplitude_knots),

@@ -24,8 +24,9 @@ use std::path::Path;
 fn rms(m: &ModelParams, seq: &Sequence, s: &Samples) -> (f64, Option<f64>) {
     let base = eval::predict(m, seq, s, false).expect("predict");
     let response = Response::new(&m.amplitude_knots);
-    let all = persist::diag::base::predict_scaled(seq, s, &base.current, &response);
-    let floor = persist::diag::base::per_event_rms(seq, s, &base.current, &response);
+    let clock = persist::diag::base::Clock::of_model(m, seq);
+    let all = persist::diag::base::predict_scaled(seq, &clock, s, &base.current, &response);
+    let floor = persist::diag::base::per_event_rms(seq, &clock, s, &base.current, &response);
     (eval::rms(&all.cells(s)), floor.map(|f| f.0))
 }
 

@@ -34,6 +34,7 @@ fn main() {
     let base = eval::predict(&model, &seq, &s, false).expect("predict");
     let r = persist::diag::base::predict_scaled(
         &seq,
+        &persist::diag::base::Clock::of_model(&model, &seq),
         &s,
         &base.current,
         &persist::model::response::Response::new(&model.amplitude_knots),

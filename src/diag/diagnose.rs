@@ -260,11 +260,13 @@ pub fn diagnose(
     let (contrasts, tests) = testable_tests(params, seq, &samples, cfg.decide);
     // what the residuals of the flexible base and of the pixel reference depend on, by
     // permutation
-    let flexible = super::base::predict(seq, &samples, &base.current);
+    // the bases' decay on the model's clock
+    let clock = super::base::Clock::of_model(params, seq);
+    let flexible = super::base::predict(seq, &clock, &samples, &base.current);
     let response = crate::model::response::Response::new(&params.amplitude_knots);
-    let scaled = super::base::predict_scaled(seq, &samples, &base.current, &response);
+    let scaled = super::base::predict_scaled(seq, &clock, &samples, &base.current, &response);
     let pixel_reference = PixelReference {
-        per_event_rms: super::base::per_event_rms(seq, &samples, &base.current, &response)
+        per_event_rms: super::base::per_event_rms(seq, &clock, &samples, &base.current, &response)
             .map(|r| r.0),
         ..PixelReference::of(&scaled.cells(&samples))
     };

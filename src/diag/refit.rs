@@ -7,6 +7,7 @@
 //! same samples ([`Refit::Full`]) or with the model as it is ([`Refit::Candidate`]),
 //! never with a fit on other samples.
 
+use super::base::Clock;
 use super::config::Refit;
 use super::data::Sequence;
 use super::eval::{self, Samples};
@@ -407,13 +408,13 @@ pub fn held_out(
     // the two folds in parallel, combined in fold order
     let fold = |h: usize| -> Result<(Option<HeldOutSums>, PixelFold)> {
         let (fs, ts, ts_base) = split(h);
-        let (fitted, before, before_current) = if own.is_empty() {
+        let (fitted, before, before_current, before_clock) = if own.is_empty() {
             let names: Vec<String> = names.iter().map(|n| n.to_string()).collect();
             let (fitted, _) =
                 crate::calib::effects::fit(start.unwrap_or(params), &names, seq, &fs)?;
             // `params`' own prediction of the test samples: already computed
             let before = spread::model_cell_z(params, &ts, &ts_base);
-            (fitted, before, ts_base)
+            (fitted, before, ts_base, Clock::of_model(params, seq))
         } else {
             // the model's own effects refitted on the fit half's samples, alone and
             // with the candidate (both fits start from values fitted on all samples)
@@ -421,16 +422,20 @@ pub fn held_out(
             let (fitted, _) = fit_candidate(&base, &own, start, names, seq, &fs)?;
             let current = eval::predict(&base, seq, &ts, false)?.current;
             let before = spread::model_cell_z(&base, &ts, &current);
-            (fitted, before, current)
+            (fitted, before, current, Clock::of_model(&base, seq))
         };
         let after_current = eval::predict(&fitted, seq, &ts, false)?.current;
         let after = spread::model_cell_z(&fitted, &ts, &after_current);
-        // the pixel reference fitted on the test half alone, on either prediction
-        let scaled_before = super::base::predict_scaled(seq, &ts, &before_current, &response);
+        // the pixel reference fitted on the test half alone, on either prediction, each
+        // on its model's clock
+        let scaled_before =
+            super::base::predict_scaled(seq, &before_clock, &ts, &before_current, &response);
         let pixel_before = scaled_before.cells(&ts);
+        let after_clock = Clock::of_model(&fitted, seq);
         let real = HeldOutSums::of(
             &pixel_before,
-            &super::base::predict_scaled(seq, &ts, &after_current, &response).cells(&ts),
+            &super::base::predict_scaled(seq, &after_clock, &ts, &after_current, &response)
+                .cells(&ts),
         );
         // the permutations, only where the fold gains (a fold that does not gain fails
         // the gate whatever they give); the candidate and its permutations compared on
