@@ -159,21 +159,20 @@ fn model_of(cfg: &DemoConfig, progress: &dyn Fn(&str)) -> Result<(ModelParams, S
          the flags' coverage, early release keeping the threshold)",
     );
     let preset = crate::calib::Preset::Paper;
+    let calib = preset.config();
     let fit = crate::calib::command::fit_model(
         &seq,
-        &preset.config(),
+        &calib,
         &preset.with(&[]),
         Default::default(),
         preset.release_keep(),
         false,
     )?;
-    let covered = match (&fit.coverage, &fit.not_covered) {
-        (Some(c), _) => c.describe(),
-        (None, why) => format!(
-            "  flags not calibrated to a coverage: {}\n",
-            why.as_deref().unwrap_or("none asked")
-        ),
-    };
+    let covered = crate::calib::command::describe_coverage(
+        fit.coverage.as_ref(),
+        fit.not_covered.as_deref(),
+        &calib,
+    );
     let text = format!(
         "fitted on the laboratory sequence: {} knots, then\n{}",
         fit.calibration.knots.len(),

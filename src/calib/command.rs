@@ -163,6 +163,24 @@ pub fn fit_model(
     })
 }
 
+/// The flags' coverage as `persist fit` and `persist demo` print it: the calibration
+/// made, or why none was (`not_covered`; "not asked" without a reason) and the
+/// amplification the knots keep.
+pub fn describe_coverage(
+    coverage: Option<&coverage::CoverageReport>,
+    not_covered: Option<&str>,
+    cfg: &CalibConfig,
+) -> String {
+    match coverage {
+        Some(c) => c.describe(),
+        None => format!(
+            "  flags not calibrated to a coverage ({}): the knots keep amplification {}\n",
+            not_covered.unwrap_or("not asked"),
+            cfg.amplification
+        ),
+    }
+}
+
 /// `persist fit`: calibrate, fit the preset's and the `--with` effects (and what `free`
 /// frees: the `C_n` or the knots' level, [`effects`] module docs), calibrate the flags to
 /// the coverage, set what early release keeps (`keep`), write the model and the report.
@@ -198,6 +216,7 @@ pub fn run(
             cfg.amplification
         );
     }
+    let covered_text = describe_coverage(covered.as_ref(), not_covered.as_deref(), cfg);
     let samples = cfg.samples(&seq);
     let pr = crate::measure::eval::predict(&params, &seq, &samples, false)?;
     let cells = crate::measure::spread::model_cell_z(&params, &samples, &pr.current);
@@ -260,15 +279,7 @@ pub fn run(
     if !rep.lit.is_empty() {
         s += &format!("  {}\n", rep.lit.describe());
     }
-    if let Some(c) = &rep.coverage {
-        s += &c.describe();
-    }
-    if let Some(why) = &not_covered {
-        s += &format!(
-            "  flags not calibrated to a coverage ({why}): the knots keep amplification {}\n",
-            cfg.amplification
-        );
-    }
+    s += &covered_text;
     s += &format!("model {} , report {}", out.display(), report_path.display());
     Ok(s)
 }

@@ -39,6 +39,11 @@ pub struct Candidate {
     /// carry no field shared by neighbouring pixels (module docs, "Spatial coherence").
     #[serde(skip_serializing_if = "std::ops::Not::not")]
     pub refused_no_field: bool,
+    /// An effect that passed the gates but is not declared: the data-driven term along
+    /// the named kind predicts held-out data better, the effect taking less than
+    /// [`super::offer::LIBRARY_SHARE`] of the term's gain ([`super::offer`]).
+    #[serde(skip_serializing_if = "std::ops::Not::not")]
+    pub outpredicted_by_term: bool,
     pub covariate: String,
     pub command: String,
     /// When `command` would fit the candidate against knots held at the paper's
@@ -130,8 +135,8 @@ pub struct Diagnosis {
     #[serde(skip_serializing_if = "Option::is_none")]
     pub data_term: Option<super::data_term::DataTerm>,
     /// What the verdict offers when it names a kind and nothing is significant: the
-    /// refitted candidate or data-driven term that predicts held-out data best against
-    /// the pixel reference ([`super::offer`]).
+    /// data-driven term when it predicts held-out data against the pixel reference
+    /// ([`super::offer`]).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub offer: Option<Offer>,
     /// Where each of [`Self::largest_residuals`] lies besides its cell.

@@ -14,7 +14,6 @@ use super::command::margin_note;
 use super::config::{Decide, Refit};
 use super::contrast;
 use super::finding::{Candidate, Diagnosis, Joint};
-use super::refit::HELD_OUT_MIN_GAIN;
 use super::refit::PERMUTATIONS;
 use super::separate::{Separation, Told};
 use crate::model::params::ModelParams;
@@ -31,12 +30,13 @@ pub fn verdict(d: &Diagnosis, params: &ModelParams, held: bool) -> String {
         }
         Some(c) => {
             let class = contrast::class_of(&c.effect, &c.covariate);
-            candidate_sentence(c, params, held) + &separation_sentence(d.separation.as_ref(), class)
+            candidate_sentence(c, params, held, d.pixel_reference.per_event_rms)
+                + &separation_sentence(d.separation.as_ref(), class)
         }
         None if winner.is_some() && d.decide == Decide::Contrast => {
             let w = winner.expect("checked");
             confounded_prefix(d.separation.as_ref(), &w.class)
-                + &dependence_sentence(w)
+                + &dependence_sentence(w, &outpredicted(d))
                 + &separation_sentence(d.separation.as_ref(), &w.class)
                 + &match &d.offer {
                     Some(o) => offer_sentence(o, d, params, held),
@@ -84,17 +84,31 @@ fn joint_sentence(j: &Joint, params: &ModelParams) -> String {
     )
 }
 
-/// The verdict on a significant candidate.
-fn candidate_sentence(c: &Candidate, params: &ModelParams, held: bool) -> String {
+/// The verdict on a significant candidate; `per_event`: the pixel reference fitted to
+/// each illumination event alone ([`floor_clause`]).
+fn candidate_sentence(
+    c: &Candidate,
+    params: &ModelParams,
+    held: bool,
+    per_event: Option<f64>,
+) -> String {
+    let (no_split, evidence) = match &c.held_out {
+        None => (
+            "; no held-out check: too few sampled pixels to split into halves",
+            String::new(),
+        ),
+        Some(h) => (
+            "",
+            h.pixel_reference.as_ref().map_or(String::new(), |p| {
+                format!(", which {}", held_out_clause(p, per_event))
+            }),
+        ),
+    };
     format!(
-        "missing effect: {} (the evidence is in the residual against {}{}); add it with: {}",
+        "missing effect: {} (the evidence is in the residual against {}{no_split}){evidence}; \
+         add it with: {}",
         c.effect,
         c.covariate,
-        if c.held_out.is_none() {
-            "; no held-out check: too few sampled pixels to split into halves"
-        } else {
-            ""
-        },
         add_clause(
             &c.command,
             c.measure_command.as_deref(),
@@ -104,23 +118,46 @@ fn candidate_sentence(c: &Candidate, params: &ModelParams, held: bool) -> String
     )
 }
 
-/// The verdict when the residual depends on `w`'s covariate and no library effect on
-/// it passes the gates against the measurements' description.
-fn dependence_sentence(w: &contrast::Dependence) -> String {
+/// The library effects that passed the gate but yield to the data-driven term
+/// ([`super::offer::settle`]), joined.
+fn outpredicted(d: &Diagnosis) -> String {
+    d.ranking
+        .iter()
+        .filter(|c| c.outpredicted_by_term)
+        .map(|c| c.effect.as_str())
+        .collect::<Vec<_>>()
+        .join(", ")
+}
+
+/// The verdict when the residual depends on `w`'s covariate and no library effect is
+/// declared: none predicts held-out data better than the pixel reference beyond the
+/// permutations of its change, or those that do (`outpredicted`) take less than half
+/// of the data-driven term's gain.
+fn dependence_sentence(w: &contrast::Dependence, outpredicted: &str) -> String {
+    let why = if outpredicted.is_empty() {
+        format!(
+            "no library effect acting on it ({}) predicts held-out data better than the \
+             pixel reference beyond the {PERMUTATIONS} permutations of its change",
+            w.effects.join(", ")
+        )
+    } else {
+        format!(
+            "{outpredicted} predicts held-out data beyond the {PERMUTATIONS} permutations \
+             of its change, but with less than half of the gain of the data-driven term \
+             along it"
+        )
+    };
     format!(
         "the residual of {} depends on {} (it explains {:.1} % of the residual's sum \
          of squares inside the fluence x time cells, {:.1} % at most over {} \
-         permutations; z {:.1}), but no library effect acting on it ({}) passes the \
-         gates against the measurements' description (dBIC and a held-out gain of \
-         {HELD_OUT_MIN_GAIN}): the missing physics may be of this kind in another form. \
-         The residual by {}: {}",
+         permutations; z {:.1}), but {why}: the missing physics may be of this kind in \
+         another form. The residual by {}: {}",
         contrast::base_name(&w.class),
         w.class,
         100.0 * w.r2,
         100.0 * w.r2_null_max,
         w.permutations,
         w.z,
-        w.effects.join(", "),
         w.class,
         w.by_bin
             .iter()
@@ -300,18 +337,25 @@ fn offer_sentence(
             c.measured_with.is_some(),
         )
     };
-    let p = &o.pixel_reference;
     format!(
-        ". Offered: {what}, which predicts held-out data better than the pixel reference \
-         alone (fitted on one half, the pixel reference's RMS on the other {:.2} -> {:.2}, \
-         gain {:.2}, the largest of {PERMUTATIONS} permutations of its change {:.2}{}); add \
-         it with: {}",
+        ". Offered: {what}, which {}; add it with: {}",
+        held_out_clause(&o.pixel_reference, d.pixel_reference.per_event_rms),
+        add_clause(command, measure, held && measured, params)
+    )
+}
+
+/// What a candidate held out does to the pixel reference ([`super::refit::PixelHeldOut`]),
+/// with the floor's share ([`floor_clause`]).
+fn held_out_clause(p: &super::refit::PixelHeldOut, per_event: Option<f64>) -> String {
+    format!(
+        "predicts held-out data better than the pixel reference alone (fitted on one \
+         half, the pixel reference's RMS on the other {:.2} -> {:.2}, gain {:.2}, the \
+         largest of {PERMUTATIONS} permutations of its change {:.2}{})",
         p.rms_before,
         p.rms_after,
         p.gain,
         p.permuted_max(),
-        floor_clause(p, d.pixel_reference.per_event_rms),
-        add_clause(command, measure, held && measured, params)
+        floor_clause(p, per_event),
     )
 }
 
@@ -412,7 +456,7 @@ pub fn render(d: &Diagnosis) -> String {
          residual RMS {:.2} ({} cells{}{})\npixel reference (the flexible base with each pixel's own amplitude, \
          decay shape and response): residual RMS {:.2} over {} cells{}\nthreshold {:.2} (95 % of the largest score over {} bootstrap replicas \
          from the fitted model; median {:.2}; the score ranks, it does not decide)\n\
-         {:<16} {:>10} {:>6} {:>9} {:>15} {:>9} {:>15}  covariate\n",
+         {:<16} {:>10} {:>6} {:>9} {:>15} {:>9} {:>15} {:>15}  covariate\n",
         d.statistic_reason,
         d.pixels_sampled,
         d.cells,
@@ -441,11 +485,12 @@ pub fn render(d: &Diagnosis) -> String {
         "dBIC",
         "RMS",
         "held-out",
-        "(moved cells)"
+        "(moved cells)",
+        "pixel ref/perm"
     );
     for c in &d.ranking {
         s += &format!(
-            "{:<16} {:>10.2} {:>6} {:>9} {:>15} {:>9} {:>15}  {}{}\n",
+            "{:<16} {:>10.2} {:>6} {:>9} {:>15} {:>9} {:>15} {:>15}  {}{}\n",
             c.effect,
             c.score,
             c.passes_score,
@@ -464,9 +509,23 @@ pub fn render(d: &Diagnosis) -> String {
                     format!("{:+.0}% of {}", -100.0 * h.gain_moved_cells, h.moved_cells)
                 }
             }),
+            c.held_out
+                .as_ref()
+                .and_then(|h| h.pixel_reference.as_ref())
+                .map_or("-".into(), |p| if p.permuted_gains.is_empty() {
+                    format!("{:+.0}%", -100.0 * p.gain)
+                } else {
+                    format!(
+                        "{:+.0}%/{:+.0}%",
+                        -100.0 * p.gain,
+                        -100.0 * p.permuted_max()
+                    )
+                }),
             c.covariate,
             if c.significant {
                 "  SIGNIFICANT"
+            } else if c.outpredicted_by_term {
+                "  (passes the gate, but takes less than half of the data-driven term's gain)"
             } else if c.refused_no_field {
                 "  (passes the gates, but the residuals carry no field shared by neighbours)"
             } else {
