@@ -18,9 +18,9 @@
 //!    permutations are refitted (at most [`REFIT`]); an effect is significant when,
 //!    fitted on one half of the data, it predicts the other half better than the pixel
 //!    reference alone, by more than every permutation of its predicted change (below,
-//!    "the gates"); among significant ones the best held-out gain comes first. When the residual depends on a
-//!    covariate but no effect on it passes, the verdict says so and prints the
-//!    residual by that covariate's bins.
+//!    "the gates"); among significant ones the best held-out gain comes first. When
+//!    the residual depends on a covariate but no effect on it passes, the verdict says
+//!    so and prints the residual by that covariate's bins.
 //!
 //! The score test and its bootstrap threshold (below) are still computed and printed:
 //! they rank the testable effects, they no longer choose which are refitted (a score
@@ -662,7 +662,7 @@ fn order_ranking(ranking: &mut [Candidate], decide: Decide) {
     ranking.sort_by(|a, b| match (a.significant, b.significant) {
         (true, true) => match (&a.held_out, &b.held_out) {
             (Some(x), Some(y)) if decide == Decide::Contrast => {
-                pixel_gain(y).total_cmp(&pixel_gain(x))
+                y.pixel_gain().total_cmp(&x.pixel_gain())
             }
             _ => a
                 .delta_bic
@@ -673,11 +673,6 @@ fn order_ranking(ranking: &mut [Candidate], decide: Decide) {
         (false, true) => std::cmp::Ordering::Greater,
         (false, false) => b.score.total_cmp(&a.score),
     });
-}
-
-/// A held-out check's gain against the pixel reference (NaN without one).
-fn pixel_gain(h: &HeldOut) -> f64 {
-    h.pixel_reference.as_ref().map_or(f64::NAN, |p| p.gain)
 }
 
 /// One candidate's refit: its place in the ranking (by score) and what the refit gave.
@@ -707,9 +702,7 @@ impl Refitted {
         c.held_out = self.held_out;
         c.measured_with = self.measured_with;
     }
-}
 
-impl Refitted {
     /// The gates (module docs, "Refit, change in BIC, held-out check"). With the
     /// contrast decision: the held-out check against the pixel reference, each fold
     /// gaining and the pooled gain above every permutation of the candidate's change
@@ -721,10 +714,13 @@ impl Refitted {
     /// ([`HELD_OUT_MIN_GAIN`]).
     fn passes(&self, decide: Decide) -> bool {
         match (&self.held_out, decide) {
-            (Some(h), Decide::Contrast) if h.pixel_reference.is_some() => h
-                .pixel_reference
-                .as_ref()
-                .is_some_and(|p| p.beats_permutations()),
+            (
+                Some(HeldOut {
+                    pixel_reference: Some(p),
+                    ..
+                }),
+                Decide::Contrast,
+            ) => p.beats_permutations(),
             (Some(h), _) => self.delta_bic < DBIC_MAX && h.passes,
             (None, _) => self.delta_bic < DBIC_MAX,
         }

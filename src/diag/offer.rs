@@ -66,16 +66,10 @@ pub const LIBRARY_SHARE: f64 = 0.5;
 /// the choice among the candidates and the term ([`choose`]). None when an effect stays
 /// declared or nothing passes.
 pub fn settle(ranking: &mut [Candidate], data_term: Option<&DataTerm>) -> Option<Offer> {
-    let gain_of = |c: &Candidate| {
-        c.held_out
-            .as_ref()
-            .and_then(|h| h.pixel_reference.as_ref())
-            .map_or(f64::NAN, |p| p.gain)
-    };
     let declared = ranking
         .iter()
         .filter(|c| c.significant)
-        .map(gain_of)
+        .map(|c| c.held_out.as_ref().map_or(f64::NAN, |h| h.pixel_gain()))
         .fold(None, |m: Option<f64>, g| Some(m.map_or(g, |m| m.max(g))));
     let Some(best) = declared else {
         return choose(ranking, data_term);

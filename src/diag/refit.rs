@@ -187,6 +187,13 @@ pub struct HeldOut {
     pub pixel_reference: Option<PixelHeldOut>,
 }
 
+impl HeldOut {
+    /// The gain against the pixel reference held out (NaN without one).
+    pub fn pixel_gain(&self) -> f64 {
+        self.pixel_reference.as_ref().map_or(f64::NAN, |p| p.gain)
+    }
+}
+
 /// The held-out check against the pixel reference: what the candidate fitted on one
 /// half does to the pixel reference of the other half ([`HeldOut::pixel_reference`]).
 #[derive(Debug, Clone, PartialEq, Serialize)]
