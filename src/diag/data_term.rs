@@ -17,7 +17,7 @@
 //! Knot ranges from the data: illumination durations and focal-plane temperatures
 //! from the sampled events (a single value gives no term: the class is then
 //! untestable); the held charge and the neighbours' excess keep the term's defaults
-//! (held charge 1 % to 3 times what the exposure's traps could hold; neighbours' excess
+//! (held charge 1 % to all of the pixel's saturated charge; neighbours' excess
 //! 1 to 1000 times the own fluence). The
 //! fit starts from the best of a few common knot values
 //! ([`crate::calib::effects::SMOOTH_START_VALUES`]).

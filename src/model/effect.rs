@@ -320,9 +320,11 @@ pub trait Effect: Send + Sync + Debug {
     /// `held_e`, the charge the pixel holds as it begins (`sum_n D_n C_n tau_n` over the
     /// decayed amplitudes `D_n`, electrons), and `capacity_e`, the charge its exposed
     /// traps could hold (`sum_n Cap_n C_n tau_n`, the response before the fill fraction
-    /// of [`Effect::response_is_fill`]). The step multiplies the new response by it
-    /// before the combination, leaving the fraction each term fills as it was.
-    fn limit(&self, _held_e: f64, _capacity_e: f64) -> f64 {
+    /// of [`Effect::response_is_fill`]), and `saturated_e`, the charge its traps hold
+    /// after a saturating fill (the pixel's largest amplitude on every term, `A_max sum_n
+    /// C_n tau_n`). The step multiplies the new response by it before the combination,
+    /// leaving the fraction each term fills as it was.
+    fn limit(&self, _held_e: f64, _capacity_e: f64, _saturated_e: f64) -> f64 {
         1.0
     }
     /// How the pixels' spread about the prediction is correlated between neighbours

@@ -311,6 +311,10 @@ pub(crate) fn step(
         .zip(&sum.rate_per_s)
         .map(|(c, r)| c / r)
         .collect();
+    // the charge a saturating fill leaves on every term (`limit`): the table's largest
+    // amplitude, times a pixel's own factor above full well where the model has a map
+    let saturated_charge_e = k.response.max_e() * charge_per_amplitude.iter().sum::<f64>();
+    let pixel_response = model.pixel_response();
     let amps = state.amplitudes_e.as_slice_mut().expect("owned state");
     let count = state.release_count.as_slice_mut().expect("owned state");
     let pending = state.pending.as_slice_mut().expect("owned state");
@@ -393,7 +397,12 @@ pub(crate) fn step(
                         Some(c) if hooked => charge(&c[(y * nx + x) * n..(y * nx + x + 1) * n]),
                         _ => charge(add),
                     };
-                    let keep: f64 = limiters.iter().map(|e| e.limit(held, exposed)).product();
+                    let saturated = saturated_charge_e
+                        * pixel_response.map_or(1.0, |r| r.factor(y, x, f64::NAN, true));
+                    let keep: f64 = limiters
+                        .iter()
+                        .map(|e| e.limit(held, exposed, saturated))
+                        .product();
                     let keep = if keep.is_finite() {
                         keep.clamp(0.0, 1.0)
                     } else {

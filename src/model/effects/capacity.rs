@@ -80,7 +80,7 @@ impl Effect for Capacity {
     fn accumulate_role(&self) -> AccumulateRole {
         AccumulateRole::Limit
     }
-    fn limit(&self, held_e: f64, capacity_e: f64) -> f64 {
+    fn limit(&self, held_e: f64, capacity_e: f64, _saturated_e: f64) -> f64 {
         let inv = self.inv_q_max_per_e;
         if !(inv > 0.0 && held_e > 0.0) {
             return 1.0;
@@ -101,25 +101,25 @@ mod tests {
         let c = Capacity {
             inv_q_max_per_e: 1e-3,
         };
-        assert!((c.limit(500.0, 0.0) - 2.0 / 3.0).abs() < 1e-12);
+        assert!((c.limit(500.0, 0.0, 1e9) - 2.0 / 3.0).abs() < 1e-12);
         // Q = 450 e- exposed: C = 450 / (1 - 0.45) = 818.18 e- (the knots' compressed
         // 450 = C / (1 + C / Q_max)), k = (1 + 0.81818) / (1 + 1.31818) = 0.78431
-        let k = c.limit(500.0, 450.0);
+        let k = c.limit(500.0, 450.0, 1e9);
         let cc: f64 = 450.0 / 0.55;
         assert!((cc / (1.0 + cc * 1e-3) - 450.0).abs() < 1e-9);
         assert!((k - (1.0 + cc * 1e-3) / (1.0 + (cc + 500.0) * 1e-3)).abs() < 1e-12);
         assert!((k - 0.784_31).abs() < 1e-5, "{k}");
         // nothing held, or no effect: the whole capacity
-        assert_eq!(c.limit(0.0, 450.0), 1.0);
+        assert_eq!(c.limit(0.0, 450.0, 1e9), 1.0);
         assert_eq!(
             Capacity {
                 inv_q_max_per_e: 0.0
             }
-            .limit(500.0, 450.0),
+            .limit(500.0, 450.0, 1e9),
             1.0
         );
         // a pixel whose exposed capacity reaches Q_max is capped at C = 10 Q
-        let k = c.limit(500.0, 5000.0);
+        let k = c.limit(500.0, 5000.0, 1e9);
         assert!(k.is_finite() && k > 0.0 && k < 1.0, "{k}");
     }
 }

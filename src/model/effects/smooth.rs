@@ -16,7 +16,7 @@
 //! |---|---|---|
 //! | `smooth_duration` | `log10(t_illuminated / 1 s)` | every term's new response, `A_k,n *= exp(g)` (response hook) |
 //! | `smooth_temperature` | focal-plane temperature, K | every term's emission rate, `1/tau_n *= exp(g)`, `C_n *= exp(g)` (the charge `A_n C_n tau_n` kept; rates hook) |
-//! | `smooth_history` | `log10(H / C)`, `H` the charge the pixel still holds, `C` the charge its exposed traps could hold in this exposure | the capacity of the exposed traps, factor `exp(g)` in (0, 1] (limit hook) |
+//! | `smooth_history` | `log10(H / Q_sat)`, `H` the charge the pixel still holds, `Q_sat` the charge its traps hold after a saturating fill (its largest amplitude on every term) | the capacity of the exposed traps, factor `exp(g)` in (0, 1] (limit hook) |
 //! | `smooth_neighbour` | `log10(E_nb / max(F, 1 e-))` | the pixel's fluence, `F += g E_nb` (at least 0; fluence hook) |
 //!
 //! `E_nb` is `blooming`'s mean excess of the four nearest neighbours over `f_sat_e`, `F`
@@ -34,14 +34,19 @@
 //! -3.66, -3.71, -3.77, a common slowing of every rate) and `smooth_history`'s `at_lo`
 //! (a pixel holding little charge keeps its capacity).
 //!
-//! `smooth_history`'s covariate is a ratio of two charges of the same model, not the
-//! held charge in electrons: a model whose amplitudes are all scaled (the flagging
-//! model's knots stand at 1.2 times the 95th percentile, the description's at the
-//! measured level) holds the same fraction and gets the same factor, so the term
-//! measured against the description keeps its meaning in the flagging model. In
-//! electrons the flagging model's larger held charge had moved every pixel up the
-//! curve (measured with examples/family_matrix, capacity:ceiling at 64 x 64: the missed
-//! fraction at 0.1 e-/s rose from 0.05-0.07 to 0.34-0.37 once the term was added).
+//! `smooth_history`'s covariate is the share of the pixel's traps still occupied: a
+//! ratio of two charges of the same model, not the held charge in electrons. A model
+//! whose amplitudes are all scaled (the flagging model's knots stand at 1.2 times the
+//! 95th percentile, the description's at the measured level) holds the same share and
+//! gets the same factor, so the term measured against the description keeps its
+//! meaning in the flagging model. In electrons the flagging model's larger held charge
+//! had moved every pixel up the curve (measured with examples/family_matrix,
+//! capacity:ceiling at 64 x 64: the missed fraction at 0.1 e-/s rose from 0.05-0.07 to
+//! 0.34-0.37 once the term was added). The share is of the saturated charge, not of
+//! what this exposure's traps could hold: at equal history a bright pixel holds a
+//! larger share of its traps than a faint one, and blocks more of its next fill
+//! (Langmuir blocking, `1 - H / N`), which a ratio to the exposure's own capacity
+//! cannot tell apart (a pixel lit alike twice holds the same ratio at every fluence).
 //! Invariants: factors finite and > 0 (capacity factor <= 1), fluence finite and >= 0
 //! where it was, unknown (NaN) fluence stays unknown, unknown temperature changes
 //! nothing; all values at 0 leaves the step unchanged.
@@ -228,12 +233,12 @@ const HISTORY_PARAMS: [ParamSpec; 5] = axis_params(
         (
             "log10_held_fraction_lo",
             -2.0,
-            "log10 of the held charge over the exposure's capacity, below which nothing changes",
+            "log10 of the held charge over the pixel's saturated charge, below which nothing changes",
         ),
         (
             "log10_held_fraction_hi",
-            0.5,
-            "log10 of the held charge over the exposure's capacity, high knot",
+            0.0,
+            "log10 of the held charge over the pixel's saturated charge, high knot",
         ),
     ],
     (-9.0, 9.0),
@@ -249,7 +254,7 @@ const HISTORY_PARAMS: [ParamSpec; 5] = axis_params(
 pub const HISTORY: EffectDef = EffectDef {
     name: "smooth_history",
     summary:
-        "data-driven: exposed capacity *= exp(g(log10 held / exposed charge)), g piecewise linear",
+        "data-driven: exposed capacity *= exp(g(log10 held / saturated charge)), g piecewise linear",
     params: &HISTORY_PARAMS,
     build: |p| build(Axis::History, p),
     covariate: "earlier_illuminations",
@@ -361,11 +366,11 @@ impl Effect for Smooth {
     fn accumulate_role(&self) -> AccumulateRole {
         AccumulateRole::Limit
     }
-    fn limit(&self, held_e: f64, capacity_e: f64) -> f64 {
-        if self.axis != Axis::History || !(held_e > 0.0 && capacity_e > 0.0) {
+    fn limit(&self, held_e: f64, _capacity_e: f64, saturated_e: f64) -> f64 {
+        if self.axis != Axis::History || !(held_e > 0.0 && saturated_e > 0.0) {
             return 1.0;
         }
-        let k = self.g((held_e / capacity_e).log10()).exp();
+        let k = self.g((held_e / saturated_e).log10()).exp();
         if k.is_finite() {
             k.clamp(0.0, 1.0)
         } else {
@@ -402,16 +407,18 @@ mod tests {
 
     #[test]
     fn the_history_factor_is_a_limit_in_zero_one() {
-        // u = log10(held / capacity)
+        // u = log10(held / saturated)
         let s = term(Axis::History, [0.0, -0.5, -2.0]);
-        assert_eq!(s.limit(0.0, 10.0), 1.0);
-        assert_eq!(s.limit(50.0, 0.0), 1.0); // nothing exposed: no ratio
-        assert_eq!(s.limit(50.0, 1.0), 1.0); // below u_lo: the anchor
-        assert!((s.limit(1e3, 1.0) - (-2.0f64).exp()).abs() < 1e-12);
-        assert!((s.limit(10f64.powf(2.5), 1.0) - (-0.5f64).exp()).abs() < 1e-12);
+        assert_eq!(s.limit(0.0, 1.0, 10.0), 1.0);
+        assert_eq!(s.limit(50.0, 1.0, 0.0), 1.0); // no saturated charge: no ratio
+        assert_eq!(s.limit(50.0, 1.0, 1.0), 1.0); // below u_lo: the anchor
+        assert!((s.limit(1e3, 1.0, 1.0) - (-2.0f64).exp()).abs() < 1e-12);
+        assert!((s.limit(10f64.powf(2.5), 1.0, 1.0) - (-0.5f64).exp()).abs() < 1e-12);
         // a model with every amplitude scaled gets the same factor
-        let k = s.limit(10f64.powf(2.3), 1.0);
-        assert!((s.limit(1.44 * 10f64.powf(2.3), 1.44) - k).abs() < 1e-12);
+        let k = s.limit(10f64.powf(2.3), 1.0, 1.0);
+        assert!((s.limit(1.44 * 10f64.powf(2.3), 1.0, 1.44) - k).abs() < 1e-12);
+        // what this exposure could hold does not enter: the share held is the pixel's
+        assert_eq!(s.limit(10f64.powf(2.3), 1e-3, 1.0), k);
     }
 
     #[test]
@@ -467,7 +474,7 @@ mod tests {
             let e = (def.build)(&p);
             assert_eq!(e.name(), def.name);
             assert!(e.is_pixel_local(), "{}", def.name);
-            assert_eq!(e.limit(1e4, 1e3), 1.0);
+            assert_eq!(e.limit(1e4, 1e3, 1e3), 1.0);
             assert!(def.switch().is_none(), "{} is not scored", def.name);
         }
     }
