@@ -252,10 +252,13 @@ pub(crate) fn step(
     }
     // with a per-pixel map, a pixel's maximum is its own: the table's maximum times its
     // factor above full well (crate::model::pixel_response)
-    if let Some(r) = model.pixel_response() {
+    let pixel_response = model.pixel_response();
+    let max_factor =
+        |y: usize, x: usize| pixel_response.map_or(1.0, |r| r.factor(y, x, f64::NAN, true));
+    if pixel_response.is_some() {
         for ((y, x), b) in base.indexed_iter_mut() {
             if kind[[y, x]] == UNKNOWN || kind[[y, x]] == NO_SLOPE {
-                *b *= r.factor(y, x, f64::NAN, true);
+                *b *= max_factor(y, x);
             }
         }
     }
@@ -314,7 +317,6 @@ pub(crate) fn step(
     // the charge a saturating fill leaves on every term (`limit`): the table's largest
     // amplitude, times a pixel's own factor above full well where the model has a map
     let saturated_charge_e = k.response.max_e() * charge_per_amplitude.iter().sum::<f64>();
-    let pixel_response = model.pixel_response();
     let amps = state.amplitudes_e.as_slice_mut().expect("owned state");
     let count = state.release_count.as_slice_mut().expect("owned state");
     let pending = state.pending.as_slice_mut().expect("owned state");
@@ -397,8 +399,7 @@ pub(crate) fn step(
                         Some(c) if hooked => charge(&c[(y * nx + x) * n..(y * nx + x + 1) * n]),
                         _ => charge(add),
                     };
-                    let saturated = saturated_charge_e
-                        * pixel_response.map_or(1.0, |r| r.factor(y, x, f64::NAN, true));
+                    let saturated = saturated_charge_e * max_factor(y, x);
                     let keep: f64 = limiters
                         .iter()
                         .map(|e| e.limit(held, exposed, saturated))
