@@ -31,6 +31,7 @@ pub mod data_term;
 pub mod diagnose;
 pub mod finding;
 pub mod offer;
+pub mod polish;
 pub mod reference;
 pub mod refit;
 pub mod report;

@@ -53,14 +53,16 @@ pub fn verdict(d: &Diagnosis, params: &ModelParams, held: bool) -> String {
 }
 
 /// The command that adds an effect, and how its values were come by: held at the
-/// values measured against the description (`held`, `measure` the command that
-/// measures them), or with the note on the flagging margin ([`margin_note`]).
+/// values measured against the description and refined against the pixel reference
+/// ([`super::polish`]; `held`, `measure` the command that measures them against the
+/// description alone), or with the note on the flagging margin ([`margin_note`]).
 fn add_clause(command: &str, measure: Option<&str>, held: bool, params: &ModelParams) -> String {
     match measure {
         Some(m) if held => format!(
             "{command} (the effect at the values measured against the measurements' \
-             description, held, so the model keeps its flagging calibration; to measure \
-             it: {m})"
+             description and refined against the pixel reference, held, so the model \
+             keeps its flagging calibration; to measure it against the description \
+             alone, with its uncertainty: {m})"
         ),
         _ => format!("{command}{}", margin_note(measure, params)),
     }
