@@ -142,30 +142,10 @@ pub const DESCRIPTION_FREE: Free = Free {
     decay_exponent: true,
 };
 
-/// The model's effects as `--with` arguments: each by name (refitted), with the values
-/// the model pins held (`NAME:param=value`, [`crate::model::params::EffectSpec::fixed`]).
-fn own_with(params: &ModelParams) -> Vec<String> {
-    params
-        .effects
-        .iter()
-        .map(|e| {
-            let pins: Vec<String> = e
-                .fixed
-                .iter()
-                .filter_map(|k| Some(format!("{k}={}", e.params.get(k)?.as_f64()?)))
-                .collect();
-            if pins.is_empty() {
-                e.name.clone()
-            } else {
-                format!("{}:{}", e.name, pins.join(","))
-            }
-        })
-        .collect()
-}
-
 /// The measurement description of `seq` for the model `params`: `persist fit --preset
-/// readout --fit-decay-exponent` with the model's own effects (refitted, their pinned values held: [`own_with`]), the
-/// residual cells and background of `cfg`.
+/// readout --fit-decay-exponent` with the model's own effects (refitted, their pinned
+/// values held: [`crate::calib::effects::with_arg`]), the residual cells and background
+/// of `cfg`.
 pub fn describe(params: &ModelParams, seq: &Sequence, cfg: &Config) -> Result<ModelParams> {
     let calib = CalibConfig {
         cells: cfg.cells,
@@ -173,7 +153,11 @@ pub fn describe(params: &ModelParams, seq: &Sequence, cfg: &Config) -> Result<Mo
         background: cfg.background,
         ..Preset::Readout.config()
     };
-    let own = own_with(params);
+    let own: Vec<String> = params
+        .effects
+        .iter()
+        .map(crate::calib::effects::with_arg)
+        .collect();
     let (with, _) = Preset::Readout.with_for(seq, &own);
     let (d, _, _) = crate::calib::fit_params(seq, &calib, &with, DESCRIPTION_FREE)?;
     Ok(d)

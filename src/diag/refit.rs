@@ -81,7 +81,8 @@ pub(super) fn refit_own(
 /// `base` (the model, its own effects refitted as [`Refit`] says) with the candidate
 /// effects `names` (`--with` arguments: one, or a pair in the joint check) fitted on `samples` together
 /// with `own`; `start` holds the candidates at the values to start from (else their
-/// defaults).
+/// defaults). The candidates' fitted values are then refined against the pixel
+/// reference ([`super::polish`]).
 pub(super) fn fit_candidate(
     base: &ModelParams,
     own: &[String],
