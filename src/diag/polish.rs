@@ -3,7 +3,7 @@
 //!
 //! # Why
 //! A candidate is fitted by least squares against the measurements' description
-//! ([`super::refit::fit_candidate`]). Where the description misfits the data more than
+//! (`refit::fit_candidate`). Where the description misfits the data more than
 //! the effect changes them, that fit follows the misfit. Measured on the second
 //! generator's `temperature:arrhenius` campaign (64 x 64, seed 2, default `fit`; rates
 //! x0.62 at 78 K, x1.6 at 82 K): fitted against the description, `temperature` stays
