@@ -516,9 +516,9 @@ fn fluence_tilt(s: &Samples) -> Vec<f64> {
 /// correction)`, `f_p = sum_j c_pj L^j + c_s sat + c_f fl + c_ff fl^2` over
 /// [`PIXEL_TERMS`] powers of `L = ln(t / TILT_REFERENCE_S)` (`t` since the last
 /// illumination), the share `sat` of the current from saturating illuminations
-/// ([`saturated_share`], its illuminations weighed by `response`, the model's
+/// (`saturated_share`, its illuminations weighed by `response`, the model's
 /// amplitude per fluence) and the log fluence `fl` about the pixel's mean
-/// ([`fluence_tilt`]), the correction as
+/// (`fluence_tilt`), the correction as
 /// [`predict`]'s (with knots of their own for the pixels saturated in the
 /// illumination: the response around saturation) and `c_p` each sampled pixel's own
 /// (the mix of trap populations: pixels of one fluence and history differ by a factor
@@ -527,7 +527,7 @@ fn fluence_tilt(s: &Samples) -> Vec<f64> {
 /// ([`SCALE_PASSES`]). Each pixel's terms are the weighted least-squares fit of its
 /// measurements on its unscaled prediction times `L^j`, weights one over the
 /// measurement's variance (exposure noise, pooled over the exposures of one integration
-/// length ([`pooled_noise`]), and the prediction's shot noise). Returns
+/// length (`pooled_noise`), and the prediction's shot noise). Returns
 /// the predictions, each sample's noise and its leverage in its pixel's fit (`h_i`:
 /// under the fit, a residual's variance is `sigma_i^2 (1 - h_i)`).
 pub fn predict_scaled(

@@ -39,7 +39,7 @@ pub const MOVED_Z: f64 = 1.0;
 pub const MIN_HELD_OUT_PIXELS: usize = 50;
 
 /// How many times the candidate's predicted change is moved to other samples
-/// ([`permuted_change`]) to calibrate the pixel reference's held-out gain: a gain
+/// (`permuted_change`) to calibrate the pixel reference's held-out gain: a gain
 /// larger than every permuted one has a chance of at most `1 / (PERMUTATIONS + 1)`
 /// (0.05) when the change carries nothing about where it is applied.
 pub const PERMUTATIONS: usize = 19;
@@ -212,7 +212,7 @@ pub struct PixelHeldOut {
     /// refitted, as for the permutations (NaN when not computed).
     pub gain_held: f64,
     /// The pooled gain of each of the [`PERMUTATIONS`] permuted changes
-    /// ([`permuted_change`]), the correction held as for `gain_held`; empty when a fold
+    /// (`permuted_change`), the correction held as for `gain_held`; empty when a fold
     /// does not gain (not computed).
     pub permuted_gains: Vec<f64>,
 }

@@ -506,7 +506,7 @@ const DURATIONS_APART: [Appended; 3] = [
 const DURATIONS_DARKS: usize = 60;
 
 impl Durations {
-    /// `campaign` with this choice of durations: with `Apart`, [`DURATIONS_APART`]
+    /// `campaign` with this choice of durations: with `Apart`, `DURATIONS_APART`
     /// appended, each illumination 1's copy (its temperature, spot, pinholes and darks)
     /// but for its length, flux and dark count. Nothing before them is changed; an
     /// empty campaign is returned as it is.
