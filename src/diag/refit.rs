@@ -418,11 +418,10 @@ pub fn held_out(
     let fold = |h: usize| -> Result<(Option<HeldOutSums>, PixelFold)> {
         let (fs, ts, ts_base) = split(h);
         let (fitted, before, before_current, before_clock) = if own.is_empty() {
-            let names: Vec<String> = names.iter().map(|n| n.to_string()).collect();
+            let owned: Vec<String> = names.iter().map(|n| n.to_string()).collect();
             let (fitted, fit) =
-                crate::calib::effects::fit(start.unwrap_or(params), &names, seq, &fs)?;
-            let names: Vec<&str> = names.iter().map(String::as_str).collect();
-            let (fitted, _) = super::polish::polish(fitted, fit, &names, seq, &fs)?;
+                crate::calib::effects::fit(start.unwrap_or(params), &owned, seq, &fs)?;
+            let (fitted, _) = super::polish::polish(fitted, fit, names, seq, &fs)?;
             // `params`' own prediction of the test samples: already computed
             let before = spread::model_cell_z(params, &ts, &ts_base);
             (fitted, before, ts_base, Clock::of_model(params, seq))
