@@ -143,6 +143,14 @@ pub(super) fn pixel_level(class: &str) -> bool {
     matches!(class, "neighbour_excess_fluence" | "position")
 }
 
+/// Whether the pixel reference can see an effect of this class: one that changes how a
+/// pixel's illuminations (or its dark integrations) differ. Its per-pixel factor takes
+/// in what varies from pixel to pixel, and its cells what is a function of (fluence,
+/// time since illumination) alone.
+pub(super) fn seen_by_pixel_reference(class: &str) -> bool {
+    !pixel_level(class) && !matches!(class, "fluence_x_time" | "time_since_illumination")
+}
+
 /// Whether the data hold contrast for one class.
 #[derive(Debug, Clone, Serialize)]
 pub struct Testability {

@@ -24,7 +24,10 @@
 //! step halves. At most [`MAX_EVALS`] evaluations. The knots are rescaled for every
 //! value tried, as the fit rescales them ([`crate::calib::knots::rescale`]). Only on
 //! samples of two illumination events or more: on one illumination each pixel's own
-//! terms take in what an effect does to it, and the fit stays the description's.
+//! terms take in what an effect does to it, and the fit stays the description's. Only
+//! the effects the pixel reference can see, those acting on how a pixel's
+//! illuminations differ: one of (fluence, time since illumination) alone, or of the
+//! pixel, it takes in whatever the values, and its RMS there would follow the noise.
 //!
 //! # Invariants
 //! - The pixel reference's RMS on the samples at the values returned is at most its RMS
@@ -66,7 +69,8 @@ struct Slot {
     hi: f64,
 }
 
-/// The fitted parameters of the effects `names` (`--with` arguments) in `m`.
+/// The fitted parameters of the effects `names` (`--with` arguments) in `m` that the
+/// pixel reference can see ([`super::contrast::seen_by_pixel_reference`]).
 fn slots(m: &ModelParams, names: &[&str]) -> Vec<Slot> {
     let wanted = |e: &str| names.iter().any(|n| n.split(':').next() == Some(e));
     m.effects
@@ -74,6 +78,12 @@ fn slots(m: &ModelParams, names: &[&str]) -> Vec<Slot> {
         .enumerate()
         .filter(|(_, e)| wanted(&e.name))
         .filter_map(|(i, e)| Some((i, e, crate::model::effects::lookup(&e.name)?)))
+        .filter(|(_, _, def)| {
+            super::contrast::seen_by_pixel_reference(super::contrast::class_of(
+                def.name,
+                def.covariate,
+            ))
+        })
         .flat_map(|(i, e, def)| {
             def.params.iter().filter(|p| e.fits(p)).map(move |p| Slot {
                 effect: i,
