@@ -10,10 +10,13 @@ demo: bootstrap
 
 # The tests also open a report in headless Chromium (tests/report_chromium.rs), then
 # build and test the Python package (scripts/python_test.sh). --slurm: slurm-wlm and
-# munge for the one-node Slurm cluster of tests/slurm_cluster.rs.
+# munge for the one-node Slurm cluster of tests/slurm_cluster.rs. A release build: the
+# diagnosis tests fit campaigns and run about twice as fast as in the test profile.
+# The tests too long for this command are marked #[ignore] and run by
+# `make validation PAGES=long_tests` (docs/validation/long_tests.md).
 test:
 	@bash scripts/bootstrap.sh --chromium --python --slurm
-	cargo test --no-fail-fast
+	cargo test --release --no-fail-fast
 	@bash scripts/python_test.sh
 
 lint: bootstrap

@@ -48,6 +48,11 @@
 #                                               nothing hidden and event-level hidden forms,
 #                                               seeds 1-5 (about 20 minutes; not in the
 #                                               default set)
+#   long_tests  docs/validation/long_tests.md  the tests too long for `make test`
+#                                               (`#[ignore = "long: ..."]`): `cargo test
+#                                               --release -- --ignored`, each test's result
+#                                               and each binary's time (about an hour; not
+#                                               in the default set)
 # Without arguments every page is regenerated. Release builds (PERSIST_BIN=path skips the
 # build of the binary); run it on a quiet machine
 # (the header records the load average at the start).
@@ -63,8 +68,8 @@ if [[ ${#pages[@]} -eq 0 ]]; then
 fi
 for p in "${pages[@]}"; do
     case $p in
-        floor|bench|matrix|verify|verify_bench|family|family128|family_heldout|reference|kinds|offers|flag_quality) ;;
-        *) echo "validation.sh: unknown page '$p' (floor, bench, matrix, verify, verify_bench, family, family128, family_heldout, reference, kinds, offers, flag_quality)" >&2; exit 2 ;;
+        floor|bench|matrix|verify|verify_bench|family|family128|family_heldout|reference|kinds|offers|flag_quality|long_tests) ;;
+        *) echo "validation.sh: unknown page '$p' (floor, bench, matrix, verify, verify_bench, family, family128, family_heldout, reference, kinds, offers, flag_quality, long_tests)" >&2; exit 2 ;;
     esac
 done
 
@@ -425,6 +430,32 @@ page_offers() {
             "make validation PAGES=offers (scripts/offers_table.sh; SEEDS=\"${OFFERS_SEEDS:-1 2 3 4 5}\")"
         PERSIST_BIN=$persist SEEDS="${OFFERS_SEEDS:-1 2 3 4 5}" WORK=$tmp/offers \
             scripts/offers_table.sh
+    } > "$page.tmp"
+    mv "$page.tmp" "$page"
+    echo "wrote $page" >&2
+}
+
+# long_tests: the ignored tests, in release, each test's result and each binary's time.
+page_long_tests() {
+    local page=$out_dir/long_tests.md
+    local log=$tmp/long_tests.log
+    echo "long_tests: cargo test --release --no-fail-fast -- --ignored" >&2
+    local status=0
+    cargo test --release --no-fail-fast -- --ignored > "$log" 2>&1 || status=$?
+    {
+        scripts/validation_header.sh "The tests too long for make test" \
+            "make validation PAGES=long_tests (cargo test --release --no-fail-fast -- --ignored)"
+        echo "The tests marked \`#[ignore]\` run here, in a release build; \`make test\` (the"
+        echo "README's test command, run by CI) skips them. Each one's documentation says what it"
+        echo "checks. \`cargo test\` exit status: $status."
+        echo
+        echo "| test binary | test | result |"
+        echo "|---|---|---|"
+        awk '/^ *Running /{bin=($2 == "unittests") ? $3 : $2} /^test .* \.\.\. (ok|FAILED)$/{print "| " bin " | `" $2 "` | " $NF " |"}' "$log"
+        echo
+        echo "| test binary | tests | seconds |"
+        echo "|---|---|---|"
+        awk '/^ *Running /{bin=($2 == "unittests") ? $3 : $2} /^test result:/{n=$4+$6; if (n > 0) {t=$NF; sub(/s$/, "", t); print "| " bin " | " n " | " t " |"}}' "$log"
     } > "$page.tmp"
     mv "$page.tmp" "$page"
     echo "wrote $page" >&2

@@ -225,13 +225,12 @@ fn compare_summary_is_consistent_and_report_self_contained() {
 }
 
 /// Hidden soak in laboratory data: `diagnose` declares it significant; `fit --with soak`
-/// halves the normalised residual RMS. Minutes in the test profile; run with
-/// `cargo test --release --test compare_diagnose -- --ignored`. With
+/// halves the normalised residual RMS. With
 /// `diagnose --statistic pooled`, pooled cells, the levels statistic and the candidate-only refit. Known to fail, not
 /// investigated: `short_tau_boost` is declared besides `soak`
 /// (`["soak", "short_tau_boost"]`).
 #[test]
-#[ignore]
+#[ignore = "long: make validation PAGES=long_tests"]
 fn hidden_soak_is_found_and_fitted() {
     let tmp = tempfile::tempdir().unwrap();
     let d = |n: &str| tmp.path().join(n).display().to_string();
@@ -296,10 +295,10 @@ fn hidden_soak_is_found_and_fitted() {
 /// names `temperature` first, significant; with nothing hidden it declares nothing.
 /// Measured (release build, 64 x 64, seed 3): so. A hidden `soak` there declares
 /// nothing: its duration contrast stays below the permutations once the description
-/// measures the decay law (`persist::diag::reference`, "The decay law"). Slow in the
-/// dev profile (two simulations, two fits, two diagnoses): run with `--ignored`.
+/// measures the decay law (`persist::diag::reference`, "The decay law"). Two
+/// simulations, two fits, two diagnoses.
 #[test]
-#[ignore]
+#[ignore = "long: make validation PAGES=long_tests"]
 fn campaign_hidden_temperature_named_first_and_nothing_without() {
     let tmp = tempfile::tempdir().unwrap();
     let d = |n: &str| tmp.path().join(n).display().to_string();

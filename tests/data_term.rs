@@ -170,6 +170,7 @@ fn a_data_driven_term_fitted_from_its_defaults_leaves_them() {
 /// model file, and diagnosed again with that model file the pixel reference's RMS is
 /// lower.
 #[test]
+#[ignore = "long: make validation PAGES=long_tests"]
 fn diagnose_adds_the_candidate_that_predicts_the_pixel_reference_and_its_command_writes_it() {
     let tmp = tempfile::tempdir().unwrap();
     let p = |s: &str| tmp.path().join(s).to_str().unwrap().to_string();

@@ -95,6 +95,43 @@ fn slots(m: &ModelParams, names: &[&str]) -> Vec<Slot> {
         .collect()
 }
 
+/// The pattern search's state: the values, the RMS at them and the evaluations made.
+struct Search {
+    x: Vec<f64>,
+    best: f64,
+    evals: usize,
+}
+
+impl Search {
+    /// Moves value `i` by `delta` (within `s`'s bounds) while that lowers the RMS, within
+    /// [`MAX_EVALS`] evaluations in all; whether it moved.
+    fn walk(
+        &mut self,
+        i: usize,
+        s: &Slot,
+        delta: f64,
+        rms: &impl Fn(&[f64]) -> Result<f64>,
+    ) -> Result<bool> {
+        let mut moved = false;
+        while self.evals < MAX_EVALS {
+            let v = (self.x[i] + delta).clamp(s.lo, s.hi);
+            if v == self.x[i] {
+                break;
+            }
+            let mut y = self.x.clone();
+            y[i] = v;
+            let r = rms(&y)?;
+            self.evals += 1;
+            // a NaN RMS is no improvement
+            if r.partial_cmp(&self.best) != Some(std::cmp::Ordering::Less) {
+                break;
+            }
+            (self.x, self.best, moved) = (y, r, true);
+        }
+        Ok(moved)
+    }
+}
+
 fn value(m: &ModelParams, s: &Slot) -> Option<f64> {
     m.effects[s.effect].params.get(s.name)?.as_f64()
 }
@@ -113,7 +150,7 @@ pub fn polish(
     if samples.events().len() < 2 || slots.is_empty() {
         return Ok((fitted, fit));
     }
-    let Some(mut x) = slots
+    let Some(x) = slots
         .iter()
         .map(|s| value(&fitted, s))
         .collect::<Option<Vec<f64>>>()
@@ -134,37 +171,21 @@ pub fn polish(
         Ok(m)
     };
     let start = pixel_rms(&fitted, seq, samples)?;
-    let mut best = start;
-    let mut evals = 1;
-    'levels: for level in 0..LEVELS {
+    let rms = |y: &[f64]| pixel_rms(&at(y)?, seq, samples);
+    let mut search = Search {
+        x,
+        best: start,
+        evals: 1,
+    };
+    for level in 0..LEVELS {
         for (i, s) in slots.iter().enumerate() {
             let step = (FIRST_STEP * (s.hi - s.lo)).min(1.0) / f64::from(1u32 << level);
-            for dir in [1.0, -1.0] {
-                let mut moved = false;
-                loop {
-                    if evals >= MAX_EVALS {
-                        break 'levels;
-                    }
-                    let v = (x[i] + dir * step).clamp(s.lo, s.hi);
-                    if v == x[i] {
-                        break;
-                    }
-                    let mut y = x.clone();
-                    y[i] = v;
-                    let r = pixel_rms(&at(&y)?, seq, samples)?;
-                    evals += 1;
-                    // a NaN RMS is no improvement
-                    if r.partial_cmp(&best) != Some(std::cmp::Ordering::Less) {
-                        break;
-                    }
-                    (x, best, moved) = (y, r, true);
-                }
-                if moved {
-                    break;
-                }
+            if !search.walk(i, s, step, &rms)? {
+                search.walk(i, s, -step, &rms)?;
             }
         }
     }
+    let Search { x, best, evals } = search;
     if best >= start {
         return Ok((fitted, fit));
     }
@@ -186,4 +207,65 @@ pub fn polish(
         fit.termination
     );
     Ok((m, fit))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn slot(lo: f64, hi: f64) -> Slot {
+        Slot {
+            effect: 0,
+            name: "a",
+            lo,
+            hi,
+        }
+    }
+
+    /// A walk stops at the first step that does not lower the RMS and never leaves the
+    /// bounds: on `(x - 0.3)^2` from 0 with steps of 0.125 it stops at 0.25.
+    #[test]
+    fn a_walk_descends_and_stops_at_the_first_step_that_does_not_help() {
+        let rms = |y: &[f64]| -> Result<f64> { Ok((y[0] - 0.3).powi(2)) };
+        let mut s = Search {
+            x: vec![0.0],
+            best: 0.09,
+            evals: 1,
+        };
+        assert!(s.walk(0, &slot(-1.0, 1.0), 0.125, &rms).unwrap());
+        assert_eq!(s.x, vec![0.25]);
+        assert_eq!(s.evals, 4);
+        assert!(!s.walk(0, &slot(-1.0, 1.0), 0.125, &rms).unwrap());
+        assert_eq!(s.x, vec![0.25]);
+        // against a bound the walk ends without an evaluation
+        let mut b = Search {
+            x: vec![0.1],
+            best: 0.04,
+            evals: 1,
+        };
+        assert!(b.walk(0, &slot(0.0, 0.2), 0.125, &rms).unwrap());
+        assert_eq!((b.x[0], b.evals), (0.2, 2));
+    }
+
+    /// The evaluations are capped by [`MAX_EVALS`], and a NaN RMS is no improvement.
+    #[test]
+    fn a_walk_keeps_to_the_evaluation_budget_and_refuses_nan() {
+        let down = |y: &[f64]| -> Result<f64> { Ok(-y[0]) };
+        let mut s = Search {
+            x: vec![0.0],
+            best: 0.0,
+            evals: 1,
+        };
+        assert!(s.walk(0, &slot(0.0, 1e9), 1.0, &down).unwrap());
+        assert_eq!(s.evals, MAX_EVALS);
+        assert_eq!(s.x[0], (MAX_EVALS - 1) as f64);
+        let nan = |_: &[f64]| -> Result<f64> { Ok(f64::NAN) };
+        let mut n = Search {
+            x: vec![0.0],
+            best: 1.0,
+            evals: 1,
+        };
+        assert!(!n.walk(0, &slot(-1.0, 1.0), 0.5, &nan).unwrap());
+        assert_eq!(n.x[0], 0.0);
+    }
 }
