@@ -249,10 +249,10 @@ fn features(
 /// The base's prediction of every sample: the model's prediction `pred` plus the
 /// correction fitted on `s` (module docs); `pred` itself when the fit fails.
 pub fn predict(seq: &Sequence, clock: &Clock, s: &Samples, pred: &[f64]) -> Vec<f64> {
-    let maps = fluence_maps(seq, false);
+    let feat = Features::new(seq, clock, s, &fluence_maps(seq, false));
     let ones = vec![1.0; s.len()];
-    match fit_correction(seq, clock, s, &maps, pred, &ones, relative_variance) {
-        Some(coef) => corrected(seq, clock, s, &maps, pred, &coef),
+    match fit_correction(&feat, s, pred, &ones, relative_variance) {
+        Some(coef) => corrected(&feat, pred, &coef),
         None => pred.to_vec(),
     }
 }
@@ -297,21 +297,47 @@ fn fluence_maps(seq: &Sequence, split_saturated: bool) -> Vec<Map> {
         .collect()
 }
 
+/// Every sample's sparse features ([`features`]), worked out once for the fits and
+/// corrections that share them.
+struct Features {
+    /// Sample `i`'s entries are `entries[start[i]..start[i + 1]]`.
+    start: Vec<usize>,
+    entries: Vec<(usize, f64)>,
+    /// Whether the saturated pixels' response has knots of its own.
+    split: bool,
+}
+
+impl Features {
+    fn new(seq: &Sequence, clock: &Clock, s: &Samples, maps: &[Map]) -> Features {
+        let per: Vec<Vec<(usize, f64)>> = (0..s.len())
+            .into_par_iter()
+            .map_init(Vec::new, |f, i| {
+                features(seq, clock, s, maps, i, f);
+                f.clone()
+            })
+            .collect();
+        let mut start = Vec::with_capacity(per.len() + 1);
+        start.push(0);
+        for f in &per {
+            start.push(start[start.len() - 1] + f.len());
+        }
+        Features {
+            start,
+            entries: per.concat(),
+            split: maps.iter().any(|m| m.overflow.is_some()),
+        }
+    }
+
+    fn of(&self, i: usize) -> &[(usize, f64)] {
+        &self.entries[self.start[i]..self.start[i + 1]]
+    }
+}
+
 /// `pred` plus the correction `coef` at every sample.
-fn corrected(
-    seq: &Sequence,
-    clock: &Clock,
-    s: &Samples,
-    maps: &[Map],
-    pred: &[f64],
-    coef: &[f64],
-) -> Vec<f64> {
-    (0..s.len())
+fn corrected(feat: &Features, pred: &[f64], coef: &[f64]) -> Vec<f64> {
+    (0..pred.len())
         .into_par_iter()
-        .map_init(Vec::new, |f, i| {
-            features(seq, clock, s, maps, i, f);
-            pred[i] + f.iter().map(|&(a, v)| coef[a] * v).sum::<f64>()
-        })
+        .map(|i| pred[i] + feat.of(i).iter().map(|&(a, v)| coef[a] * v).sum::<f64>())
         .collect()
 }
 
@@ -319,16 +345,13 @@ fn corrected(
 /// pred` on the features (module docs), each sample weighted by `scale_p^2` over its
 /// variance; None when the normal equations are singular.
 fn fit_correction(
-    seq: &Sequence,
-    clock: &Clock,
+    feat: &Features,
     s: &Samples,
-    maps: &[Map],
     pred: &[f64],
     scale: &[f64],
     variance: impl Fn(&Samples, usize, f64) -> f64 + Sync,
 ) -> Option<Vec<f64>> {
-    let split = maps.iter().any(|m| m.overflow.is_some());
-    let p = if split { 2 } else { 1 } * n_knots() * TAU_S.len();
+    let p = if feat.split { 2 } else { 1 } * n_knots() * TAU_S.len();
     let usable: Vec<usize> = (0..s.len())
         .filter(|&i| s.measured[i].is_finite() && pred[i].is_finite())
         .collect();
@@ -343,18 +366,17 @@ fn fit_correction(
         .map(|chunk| {
             let mut ata = vec![0.0; p * p];
             let mut atb = vec![0.0; p];
-            let mut f = Vec::new();
             for &i in chunk {
-                features(seq, clock, s, maps, i, &mut f);
+                let f = feat.of(i);
                 let sc = scale[i];
                 if f.is_empty() || sc.is_nan() || sc <= 0.0 {
                     continue;
                 }
                 let w = sc * sc / variance(s, i, sc * pred[i]).max(1e-12);
                 let y = s.measured[i] / sc - pred[i];
-                for &(a, va) in &f {
+                for &(a, va) in f {
                     atb[a] += w * va * y;
-                    for &(b, vb) in &f {
+                    for &(b, vb) in f {
                         ata[a * p + b] += w * va * vb;
                     }
                 }
@@ -539,14 +561,15 @@ pub fn predict_scaled(
 ) -> Scaled {
     let maps = fluence_maps(seq, true);
     let terms = PixelTerms::new(seq, s, &maps, response);
+    let feat = Features::new(seq, clock, s, &maps);
     let variance = |s: &Samples, i: usize, p: f64| measurement_variance(&terms.noise, s, i, p);
     let mut scale = vec![1.0; s.len()];
     let mut unscaled = pred.to_vec();
     let mut normal = Vec::new();
     for pass in 0..=SCALE_PASSES {
         if pass > 0 {
-            if let Some(coef) = fit_correction(seq, clock, s, &maps, pred, &scale, variance) {
-                unscaled = corrected(seq, clock, s, &maps, pred, &coef);
+            if let Some(coef) = fit_correction(&feat, s, pred, &scale, variance) {
+                unscaled = corrected(&feat, pred, &coef);
             }
         }
         (scale, normal) = terms.pass(s, &unscaled, &scale);
