@@ -226,9 +226,9 @@ fn compare_summary_is_consistent_and_report_self_contained() {
 
 /// Hidden soak in laboratory data: `diagnose` declares it significant; `fit --with soak`
 /// halves the normalised residual RMS. With
-/// `diagnose --statistic pooled`, pooled cells, the levels statistic and the candidate-only refit. Known to fail, not
-/// investigated: `short_tau_boost` is declared besides `soak`
-/// (`["soak", "short_tau_boost"]`).
+/// `diagnose --statistic pooled`, pooled cells, the levels statistic and the
+/// candidate-only refit. Known to fail, not investigated: with these options nothing is
+/// declared (`docs/validation/long_tests.md`).
 #[test]
 #[ignore = "long: make validation PAGES=long_tests"]
 fn hidden_soak_is_found_and_fitted() {
