@@ -120,16 +120,27 @@ impl Clock {
     /// step applies them. An effect that does not build is left out (the model's own
     /// run refuses it).
     pub fn of_model(params: &ModelParams, seq: &Sequence) -> Clock {
+        Clock::of_model_at_temperatures(params, seq, &seq.temperatures_k())
+    }
+
+    /// [`Clock::of_model`] with each exposure's focal-plane temperature `temps_k[k]` in
+    /// place of the one it records (as [`crate::measure::eval::predict_at_temperatures`]).
+    pub fn of_model_at_temperatures(
+        params: &ModelParams,
+        seq: &Sequence,
+        temps_k: &[Option<f64>],
+    ) -> Clock {
         let effects: Vec<Box<dyn Effect>> = params
             .effects
             .iter()
             .filter_map(|e| crate::model::effects::build(e).ok())
             .collect();
-        Clock::of_effects(&effects, seq)
+        Clock::of_effects(&effects, seq, temps_k)
     }
 
-    /// [`Clock::of_model`] of a model with the effects `effects`.
-    pub fn of_effects(effects: &[Box<dyn Effect>], seq: &Sequence) -> Clock {
+    /// The clock of a model with the effects `effects` at the temperatures `temps_k`,
+    /// one per exposure of `seq`.
+    fn of_effects(effects: &[Box<dyn Effect>], seq: &Sequence, temps_k: &[Option<f64>]) -> Clock {
         const N: usize = TAU_S.len();
         let n = seq.exposures.len();
         if effects.is_empty() || n < 2 {
@@ -148,7 +159,7 @@ impl Clock {
                 t_exposure_s: e.t_exposure_s,
                 t_meas_s: t_slew_s + 0.5 * e.t_exposure_s,
                 t_elapsed_s: t_slew_s + e.t_exposure_s,
-                focal_plane_temp_k: e.focal_plane_temp_k,
+                focal_plane_temp_k: temps_k[m],
             };
             let mut c = [1.0; N];
             let mut r = TAU_S.map(|tau| 1.0 / tau);
@@ -916,7 +927,7 @@ fn solve_spd(m: &mut [f64], mut b: Vec<f64>, n: usize) -> Option<Vec<f64>> {
 }
 
 #[cfg(test)]
-mod tests {
+pub(super) mod tests {
     use super::*;
 
     #[test]
@@ -930,12 +941,13 @@ mod tests {
     }
 
     /// A simulated laboratory campaign at 24 x 24 (the paper's pattern, a corner of
-    /// dark pixels) of three equal illuminations held at `temps_k`, each followed by 12
+    /// dark pixels) of equal illuminations held at `temps_k`, each followed by 12
     /// darks of 180 s.
-    fn campaign_at(temps_k: [f64; 3]) -> Sequence {
+    pub(in crate::diag) fn campaign_at(temps_k: &[f64]) -> Sequence {
         use crate::sim::lab;
         let campaign = temps_k
-            .map(|temp_k| lab::Illumination {
+            .iter()
+            .map(|&temp_k| lab::Illumination {
                 t_illuminated_s: 481.0,
                 flux_scale: 1.0,
                 temp_k,
@@ -945,7 +957,7 @@ mod tests {
                 dark_s: None,
                 after_shutter_s: None,
             })
-            .to_vec();
+            .collect();
         let cfg = lab::LabConfig {
             size: 24,
             seed: 1,
@@ -978,7 +990,7 @@ mod tests {
     /// without the effect.
     #[test]
     fn the_clock_of_a_rate_hook_runs_at_each_intervals_arrhenius_factor() {
-        let seq = campaign_at([78.0, 82.0, 80.0]);
+        let seq = campaign_at(&[78.0, 82.0, 80.0]);
         let clock = Clock::of_model(&model_with_temperature(0.25), &seq);
         assert!(!clock.is_real());
         let t = crate::model::effects::temperature::Temperature {
@@ -1038,7 +1050,7 @@ mod tests {
         }
         let response = Response::new(&model.amplitude_knots);
         let rms = |temps_k: [f64; 3]| -> (f64, f64) {
-            let seq = campaign_at(temps_k);
+            let seq = campaign_at(&temps_k);
             let cfg = super::super::config::Config::default();
             let mut s = Samples::random(&seq, cfg.pixels, cfg.seed)
                 .with_cells(cfg.cells)

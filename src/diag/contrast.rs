@@ -124,6 +124,12 @@ pub const MIN_R2_EVENT: f64 = 0.0045;
 pub const CLIP: f64 = 5.0;
 
 /// The contrast class of a library effect (module docs).
+/// The bin of a focal-plane temperature `t_k` the temperature class compares (0.5 K):
+/// exposures whose temperatures share a bin are held at one temperature.
+pub fn temperature_bin(t_k: f64) -> i64 {
+    (t_k * 2.0).round() as i64
+}
+
 pub fn class_of(effect: &str, covariate: &str) -> &'static str {
     match (effect, covariate) {
         ("linefit_bias", _) => "integration_length",
@@ -549,10 +555,7 @@ pub(super) fn covariate_bins(
                     let t = seq.exposures[e].meta.t_illuminated_s();
                     (t > 0.0).then(|| (t.log10() * 20.0).round() as i64)
                 }
-                "temperature" => {
-                    let t = seq.exposures[e].meta.focal_plane_temp_k?;
-                    Some((t * 2.0).round() as i64)
-                }
+                "temperature" => Some(temperature_bin(seq.exposures[e].meta.focal_plane_temp_k?)),
                 "integration_length" => *integration.entry(e).or_insert_with(|| {
                     let rows: Vec<f64> = s
                         .exposures

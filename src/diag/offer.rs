@@ -131,6 +131,7 @@ mod tests {
             fold_gains: folds.to_vec(),
             gain_held: g,
             permuted_gains: (0..PERMUTATIONS).map(|k| 0.02 - 0.001 * k as f64).collect(),
+            permuted: super::super::refit::Permuted::Change,
         }
     }
 

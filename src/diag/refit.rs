@@ -207,14 +207,45 @@ pub struct PixelHeldOut {
     pub gain: f64,
     /// Each fold's gain, in fold order.
     pub fold_gains: Vec<f64>,
-    /// The pooled gain with the shared correction held at the fit without the
-    /// candidate ([`super::base::predict_scaled_held`]): each pixel's own terms
-    /// refitted, as for the permutations (NaN when not computed).
+    /// The pooled gain on the footing of the permutations (NaN when not computed): for
+    /// [`Permuted::Change`], with the shared correction held at the fit without the
+    /// candidate ([`super::base::predict_scaled_held`]), each pixel's own terms
+    /// refitted; for [`Permuted::Temperature`], `gain`.
     pub gain_held: f64,
-    /// The pooled gain of each of the [`PERMUTATIONS`] permuted changes
-    /// (`permuted_change`), the correction held as for `gain_held`; empty when a fold
-    /// does not gain (not computed).
+    /// The pooled gain of each of the [`PERMUTATIONS`] permutations, on the footing of
+    /// `gain_held`; empty when a fold does not gain (not computed) or, for
+    /// [`Permuted::Temperature`], when the sequence's temperatures have fewer
+    /// arrangements.
     pub permuted_gains: Vec<f64>,
+    /// What was permuted.
+    pub permuted: Permuted,
+}
+
+/// What the permutations of a held-out check move.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Permuted {
+    /// The candidate's predicted change, to other pixels and illumination events
+    /// (`permuted_change`).
+    Change,
+    /// The focal-plane temperatures, among the illumination events
+    /// (`permuted_temperatures`): for a candidate whose rate hooks change the model's
+    /// clock ([`Clock`]), which the pixel reference's decay follows, so that no change
+    /// of the prediction alone stands for it. The candidate is run at each arrangement
+    /// and the pixel reference fitted on it in full.
+    Temperature,
+}
+
+impl Permuted {
+    /// "permutations of its change", as the verdict says it.
+    pub fn phrase(self) -> &'static str {
+        match self {
+            Permuted::Change => "permutations of its change",
+            Permuted::Temperature => {
+                "arrangements of the focal-plane temperatures among the illumination events"
+            }
+        }
+    }
 }
 
 impl PixelHeldOut {
@@ -239,6 +270,7 @@ impl PixelHeldOut {
 /// correction held ([`super::base::predict_scaled_held`]) the change and its
 /// permutations (in permutation order; None and empty when not computed).
 struct PixelFold {
+    permuted: Permuted,
     real: Option<HeldOutSums>,
     /// The candidate's change with the shared correction held (what the permutations
     /// are compared with).
@@ -249,6 +281,7 @@ struct PixelFold {
 /// The folds' pixel-reference sums, pooled; a fold without them spoils the pool.
 #[derive(Debug, Clone, Default)]
 struct PixelSums {
+    permuted: Option<Permuted>,
     all: HeldOutSums,
     fold_gains: Vec<f64>,
     /// Per permutation, pooled over the folds (None once a fold lacks it).
@@ -262,6 +295,11 @@ struct PixelSums {
 impl PixelSums {
     fn add(&mut self, fold: PixelFold) {
         let first = self.fold_gains.is_empty() && !self.incomplete;
+        // the folds' permutations pool only when they move the same thing
+        if self.permuted.is_some_and(|p| p != fold.permuted) {
+            self.null.clear();
+        }
+        self.permuted = Some(fold.permuted);
         match fold.real {
             Some(f) => {
                 self.fold_gains.push(f.gain());
@@ -302,6 +340,7 @@ impl PixelSums {
             fold_gains: self.fold_gains.clone(),
             gain_held: self.held.as_ref().map_or(f64::NAN, HeldOutSums::gain),
             permuted_gains,
+            permuted: self.permuted.unwrap_or(Permuted::Change),
         })
     }
 }
@@ -352,6 +391,59 @@ fn permuted_change(
             before[i] + if d.is_finite() { d } else { 0.0 }
         })
         .collect()
+}
+
+/// [`PERMUTATIONS`] arrangements of `seq`'s focal-plane temperatures among its
+/// illumination events, each different from the one recorded and from one another in
+/// some exposure's temperature bin ([`super::contrast::temperature_bin`]),
+/// drawn at random (seeded): an event's block (its illumination and the exposures
+/// until the next one) takes another block's temperatures, exposure by exposure (the
+/// other block's last where it is shorter); exposures before the first illumination
+/// keep theirs. A real candidate beats all of them by chance at most once in
+/// `PERMUTATIONS + 1` when where the temperatures stand carries nothing. Empty when the
+/// temperatures have fewer such arrangements (or none was found in
+/// `ARRANGEMENT_DRAWS` draws): the check then cannot be calibrated.
+fn permuted_temperatures(seq: &Sequence) -> Vec<Vec<Option<f64>>> {
+    use rand::seq::SliceRandom;
+    const ARRANGEMENT_DRAWS: usize = 50 * PERMUTATIONS;
+    let recorded = seq.temperatures_k();
+    let n = recorded.len();
+    let starts = &seq.illuminations;
+    let blocks: Vec<std::ops::Range<usize>> = (0..starts.len())
+        .map(|b| starts[b]..starts.get(b + 1).copied().unwrap_or(n))
+        .collect();
+    let mut rng = <rand_chacha::ChaCha8Rng as rand::SeedableRng>::seed_from_u64(PERMUTATION_SEED);
+    // arrangements alike in every exposure's temperature bin are one
+    let bins = |t: &[Option<f64>]| -> Vec<Option<i64>> {
+        t.iter()
+            .map(|x| x.map(super::contrast::temperature_bin))
+            .collect()
+    };
+    let mut seen = vec![bins(&recorded)];
+    let mut out = Vec::new();
+    let mut order: Vec<usize> = (0..blocks.len()).collect();
+    for _ in 0..ARRANGEMENT_DRAWS {
+        if out.len() == PERMUTATIONS {
+            break;
+        }
+        order.shuffle(&mut rng);
+        let mut temps = recorded.clone();
+        for (to, &from) in blocks.iter().zip(&order) {
+            let from = &blocks[from];
+            for (j, k) in to.clone().enumerate() {
+                temps[k] = recorded[(from.start + j).min(from.end - 1)];
+            }
+        }
+        let key = bins(&temps);
+        if !seen.contains(&key) {
+            seen.push(key);
+            out.push(temps);
+        }
+    }
+    if out.len() < PERMUTATIONS {
+        out.clear();
+    }
+    out
 }
 
 /// Held-out check of the effects `names` (one candidate, or a pair in the joint check;
@@ -412,6 +504,8 @@ pub fn held_out(
             )
         }
     };
+    // a rate hook's permutations: the temperatures' arrangements, the same in both folds
+    let arrangements = permuted_temperatures(seq);
     // the user's model's response weighs the illuminations in both pixel references
     let response = crate::model::response::Response::new(&params.amplitude_knots);
     // the two folds in parallel, combined in fold order
@@ -450,7 +544,24 @@ pub fn held_out(
         // the permutations, only where the fold gains (a fold that does not gain fails
         // the gate whatever they give); the candidate and its permutations compared on
         // one footing, the shared correction held at the fit without the candidate
+        let clock_moved = after_clock != before_clock;
         let (held, null) = match real {
+            Some(r) if r.after < r.before && clock_moved => {
+                // the candidate at each arrangement of the temperatures, on a full fit
+                let null = arrangements
+                    .iter()
+                    .map(|temps_k| {
+                        let current =
+                            eval::predict_at_temperatures(&fitted, seq, &ts, false, temps_k)?
+                                .current;
+                        let clock = Clock::of_model_at_temperatures(&fitted, seq, temps_k);
+                        let scaled =
+                            super::base::predict_scaled(seq, &clock, &ts, &current, &response);
+                        Ok(HeldOutSums::of(&pixel_before, &scaled.cells(&ts)))
+                    })
+                    .collect::<Result<Vec<_>>>()?;
+                (Some(r), null)
+            }
             Some(r) if r.after < r.before => {
                 let held = |current: &[f64]| {
                     super::base::predict_scaled_held(seq, &ts, current, &response, &scaled_before)
@@ -470,9 +581,19 @@ pub fn held_out(
             }
             _ => (None, Vec::new()),
         };
+        let permuted = if clock_moved {
+            Permuted::Temperature
+        } else {
+            Permuted::Change
+        };
         Ok((
             HeldOutSums::of(&before, &after),
-            PixelFold { real, held, null },
+            PixelFold {
+                permuted,
+                real,
+                held,
+                null,
+            },
         ))
     };
     let (f0, f1) = rayon::join(|| fold(0), || fold(1));
@@ -638,6 +759,44 @@ impl HeldOutSums {
 mod tests {
     use super::*;
     use crate::model::params::EffectSpec;
+
+    /// The temperatures' arrangements (`permuted_temperatures`) on a campaign of six
+    /// illuminations at 78, 80, 80, 80, 80 and 82 K (the family generator's form): 30
+    /// arrangements of the events' temperatures, so 19 that differ from the one recorded
+    /// and from one another, each a reordering of the events' blocks (each block at
+    /// one event's temperatures); two events at 78 and 82 K have one other arrangement
+    /// only, too few to calibrate the check.
+    #[test]
+    fn temperature_arrangements_reorder_the_events_and_differ_from_the_record() {
+        let temps = [78.0, 80.0, 80.0, 80.0, 80.0, 82.0];
+        let seq = super::super::base::tests::campaign_at(&temps);
+        let recorded = seq.temperatures_k();
+        let arrangements = permuted_temperatures(&seq);
+        assert_eq!(arrangements.len(), PERMUTATIONS);
+        // an event's temperature: its first dark's (the simulator's, within 0.01 K)
+        let of_events = |t: &[Option<f64>]| -> Vec<f64> {
+            seq.illuminations
+                .iter()
+                .map(|&a| (t[a + 1].unwrap() * 10.0).round() / 10.0)
+                .collect()
+        };
+        let mut sorted_record = of_events(&recorded);
+        sorted_record.sort_by(f64::total_cmp);
+        assert_eq!(sorted_record, temps.to_vec());
+        for (i, a) in arrangements.iter().enumerate() {
+            assert_eq!(a.len(), recorded.len());
+            assert_ne!(a, &recorded);
+            assert!(arrangements[..i].iter().all(|b| b != a));
+            let mut events = of_events(a);
+            assert_ne!(events, of_events(&recorded));
+            events.sort_by(f64::total_cmp);
+            assert_eq!(events, temps.to_vec());
+        }
+        assert!(
+            permuted_temperatures(&super::super::base::tests::campaign_at(&[78.0, 82.0]))
+                .is_empty()
+        );
+    }
 
     /// One sampled pixel, one row per illumination event of the campaign in the family
     /// generator (`src/trapgen/scene.rs`): 481 s at 80 K except the second (120 s) and

@@ -139,14 +139,14 @@ fn dependence_sentence(w: &contrast::Dependence, outpredicted: &str) -> String {
     let why = if outpredicted.is_empty() {
         format!(
             "no library effect acting on it ({}) predicts held-out data better than the \
-             pixel reference beyond the {PERMUTATIONS} permutations of its change",
+             pixel reference beyond {PERMUTATIONS} permutations of its change (or, for \
+             a rate hook, of the temperatures)",
             w.effects.join(", ")
         )
     } else {
         format!(
-            "{outpredicted} predicts held-out data beyond the {PERMUTATIONS} permutations \
-             of its change, but with less than half of the gain of the data-driven term \
-             along it"
+            "{outpredicted} predicts held-out data beyond {PERMUTATIONS} permutations, but \
+             with less than half of the gain of the data-driven term along it"
         )
     };
     format!(
@@ -352,10 +352,11 @@ fn held_out_clause(p: &super::refit::PixelHeldOut, per_event: Option<f64>) -> St
     format!(
         "predicts held-out data better than the pixel reference alone (fitted on one \
          half, the pixel reference's RMS on the other {:.2} -> {:.2}, gain {:.2}, the \
-         largest of {PERMUTATIONS} permutations of its change {:.2}{})",
+         largest of {PERMUTATIONS} {} {:.2}{})",
         p.rms_before,
         p.rms_after,
         p.gain,
+        p.permuted.phrase(),
         p.permuted_max(),
         floor_clause(p, per_event),
     )
@@ -673,6 +674,7 @@ mod tests {
             fold_gains: vec![0.04, 0.05],
             gain_held: 0.0,
             permuted_gains: Vec::new(),
+            permuted: crate::diag::refit::Permuted::Change,
         };
         let small = held(1.88, 1.80);
         let share = floor_share(&small, Some(1.02)).unwrap();

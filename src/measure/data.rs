@@ -187,6 +187,14 @@ impl Sequence {
         Ok(seq)
     }
 
+    /// Each exposure's focal-plane temperature, K, as recorded (None where not).
+    pub fn temperatures_k(&self) -> Vec<Option<f64>> {
+        self.exposures
+            .iter()
+            .map(|e| e.meta.focal_plane_temp_k)
+            .collect()
+    }
+
     /// A laboratory sequence: some exposure states its illumination time
     /// (`t_illuminated_s`); else sky data, every exposure an illumination.
     pub fn is_laboratory(&self) -> bool {

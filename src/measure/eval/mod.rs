@@ -26,7 +26,7 @@ pub use quality::{
     flag_quality, flag_quality_by_cell, flag_quality_of, flag_quality_of_samples, pixels_of,
     touched_samples, FlagQuality,
 };
-pub use runner::{predict, predict_in, Layout, Prediction, GATHERED_COLS};
+pub use runner::{predict, predict_at_temperatures, predict_in, Layout, Prediction, GATHERED_COLS};
 pub use samples::{Cells, Samples};
 
 #[cfg(test)]

@@ -64,6 +64,38 @@ pub fn predict_in(
     early_release: bool,
     layout: Layout,
 ) -> Result<Prediction> {
+    run(params, seq, samples, early_release, layout, None)
+}
+
+/// [`predict`] with each exposure's focal-plane temperature `temps_k[k]` (one per
+/// exposure of `seq`) in place of the one it records: the model as it would run had the
+/// exposures been taken at those temperatures (a permutation of the covariate, for
+/// example).
+pub fn predict_at_temperatures(
+    params: &ModelParams,
+    seq: &Sequence,
+    samples: &Samples,
+    early_release: bool,
+    temps_k: &[Option<f64>],
+) -> Result<Prediction> {
+    run(
+        params,
+        seq,
+        samples,
+        early_release,
+        Layout::Gathered,
+        Some(temps_k),
+    )
+}
+
+fn run(
+    params: &ModelParams,
+    seq: &Sequence,
+    samples: &Samples,
+    early_release: bool,
+    layout: Layout,
+    temps_k: Option<&[Option<f64>]>,
+) -> Result<Prediction> {
     let mut p = params.clone();
     if !early_release {
         p.early_release.enabled = false;
@@ -128,7 +160,7 @@ pub fn predict_in(
             &mut st,
             &input,
             &StepContext {
-                focal_plane_temp_k: e.meta.focal_plane_temp_k,
+                focal_plane_temp_k: temps_k.map_or(e.meta.focal_plane_temp_k, |t| t[k]),
                 active_pixels: active.as_deref(),
             },
             &mut Output {
