@@ -975,7 +975,7 @@ pub(super) mod tests {
     }
 
     /// The default model with `temperature` at `activation_ev`.
-    fn model_with_temperature(activation_ev: f64) -> ModelParams {
+    pub(in crate::diag) fn model_with_temperature(activation_ev: f64) -> ModelParams {
         let mut m = ModelParams::default();
         let mut spec = crate::model::effect::EffectSpec::named("temperature");
         spec.params

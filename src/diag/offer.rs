@@ -132,6 +132,7 @@ mod tests {
             gain_held: g,
             permuted_gains: (0..PERMUTATIONS).map(|k| 0.02 - 0.001 * k as f64).collect(),
             permuted: super::super::refit::Permuted::Change,
+            too_few_arrangements: false,
         }
     }
 

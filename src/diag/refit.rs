@@ -219,6 +219,12 @@ pub struct PixelHeldOut {
     pub permuted_gains: Vec<f64>,
     /// What was permuted.
     pub permuted: Permuted,
+    /// The candidate moves the model's clock ([`Permuted::Temperature`]) and the
+    /// sequence's temperatures have fewer than [`PERMUTATIONS`] other arrangements
+    /// among its illumination events (`permuted_temperatures`): its null cannot be
+    /// drawn, so it does not pass, whatever it gains.
+    #[serde(skip_serializing_if = "std::ops::Not::not")]
+    pub too_few_arrangements: bool,
 }
 
 /// What the permutations of a held-out check move.
@@ -341,6 +347,7 @@ impl PixelSums {
             gain_held: self.held.as_ref().map_or(f64::NAN, HeldOutSums::gain),
             permuted_gains,
             permuted: self.permuted.unwrap_or(Permuted::Change),
+            too_few_arrangements: false,
         })
     }
 }
@@ -504,8 +511,9 @@ pub fn held_out(
             )
         }
     };
-    // a rate hook's permutations: the temperatures' arrangements, the same in both folds
-    let arrangements = permuted_temperatures(seq);
+    // a rate hook's permutations: the temperatures' arrangements, the same in both
+    // folds, drawn when a candidate moves the clock
+    let arrangements = std::sync::OnceLock::new();
     // the user's model's response weighs the illuminations in both pixel references
     let response = crate::model::response::Response::new(&params.amplitude_knots);
     // the two folds in parallel, combined in fold order
@@ -549,6 +557,7 @@ pub fn held_out(
             Some(r) if r.after < r.before && clock_moved => {
                 // the candidate at each arrangement of the temperatures, on a full fit
                 let null = arrangements
+                    .get_or_init(|| permuted_temperatures(seq))
                     .iter()
                     .map(|temps_k| {
                         let current =
@@ -632,7 +641,11 @@ pub fn held_out(
         rms_after: ra,
         gain,
         passes: gain >= HELD_OUT_MIN_GAIN,
-        pixel_reference: pixel.result(),
+        pixel_reference: pixel.result().map(|p| PixelHeldOut {
+            too_few_arrangements: p.permuted == Permuted::Temperature
+                && arrangements.get().is_some_and(Vec::is_empty),
+            ..p
+        }),
         moved_cells: all.moved,
         rms_before_moved: rbm,
         rms_after_moved: ram,
@@ -796,6 +809,54 @@ mod tests {
             permuted_temperatures(&super::super::base::tests::campaign_at(&[78.0, 82.0]))
                 .is_empty()
         );
+    }
+
+    /// A rate hook where the temperatures have too few arrangements: a campaign of
+    /// three illuminations at 78, 82 and 80 K (`base::tests::campaign_at`, 5 other
+    /// arrangements), measured as the default model with `temperature` at 0.25 eV plus
+    /// each exposure's noise. Held out against the default model, `temperature` gains
+    /// on the pixel reference in each half; its null cannot be drawn, so the check says
+    /// so (`too_few_arrangements`) and does not pass.
+    #[test]
+    fn a_rate_hook_gains_but_does_not_pass_where_the_temperatures_have_too_few_arrangements() {
+        use rand::SeedableRng;
+        use rand_distr::Distribution;
+        let seq = super::super::base::tests::campaign_at(&[78.0, 82.0, 80.0]);
+        let model = ModelParams::default();
+        let truth = super::super::base::tests::model_with_temperature(0.25);
+        let cfg = super::super::config::Config::default();
+        let mut s = Samples::random(&seq, cfg.pixels, cfg.seed)
+            .with_cells(cfg.cells)
+            .with_statistic(cfg.cell_statistic);
+        let predict = |m: &ModelParams| eval::predict(m, &seq, &s, false).unwrap().current;
+        let (measured, base) = (predict(&truth), predict(&model));
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(1);
+        let np = s.npix();
+        s.measured = measured
+            .iter()
+            .enumerate()
+            .map(|(i, m)| {
+                let z: f64 = rand_distr::StandardNormal.sample(&mut rng);
+                m + s.noise[i / np] * z
+            })
+            .collect();
+        let h = held_out(
+            &model,
+            &base,
+            None,
+            &["temperature"],
+            &seq,
+            &s,
+            Refit::Candidate,
+        )
+        .unwrap()
+        .expect("a held-out check");
+        let p = h.pixel_reference.expect("the pixel reference held out");
+        assert_eq!(p.permuted, Permuted::Temperature);
+        assert!(p.fold_gains.iter().all(|&g| g > 0.0), "{p:?}");
+        assert!(p.too_few_arrangements, "{p:?}");
+        assert!(p.permuted_gains.is_empty(), "{p:?}");
+        assert!(!p.beats_permutations());
     }
 
     /// One sampled pixel, one row per illumination event of the campaign in the family

@@ -36,7 +36,7 @@ pub fn verdict(d: &Diagnosis, params: &ModelParams, held: bool) -> String {
         None if winner.is_some() && d.decide == Decide::Contrast => {
             let w = winner.expect("checked");
             confounded_prefix(d.separation.as_ref(), &w.class)
-                + &dependence_sentence(w, &outpredicted(d))
+                + &dependence_sentence(w, &outpredicted(d), &uncalibrated(d))
                 + &separation_sentence(d.separation.as_ref(), &w.class)
                 + &match &d.offer {
                     Some(o) => offer_sentence(o, d, params, held),
@@ -131,11 +131,49 @@ fn outpredicted(d: &Diagnosis) -> String {
         .join(", ")
 }
 
+/// Whether a held-out check gains in each half but moves the model's clock where the
+/// temperatures have too few arrangements to draw its null
+/// ([`super::refit::PixelHeldOut::too_few_arrangements`]).
+fn gains_uncalibrated(h: Option<&super::refit::HeldOut>) -> bool {
+    h.and_then(|h| h.pixel_reference.as_ref()).is_some_and(|p| {
+        p.too_few_arrangements && p.gain > 0.0 && p.fold_gains.iter().all(|&g| g > 0.0)
+    })
+}
+
+/// The candidates (library effects, then the data-driven term) that gain held out but
+/// whose check cannot be calibrated ([`gains_uncalibrated`]), joined.
+fn uncalibrated(d: &Diagnosis) -> String {
+    let library = d
+        .ranking
+        .iter()
+        .filter(|c| gains_uncalibrated(c.held_out.as_ref()));
+    let term = d
+        .data_term
+        .iter()
+        .filter(|t| gains_uncalibrated(t.held_out.as_ref()));
+    library
+        .map(|c| c.effect.as_str())
+        .chain(term.map(|t| t.effect.as_str()))
+        .collect::<Vec<_>>()
+        .join(", ")
+}
+
 /// The verdict when the residual depends on `w`'s covariate and no library effect is
 /// declared: none predicts held-out data better than the pixel reference beyond the
 /// permutations of its change, or those that do (`outpredicted`) take less than half
-/// of the data-driven term's gain.
-fn dependence_sentence(w: &contrast::Dependence, outpredicted: &str) -> String {
+/// of the data-driven term's gain; `uncalibrated`: those that gain held out but whose
+/// check cannot be calibrated on these data's temperatures ([`uncalibrated`]).
+fn dependence_sentence(w: &contrast::Dependence, outpredicted: &str, uncalibrated: &str) -> String {
+    let too_few = if uncalibrated.is_empty() {
+        String::new()
+    } else {
+        format!(
+            ". {uncalibrated} gain held out in each half, but the focal-plane temperatures \
+             have fewer than {PERMUTATIONS} other arrangements among these illumination \
+             events, so that gain cannot be told from chance: illumination events at more \
+             temperatures would test it"
+        )
+    };
     let why = if outpredicted.is_empty() {
         format!(
             "no library effect acting on it ({}) predicts held-out data better than the \
@@ -153,7 +191,7 @@ fn dependence_sentence(w: &contrast::Dependence, outpredicted: &str) -> String {
         "the residual of {} depends on {} (it explains {:.1} % of the residual's sum \
          of squares inside the fluence x time cells, {:.1} % at most over {} \
          permutations; z {:.1}), but {why}: the missing physics may be of this kind in \
-         another form. The residual by {}: {}",
+         another form. The residual by {}: {}{too_few}",
         contrast::base_name(&w.class),
         w.class,
         100.0 * w.r2,
@@ -411,6 +449,13 @@ fn data_term_sentence(
             None => ". No data-driven term follows this covariate".into(),
         };
     };
+    if gains_uncalibrated(t.held_out.as_ref()) {
+        return format!(
+            ". The data-driven term along it ({}) is not offered: its held-out check \
+             cannot be calibrated on these temperatures (above)",
+            t.effect
+        );
+    }
     let gain = t
         .held_out
         .as_ref()
@@ -661,6 +706,40 @@ mod tests {
         assert_eq!(separation_sentence(None, "temperature"), "");
     }
 
+    /// A candidate that gains held out where its null cannot be drawn is named with the
+    /// reason and the data that would test it; without one the sentence says nothing
+    /// of it.
+    #[test]
+    fn a_gain_that_cannot_be_calibrated_is_named_with_what_would_test_it() {
+        let w = contrast::Dependence {
+            class: "temperature".into(),
+            effects: vec!["temperature".into()],
+            r2: 0.04,
+            r2_null_mean: 0.001,
+            r2_null_max: 0.003,
+            z: 40.0,
+            permutations: 99,
+            depends: true,
+            above_permutations: true,
+            by_bin: vec![("78 K".into(), 120, -0.4), ("82 K".into(), 120, 0.5)],
+        };
+        let s = dependence_sentence(&w, "", "temperature, smooth_temperature");
+        assert!(
+            s.contains(
+                "temperature, smooth_temperature gain held out in each half, but the \
+                 focal-plane temperatures have fewer than 19 other arrangements"
+            ),
+            "{s}"
+        );
+        assert!(
+            s.ends_with("illumination events at more temperatures would test it"),
+            "{s}"
+        );
+        let plain = dependence_sentence(&w, "", "");
+        assert!(!plain.contains("arrangements"), "{plain}");
+        assert!(plain.ends_with("82 K: +0.50 (120 pixel-events)"), "{plain}");
+    }
+
     /// The offer's share of the excess over the per-event floor: capacity:ceiling's
     /// numbers (family campaign, 64 x 64, seed 1: held out 1.88 -> 1.80, per-event
     /// floor 1.02) take 9 % and say the rest is in no form tried; an offer that takes
@@ -675,6 +754,7 @@ mod tests {
             gain_held: 0.0,
             permuted_gains: Vec::new(),
             permuted: crate::diag::refit::Permuted::Change,
+            too_few_arrangements: false,
         };
         let small = held(1.88, 1.80);
         let share = floor_share(&small, Some(1.02)).unwrap();
