@@ -39,10 +39,11 @@
 #   offers docs/validation/offers.md            scripts/offers_table.sh: what the addition
 #                                               `diagnose` offers, run as printed, does to
 #                                               the pixel reference's RMS on the second
-#                                               generator's hidden campaigns, against the
-#                                               nothing-hidden baseline, seeds 1-5
-#                                               ($OFFERS_SEEDS; about two hours; not in the
-#                                               default set)
+#                                               generator's hidden campaigns (every form
+#                                               not held aside), against the nothing-hidden
+#                                               baseline, seeds 1-5 ($OFFERS_SEEDS; a subset
+#                                               of forms: $OFFERS_ROWS; about 50 minutes a
+#                                               seed; not in the default set)
 #   kinds  docs/validation/kinds.md             scripts/kinds_table.sh: the kind `diagnose`
 #                                               names on the second generator's campaigns,
 #                                               nothing hidden and event-level hidden forms,
@@ -427,9 +428,9 @@ page_offers() {
     echo "offers: scripts/offers_table.sh" >&2
     {
         scripts/validation_header.sh "What the offered addition does, on the second generator's campaigns" \
-            "make validation PAGES=offers (scripts/offers_table.sh; SEEDS=\"${OFFERS_SEEDS:-1 2 3 4 5}\")"
-        PERSIST_BIN=$persist SEEDS="${OFFERS_SEEDS:-1 2 3 4 5}" WORK=$tmp/offers \
-            scripts/offers_table.sh
+            "make validation PAGES=offers (scripts/offers_table.sh; SEEDS=\"${OFFERS_SEEDS:-1 2 3 4 5}\"${OFFERS_ROWS:+; ROWS=\"$OFFERS_ROWS\"})"
+        PERSIST_BIN=$persist SEEDS="${OFFERS_SEEDS:-1 2 3 4 5}" ROWS="${OFFERS_ROWS:-}" \
+            WORK=$tmp/offers scripts/offers_table.sh
     } > "$page.tmp"
     mv "$page.tmp" "$page"
     echo "wrote $page" >&2
