@@ -1,8 +1,9 @@
 #!/usr/bin/env bash
 # The kind `persist diagnose` names, measured on the second truth generator's
 # campaigns (`persist simulate family --sequence campaign`, 64 x 64, seeds 1-5): nothing
-# hidden (with and without dark pixels) and every hidden form whose class a library
-# effect stands for on an event-level covariate. Default `fit`, then the first step of
+# hidden (with dark pixels, and with the grid of one-pixel pinholes) and every hidden
+# form the family matrix runs (examples/family_matrix: those not held aside; blooming
+# and ipc, which couple neighbours, with the pinholes). Default `fit`, then the first step of
 # `diagnose` with its defaults (examples/dependence_scan: the dependences, the separation
 # of the two leading kinds, the kind named). Prints Markdown on stdout
 # (scripts/validation.sh kinds writes it to docs/validation/kinds.md).
@@ -14,17 +15,21 @@ persist=${PERSIST_BIN:-target/release/persist}
 scan=${SCAN_BIN:-target/release/examples/dependence_scan}
 work=${WORK:-$(mktemp -d)}
 seeds=${SEEDS:-1 2 3 4 5}
-rows=${ROWS:-none none+dark soak:capture soak:diffusion capacity:ceiling capacity:langmuir temperature:arrhenius}
+rows=${ROWS:-none none+dark none+pinholes soak:capture soak:diffusion capacity:ceiling capacity:langmuir temperature:arrhenius blooming:spill blooming:field ipc:cross4 ipc:aniso8 populations:smooth shape:fill_depth}
 mkdir -p "$work"
 
 cat <<'TEXT'
 What the residual depends on, and the kind `persist diagnose` names from it (module
 docs of `persist::diag::contrast` and `persist::diag::separate`): event-level classes
-against the pixel reference, the two leading ones tested each given the other. "Depends":
-above all 99 permutations and explaining at least `MIN_R2_EVENT` of the residual's sum
-of squares beyond their mean. Right kind: the hidden class's contrast class (soak:
-illumination_time; capacity: earlier_illuminations; temperature: temperature), or
-nothing where nothing is hidden. "With one other": named together with one other kind
+against the pixel reference, the two leading ones tested each given the other;
+pixel-level classes (neighbours, position) against the flexible base. "Depends": above
+all 99 permutations and explaining at least `MIN_R2_EVENT` (event-level) or `MIN_R2`
+(pixel-level) of the residual's sum of squares beyond their mean. Right kind: the
+hidden class's contrast class (soak: illumination_time; capacity:
+earlier_illuminations; temperature: temperature; blooming and ipc:
+neighbour_excess_fluence; populations: position; shape, a decay shape that depends on
+the fluence: fluence_x_time, which no contrast tests, so it is never named), or nothing
+where nothing is hidden. "With one other": named together with one other kind
 (confounded, or each depending beyond the other), with the measurement that separates
 them. Largest below: the largest share explained by a class that does not depend.
 
@@ -38,13 +43,18 @@ for seed in $seeds; do
         expect=none
         case $row in
             none+dark) args+=(--dark-pixels) ;;
+            none+pinholes) args+=(--pinholes on) ;;
             none) ;;
+            blooming:* | ipc:*) args+=(--hidden "$row" --pinholes on) ;;
             *) args+=(--hidden "$row") ;;
         esac
         case $row in
             soak:*) expect=illumination_time ;;
             capacity:*) expect=earlier_illuminations ;;
             temperature:*) expect=temperature ;;
+            blooming:* | ipc:*) expect=neighbour_excess_fluence ;;
+            populations:*) expect=position ;;
+            shape:*) expect=fluence_x_time ;;
         esac
         "$persist" --log-level error simulate family "${args[@]}" > /dev/null
         "$persist" --log-level error fit --input "$dir" --out "$dir.json" > /dev/null

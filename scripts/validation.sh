@@ -46,9 +46,9 @@
 #                                               seed; not in the default set)
 #   kinds  docs/validation/kinds.md             scripts/kinds_table.sh: the kind `diagnose`
 #                                               names on the second generator's campaigns,
-#                                               nothing hidden and event-level hidden forms,
-#                                               seeds 1-5 (about 20 minutes; not in the
-#                                               default set)
+#                                               nothing hidden and every hidden form not
+#                                               held aside, seeds 1-5 (about 40 minutes;
+#                                               not in the default set)
 #   long_tests  docs/validation/long_tests.md  the tests too long for `make test`
 #                                               (`#[ignore = "long: ..."]`): `cargo test
 #                                               --release -- --ignored`, each test's result
