@@ -975,6 +975,38 @@ pub(super) mod tests {
     }
 
     /// The default model with `temperature` at `activation_ev`.
+    /// `seq`'s samples as `diagnose` draws them by default, measured as `truth`'s
+    /// prediction plus each exposure's noise (seeded), and `model`'s prediction of them.
+    pub(in crate::diag) fn measured_as(
+        seq: &Sequence,
+        truth: &ModelParams,
+        model: &ModelParams,
+    ) -> (Samples, Vec<f64>) {
+        use rand::SeedableRng;
+        use rand_distr::Distribution;
+        let cfg = super::super::config::Config::default();
+        let mut s = Samples::random(seq, cfg.pixels, cfg.seed)
+            .with_cells(cfg.cells)
+            .with_statistic(cfg.cell_statistic);
+        let predict = |m: &ModelParams| {
+            crate::measure::eval::predict(m, seq, &s, false)
+                .unwrap()
+                .current
+        };
+        let (measured, pred) = (predict(truth), predict(model));
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(1);
+        let np = s.npix();
+        s.measured = measured
+            .iter()
+            .enumerate()
+            .map(|(i, m)| {
+                let z: f64 = rand_distr::StandardNormal.sample(&mut rng);
+                m + s.noise[i / np] * z
+            })
+            .collect();
+        (s, pred)
+    }
+
     pub(in crate::diag) fn model_with_temperature(activation_ev: f64) -> ModelParams {
         let mut m = ModelParams::default();
         let mut spec = crate::model::effect::EffectSpec::named("temperature");
@@ -1040,8 +1072,6 @@ pub(super) mod tests {
     /// there; at 80 K throughout the two agree.
     #[test]
     fn the_pixel_reference_fits_illuminations_at_three_temperatures_better_on_the_models_clock() {
-        use rand::SeedableRng;
-        use rand_distr::Distribution;
         let model = model_with_temperature(0.25);
         let mut truth = model.clone();
         let r1 = truth.terms[0].rate_per_s;
@@ -1051,23 +1081,7 @@ pub(super) mod tests {
         let response = Response::new(&model.amplitude_knots);
         let rms = |temps_k: [f64; 3]| -> (f64, f64) {
             let seq = campaign_at(&temps_k);
-            let cfg = super::super::config::Config::default();
-            let mut s = Samples::random(&seq, cfg.pixels, cfg.seed)
-                .with_cells(cfg.cells)
-                .with_statistic(cfg.cell_statistic);
-            let predict =
-                |m: &ModelParams| crate::measure::eval::predict(m, &seq, &s, false).unwrap();
-            let (measured, pred) = (predict(&truth).current, predict(&model).current);
-            let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(1);
-            let np = s.npix();
-            s.measured = measured
-                .iter()
-                .enumerate()
-                .map(|(i, m)| {
-                    let z: f64 = rand_distr::StandardNormal.sample(&mut rng);
-                    m + s.noise[i / np] * z
-                })
-                .collect();
+            let (s, pred) = measured_as(&seq, &truth, &model);
             let on = |clock: &Clock| {
                 crate::measure::eval::rms(
                     &predict_scaled(&seq, clock, &s, &pred, &response).cells(&s),

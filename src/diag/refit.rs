@@ -819,27 +819,10 @@ mod tests {
     /// so (`too_few_arrangements`) and does not pass.
     #[test]
     fn a_rate_hook_gains_but_does_not_pass_where_the_temperatures_have_too_few_arrangements() {
-        use rand::SeedableRng;
-        use rand_distr::Distribution;
-        let seq = super::super::base::tests::campaign_at(&[78.0, 82.0, 80.0]);
+        use super::super::base::tests::{campaign_at, measured_as, model_with_temperature};
+        let seq = campaign_at(&[78.0, 82.0, 80.0]);
         let model = ModelParams::default();
-        let truth = super::super::base::tests::model_with_temperature(0.25);
-        let cfg = super::super::config::Config::default();
-        let mut s = Samples::random(&seq, cfg.pixels, cfg.seed)
-            .with_cells(cfg.cells)
-            .with_statistic(cfg.cell_statistic);
-        let predict = |m: &ModelParams| eval::predict(m, &seq, &s, false).unwrap().current;
-        let (measured, base) = (predict(&truth), predict(&model));
-        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(1);
-        let np = s.npix();
-        s.measured = measured
-            .iter()
-            .enumerate()
-            .map(|(i, m)| {
-                let z: f64 = rand_distr::StandardNormal.sample(&mut rng);
-                m + s.noise[i / np] * z
-            })
-            .collect();
+        let (s, base) = measured_as(&seq, &model_with_temperature(0.25), &model);
         let h = held_out(
             &model,
             &base,
