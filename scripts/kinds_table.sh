@@ -15,7 +15,9 @@ persist=${PERSIST_BIN:-target/release/persist}
 scan=${SCAN_BIN:-target/release/examples/dependence_scan}
 work=${WORK:-$(mktemp -d)}
 seeds=${SEEDS:-1 2 3 4 5}
-rows=${ROWS:-none none+dark none+pinholes soak:capture soak:diffusion capacity:ceiling capacity:langmuir temperature:arrhenius blooming:spill blooming:field ipc:cross4 ipc:aniso8 populations:smooth shape:fill_depth}
+# shellcheck source=scripts/family_forms.sh
+source "$(dirname "$0")/family_forms.sh"
+rows=${ROWS:-none none+dark none+pinholes $FAMILY_FORMS}
 mkdir -p "$work"
 
 cat <<'TEXT'
@@ -43,11 +45,11 @@ for seed in $seeds; do
         expect=none
         case $row in
             none+dark) args+=(--dark-pixels) ;;
-            none+pinholes) args+=(--pinholes on) ;;
-            none) ;;
-            blooming:* | ipc:*) args+=(--hidden "$row" --pinholes on) ;;
+            none | none+pinholes) ;;
             *) args+=(--hidden "$row") ;;
         esac
+        read -r -a pin <<< "$(pinhole_args "$row")"
+        args+=("${pin[@]}")
         case $row in
             soak:*) expect=illumination_time ;;
             capacity:*) expect=earlier_illuminations ;;

@@ -15,7 +15,9 @@ set -euo pipefail
 persist=$(realpath "${PERSIST_BIN:-target/release/persist}")
 work=${WORK:-$(mktemp -d)}
 seeds=${SEEDS:-1 2 3 4 5}
-rows=${ROWS:-soak:capture soak:diffusion capacity:ceiling capacity:langmuir temperature:arrhenius blooming:spill blooming:field ipc:cross4 ipc:aniso8 populations:smooth shape:fill_depth}
+# shellcheck source=scripts/family_forms.sh
+source "$(dirname "$0")/family_forms.sh"
+rows=${ROWS:-$FAMILY_FORMS}
 mkdir -p "$work"
 
 cat <<'TEXT'
@@ -60,33 +62,24 @@ diagnose_rms() {
     "$persist" --log-level error diagnose --input "$1" --model "$2"
 }
 
-# The pinhole grid for a row ($1): on for the forms that couple neighbours, else the
-# seed's own draw ("seed").
-pinholes() {
-    case $1 in blooming:* | ipc:*) echo on ;; *) echo seed ;; esac
-}
-
-# persist simulate family's option for that ($1).
-pinhole_arg() {
-    [[ $1 == on ]] && echo "--pinholes on" || true
-}
-
 for seed in $seeds; do
+    # the baseline of each pinhole option the rows use, keyed "pin:OPTION"
     declare -A baseline=()
-    for pin in $(for row in $rows; do pinholes "$row"; done | sort -u); do
-        base_dir=$work/none-$pin-$seed
-        # shellcheck disable=SC2046
+    mapfile -t pins < <(for row in $rows; do printf '%s\n' "$(pinhole_args "$row")"; done | sort -u)
+    for pin in "${pins[@]}"; do
+        base_dir=$work/none-$seed
+        # shellcheck disable=SC2086
         "$persist" --log-level error simulate family --out "$base_dir" --size 64 --seed "$seed" \
-            --sequence campaign $(pinhole_arg "$pin") > /dev/null
+            --sequence campaign $pin > /dev/null
         "$persist" --log-level error fit --input "$base_dir" --out "$base_dir.json" > /dev/null
-        baseline[$pin]=$(pixel_rms "$(diagnose_rms "$base_dir" "$base_dir.json")")
+        baseline["pin:$pin"]=$(pixel_rms "$(diagnose_rms "$base_dir" "$base_dir.json")")
         rm -rf "$base_dir" "$base_dir".json "$base_dir".fit.json
     done
     for row in $rows; do
         dir=$work/${row//[:+]/_}-$seed
         # shellcheck disable=SC2046
         "$persist" --log-level error simulate family --out "$dir" --size 64 --seed "$seed" \
-            --sequence campaign --hidden "$row" $(pinhole_arg "$(pinholes "$row")") > /dev/null
+            --sequence campaign --hidden "$row" $(pinhole_args "$row") > /dev/null
         "$persist" --log-level error fit --input "$dir" --out "$dir.json" > /dev/null
         out=$(diagnose_rms "$dir" "$dir.json")
         before=$(pixel_rms "$out")
@@ -106,7 +99,7 @@ for seed in $seeds; do
             after=$(pixel_rms "$(diagnose_rms "$dir" "$model")")
         fi
         awk -v run="$row, seed $seed" -v kind="${kind:-?}" -v off="$offered" -v b="$before" \
-            -v a="$after" -v z="${baseline[$(pinholes "$row")]}" 'BEGIN {
+            -v a="$after" -v z="${baseline["pin:$(pinhole_args "$row")"]}" 'BEGIN {
                 eb = b - z
                 if (a == "-") {
                     printf "| %s | %s | %s | %.2f | - | %.2f | %+.2f -> - | no |\n", run, kind, off, b, z, eb

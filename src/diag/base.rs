@@ -974,7 +974,6 @@ pub(super) mod tests {
         Sequence::from_exposures(exposures).unwrap()
     }
 
-    /// The default model with `temperature` at `activation_ev`.
     /// `seq`'s samples as `diagnose` draws them by default, measured as `truth`'s
     /// prediction plus each exposure's noise (seeded), and `model`'s prediction of them.
     pub(in crate::diag) fn measured_as(
@@ -1007,6 +1006,7 @@ pub(super) mod tests {
         (s, pred)
     }
 
+    /// The default model with `temperature` at `activation_ev`.
     pub(in crate::diag) fn model_with_temperature(activation_ev: f64) -> ModelParams {
         let mut m = ModelParams::default();
         let mut spec = crate::model::effect::EffectSpec::named("temperature");

@@ -255,6 +255,17 @@ impl Permuted {
 }
 
 impl PixelHeldOut {
+    /// The candidate gains, pooled and in each fold.
+    pub fn gains_in_each_fold(&self) -> bool {
+        self.gain > 0.0 && self.fold_gains.iter().all(|&g| g > 0.0)
+    }
+
+    /// It gains in each fold, but its null could not be drawn
+    /// ([`PixelHeldOut::too_few_arrangements`]): a gain that cannot be told from chance.
+    pub fn gains_uncalibrated(&self) -> bool {
+        self.too_few_arrangements && self.gains_in_each_fold()
+    }
+
     /// The largest permuted gain (NaN when none was computed).
     pub fn permuted_max(&self) -> f64 {
         self.permuted_gains.iter().copied().fold(f64::NAN, f64::max)
@@ -265,8 +276,7 @@ impl PixelHeldOut {
     /// of its change (a chance of at most `1 / (PERMUTATIONS + 1)` when the change is
     /// unrelated to where it is applied).
     pub fn beats_permutations(&self) -> bool {
-        self.gain > 0.0
-            && self.fold_gains.iter().all(|&g| g > 0.0)
+        self.gains_in_each_fold()
             && self.permuted_gains.len() == PERMUTATIONS
             && self.gain_held > self.permuted_max()
     }

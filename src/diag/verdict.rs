@@ -131,13 +131,11 @@ fn outpredicted(d: &Diagnosis) -> String {
         .join(", ")
 }
 
-/// Whether a held-out check gains in each half but moves the model's clock where the
-/// temperatures have too few arrangements to draw its null
-/// ([`super::refit::PixelHeldOut::too_few_arrangements`]).
+/// Whether a held-out check gains but cannot be calibrated
+/// ([`super::refit::PixelHeldOut::gains_uncalibrated`]).
 fn gains_uncalibrated(h: Option<&super::refit::HeldOut>) -> bool {
-    h.and_then(|h| h.pixel_reference.as_ref()).is_some_and(|p| {
-        p.too_few_arrangements && p.gain > 0.0 && p.fold_gains.iter().all(|&g| g > 0.0)
-    })
+    h.and_then(|h| h.pixel_reference.as_ref())
+        .is_some_and(super::refit::PixelHeldOut::gains_uncalibrated)
 }
 
 /// The candidates (library effects, then the data-driven term) that gain held out but
