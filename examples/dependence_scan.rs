@@ -33,10 +33,13 @@ fn main() {
         Reference::Measured => reference::describe(&model, &seq, &cfg).expect("description"),
         _ => model,
     };
-    let s = Samples::random(&seq, cfg.pixels, cfg.seed)
+    let mut s = Samples::random(&seq, cfg.pixels, cfg.seed)
         .with_cells(cfg.cells)
         .with_statistic(cfg.cell_statistic);
     let base = eval::predict(&model, &seq, &s, false).expect("predict");
+    let view = persist::diag::base::View::of_model(&model, &seq);
+    let response = persist::model::response::Response::new(&model.amplitude_knots);
+    persist::diag::base::scale_noise(&seq, &view, &mut s, &base.current, &response);
     let library: Vec<(&str, &str)> = REGISTRY
         .iter()
         .filter(|d| !model.effects.iter().any(|e| e.name == d.name))
@@ -44,15 +47,8 @@ fn main() {
         .map(|d| (d.name, d.covariate))
         .collect();
     let contrasts = contrast::testability(&seq, &s, &library);
-    let clock = persist::diag::base::Clock::of_model(&model, &seq);
-    let flexible = persist::diag::base::predict(&seq, &clock, &s, &base.current);
-    let scaled = persist::diag::base::predict_scaled(
-        &seq,
-        &clock,
-        &s,
-        &base.current,
-        &persist::model::response::Response::new(&model.amplitude_knots),
-    );
+    let flexible = persist::diag::base::predict(&seq, &view, &s, &base.current);
+    let scaled = persist::diag::base::predict_scaled(&seq, &view, &s, &base.current, &response);
     let bases = Bases {
         flexible: &flexible,
         pixel_reference: &scaled.prediction,

@@ -24,9 +24,9 @@ use std::path::Path;
 fn rms(m: &ModelParams, seq: &Sequence, s: &Samples) -> (f64, Option<f64>) {
     let base = eval::predict(m, seq, s, false).expect("predict");
     let response = Response::new(&m.amplitude_knots);
-    let clock = persist::diag::base::Clock::of_model(m, seq);
-    let all = persist::diag::base::predict_scaled(seq, &clock, s, &base.current, &response);
-    let floor = persist::diag::base::per_event_rms(seq, &clock, s, &base.current, &response);
+    let view = persist::diag::base::View::of_model(m, seq);
+    let all = persist::diag::base::predict_scaled(seq, &view, s, &base.current, &response);
+    let floor = persist::diag::base::per_event_rms(seq, &view, s, &base.current, &response);
     (eval::rms(&all.cells(s)), floor.map(|f| f.0))
 }
 
@@ -61,6 +61,12 @@ fn main() {
             d.push_effect(spec);
         }
     }
+    // the noise as `diagnose` scales it, on the described model's reference
+    let mut s = s;
+    let base = eval::predict(&d, &seq, &s, false).expect("predict");
+    let view = persist::diag::base::View::of_model(&d, &seq);
+    let response = Response::new(&d.amplitude_knots);
+    persist::diag::base::scale_noise(&seq, &view, &mut s, &base.current, &response);
     let (all, floor) = rms(&d, &seq, &s);
     let floor = floor.map_or("-".to_string(), |f| format!("{f:.3}"));
     println!("pixel reference RMS {all:.3}; fitted to each event alone {floor}");

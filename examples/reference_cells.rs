@@ -23,7 +23,7 @@ fn main() {
     let model = persist::model_file::load(Path::new(&a[2])).expect("model");
     let rows: usize = a.get(3).map_or(25, |r| r.parse().expect("rows"));
     let cfg = Config::default();
-    let s = Samples::random(&seq, cfg.pixels, cfg.seed)
+    let mut s = Samples::random(&seq, cfg.pixels, cfg.seed)
         .with_cells(cfg.cells)
         .with_statistic(cfg.cell_statistic);
     let model = if std::env::var("XP_MODEL").is_ok() {
@@ -32,13 +32,11 @@ fn main() {
         persist::diag::reference::describe(&model, &seq, &cfg).expect("description")
     };
     let base = eval::predict(&model, &seq, &s, false).expect("predict");
-    let r = persist::diag::base::predict_scaled(
-        &seq,
-        &persist::diag::base::Clock::of_model(&model, &seq),
-        &s,
-        &base.current,
-        &persist::model::response::Response::new(&model.amplitude_knots),
-    );
+    let view = persist::diag::base::View::of_model(&model, &seq);
+    let response = persist::model::response::Response::new(&model.amplitude_knots);
+    // the noise as `diagnose` scales it
+    persist::diag::base::scale_noise(&seq, &view, &mut s, &base.current, &response);
+    let r = persist::diag::base::predict_scaled(&seq, &view, &s, &base.current, &response);
     let cells = r.cells(&s);
     let mut groups: std::collections::BTreeMap<Vec<i64>, Vec<usize>> = Default::default();
     for i in 0..s.len() {

@@ -26,13 +26,15 @@ the illumination's fluence (its response: its own saturation onset), fitted to t
 input; the paired statistic of its residuals, each divided by the noise measured from
 the data (exposure noise from the background pixels, or from pairs of late darks when
 every pixel is lit, plus the shot noise of the predicted current, less the sample's
-leverage in its pixel's fit). Default commands: `persist fit --input DIR --out M.json`, then `persist diagnose
+leverage in its pixel's fit), each part's variance scaled by what the reference's
+residuals, centred in their cells, show (the line "noise:" under it; "noise x read /
+shot" below, "-" where too few samples measured it). Default commands: `persist fit --input DIR --out M.json`, then `persist diagnose
 --input DIR --model M.json`. The description's RMS is the line "residual RMS" of the
 same run (the measurements' description `diagnose` tests effects against). Family seeds
 from 100 on are held aside from the family's matrix (`persist::trapgen`).
 
-| source | sequence | dark pixels | seed | pixel reference RMS | description RMS | cells |
-|---|---|---|---|---|---|---|
+| source | sequence | dark pixels | seed | pixel reference RMS | description RMS | cells | noise x read / shot |
+|---|---|---|---|---|---|---|---|
 TEXT
 for source in lab family; do
     for sequence in single campaign; do
@@ -54,8 +56,9 @@ for source in lab family; do
                 out=$("$persist" --log-level error diagnose --input "$dir" --model "$dir.json")
                 ref=$(sed -n 's/^pixel reference.*residual RMS \([0-9.]*\) over \([0-9]*\) cells$/\1 \2/p' <<< "$out")
                 desc=$(sed -n 's/^persist diagnose:.* residual RMS \([0-9.]*\) (.*/\1/p' <<< "$out")
+                noise=$(sed -n 's/^  noise: the read-noise variance x\([0-9.]*\) and the shot-noise variance x\([0-9.]*\),.*/\1 \/ \2/p' <<< "$out")
                 read -r rms cells <<< "$ref"
-                echo "| $source | $sequence | $dark | $seed | $rms | $desc | $cells |"
+                echo "| $source | $sequence | $dark | $seed | $rms | $desc | $cells | ${noise:--} |"
                 rm -rf "$dir"
             done
         done

@@ -46,7 +46,7 @@
 //! the measurements' description ([`super::reference`]).
 
 use super::data::{fluence, Sequence, BACKGROUND_FLUENCE_E};
-use super::eval::Samples;
+use super::eval::{NoiseScale, Samples};
 use crate::model::effect::{Effect, IntervalCtx};
 use crate::model::params::ModelParams;
 use crate::model::response::Response;
@@ -114,30 +114,6 @@ impl Clock {
         Clock::default()
     }
 
-    /// The clock of the model `params` over `seq` (the type's docs): its effects' rate
-    /// hooks applied to each term of [`TAU_S`] in each interval, with the interval's
-    /// times and the focal-plane temperature of the exposure ending it, as the model's
-    /// step applies them. An effect that does not build is left out (the model's own
-    /// run refuses it).
-    pub fn of_model(params: &ModelParams, seq: &Sequence) -> Clock {
-        Clock::of_model_at_temperatures(params, seq, &seq.temperatures_k())
-    }
-
-    /// [`Clock::of_model`] with each exposure's focal-plane temperature `temps_k[k]` in
-    /// place of the one it records (as [`crate::measure::eval::predict_at_temperatures`]).
-    pub fn of_model_at_temperatures(
-        params: &ModelParams,
-        seq: &Sequence,
-        temps_k: &[Option<f64>],
-    ) -> Clock {
-        let effects: Vec<Box<dyn Effect>> = params
-            .effects
-            .iter()
-            .filter_map(|e| crate::model::effects::build(e).ok())
-            .collect();
-        Clock::of_effects(&effects, seq, temps_k)
-    }
-
     /// The clock of a model with the effects `effects` at the temperatures `temps_k`,
     /// one per exposure of `seq`.
     fn of_effects(effects: &[Box<dyn Effect>], seq: &Sequence, temps_k: &[Option<f64>]) -> Clock {
@@ -203,10 +179,123 @@ impl Clock {
     }
 }
 
+/// The model as the base sees it: the clock its decay terms run on ([`Clock`]) and the
+/// readout its correction goes through ([`Readout`]).
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct View {
+    pub clock: Clock,
+    readout: Readout,
+}
+
+impl View {
+    /// The view of the model `params` over `seq`: its clock and its readout, as the
+    /// model's step applies its hooks. An effect that does not build is left out (the
+    /// model's own run refuses it).
+    pub fn of_model(params: &ModelParams, seq: &Sequence) -> View {
+        View::of_model_at_temperatures(params, seq, &seq.temperatures_k())
+    }
+
+    /// [`View::of_model`] with each exposure's focal-plane temperature `temps_k[k]` in
+    /// place of the one it records (as [`crate::measure::eval::predict_at_temperatures`]).
+    pub fn of_model_at_temperatures(
+        params: &ModelParams,
+        seq: &Sequence,
+        temps_k: &[Option<f64>],
+    ) -> View {
+        let effects: Vec<Box<dyn Effect>> = params
+            .effects
+            .iter()
+            .filter_map(|e| crate::model::effects::build(e).ok())
+            .collect();
+        View {
+            clock: Clock::of_effects(&effects, seq, temps_k),
+            readout: Readout::of_effects(&effects, seq),
+        }
+    }
+}
+
+/// How the model reads out what the traps hold, which the base's correction follows:
+/// the correction `A_j(F)` corrects the model's response, so it is evaluated at the
+/// fluence the model's response is (after its effects' fluence hooks,
+/// [`Effect::fluence`]: `ipc` takes out the neighbours' coupled share) and coupled into
+/// the neighbours as the model's prediction is ([`Effect::readout_kernel`]: next to a
+/// bright pinhole a pixel reads a share of the pinhole's persistence, whose correction
+/// is the one at the pinhole's fluence, not at its own). A model without such hooks:
+/// the measured fluence and no coupling, bit for bit.
+#[derive(Debug, Clone, Default, PartialEq)]
+struct Readout {
+    /// Per illumination of the sequence (in its order), the fluence after the model's
+    /// fluence hooks, e-; empty: the measured fluence.
+    fluence: Vec<Array2<f64>>,
+    /// `(dy, dx, weight)` of the readout's coupling; the centre keeps `1 - sum`.
+    kernel: Vec<(isize, isize, f64)>,
+}
+
+impl Readout {
+    fn of_effects(effects: &[Box<dyn Effect>], seq: &Sequence) -> Readout {
+        let hooked: Vec<&dyn Effect> = effects
+            .iter()
+            .filter(|e| e.has_fluence())
+            .map(|e| e.as_ref())
+            .collect();
+        let fluence = if hooked.is_empty() {
+            Vec::new()
+        } else {
+            seq.illuminations
+                .iter()
+                .map(|&a| {
+                    let mut f = fluence(&seq.exposures[a]);
+                    for e in &hooked {
+                        e.fluence(&mut f);
+                    }
+                    f
+                })
+                .collect()
+        };
+        Readout {
+            fluence,
+            kernel: effects.iter().flat_map(|e| e.readout_kernel()).collect(),
+        }
+    }
+}
+
+/// The response knots of illumination `m` at pixel `(y, x)` as the readout couples
+/// them ([`Readout`]): `(knot, weight)`, the pixel's own two knots weighted by the
+/// kernel's centre and each coupled neighbour's by its weight; the saturated pixels'
+/// knots shifted to their own when `m` splits them.
+fn coupled_knots(
+    m: &Map,
+    kernel: &[(isize, isize, f64)],
+    y: usize,
+    x: usize,
+    out: &mut Vec<(usize, f64)>,
+) {
+    out.clear();
+    let (ny, nx) = m.fluence.dim();
+    let centre = 1.0 - kernel.iter().map(|k| k.2).sum::<f64>();
+    let own = std::iter::once((0, 0, centre)).chain(kernel.iter().copied());
+    for (dy, dx, w) in own {
+        let (Some(yy), Some(xx)) = (y.checked_add_signed(dy), x.checked_add_signed(dx)) else {
+            continue;
+        };
+        if yy >= ny || xx >= nx {
+            continue;
+        }
+        let Some(mut kn) = knots_of(m.fluence[(yy, xx)]) else {
+            continue;
+        };
+        if m.overflow.as_ref().is_some_and(|o| o[(yy, xx)]) {
+            // the saturated pixels' response: knots of their own
+            kn.iter_mut().for_each(|k| k.0 += n_knots());
+        }
+        out.extend(kn.iter().filter(|k| k.1 > 0.0).map(|&(k, v)| (k, v * w)));
+    }
+}
+
 /// Sparse features of sample `i`: (parameter index, value).
 fn features(
     seq: &Sequence,
-    clock: &Clock,
+    view: &View,
     s: &Samples,
     maps: &[Map],
     i: usize,
@@ -217,14 +306,13 @@ fn features(
     let (row, px) = (i / np, i % np);
     let k = s.exposures[row];
     let (y, x) = s.pixels[px];
+    let clock = &view.clock;
+    let mut kn = Vec::new();
     for m in maps.iter().filter(|m| m.illumination < k) {
-        let (a, f) = (&m.illumination, &m.fluence);
-        let Some(mut kn) = knots_of(f[(y, x)]) else {
+        let a = &m.illumination;
+        coupled_knots(m, &view.readout.kernel, y, x, &mut kn);
+        if kn.is_empty() {
             continue;
-        };
-        if m.overflow.as_ref().is_some_and(|o| o[(y, x)]) {
-            // the saturated pixels' response: knots of their own
-            kn.iter_mut().for_each(|k| k.0 += n_knots());
         }
         let t = seq.t_mid_after_s(*a, k).max(0.0);
         for (j, tau) in TAU_S.iter().enumerate() {
@@ -238,9 +326,7 @@ fn features(
                 continue;
             }
             for &(kk, w) in &kn {
-                if w > 0.0 {
-                    out.push((kk * TAU_S.len() + j, w * d));
-                }
+                out.push((kk * TAU_S.len() + j, w * d));
             }
         }
     }
@@ -259,8 +345,8 @@ fn features(
 
 /// The base's prediction of every sample: the model's prediction `pred` plus the
 /// correction fitted on `s` (module docs); `pred` itself when the fit fails.
-pub fn predict(seq: &Sequence, clock: &Clock, s: &Samples, pred: &[f64]) -> Vec<f64> {
-    let feat = Features::new(seq, clock, s, &fluence_maps(seq, false));
+pub fn predict(seq: &Sequence, view: &View, s: &Samples, pred: &[f64]) -> Vec<f64> {
+    let feat = Features::new(seq, view, s, &fluence_maps(seq, false, &view.readout));
     let ones = vec![1.0; s.len()];
     match fit_correction(&feat, s, pred, &ones, relative_variance) {
         Some(coef) => corrected(&feat, pred, &coef),
@@ -276,10 +362,11 @@ fn relative_variance(s: &Samples, i: usize, p: f64) -> f64 {
 
 /// The variance of a measurement of sample `i` at current `p`: its exposure noise
 /// (`noise`, per row of `s`) and the current's shot noise
-/// ([`Samples::shot_var_per_e_per_s`]).
+/// ([`Samples::shot_var_per_e_per_s`]), each scaled by [`Samples::noise_scale`].
 fn measurement_variance(noise: &[f64], s: &Samples, i: usize, p: f64) -> f64 {
     let row = i / s.npix().max(1);
-    noise[row].powi(2) + s.shot_var_per_e_per_s[row] * p.max(0.0)
+    let scale = s.noise_scale;
+    scale.read_var * noise[row].powi(2) + scale.shot_var * s.shot_var_per_e_per_s[row] * p.max(0.0)
 }
 
 /// One illumination's fluence map, and which pixels saturated in it when their
@@ -293,14 +380,19 @@ struct Map {
 
 /// The fluence map of every illumination; with `split_saturated`, the pixels flagged
 /// `OVERFLOW` in it.
-fn fluence_maps(seq: &Sequence, split_saturated: bool) -> Vec<Map> {
+fn fluence_maps(seq: &Sequence, split_saturated: bool, readout: &Readout) -> Vec<Map> {
     seq.illuminations
         .iter()
-        .map(|&a| {
+        .enumerate()
+        .map(|(i, &a)| {
             let e = &seq.exposures[a];
             Map {
                 illumination: a,
-                fluence: fluence(e),
+                fluence: readout
+                    .fluence
+                    .get(i)
+                    .cloned()
+                    .unwrap_or_else(|| fluence(e)),
                 overflow: split_saturated
                     .then(|| e.flags.mapv(|f| f & crate::flags::bits::OVERFLOW != 0)),
             }
@@ -319,11 +411,11 @@ struct Features {
 }
 
 impl Features {
-    fn new(seq: &Sequence, clock: &Clock, s: &Samples, maps: &[Map]) -> Features {
+    fn new(seq: &Sequence, view: &View, s: &Samples, maps: &[Map]) -> Features {
         let per: Vec<Vec<(usize, f64)>> = (0..s.len())
             .into_par_iter()
             .map_init(Vec::new, |f, i| {
-                features(seq, clock, s, maps, i, f);
+                features(seq, view, s, maps, i, f);
                 f.clone()
             })
             .collect();
@@ -565,14 +657,13 @@ fn fluence_tilt(s: &Samples) -> Vec<f64> {
 /// under the fit, a residual's variance is `sigma_i^2 (1 - h_i)`).
 pub fn predict_scaled(
     seq: &Sequence,
-    clock: &Clock,
+    view: &View,
     s: &Samples,
     pred: &[f64],
     response: &Response,
 ) -> Scaled {
-    let maps = fluence_maps(seq, true);
-    let terms = PixelTerms::new(seq, s, &maps, response);
-    let feat = Features::new(seq, clock, s, &maps);
+    let terms = PixelTerms::new(seq, s, response);
+    let feat = Features::new(seq, view, s, &fluence_maps(seq, true, &view.readout));
     let variance = |s: &Samples, i: usize, p: f64| measurement_variance(&terms.noise, s, i, p);
     let mut scale = vec![1.0; s.len()];
     let mut unscaled = pred.to_vec();
@@ -596,7 +687,7 @@ pub fn predict_scaled(
 /// offer ([`super::offer`]). None with fewer than two events or no cell.
 pub fn per_event_rms(
     seq: &Sequence,
-    clock: &Clock,
+    view: &View,
     s: &Samples,
     pred: &[f64],
     response: &Response,
@@ -610,7 +701,7 @@ pub fn per_event_rms(
         .map(|&e| {
             let rows = s.row_indices(|x| x == e);
             let es = s.rows(&rows);
-            predict_scaled(seq, clock, &es, &s.rows_of(pred, &rows), response).cells(&es)
+            predict_scaled(seq, view, &es, &s.rows_of(pred, &rows), response).cells(&es)
         })
         .collect::<Vec<_>>()
         .concat();
@@ -628,7 +719,7 @@ pub fn predict_scaled_held(
     response: &Response,
     held: &Scaled,
 ) -> Scaled {
-    let terms = PixelTerms::new(seq, s, &fluence_maps(seq, true), response);
+    let terms = PixelTerms::new(seq, s, response);
     let unscaled: Vec<f64> = pred
         .iter()
         .zip(&held.correction)
@@ -655,11 +746,14 @@ struct PixelTerms {
 type Normal = Vec<(Vec<f64>, Vec<f64>)>;
 
 impl PixelTerms {
-    fn new(seq: &Sequence, s: &Samples, maps: &[Map], response: &Response) -> PixelTerms {
+    /// The terms of the samples `s`; their illuminations weighed at the measured
+    /// fluence (what each pixel itself received and read).
+    fn new(seq: &Sequence, s: &Samples, response: &Response) -> PixelTerms {
         let np = s.npix().max(1);
+        let maps = fluence_maps(seq, true, &Readout::default());
         PixelTerms {
             noise: pooled_noise(seq, s),
-            sat: saturated_share(seq, s, maps, response),
+            sat: saturated_share(seq, s, &maps, response),
             fl: fluence_tilt(s),
             tilt: (0..s.len())
                 .map(|i| (s.t_since_s[i / np].max(1.0) / TILT_REFERENCE_S).ln())
@@ -888,6 +982,122 @@ impl Scaled {
     }
 }
 
+/// Measures the noise scales on the pixel reference of `pred` over `s`
+/// ([`measure_noise_scale`]) and sets them into `s`, for every later fit of the pixel
+/// reference on these samples or on their rows (the candidates' are judged with the
+/// noise the user's model's reference showed). What was measured; None leaves `s`'s.
+pub fn scale_noise(
+    seq: &Sequence,
+    view: &View,
+    s: &mut Samples,
+    pred: &[f64],
+    response: &Response,
+) -> Option<(NoiseScale, usize)> {
+    let measured = measure_noise_scale(&predict_scaled(seq, view, s, pred, response), s);
+    if let Some((scale, _)) = measured {
+        s.noise_scale = scale;
+    }
+    measured
+}
+
+/// Samples at least, centred in their cells, for [`measure_noise_scale`] to measure.
+pub const NOISE_SCALE_MIN_SAMPLES: usize = 2000;
+/// Samples at least in a cell whose samples [`measure_noise_scale`] centres on their
+/// median (the median of fewer takes a visible share of their spread with it).
+const NOISE_SCALE_MIN_CELL: usize = 30;
+/// Bins of the shot-noise share [`measure_noise_scale`] fits over.
+const NOISE_SCALE_BINS: usize = 10;
+/// The least span of the bins' shot-noise shares over which the two parts' scales are
+/// told apart; under it one scale stands for both.
+const NOISE_SCALE_MIN_SPAN: f64 = 0.3;
+/// Bounds of a measured scale.
+const NOISE_SCALE_BOUNDS: (f64, f64) = (0.25, 4.0);
+
+/// The scales of the read-noise and shot-noise variances that the residuals of the
+/// pixel reference `scaled` of `s` show (fitted with `s.noise_scale` 1 and 1). The
+/// exposure noise is measured from the data ([`crate::measure::data`]); the shot noise
+/// is Poisson's for a line fit, which the readout need not give: the gain's error scales
+/// it, and a readout that couples neighbours (inter-pixel capacitance) narrows each
+/// pixel's noise, the shot noise with it (the second truth generator's `ipc:cross4`,
+/// 64 x 64 campaign, seed 1: pairs of late darks differ by 0.92 of the spread of the
+/// same seed without it, and the pixel reference's first-dark cells by 0.84-0.89 of
+/// their noise, cell z down to -4.7, where nothing-hidden data show 0.90-0.97). Each
+/// sample's residual over its noise (less its leverage) is centred on its cell's
+/// median (what a cell's misfit shifts is not noise); the centred samples are split
+/// into [`NOISE_SCALE_BINS`] equal-count bins of the shot noise's share `psi` of their
+/// variance; in each, `v` is the square of 1.4826 times the median absolute value; `a`
+/// and `g` are the least-squares fit of `v = a (1 - psi) + g psi` over the bins, each
+/// within [`NOISE_SCALE_BOUNDS`]. When the bins' shares span less than
+/// [`NOISE_SCALE_MIN_SPAN`] one scale, the bins' mean `v`, stands for both. None with
+/// fewer than [`NOISE_SCALE_MIN_SAMPLES`] samples in cells of at least
+/// [`NOISE_SCALE_MIN_CELL`].
+pub fn measure_noise_scale(scaled: &Scaled, s: &Samples) -> Option<(NoiseScale, usize)> {
+    use crate::measure::eval;
+    let mut by_cell: std::collections::BTreeMap<Vec<i64>, Vec<(f64, f64)>> = Default::default();
+    for i in 0..s.len() {
+        let (m, p, sd) = (s.measured[i], scaled.prediction[i], scaled.residual_sd(i));
+        let var = scaled.sigma[i].powi(2);
+        if !(m.is_finite() && p.is_finite() && sd > 0.0 && var > 0.0) {
+            continue;
+        }
+        let shot = s.shot_var_per_e_per_s[i / s.npix().max(1)] * p.max(0.0);
+        if let Some(key) = eval::key_of(s, s.cells.keys(), i) {
+            by_cell
+                .entry(key)
+                .or_default()
+                .push(((m - p) / sd, (shot / var).clamp(0.0, 1.0)));
+        }
+    }
+    let mut centred: Vec<(f64, f64)> = Vec::new();
+    for v in by_cell.values().filter(|v| v.len() >= NOISE_SCALE_MIN_CELL) {
+        let mid = crate::stats::median(&v.iter().map(|x| x.0).collect::<Vec<_>>());
+        centred.extend(v.iter().map(|&(z, psi)| ((z - mid).abs(), psi)));
+    }
+    if centred.len() < NOISE_SCALE_MIN_SAMPLES {
+        return None;
+    }
+    centred.sort_by(|a, b| a.1.total_cmp(&b.1).then(a.0.total_cmp(&b.0)));
+    let per = centred.len().div_ceil(NOISE_SCALE_BINS);
+    let bins: Vec<(f64, f64)> = centred
+        .chunks(per)
+        .map(|c| {
+            let abs: Vec<f64> = c.iter().map(|x| x.0).collect();
+            let psi = c.iter().map(|x| x.1).sum::<f64>() / c.len() as f64;
+            (psi, (1.4826 * crate::stats::median(&abs)).powi(2))
+        })
+        .collect();
+    let (lo, hi) = NOISE_SCALE_BOUNDS;
+    let span = bins.iter().map(|b| b.0).fold(f64::NEG_INFINITY, f64::max)
+        - bins.iter().map(|b| b.0).fold(f64::INFINITY, f64::min);
+    let scale = if span < NOISE_SCALE_MIN_SPAN {
+        let v = (bins.iter().map(|b| b.1).sum::<f64>() / bins.len() as f64).clamp(lo, hi);
+        NoiseScale {
+            read_var: v,
+            shot_var: v,
+        }
+    } else {
+        // normal equations of v = a (1 - psi) + g psi
+        let (mut aa, mut ag, mut gg, mut av, mut gv) = (0.0, 0.0, 0.0, 0.0, 0.0);
+        for &(psi, v) in &bins {
+            let (x, y) = (1.0 - psi, psi);
+            aa += x * x;
+            ag += x * y;
+            gg += y * y;
+            av += x * v;
+            gv += y * v;
+        }
+        let det = aa * gg - ag * ag;
+        if !(det.is_finite() && det > 0.0) {
+            return None;
+        }
+        NoiseScale {
+            read_var: ((gg * av - ag * gv) / det).clamp(lo, hi),
+            shot_var: ((aa * gv - ag * av) / det).clamp(lo, hi),
+        }
+    };
+    Some((scale, centred.len()))
+}
+
 /// Solves `m x = b` for a symmetric positive definite `m` (n x n, row major) by
 /// Cholesky; None when it is not positive definite.
 fn solve_spd(m: &mut [f64], mut b: Vec<f64>, n: usize) -> Option<Vec<f64>> {
@@ -938,6 +1148,105 @@ pub(super) mod tests {
         assert!((x[0] - 0.5).abs() < 1e-12 && x[1].abs() < 1e-12, "{x:?}");
         let mut bad = vec![0.0, 1.0, 1.0, 0.0];
         assert!(solve_spd(&mut bad, vec![1.0, 1.0], 2).is_none());
+    }
+
+    /// Through `ipc`'s readout, a pixel next to a bright one takes the bright one's
+    /// knots at the coupling's weight and keeps its own at the centre's (the model's
+    /// `K`); without a coupling, its own knots alone.
+    #[test]
+    fn the_readout_couples_a_bright_pixels_knots_into_its_neighbours() {
+        let mut fluence = Array2::from_elem((3, 3), 1e4);
+        fluence[(1, 1)] = 1e6;
+        let m = Map {
+            illumination: 0,
+            fluence,
+            overflow: None,
+        };
+        let ipc = crate::model::effects::ipc::Ipc { alpha: 0.02 };
+        let kernel = ipc.readout_kernel();
+        let mut kn = Vec::new();
+        coupled_knots(&m, &kernel, 0, 1, &mut kn);
+        let weight_at = |f: f64| -> f64 {
+            let [a, b] = knots_of(f).unwrap();
+            kn.iter()
+                .filter(|k| k.0 == a.0 || k.0 == b.0)
+                .map(|k| k.1)
+                .sum()
+        };
+        assert!((weight_at(1e6) - 0.02).abs() < 1e-12, "{kn:?}");
+        // its own (1 - 4 alpha) and two neighbours at its fluence, inside the array
+        assert!(
+            (weight_at(1e4) - (0.92 + 2.0 * 0.02)).abs() < 1e-12,
+            "{kn:?}"
+        );
+        coupled_knots(&m, &[], 0, 1, &mut kn);
+        assert_eq!(kn.iter().map(|k| k.1).sum::<f64>(), 1.0);
+        assert!(kn
+            .iter()
+            .all(|k| knots_of(1e4).unwrap().iter().any(|o| o.0 == k.0)));
+    }
+
+    /// Samples of a 24 x 24 campaign measured as the default model's prediction plus
+    /// noise of variance `read_var` times the exposure noise's and `shot_var` times the
+    /// shot noise's, each cell's samples shifted by `shift_sd` times its noise (a
+    /// misfit); the reference taken as the prediction itself with noise 1 and 1.
+    fn scaled_with_noise(read_var: f64, shot_var: f64, shift: f64) -> (Samples, Scaled) {
+        use rand::SeedableRng;
+        use rand_distr::Distribution;
+        let seq = campaign_at(&[80.0, 80.0, 80.0]);
+        let model = ModelParams::default();
+        let (mut s, pred) = measured_as(&seq, &model, &model);
+        let np = s.npix();
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(7);
+        let sigma: Vec<f64> = (0..s.len())
+            .map(|i| measurement_variance(&s.noise, &s, i, pred[i]).sqrt())
+            .collect();
+        s.measured = (0..s.len())
+            .map(|i| {
+                let row = i / np;
+                let var = read_var * s.noise[row].powi(2)
+                    + shot_var * s.shot_var_per_e_per_s[row] * pred[i].max(0.0);
+                let z: f64 = rand_distr::StandardNormal.sample(&mut rng);
+                let cell = crate::measure::eval::key_of(&s, s.cells.keys(), i)
+                    .map_or(0, |k| k.iter().sum::<i64>());
+                pred[i] + var.sqrt() * z + shift * sigma[i] * (cell % 3 - 1) as f64
+            })
+            .collect();
+        let scaled = Scaled {
+            prediction: pred.clone(),
+            sigma,
+            leverage: vec![0.0; pred.len()],
+            correction: vec![0.0; pred.len()],
+        };
+        (s, scaled)
+    }
+
+    /// The two scales are recovered from residuals drawn with them, and a misfit that
+    /// shifts whole cells (by a noise either way) leaves them as they are.
+    #[test]
+    fn the_noise_scales_are_measured_from_residuals_and_not_from_a_cells_misfit() {
+        let (s, scaled) = scaled_with_noise(0.9, 0.6, 0.0);
+        let (scale, n) = measure_noise_scale(&scaled, &s).expect("measured");
+        assert!(n >= NOISE_SCALE_MIN_SAMPLES, "{n} samples");
+        assert!((scale.read_var - 0.9).abs() < 0.06, "{scale:?}");
+        assert!((scale.shot_var - 0.6).abs() < 0.08, "{scale:?}");
+        let (s, scaled) = scaled_with_noise(0.9, 0.6, 1.0);
+        let (shifted, _) = measure_noise_scale(&scaled, &s).expect("measured");
+        assert!(
+            (shifted.read_var - scale.read_var).abs() < 0.03,
+            "{shifted:?} {scale:?}"
+        );
+        assert!(
+            (shifted.shot_var - scale.shot_var).abs() < 0.04,
+            "{shifted:?} {scale:?}"
+        );
+        // the noise the reference is weighed and judged with
+        let mut s = s;
+        s.noise_scale = scale;
+        let v = measurement_variance(&s.noise, &s, 0, 0.5);
+        let expected =
+            scale.read_var * s.noise[0].powi(2) + scale.shot_var * s.shot_var_per_e_per_s[0] * 0.5;
+        assert!((v - expected).abs() < 1e-15);
     }
 
     /// A simulated laboratory campaign at 24 x 24 (the paper's pattern, a corner of
@@ -1023,7 +1332,7 @@ pub(super) mod tests {
     #[test]
     fn the_clock_of_a_rate_hook_runs_at_each_intervals_arrhenius_factor() {
         let seq = campaign_at(&[78.0, 82.0, 80.0]);
-        let clock = Clock::of_model(&model_with_temperature(0.25), &seq);
+        let clock = View::of_model(&model_with_temperature(0.25), &seq).clock;
         assert!(!clock.is_real());
         let t = crate::model::effects::temperature::Temperature {
             activation_ev: 0.25,
@@ -1058,8 +1367,12 @@ pub(super) mod tests {
         let on = clock.elapsed_s(&seq, a, a + 3, 4);
         // 80 K within 0.01 K: f within 0.5 %
         assert!((on - real).abs() < 5e-3 * real, "{on} {real}");
-        assert!(Clock::of_model(&model_with_temperature(0.0), &seq).is_real());
-        assert!(Clock::of_model(&ModelParams::default(), &seq).is_real());
+        assert!(View::of_model(&model_with_temperature(0.0), &seq)
+            .clock
+            .is_real());
+        assert!(View::of_model(&ModelParams::default(), &seq)
+            .clock
+            .is_real());
     }
 
     /// The pixel reference of the default model with `temperature` at 0.25 eV, on
@@ -1082,12 +1395,12 @@ pub(super) mod tests {
         let rms = |temps_k: [f64; 3]| -> (f64, f64) {
             let seq = campaign_at(&temps_k);
             let (s, pred) = measured_as(&seq, &truth, &model);
-            let on = |clock: &Clock| {
+            let on = |view: &View| {
                 crate::measure::eval::rms(
-                    &predict_scaled(&seq, clock, &s, &pred, &response).cells(&s),
+                    &predict_scaled(&seq, view, &s, &pred, &response).cells(&s),
                 )
             };
-            (on(&Clock::of_model(&model, &seq)), on(&Clock::real()))
+            (on(&View::of_model(&model, &seq)), on(&View::default()))
         };
         let (on_clock, real) = rms([78.0, 82.0, 80.0]);
         assert!(

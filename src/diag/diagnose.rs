@@ -263,10 +263,16 @@ pub fn diagnose(
     model_path: &Path,
 ) -> Result<Diagnosis> {
     check_config(cfg)?;
-    let samples = Samples::random(seq, cfg.pixels, cfg.seed)
+    let mut samples = Samples::random(seq, cfg.pixels, cfg.seed)
         .with_cells(cfg.cells)
         .with_statistic(cfg.cell_statistic);
     let base = eval::predict(params, seq, &samples, false)?;
+    // the bases' decay on the model's clock
+    let view = super::base::View::of_model(params, seq);
+    let response = crate::model::response::Response::new(&params.amplitude_knots);
+    // the pixel reference's noise, measured on its residuals once, for every candidate
+    let noise_scale = super::base::scale_noise(seq, &view, &mut samples, &base.current, &response);
+    let samples = samples;
     let events = samples.events().len();
     let (statistic, statistic_reason) = cfg.statistic.resolve(events);
     let cells = make_cells(&samples, &base.current, statistic);
@@ -274,14 +280,12 @@ pub fn diagnose(
     let (contrasts, tests) = testable_tests(params, seq, &samples, cfg.decide);
     // what the residuals of the flexible base and of the pixel reference depend on, by
     // permutation
-    // the bases' decay on the model's clock
-    let clock = super::base::Clock::of_model(params, seq);
-    let flexible = super::base::predict(seq, &clock, &samples, &base.current);
-    let response = crate::model::response::Response::new(&params.amplitude_knots);
-    let scaled = super::base::predict_scaled(seq, &clock, &samples, &base.current, &response);
+    let flexible = super::base::predict(seq, &view, &samples, &base.current);
+    let scaled = super::base::predict_scaled(seq, &view, &samples, &base.current, &response);
     let pixel_reference = PixelReference {
-        per_event_rms: super::base::per_event_rms(seq, &clock, &samples, &base.current, &response)
+        per_event_rms: super::base::per_event_rms(seq, &view, &samples, &base.current, &response)
             .map(|r| r.0),
+        noise_scale,
         ..PixelReference::of(&scaled.cells(&samples))
     };
     let bases = contrast::Bases {

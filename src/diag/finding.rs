@@ -164,6 +164,10 @@ pub struct PixelReference {
     /// Its RMS fitted to each illumination event alone
     /// ([`super::base::per_event_rms`]); None with one event.
     pub per_event_rms: Option<f64>,
+    /// The scales of its read-noise and shot-noise variances measured on its residuals
+    /// ([`super::base::measure_noise_scale`]) and the samples they were measured on;
+    /// None: not measured (too few samples), 1 and 1.
+    pub noise_scale: Option<(eval::NoiseScale, usize)>,
 }
 
 impl PixelReference {
@@ -176,6 +180,7 @@ impl PixelReference {
             cells: cells.len(),
             largest_residuals: worst,
             per_event_rms: None,
+            noise_scale: None,
         }
     }
 }

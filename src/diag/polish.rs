@@ -36,7 +36,7 @@
 //! - The fit's report follows the values: each refined parameter's value, and the
 //!   description's residual RMS at them (its `sigma` stays the description fit's).
 
-use super::base::{predict_scaled, Clock};
+use super::base::{predict_scaled, View};
 use super::data::Sequence;
 use super::eval::{self, Samples};
 use crate::calib::effects::EffectFit;
@@ -56,8 +56,8 @@ pub const MAX_EVALS: usize = 16;
 pub fn pixel_rms(m: &ModelParams, seq: &Sequence, s: &Samples) -> Result<f64> {
     let pred = eval::predict(m, seq, s, false)?.current;
     let response = Response::new(&m.amplitude_knots);
-    let clock = Clock::of_model(m, seq);
-    let scaled = predict_scaled(seq, &clock, s, &pred, &response);
+    let view = View::of_model(m, seq);
+    let scaled = predict_scaled(seq, &view, s, &pred, &response);
     Ok(eval::rms(&scaled.cells(s)))
 }
 

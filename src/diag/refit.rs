@@ -7,7 +7,7 @@
 //! same samples ([`Refit::Full`]) or with the model as it is ([`Refit::Candidate`]),
 //! never with a fit on other samples.
 
-use super::base::Clock;
+use super::base::View;
 use super::config::Refit;
 use super::data::Sequence;
 use super::eval::{self, Samples};
@@ -236,7 +236,7 @@ pub enum Permuted {
     Change,
     /// The focal-plane temperatures, among the illumination events
     /// (`permuted_temperatures`): for a candidate whose rate hooks change the model's
-    /// clock ([`Clock`]), which the pixel reference's decay follows, so that no change
+    /// clock ([`super::base::Clock`]), which the pixel reference's decay follows, so that no change
     /// of the prediction alone stands for it. The candidate is run at each arrangement
     /// and the pixel reference fitted on it in full.
     Temperature,
@@ -529,14 +529,14 @@ pub fn held_out(
     // the two folds in parallel, combined in fold order
     let fold = |h: usize| -> Result<(Option<HeldOutSums>, PixelFold)> {
         let (fs, ts, ts_base) = split(h);
-        let (fitted, before, before_current, before_clock) = if own.is_empty() {
+        let (fitted, before, before_current, before_view) = if own.is_empty() {
             let owned: Vec<String> = names.iter().map(|n| n.to_string()).collect();
             let (fitted, fit) =
                 crate::calib::effects::fit(start.unwrap_or(params), &owned, seq, &fs)?;
             let (fitted, _) = super::polish::polish(fitted, fit, names, seq, &fs)?;
             // `params`' own prediction of the test samples: already computed
             let before = spread::model_cell_z(params, &ts, &ts_base);
-            (fitted, before, ts_base, Clock::of_model(params, seq))
+            (fitted, before, ts_base, View::of_model(params, seq))
         } else {
             // the model's own effects refitted on the fit half's samples, alone and
             // with the candidate (both fits start from values fitted on all samples)
@@ -544,25 +544,25 @@ pub fn held_out(
             let (fitted, _) = fit_candidate(&base, &own, start, names, seq, &fs)?;
             let current = eval::predict(&base, seq, &ts, false)?.current;
             let before = spread::model_cell_z(&base, &ts, &current);
-            (fitted, before, current, Clock::of_model(&base, seq))
+            (fitted, before, current, View::of_model(&base, seq))
         };
         let after_current = eval::predict(&fitted, seq, &ts, false)?.current;
         let after = spread::model_cell_z(&fitted, &ts, &after_current);
         // the pixel reference fitted on the test half alone, on either prediction, each
         // on its model's clock
         let scaled_before =
-            super::base::predict_scaled(seq, &before_clock, &ts, &before_current, &response);
+            super::base::predict_scaled(seq, &before_view, &ts, &before_current, &response);
         let pixel_before = scaled_before.cells(&ts);
-        let after_clock = Clock::of_model(&fitted, seq);
+        let after_view = View::of_model(&fitted, seq);
         let real = HeldOutSums::of(
             &pixel_before,
-            &super::base::predict_scaled(seq, &after_clock, &ts, &after_current, &response)
+            &super::base::predict_scaled(seq, &after_view, &ts, &after_current, &response)
                 .cells(&ts),
         );
         // the permutations, only where the fold gains (a fold that does not gain fails
         // the gate whatever they give); the candidate and its permutations compared on
         // one footing, the shared correction held at the fit without the candidate
-        let clock_moved = after_clock != before_clock;
+        let clock_moved = after_view.clock != before_view.clock;
         let (held, null) = match real {
             Some(r) if r.after < r.before && clock_moved => {
                 // the candidate at each arrangement of the temperatures, on a full fit
@@ -573,9 +573,9 @@ pub fn held_out(
                         let current =
                             eval::predict_at_temperatures(&fitted, seq, &ts, false, temps_k)?
                                 .current;
-                        let clock = Clock::of_model_at_temperatures(&fitted, seq, temps_k);
+                        let view = View::of_model_at_temperatures(&fitted, seq, temps_k);
                         let scaled =
-                            super::base::predict_scaled(seq, &clock, &ts, &current, &response);
+                            super::base::predict_scaled(seq, &view, &ts, &current, &response);
                         Ok(HeldOutSums::of(&pixel_before, &scaled.cells(&ts)))
                     })
                     .collect::<Result<Vec<_>>>()?;
@@ -867,6 +867,7 @@ mod tests {
             measured: v(1.0),
             noise: v(0.01),
             shot_var_per_e_per_s: v(0.0),
+            noise_scale: Default::default(),
             spread_rel: v(0.0),
             fluence_e: v(1e5),
             neighbour_excess_e: v(0.0),

@@ -563,6 +563,7 @@ mod tests {
             measured: (0..n).map(|i| 0.5 + 0.01 * ((i * 7) % 13) as f64).collect(),
             noise: vec![0.02; rows],
             shot_var_per_e_per_s: vec![eval::SHOT_VAR_LINE_FIT / 180.0; rows],
+            noise_scale: Default::default(),
             spread_rel: vec![0.075; n],
             fluence_e: vec![5e4; n],
             neighbour_excess_e: vec![0.0; n],

@@ -500,7 +500,7 @@ pub fn render(d: &Diagnosis) -> String {
     let mut s = format!(
         "persist diagnose: statistic {}, {} pixels, {} cells in {} groups, {} illumination events, \
          residual RMS {:.2} ({} cells{}{})\npixel reference (the flexible base with each pixel's own amplitude, \
-         decay shape and response): residual RMS {:.2} over {} cells{}\nthreshold {:.2} (95 % of the largest score over {} bootstrap replicas \
+         decay shape and response): residual RMS {:.2} over {} cells{}{}\nthreshold {:.2} (95 % of the largest score over {} bootstrap replicas \
          from the fitted model; median {:.2}; the score ranks, it does not decide)\n\
          {:<16} {:>10} {:>6} {:>9} {:>15} {:>9} {:>15} {:>15}  covariate\n",
         d.statistic_reason,
@@ -522,6 +522,14 @@ pub fn render(d: &Diagnosis) -> String {
              the least an addition acting on how a pixel's illuminations differ can leave): \
              residual RMS {r:.2}"
         )),
+        d.pixel_reference.noise_scale.map_or(
+            "\n  noise: as measured (too few samples to scale it on the residuals)".to_string(),
+            |(n, samples)| format!(
+                "\n  noise: the read-noise variance x{:.2} and the shot-noise variance x{:.2}, \
+                 as its residuals show them ({samples} samples, each centred in its cell)",
+                n.read_var, n.shot_var
+            )
+        ),
         d.threshold,
         d.bootstrap_replicas,
         d.bootstrap_median_max,

@@ -637,6 +637,7 @@ mod tests {
             measured,
             noise: vec![1.0; rows],
             shot_var_per_e_per_s: vec![0.0; rows],
+            noise_scale: Default::default(),
             spread_rel: vec![0.0; len],
             fluence_e: vec![5e4; len],
             neighbour_excess_e: vec![0.0; len],

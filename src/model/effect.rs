@@ -264,6 +264,14 @@ pub trait Effect: Send + Sync + Debug {
     /// evaluated. NaN marks an unknown fluence and must stay NaN; values must stay
     /// finite and >= 0 elsewhere (others are set to 0).
     fn fluence(&self, _fluence_e: &mut Array2<f64>) {}
+    /// The readout's linear coupling of everything the stage measures, if this effect
+    /// models one: each pixel reads the pixel at offset `(dy, dx)` with weight `w` and
+    /// keeps `1 - sum w` of its own (pixels outside the array add nothing). Empty for
+    /// none. A tool that evaluates a response of its own at the model's fluence (the
+    /// diagnostics' base) couples it the same way.
+    fn readout_kernel(&self) -> Vec<(isize, isize, f64)> {
+        Vec::new()
+    }
     /// Adjust this exposure's response `A_k,n`, electrons, shape `[ny, nx, n_terms]`.
     fn response(&self, _ctx: &ResponseCtx<'_>, _ak: &mut Array3<f64>) {}
     /// True if [`Effect::response`] changes a pixel's planes from that pixel's own

@@ -27,7 +27,7 @@ pub use quality::{
     touched_samples, FlagQuality,
 };
 pub use runner::{predict, predict_at_temperatures, predict_in, Layout, Prediction, GATHERED_COLS};
-pub use samples::{Cells, Samples};
+pub use samples::{Cells, NoiseScale, Samples};
 
 #[cfg(test)]
 mod tests;

@@ -81,6 +81,23 @@ impl Cells {
     }
 }
 
+/// Scales of the two parts of a sample's noise variance (read noise, shot noise): what
+/// the residuals show over what the sequence's noise model says.
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]
+pub struct NoiseScale {
+    pub read_var: f64,
+    pub shot_var: f64,
+}
+
+impl Default for NoiseScale {
+    fn default() -> NoiseScale {
+        NoiseScale {
+            read_var: 1.0,
+            shot_var: 1.0,
+        }
+    }
+}
+
 /// Samples and their covariates.
 #[derive(Debug, Clone)]
 pub struct Samples {
@@ -101,6 +118,10 @@ pub struct Samples {
     /// `6 / (5 t_exposure_s)` ((e-/s)^2 per e-/s; [`super::group`] docs, "Population
     /// statistic").
     pub shot_var_per_e_per_s: Vec<f64>,
+    /// The scales of the read-noise and shot-noise variances that the pixel reference
+    /// weighs and judges these samples with, measured on its residuals once per
+    /// diagnosis (`crate::diag::base::NoiseScale::measure`); 1 and 1 until then.
+    pub noise_scale: NoiseScale,
     /// Per sample: the population's relative spread at its fluence
     /// ([`crate::measure::data::PopulationSpread`], measured once per sequence).
     pub spread_rel: Vec<f64>,
@@ -181,6 +202,7 @@ impl Samples {
             measured: self.rows_of(&self.measured, rows),
             noise: per_row(&self.noise),
             shot_var_per_e_per_s: per_row(&self.shot_var_per_e_per_s),
+            noise_scale: self.noise_scale,
             spread_rel: self.rows_of(&self.spread_rel, rows),
             fluence_e: self.rows_of(&self.fluence_e, rows),
             neighbour_excess_e: self.rows_of(&self.neighbour_excess_e, rows),
@@ -226,6 +248,7 @@ impl Samples {
             exposures: self.exposures.clone(),
             noise: self.noise.clone(),
             shot_var_per_e_per_s: self.shot_var_per_e_per_s.clone(),
+            noise_scale: self.noise_scale,
             t_since_s: self.t_since_s.clone(),
             event: self.event.clone(),
             illumination_time_s: self.illumination_time_s.clone(),
@@ -265,6 +288,7 @@ impl Samples {
             measured: Vec::new(),
             noise: Vec::new(),
             shot_var_per_e_per_s: Vec::new(),
+            noise_scale: NoiseScale::default(),
             spread_rel: Vec::new(),
             fluence_e: Vec::new(),
             neighbour_excess_e: Vec::new(),

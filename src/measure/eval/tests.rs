@@ -27,6 +27,7 @@ fn synthetic() -> Samples {
         measured,
         noise: (0..rows).map(|r| 0.01 * (1 + r) as f64).collect(),
         shot_var_per_e_per_s: vec![0.0; rows],
+        noise_scale: Default::default(),
         spread_rel: vec![0.0; n],
         fluence_e: (0..n)
             .map(|i| 10f64.powf(3.0 + (i % np) as f64 / np as f64))
@@ -63,6 +64,7 @@ fn pooled_samples(
         measured,
         noise,
         shot_var_per_e_per_s: vec![0.0; rows],
+        noise_scale: Default::default(),
         spread_rel: vec![0.0; n],
         fluence_e,
         neighbour_excess_e: vec![0.0; n],
@@ -204,6 +206,7 @@ fn population_cells_of_a_spread_population_with_shot_noise_have_unit_rms() {
         .collect();
     let s = Samples {
         shot_var_per_e_per_s: vec![g_k; rows],
+        noise_scale: Default::default(),
         spread_rel: vec![r; n],
         ..pooled_samples(
             CellStatistic::Population,
@@ -228,6 +231,7 @@ fn population_cells_of_a_spread_population_with_shot_noise_have_unit_rms() {
     };
     let no_shot = Samples {
         shot_var_per_e_per_s: vec![0.0; rows],
+        noise_scale: Default::default(),
         ..s.clone()
     };
     let no_spread = rms(&cell_z(&no_spread, &pred));
@@ -275,6 +279,7 @@ fn pixels_next_to_a_much_brighter_one_get_cells_of_their_own() {
         measured,
         noise: vec![sd; rows],
         shot_var_per_e_per_s: vec![0.0; rows],
+        noise_scale: Default::default(),
         spread_rel: vec![0.0; n],
         // one fluence bin; the contrast pixels' neighbours far above saturation
         fluence_e: vec![5e3; n],
@@ -380,6 +385,7 @@ fn pooled_cells_misjudge_a_model_right_for_each_illumination() {
         measured,
         noise: vec![1e-4; rows],
         shot_var_per_e_per_s: vec![0.0; rows],
+        noise_scale: Default::default(),
         spread_rel: vec![0.0; np * rows],
         fluence_e: vec![5e4; np * rows],
         neighbour_excess_e: vec![0.0; np * rows],
@@ -428,6 +434,7 @@ fn paired_cells_are_not_misled_by_a_mixture_of_predicted_levels() {
         measured,
         noise: vec![1e-3],
         shot_var_per_e_per_s: vec![0.0],
+        noise_scale: Default::default(),
         spread_rel: vec![0.0; np],
         fluence_e: vec![2e5; np],
         neighbour_excess_e: vec![0.0; np],

@@ -133,6 +133,15 @@ impl Effect for Ipc {
         }
         *fluence_e = decouple(fluence_e, self.alpha);
     }
+    /// `K`: `alpha` from each of the four nearest neighbours.
+    fn readout_kernel(&self) -> Vec<(isize, isize, f64)> {
+        if self.alpha == 0.0 {
+            return Vec::new();
+        }
+        [(-1, 0), (1, 0), (0, -1), (0, 1)]
+            .map(|(dy, dx)| (dy, dx, self.alpha))
+            .to_vec()
+    }
     /// Each pixel's planes take its four neighbours'.
     fn response_reach_px(&self) -> Option<usize> {
         Some(usize::from(self.alpha != 0.0))
