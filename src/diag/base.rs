@@ -9,7 +9,9 @@
 //! `refill`, stay in the base)
 //! over the illuminations `a` before exposure `k` (`F_a(p)` the pixel's extrapolated
 //! fluence in `a`, `t(a, k)` the time from the end of `a` to the middle of `k` on the
-//! model's clock, [`Clock`]), with
+//! model's clock, [`Clock`]; with a model whose hooks change the fluence or couple
+//! neighbours in the readout, `ipc`, the fluence after those hooks and each term
+//! coupled as the model's prediction is, [`View`]), with
 //! `tau_j` a fixed grid of [`TAU_S`] and `A_j(F)` free (a correction of the model's response and decay), piecewise linear in `log10 F`
 //! between knots every fifth of a decade: a free response per fluence bin and free
 //! weights over a fixed grid of rates, shared by every illumination event and
@@ -32,7 +34,8 @@
 //! not in others shows apart), and gives the pixels saturated in an illumination knots
 //! of their own; it is weighted by the measurement noise alone (exposure noise, pooled
 //! over the exposures of one integration length, and the shot noise of the reference's
-//! own current). Its residuals are those of each pixel, not of a
+//! own current, each part's variance scaled once by what the residuals of the model
+//! under diagnosis show, [`measure_noise_scale`]). Its residuals are those of each pixel, not of a
 //! population's 95th percentile: each divided by its noise less its leverage
 //! ([`Scaled::cells`]), they measure how far a description that absorbs the decay law,
 //! its fluence dependence, the response around saturation and the mix of trap
