@@ -183,7 +183,8 @@ impl Clock {
 }
 
 /// The model as the base sees it: the clock its decay terms run on ([`Clock`]) and the
-/// readout its correction goes through ([`Readout`]).
+/// readout its correction goes through (the fluence after the model's fluence hooks, and
+/// its readout's coupling of neighbours, [`Effect::readout_kernel`]).
 #[derive(Debug, Clone, Default, PartialEq)]
 pub struct View {
     pub clock: Clock,
@@ -1007,14 +1008,14 @@ pub fn scale_noise(
 pub const NOISE_SCALE_MIN_SAMPLES: usize = 2000;
 /// Samples at least in a cell whose samples [`measure_noise_scale`] centres on their
 /// median (the median of fewer takes a visible share of their spread with it).
-const NOISE_SCALE_MIN_CELL: usize = 30;
+pub const NOISE_SCALE_MIN_CELL: usize = 30;
 /// Bins of the shot-noise share [`measure_noise_scale`] fits over.
-const NOISE_SCALE_BINS: usize = 10;
+pub const NOISE_SCALE_BINS: usize = 10;
 /// The least span of the bins' shot-noise shares over which the two parts' scales are
 /// told apart; under it one scale stands for both.
-const NOISE_SCALE_MIN_SPAN: f64 = 0.3;
+pub const NOISE_SCALE_MIN_SPAN: f64 = 0.3;
 /// Bounds of a measured scale.
-const NOISE_SCALE_BOUNDS: (f64, f64) = (0.25, 4.0);
+pub const NOISE_SCALE_BOUNDS: (f64, f64) = (0.25, 4.0);
 
 /// The scales of the read-noise and shot-noise variances that the residuals of the
 /// pixel reference `scaled` of `s` show (fitted with `s.noise_scale` 1 and 1). The
