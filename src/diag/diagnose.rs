@@ -285,7 +285,8 @@ pub fn diagnose(
     let pixel_reference = PixelReference {
         per_event_rms: super::base::per_event_rms(seq, &view, &samples, &base.current, &response)
             .map(|r| r.0),
-        noise_scale,
+        noise_scale: noise_scale.map(|n| n.0),
+        noise_scale_samples: noise_scale.map_or(0, |n| n.1),
         ..PixelReference::of(&scaled.cells(&samples))
     };
     let bases = contrast::Bases {

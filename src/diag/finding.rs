@@ -165,9 +165,11 @@ pub struct PixelReference {
     /// ([`super::base::per_event_rms`]); None with one event.
     pub per_event_rms: Option<f64>,
     /// The scales of its read-noise and shot-noise variances measured on its residuals
-    /// ([`super::base::measure_noise_scale`]) and the samples they were measured on;
-    /// None: not measured (too few samples), 1 and 1.
-    pub noise_scale: Option<(eval::NoiseScale, usize)>,
+    /// ([`super::base::measure_noise_scale`]); None: not measured (too few samples),
+    /// 1 and 1.
+    pub noise_scale: Option<eval::NoiseScale>,
+    /// The samples the scales were measured on (0 when not measured).
+    pub noise_scale_samples: usize,
 }
 
 impl PixelReference {
@@ -181,6 +183,7 @@ impl PixelReference {
             largest_residuals: worst,
             per_event_rms: None,
             noise_scale: None,
+            noise_scale_samples: 0,
         }
     }
 }

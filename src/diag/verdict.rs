@@ -524,10 +524,10 @@ pub fn render(d: &Diagnosis) -> String {
         )),
         d.pixel_reference.noise_scale.map_or(
             "\n  noise: as measured (too few samples to scale it on the residuals)".to_string(),
-            |(n, samples)| format!(
+            |n| format!(
                 "\n  noise: the read-noise variance x{:.2} and the shot-noise variance x{:.2}, \
-                 as its residuals show them ({samples} samples, each centred in its cell)",
-                n.read_var, n.shot_var
+                 as its residuals show them ({} samples, each centred in its cell)",
+                n.read_var, n.shot_var, d.pixel_reference.noise_scale_samples
             )
         ),
         d.threshold,
