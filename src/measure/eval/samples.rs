@@ -120,7 +120,7 @@ pub struct Samples {
     pub shot_var_per_e_per_s: Vec<f64>,
     /// The scales of the read-noise and shot-noise variances that the pixel reference
     /// weighs and judges these samples with, measured on its residuals once per
-    /// diagnosis (`crate::diag::base::NoiseScale::measure`); 1 and 1 until then.
+    /// diagnosis (`crate::diag::base::measure_noise_scale`); 1 and 1 until then.
     pub noise_scale: NoiseScale,
     /// Per sample: the population's relative spread at its fluence
     /// ([`crate::measure::data::PopulationSpread`], measured once per sequence).
