@@ -666,8 +666,18 @@ pub fn predict_scaled(
     pred: &[f64],
     response: &Response,
 ) -> Scaled {
-    let terms = PixelTerms::new(seq, s, response);
-    let feat = Features::new(seq, view, s, &fluence_maps(seq, true, &view.readout));
+    // each pixel's terms weigh its illuminations at the measured fluence; the correction
+    // takes the model's readout, the same maps when it has no fluence hook
+    let measured = fluence_maps(seq, true, &Readout::default());
+    let terms = PixelTerms::new(seq, s, &measured, response);
+    let hooked;
+    let maps = if view.readout.fluence.is_empty() {
+        &measured
+    } else {
+        hooked = fluence_maps(seq, true, &view.readout);
+        &hooked
+    };
+    let feat = Features::new(seq, view, s, maps);
     let variance = |s: &Samples, i: usize, p: f64| measurement_variance(&terms.noise, s, i, p);
     let mut scale = vec![1.0; s.len()];
     let mut unscaled = pred.to_vec();
@@ -723,7 +733,12 @@ pub fn predict_scaled_held(
     response: &Response,
     held: &Scaled,
 ) -> Scaled {
-    let terms = PixelTerms::new(seq, s, response);
+    let terms = PixelTerms::new(
+        seq,
+        s,
+        &fluence_maps(seq, true, &Readout::default()),
+        response,
+    );
     let unscaled: Vec<f64> = pred
         .iter()
         .zip(&held.correction)
@@ -750,14 +765,13 @@ struct PixelTerms {
 type Normal = Vec<(Vec<f64>, Vec<f64>)>;
 
 impl PixelTerms {
-    /// The terms of the samples `s`; their illuminations weighed at the measured
-    /// fluence (what each pixel itself received and read).
-    fn new(seq: &Sequence, s: &Samples, response: &Response) -> PixelTerms {
+    /// The terms of the samples `s`; their illuminations weighed at the fluence of
+    /// `maps`, the measured one (what each pixel itself received and read).
+    fn new(seq: &Sequence, s: &Samples, maps: &[Map], response: &Response) -> PixelTerms {
         let np = s.npix().max(1);
-        let maps = fluence_maps(seq, true, &Readout::default());
         PixelTerms {
             noise: pooled_noise(seq, s),
-            sat: saturated_share(seq, s, &maps, response),
+            sat: saturated_share(seq, s, maps, response),
             fl: fluence_tilt(s),
             tilt: (0..s.len())
                 .map(|i| (s.t_since_s[i / np].max(1.0) / TILT_REFERENCE_S).ln())
