@@ -2,7 +2,8 @@
 //! (`persist::diag::contrast::dependences`, event-level classes against the pixel
 //! reference, pixel-level ones against the flexible base) and the separation of the
 //! two leading kinds (`persist::diag::separate`), with `diagnose`'s defaults and
-//! against the reference `--reference auto` resolves to. Prints one Markdown table
+//! against the reference `--reference auto` resolves to; when no contrast names a kind,
+//! the decay's shape against the fluence (`persist::diag::shape`). Prints one Markdown table
 //! row: the classes that depend (share of the residual explained beyond the
 //! permutations' mean, z), the separation, the kind named, and whether it is `EXPECT`
 //! (`none`: nothing should be named). For measuring the naming step on many sequences
@@ -87,10 +88,22 @@ fn main() {
     // the kind the verdict names: the named class, or both classes of a pair the data
     // do not tell apart (the verdict gives the separating measurement)
     let lead = separate::leading(&deps, sep.as_ref()).map(|d| d.class.clone());
-    let named: Vec<String> = match &sep {
+    let mut named: Vec<String> = match &sep {
         Some(p) if matches!(p.told, Told::Confounded | Told::Both) => p.classes.to_vec(),
         _ => lead.into_iter().collect(),
     };
+    // no contrast names a kind: the decay's shape against the fluence (diag::shape)
+    let shape = persist::diag::shape::measure(&s, 0);
+    let mut depending = depending;
+    if let Some(d) = shape.as_ref().filter(|d| d.depends) {
+        depending.push(format!(
+            "fluence_x_time: rise {:.2} (z {:.0})",
+            d.rise, d.rise_z
+        ));
+        if named.is_empty() {
+            named.push("fluence_x_time".into());
+        }
+    }
     let expect = a[4].as_str();
     let right = if expect == "none" {
         named.is_empty()

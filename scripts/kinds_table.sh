@@ -30,8 +30,9 @@ all 99 permutations and explaining at least `MIN_R2_EVENT` (event-level) or `MIN
 hidden class's contrast class (soak: illumination_time; capacity:
 earlier_illuminations; temperature: temperature; blooming and ipc:
 neighbour_excess_fluence; populations: position; shape, a decay shape that depends on
-the fluence: fluence_x_time, which no contrast tests, so it is never named), or nothing
-where nothing is hidden. "With one other": named together with one other kind
+the fluence: fluence_x_time, measured as the rise of the decay's tilt between fluence
+bins after the first illumination, `persist::diag::shape`, and named when no contrast
+names a kind), or nothing where nothing is hidden. "With one other": named together with one other kind
 (confounded, or each depending beyond the other), with the measurement that separates
 them. Largest below: the largest share explained by a class that does not depend.
 

@@ -19,10 +19,13 @@
 //! - `position` (populations): at least [`MIN_SHARP_BLOCKS`] pixel-events in strata of
 //!   one event and one fluence bin that span [`MIN_TILES`] tiles of the array (with a
 //!   centred spot radius and fluence go together and position has no contrast);
-//! - `fluence_x_time`, `time_since_illumination` (short_tau_boost, chord): functions of
-//!   (fluence, time since illumination) alone, which the base absorbs by construction
-//!   (module docs of [`super::diagnose`]): never declared from contrasts; `compare` and
-//!   `fit --with` measure them.
+//! - `fluence_x_time` (short_tau_boost, `smooth_shape`): a decay shape that depends on
+//!   the fluence, a function of (fluence, time since illumination) alone, which the
+//!   base absorbs by construction: measured directly instead, as the tilt of the
+//!   decay against the fluence ([`super::shape`]), when two fluence bins each span a
+//!   decade of time;
+//! - `time_since_illumination` (chord): a function of the time alone: never declared
+//!   from contrasts; `compare` and `fit --with` measure it.
 //!
 //! An untestable class is an answer: it is listed with the measurement that would give
 //! it contrast, and its effects are not scored.
@@ -236,6 +239,7 @@ pub fn testability(seq: &Sequence, s: &Samples, effects: &[(&str, &str)]) -> Vec
                 "integration_length" => integration_contrast(seq, s),
                 "neighbour_excess_fluence" => neighbour_contrast(s),
                 "position" => position_contrast(seq, s),
+                "fluence_x_time" => shape_contrast(s),
                 _ => no_contrast(),
             };
             Testability {
@@ -428,6 +432,29 @@ fn position_contrast(seq: &Sequence, s: &Samples) -> Contrast {
 }
 
 /// A function of fluence and time since illumination alone: never testable.
+/// Fluence bins whose samples span a decade of time ([`super::shape::testable`]).
+fn shape_contrast(s: &Samples) -> Contrast {
+    if super::shape::testable(s) {
+        (
+            true,
+            "fluence bins spanning a decade of time since illumination: the decay's \
+             tilt against the fluence is measured (not a contrast)"
+                .into(),
+            None,
+        )
+    } else {
+        (
+            false,
+            "fewer than two fluence bins whose samples span a decade of time since \
+             illumination"
+                .into(),
+            Some(
+                "darks for at least an hour after illuminations of fluences a decade apart".into(),
+            ),
+        )
+    }
+}
+
 fn no_contrast() -> Contrast {
     (
         false,

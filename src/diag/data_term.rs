@@ -15,7 +15,8 @@
 //! 0.51.) It is never declared a missing *effect*: it names no physics, only where the
 //! data want more or less than the model gives, along the covariate that was found.
 //! Knot ranges from the data: illumination durations and focal-plane temperatures
-//! from the sampled events (a single value gives no term: the class is then
+//! from the sampled events, the fluences (from [`super::shape::MIN_FLUENCE_E`]) from
+//! the sampled pixels (a single value gives no term: the class is then
 //! untestable); the held charge and the neighbours' excess keep the term's defaults
 //! (held charge 1 % to all of the pixel's saturated charge; neighbours' excess
 //! 1 to 1000 times the own fluence). The
@@ -75,6 +76,12 @@ pub fn with_arg(class: &str, seq: &Sequence, samples: &Samples) -> Option<String
             .map(|&a| seq.exposures[a].meta.t_illuminated_s().log10())
             .collect(),
         "temperature" => samples.temperature_k.clone(),
+        "fluence_x_time" => samples
+            .fluence_e
+            .iter()
+            .filter(|&&f| f >= super::shape::MIN_FLUENCE_E)
+            .map(|f| f.log10())
+            .collect(),
         _ => return Some(def.name.to_string()),
     };
     let values: Vec<f64> = values.into_iter().filter(|x| x.is_finite()).collect();

@@ -304,6 +304,17 @@ pub fn diagnose(
         cfg.seed,
     );
     let winner = super::separate::leading(&dependences, separation.as_ref());
+    // no contrast names a kind: the decay's shape against the fluence, measured directly
+    let decay_shape = {
+        let own = shape_samples(params, seq, &samples, &base.current)?;
+        let s = own.as_ref().unwrap_or(&samples);
+        s.events()
+            .first()
+            .and_then(|&a| super::shape::measure(s, seq.exposures[a].meta.exposure_index))
+    };
+    let shape_named = winner.is_none()
+        && cfg.decide == Decide::Contrast
+        && decay_shape.as_ref().is_some_and(|d| d.depends);
     let scored = score_tests(
         params,
         seq,
@@ -368,12 +379,13 @@ pub fn diagnose(
     };
     // a kind named: the data-driven term along it ([`super::data_term`]), which a
     // library effect must not fall far short of ([`super::offer`])
-    let named = winner.is_some()
+    let named = (winner.is_some() || shape_named)
         && cfg.decide == Decide::Contrast
         && !joint.first().is_some_and(|j| j.significant);
-    let mut data_term = match winner {
-        Some(w) if named => super::data_term::offer(
-            &w.class,
+    let named_class = winner.map_or("fluence_x_time", |w| w.class.as_str());
+    let mut data_term = match named {
+        true => super::data_term::offer(
+            named_class,
             params,
             &own_refit,
             &base.current,
@@ -386,7 +398,9 @@ pub fn diagnose(
     };
     // a kind named: the data-driven term when it predicts held-out data and no library
     // effect is declared beside it ([`super::offer`])
-    let offer = if named {
+    let offer = if shape_named && named {
+        super::offer::shape_term(data_term.as_ref())
+    } else if named {
         super::offer::settle(&mut ranking, data_term.as_ref())
     } else {
         None
@@ -445,12 +459,42 @@ pub fn diagnose(
         joint,
         spatial,
         data_term,
+        decay_shape,
         offer,
         verdict: String::new(),
         cautions: cautions(params),
     };
     d.verdict = verdict(&d, params, false);
     Ok(d)
+}
+
+/// The samples with the tilt the model's own terms along `fluence_x_time` give
+/// (`smooth_shape`, `short_tau_boost`) taken out of the measurements: each multiplied
+/// by the model's prediction without those terms over its prediction `current` with
+/// them, so that [`super::shape`] measures what the model leaves. None when the model
+/// holds no such term.
+fn shape_samples(
+    params: &ModelParams,
+    seq: &Sequence,
+    samples: &Samples,
+    current: &[f64],
+) -> Result<Option<Samples>> {
+    let along = |name: &str| {
+        crate::model::effects::lookup(name).is_some_and(|d| d.covariate == "fluence_x_time")
+    };
+    if !params.effects.iter().any(|e| along(&e.name)) {
+        return Ok(None);
+    }
+    let mut without = params.clone();
+    without.effects.retain(|e| !along(&e.name));
+    let bare = eval::predict(&without, seq, samples, false)?.current;
+    let mut s = samples.clone();
+    for ((m, &a), &b) in s.measured.iter_mut().zip(&bare).zip(current) {
+        if a.is_finite() && b.is_finite() && a > 0.0 && b > 0.0 {
+            *m *= a / b;
+        }
+    }
+    Ok(Some(s))
 }
 
 /// Refuses fewer than [`MIN_BOOTSTRAP`] replicas and zero pixels, naming the option.

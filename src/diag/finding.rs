@@ -134,6 +134,10 @@ pub struct Diagnosis {
     /// library effect acting on it predicts held-out data ([`super::data_term`]).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub data_term: Option<super::data_term::DataTerm>,
+    /// The decay's shape against the fluence, measured against the model diagnosed
+    /// ([`super::shape`]); None when the samples hold fewer than two fluence bins.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub decay_shape: Option<super::shape::DecayShape>,
     /// What the verdict offers when it names a kind and nothing is significant: the
     /// data-driven term when it predicts held-out data against the pixel reference
     /// ([`super::offer`]).

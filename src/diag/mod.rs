@@ -13,6 +13,7 @@
 //! - [`score`]: the score test and its bootstrap threshold;
 //! - [`contrast`] and [`base`]: what the data can test, and what a flexible base's
 //!   residual depends on; [`separate`]: whether two such kinds can be told apart;
+//! - [`shape`]: whether the decay's shape depends on the fluence, measured directly;
 //! - [`data_term`]: the data-driven term offered along that covariate; [`offer`]: which
 //!   refitted candidate is offered, judged held out against the pixel reference;
 //! - [`finding`]: what a diagnosis decided, as data; [`verdict`] puts it into words
@@ -37,5 +38,6 @@ pub mod refit;
 pub mod report;
 pub mod score;
 pub mod separate;
+pub mod shape;
 pub mod spatial;
 pub mod verdict;

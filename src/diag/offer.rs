@@ -36,6 +36,14 @@
 //! takes the pixel reference from 7.04 to 6.65; the term offered takes it to 4.49
 //! (nothing-hidden baseline 1.19).
 //!
+//! # A decay shape that depends on the fluence
+//! The pixel reference takes in every function of (fluence, time since illumination)
+//! by construction, so a term along `fluence_x_time` (`smooth_shape`, named from
+//! [`super::shape`]) cannot gain against it. Its held-out check is against the
+//! measurements' description ([`super::refit::HeldOut`]): the term is offered
+//! ([`shape_term`]) when it gains in each fold and lowers the BIC by more than
+//! [`super::refit::DBIC_MAX`].
+//!
 //! # Invariants
 //! - Offered only when the verdict names a kind and nothing is significant (the
 //!   caller's condition); what is offered is one of the candidates or the data term,
@@ -84,6 +92,24 @@ pub fn settle(ranking: &mut [Candidate], data_term: Option<&DataTerm>) -> Option
         c.outpredicted_by_term = true;
     }
     Some(term)
+}
+
+/// The offer of the data-driven term along `fluence_x_time` (module docs, "A decay
+/// shape that depends on the fluence"); None when it does not gain in each fold held
+/// out against the description, its BIC does not fall enough, or it has no check
+/// against the pixel reference to report.
+pub fn shape_term(data_term: Option<&DataTerm>) -> Option<Offer> {
+    let t = data_term?;
+    let h = t.held_out.as_ref()?;
+    let gains = !h.folds.is_empty() && h.folds.iter().all(|f| f.rms_after < f.rms_before);
+    if !(gains && t.delta_bic < super::refit::DBIC_MAX) {
+        return None;
+    }
+    Some(Offer {
+        effect: t.effect.clone(),
+        data_term: true,
+        pixel_reference: h.pixel_reference.clone()?,
+    })
 }
 
 /// The offer among the refitted candidates of `ranking` and `data_term` (module docs);

@@ -7,8 +7,9 @@
 //!   model diagnosed) and no number is computed but for display.
 //! - The verdict names the first significant candidate of the ranking, else a
 //!   significant pair of the joint check, else the covariate the residual depends on
-//!   (with the data-driven term offered or refused), else where the largest residuals
-//!   are.
+//!   (with the data-driven term offered or refused), else a decay shape that depends
+//!   on the fluence ([`super::shape`], with its term offered or refused), else where the
+//!   largest residuals are.
 
 use super::command::margin_note;
 use super::config::{Decide, Refit};
@@ -43,11 +44,73 @@ pub fn verdict(d: &Diagnosis, params: &ModelParams, held: bool) -> String {
                     None => data_term_sentence(d.data_term.as_ref(), &w.class, params),
                 }
         }
+        None if d.decide == Decide::Contrast
+            && d.decay_shape.as_ref().is_some_and(|s| s.depends) =>
+        {
+            shape_sentence(d, params, held)
+        }
         None => format!(
             "no library effect is significant; the residual RMS is {:.2}, largest at: {}{}",
             d.residual_rms_normalised,
             largest_sentence(d),
             field_sentence(d.spatial.as_ref())
+        ),
+    }
+}
+
+/// The verdict on a decay shape that depends on the fluence ([`super::shape`]), with the
+/// data-driven term along it offered or refused ([`super::offer::shape_term`]).
+fn shape_sentence(d: &Diagnosis, params: &ModelParams, held: bool) -> String {
+    let Some(s) = d.decay_shape.as_ref() else {
+        return String::new();
+    };
+    let bins = s
+        .bins
+        .iter()
+        .map(|b| format!("10^{:.1} e-: {:+.3}", b.log10_fluence_e, b.tilt))
+        .collect::<Vec<_>>()
+        .join("; ");
+    let faintest = s.bins.first().map_or(f64::NAN, |b| b.log10_fluence_e);
+    let head = format!(
+        "the decay's shape depends on the fluence (fluence_x_time): after the first \
+         illumination (exposure {}), the log-log slope of the decay of pixels of 10^{:.1} \
+         e- stands {:.2} per decade of time above that of pixels of 10^{:.1} e- ({:.0} \
+         standard errors): brighter pixels decay more slowly, which the model, with one \
+         decay law for every fluence, cannot follow (filling the traps by itself tends \
+         the other way: the traps that empty fastest fill least at low flux). Each \
+         fluence's slope against that of 10^{faintest:.1} e-: {bins}",
+        s.illumination_exposure, s.to_log10_fluence_e, s.rise, s.from_log10_fluence_e, s.rise_z
+    );
+    let Some(t) = d.data_term.as_ref() else {
+        return head + ". No data-driven term follows it";
+    };
+    let (before, after) = t
+        .held_out
+        .as_ref()
+        .map_or((f64::NAN, f64::NAN), |h| (h.rms_before, h.rms_after));
+    match &d.offer {
+        Some(o) if o.data_term => format!(
+            "{head}. Offered: the data-driven term along it ({}: each term's response \
+             tilted by a smooth function of the fluence, fitted from these data), which \
+             predicts each held-out half better than the measurements' description (RMS \
+             {before:.2} -> {after:.2}; dBIC {:.1}); the pixel reference takes in every \
+             function of fluence and time, so it cannot judge it; add it with: {}",
+            t.effect,
+            t.delta_bic,
+            add_clause(
+                &t.command,
+                t.measure_command.as_deref(),
+                held && t.measured_with.is_some(),
+                params
+            )
+        ),
+        _ => format!(
+            "{head}. The data-driven term along it ({}) is not offered: held out against \
+             the measurements' description it does not gain in each half, or lowers the \
+             BIC by less than {} (RMS {before:.2} -> {after:.2}; dBIC {:.1})",
+            t.effect,
+            -super::refit::DBIC_MAX,
+            t.delta_bic
         ),
     }
 }

@@ -21,7 +21,7 @@ use super::effect::{Effect, EffectDef, EffectSpec};
 use std::collections::BTreeMap;
 
 /// Every effect this build knows, sorted by name.
-pub const REGISTRY: [EffectDef; 14] = [
+pub const REGISTRY: [EffectDef; 15] = [
     blooming::DEF,
     capacity::DEF,
     chord::DEF,
@@ -33,6 +33,7 @@ pub const REGISTRY: [EffectDef; 14] = [
     smooth::DURATION,
     smooth::HISTORY,
     smooth::NEIGHBOUR,
+    smooth::SHAPE,
     smooth::TEMPERATURE,
     soak::DEF,
     temperature::DEF,

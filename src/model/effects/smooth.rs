@@ -18,6 +18,7 @@
 //! | `smooth_temperature` | focal-plane temperature, K | every term's emission rate, `1/tau_n *= exp(g)`, `C_n *= exp(g)` (the charge `A_n C_n tau_n` kept; rates hook) |
 //! | `smooth_history` | `log10(H / Q_sat)`, `H` the charge the pixel still holds, `Q_sat` the charge its traps hold after a saturating fill (its largest amplitude on every term) | the capacity of the exposed traps, factor `exp(g)` in (0, 1] (limit hook) |
 //! | `smooth_neighbour` | `log10(E_nb / max(F, 1 e-))` | the pixel's fluence, `F += g E_nb` (at least 0; fluence hook) |
+//! | `smooth_shape` | `log10(F / 1 e-)` | the decay's shape: every term's new response, `A_k,n *= (tau_n / 1000 s)^g` (response hook; `g > 0`: slower) |
 //!
 //! `E_nb` is `blooming`'s mean excess of the four nearest neighbours over `f_sat_e`, `F`
 //! the pixel's own extrapolated fluence: `g` is the share of the neighbours' excess
@@ -32,7 +33,10 @@
 //! `smooth_temperature`'s `at_mid` (the middle of the temperatures measured; measured
 //! without it on a family campaign at 78, 80 and 82 K: the three values fitted to
 //! -3.66, -3.71, -3.77, a common slowing of every rate) and `smooth_history`'s `at_lo`
-//! (a pixel holding little charge keeps its capacity).
+//! (a pixel holding little charge keeps its capacity) and `smooth_shape`'s `at_lo` (the
+//! faintest pixels keep the model's decay shape: a tilt shared by every fluence is a
+//! misfit of the decay law, which `persist fit` measures, not a dependence on the
+//! fluence).
 //!
 //! `smooth_history`'s covariate is the share of the pixel's traps still occupied: a
 //! ratio of two charges of the same model, not the held charge in electrons. A model
@@ -66,7 +70,12 @@ pub enum Axis {
     Temperature,
     History,
     Neighbour,
+    Shape,
 }
+
+/// The decay time `smooth_shape` tilts the terms about: a term of this `tau_n` keeps
+/// its response, s.
+pub const SHAPE_PIVOT_S: f64 = 1000.0;
 
 /// The knot positions and values of one term.
 #[derive(Debug, Clone, PartialEq)]
@@ -147,11 +156,12 @@ const fn axis_params(
 }
 
 impl Axis {
-    pub const ALL: [Axis; 4] = [
+    pub const ALL: [Axis; 5] = [
         Axis::Duration,
         Axis::Temperature,
         Axis::History,
         Axis::Neighbour,
+        Axis::Shape,
     ];
 
     /// The registered effect of this axis.
@@ -161,6 +171,7 @@ impl Axis {
             Axis::Temperature => &TEMPERATURE,
             Axis::History => &HISTORY,
             Axis::Neighbour => &NEIGHBOUR,
+            Axis::Shape => &SHAPE,
         }
     }
 
@@ -294,6 +305,37 @@ pub const NEIGHBOUR: EffectDef = EffectDef {
     covariate: "neighbour_excess_fluence",
 };
 
+const SHAPE_PARAMS: [ParamSpec; 5] = axis_params(
+    [
+        (
+            "log10_f_lo_e",
+            4.5,
+            "log10 of the fluence below which the shape is the model's, e-",
+        ),
+        (
+            "log10_f_hi_e",
+            7.0,
+            "log10 of the fluence of the high knot, e-",
+        ),
+    ],
+    (0.0, 12.0),
+    (-1.0, 1.0),
+    [false, true, true],
+    [
+        "tilt of the decay at u_lo (the anchor)",
+        "tilt of the decay at the midpoint, per decade of tau_n",
+        "tilt of the decay at u_hi, per decade of tau_n",
+    ],
+);
+
+pub const SHAPE: EffectDef = EffectDef {
+    name: "smooth_shape",
+    summary: "data-driven: A_k,n *= (tau_n / 1000 s)^g(log10 F), g piecewise linear, fitted",
+    params: &SHAPE_PARAMS,
+    build: |p| build(Axis::Shape, p),
+    covariate: "fluence_x_time",
+};
+
 /// The axis of a data-driven term, by effect name.
 pub fn axis_of(name: &str) -> Option<Axis> {
     Axis::ALL.into_iter().find(|a| a.def().name == name)
@@ -319,7 +361,7 @@ impl Effect for Smooth {
         Some(0)
     }
     fn response_is_per_pixel(&self) -> bool {
-        self.axis == Axis::Duration
+        matches!(self.axis, Axis::Duration | Axis::Shape)
     }
     fn rates(&self, ctx: &IntervalCtx, c_per_s: &mut [f64], rate_per_s: &mut [f64]) {
         if self.axis != Axis::Temperature {
@@ -352,6 +394,9 @@ impl Effect for Smooth {
         });
     }
     fn response(&self, ctx: &ResponseCtx<'_>, ak: &mut Array3<f64>) {
+        if self.axis == Axis::Shape {
+            return self.tilt(ctx, ak);
+        }
         if self.axis != Axis::Duration || ctx.t_illuminated_s <= 0.0 {
             return;
         }
@@ -375,6 +420,34 @@ impl Effect for Smooth {
             k.clamp(0.0, 1.0)
         } else {
             1.0
+        }
+    }
+}
+
+impl Smooth {
+    /// `smooth_shape`'s response: each term of a pixel of fluence `F` times
+    /// `(tau_n / SHAPE_PIVOT_S)^g(log10 F)`; unknown or zero fluence unchanged.
+    fn tilt(&self, ctx: &ResponseCtx<'_>, ak: &mut Array3<f64>) {
+        if self.is_null() {
+            return;
+        }
+        // ln(tau_n / pivot)
+        let log_tau: Vec<f64> = ctx
+            .rate_per_s
+            .iter()
+            .map(|r| (1.0 / (r * SHAPE_PIVOT_S)).ln())
+            .collect();
+        for ((y, x), f) in ctx.fluence_e.indexed_iter() {
+            if !(f.is_finite() && *f > 0.0) {
+                continue;
+            }
+            let g = self.g(f.log10());
+            for (n, lt) in log_tau.iter().enumerate() {
+                let k = (g * lt).exp();
+                if k.is_finite() {
+                    ak[[y, x, n]] *= k;
+                }
+            }
         }
     }
 }
@@ -477,5 +550,45 @@ mod tests {
             assert_eq!(e.limit(1e4, 1e3, 1e3), 1.0);
             assert!(def.switch().is_none(), "{} is not scored", def.name);
         }
+    }
+
+    #[test]
+    fn shape_tilts_each_term_about_the_pivot_by_the_pixels_own_fluence() {
+        // g(log10 F): 0 at 10^4 e- (the anchor), 0.2 from 10^6 e- on
+        let s = Smooth {
+            axis: Axis::Shape,
+            u_lo: 4.0,
+            u_hi: 6.0,
+            at: [0.0, 0.1, 0.2],
+            f_sat_e: 0.0,
+        };
+        let f = Array2::from_shape_vec((1, 3), vec![1e4, 1e7, f64::NAN]).unwrap();
+        let rates = [1e-1, 1e-3, 1e-5]; // tau 10 s, 1000 s, 10^5 s
+        let mut ak = Array3::from_elem((1, 3, 3), 2.0);
+        s.response(
+            &ResponseCtx {
+                needed: None,
+                fluence_e: &f,
+                no_slope: &Array2::from_elem(f.dim(), false),
+                t_illuminated_s: 481.0,
+                t_exposure_s: 613.0,
+                rate_per_s: &rates,
+                rate_held_per_s: &rates,
+                response: &crate::model::Response::new(
+                    &crate::model::ModelParams::default().amplitude_knots,
+                ),
+            },
+            &mut ak,
+        );
+        let a = ak.as_slice().unwrap();
+        // faint pixel and unknown fluence: unchanged
+        assert_eq!(&a[0..3], &[2.0; 3]);
+        assert_eq!(&a[6..9], &[2.0; 3]);
+        // bright pixel: (tau / 1000 s)^0.2 = 10^-0.4, 1, 10^0.4
+        let want = [2.0 * 10f64.powf(-0.4), 2.0, 2.0 * 10f64.powf(0.4)];
+        for (got, w) in a[3..6].iter().zip(want) {
+            assert!((got - w).abs() < 1e-12, "{got} {w}");
+        }
+        assert!(s.response_is_per_pixel());
     }
 }
