@@ -21,6 +21,13 @@
 //!    "the gates"); among significant ones the best held-out gain comes first. When
 //!    the residual depends on a covariate but no effect on it passes, the verdict says
 //!    so and prints the residual by that covariate's bins.
+//! 6. **A decay shape that depends on the fluence** ([`super::shape`]): when no
+//!    covariate names a kind, the tilt of brighter pixels' decay against fainter ones
+//!    after the first illumination, measured from the data (with the tilt the model's
+//!    own `fluence_x_time` terms give divided out); when it rises enough the verdict
+//!    names `fluence_x_time` and the data-driven term `smooth_shape` is fitted, held
+//!    out against the description and offered when it gains in each half
+//!    ([`super::offer::shape_term`]).
 //!
 //! The score test and its bootstrap threshold (below) are still computed and printed:
 //! they rank the testable effects, they no longer choose which are refitted (a score
