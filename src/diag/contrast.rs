@@ -431,7 +431,6 @@ fn position_contrast(seq: &Sequence, s: &Samples) -> Contrast {
     }
 }
 
-/// A function of fluence and time since illumination alone: never testable.
 /// Fluence bins whose samples span a decade of time ([`super::shape::testable`]).
 fn shape_contrast(s: &Samples) -> Contrast {
     if super::shape::testable(s) {
@@ -455,10 +454,11 @@ fn shape_contrast(s: &Samples) -> Contrast {
     }
 }
 
+/// A function of the time since illumination alone: never testable.
 fn no_contrast() -> Contrast {
     (
         false,
-        "a function of fluence and time since illumination alone, which the base \
+        "a function of the time since illumination alone, which the base \
      absorbs: no contrast can tell it from the base's own misfit"
             .into(),
         Some(

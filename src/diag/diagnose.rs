@@ -390,8 +390,8 @@ pub fn diagnose(
         && cfg.decide == Decide::Contrast
         && !joint.first().is_some_and(|j| j.significant);
     let named_class = winner.map_or("fluence_x_time", |w| w.class.as_str());
-    let mut data_term = match named {
-        true => super::data_term::offer(
+    let mut data_term = if named {
+        super::data_term::offer(
             named_class,
             params,
             &own_refit,
@@ -400,8 +400,9 @@ pub fn diagnose(
             &samples,
             cfg,
             (input, model_path),
-        )?,
-        _ => None,
+        )?
+    } else {
+        None
     };
     // a kind named: the data-driven term when it predicts held-out data and no library
     // effect is declared beside it ([`super::offer`])
