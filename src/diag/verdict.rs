@@ -75,14 +75,22 @@ fn shape_sentence(d: &Diagnosis, params: &ModelParams, held: bool) -> String {
         "the decay's shape depends on the fluence (fluence_x_time): after the first \
          illumination (exposure {}), the log-log slope of the decay of pixels of 10^{:.1} \
          e- stands {:.2} per decade of time above that of pixels of 10^{:.1} e- ({:.0} \
-         standard errors): brighter pixels decay more slowly, which the model, with one \
-         decay law for every fluence, cannot follow (filling the traps by itself tends \
+         standard errors): brighter pixels decay more slowly, which a model with one \
+         decay law for every fluence cannot follow (filling the traps by itself tends \
          the other way: the traps that empty fastest fill least at low flux). Each \
          fluence's slope against that of 10^{faintest:.1} e-: {bins}",
         s.illumination_exposure, s.to_log10_fluence_e, s.rise, s.from_log10_fluence_e, s.rise_z
     );
     let Some(t) = d.data_term.as_ref() else {
-        return head + ". No data-driven term follows it";
+        return match super::data_term::held("fluence_x_time", params) {
+            Some(def) => format!(
+                "{head}. The model already holds the data-driven term along it ({}), whose \
+                 own tilt is divided out before the shape is measured: the tilt above is \
+                 what it leaves",
+                def.name
+            ),
+            None => head + ". No data-driven term follows it",
+        };
     };
     let (before, after) = t
         .held_out
