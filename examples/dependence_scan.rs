@@ -56,7 +56,7 @@ fn main() {
     };
     let mut deps = contrast::dependences(&seq, &s, bases, &contrasts, cfg.seed);
     let sep = separate::separate(&seq, &s, &scaled.prediction, &mut deps, cfg.seed);
-    let depending: Vec<String> = deps
+    let mut depending: Vec<String> = deps
         .iter()
         .filter(|d| d.depends)
         .map(|d| {
@@ -94,7 +94,6 @@ fn main() {
     };
     // no contrast names a kind: the decay's shape against the fluence (diag::shape)
     let shape = persist::diag::shape::measure(&s, 0);
-    let mut depending = depending;
     if let Some(d) = shape.as_ref().filter(|d| d.depends) {
         depending.push(format!(
             "fluence_x_time: rise {:.2} (z {:.0})",

@@ -115,6 +115,32 @@ impl Smooth {
     fn is_null(&self) -> bool {
         self.at.iter().all(|v| *v == 0.0)
     }
+
+    /// `smooth_shape`'s response: each term of a pixel of fluence `F` times
+    /// `(tau_n / SHAPE_PIVOT_S)^g(log10 F)`; unknown or zero fluence unchanged.
+    fn tilt(&self, ctx: &ResponseCtx<'_>, ak: &mut Array3<f64>) {
+        if self.is_null() {
+            return;
+        }
+        // ln(tau_n / pivot)
+        let log_tau: Vec<f64> = ctx
+            .rate_per_s
+            .iter()
+            .map(|r| (1.0 / (r * SHAPE_PIVOT_S)).ln())
+            .collect();
+        for ((y, x), f) in ctx.fluence_e.indexed_iter() {
+            if !(f.is_finite() && *f > 0.0) {
+                continue;
+            }
+            let g = self.g(f.log10());
+            for (n, lt) in log_tau.iter().enumerate() {
+                let k = (g * lt).exp();
+                if k.is_finite() {
+                    ak[[y, x, n]] *= k;
+                }
+            }
+        }
+    }
 }
 
 /// An axis' parameters: the two knot positions (`u_lo`, `u_hi`: names with their
@@ -420,34 +446,6 @@ impl Effect for Smooth {
             k.clamp(0.0, 1.0)
         } else {
             1.0
-        }
-    }
-}
-
-impl Smooth {
-    /// `smooth_shape`'s response: each term of a pixel of fluence `F` times
-    /// `(tau_n / SHAPE_PIVOT_S)^g(log10 F)`; unknown or zero fluence unchanged.
-    fn tilt(&self, ctx: &ResponseCtx<'_>, ak: &mut Array3<f64>) {
-        if self.is_null() {
-            return;
-        }
-        // ln(tau_n / pivot)
-        let log_tau: Vec<f64> = ctx
-            .rate_per_s
-            .iter()
-            .map(|r| (1.0 / (r * SHAPE_PIVOT_S)).ln())
-            .collect();
-        for ((y, x), f) in ctx.fluence_e.indexed_iter() {
-            if !(f.is_finite() && *f > 0.0) {
-                continue;
-            }
-            let g = self.g(f.log10());
-            for (n, lt) in log_tau.iter().enumerate() {
-                let k = (g * lt).exp();
-                if k.is_finite() {
-                    ak[[y, x, n]] *= k;
-                }
-            }
         }
     }
 }
