@@ -56,12 +56,32 @@ fn main() {
     };
     let mut deps = contrast::dependences(&seq, &s, bases, &contrasts, cfg.seed);
     let sep = separate::separate(&seq, &s, &scaled.prediction, &mut deps, cfg.seed);
+    if std::env::var_os("SCAN_VERBOSE").is_some() {
+        for d in &deps {
+            eprintln!(
+                "{:<26} r2 {:.4} null mean {:.4} max {:.4} z {:.1} depends {}",
+                d.class, d.r2, d.r2_null_mean, d.r2_null_max, d.z, d.depends
+            );
+            if let Some(x) = &d.sharp {
+                eprintln!("    next to far brighter: {x:?}");
+            }
+            for (label, blocks, mean) in &d.by_bin {
+                eprintln!("    {label:<32} blocks {blocks:>6} mean {mean:+.3}");
+            }
+        }
+    }
     let mut depending: Vec<String> = deps
         .iter()
         .filter(|d| d.depends)
         .map(|d| {
+            let sharp = d.sharp.filter(|x| x.depends).map_or(String::new(), |x| {
+                format!(
+                    ", next to far brighter pixels {:+.2} (z {:.0})",
+                    x.mean, x.z
+                )
+            });
             format!(
-                "{} {:.2} % (z {:.0})",
+                "{} {:.2} % (z {:.0}{sharp})",
                 d.class,
                 100.0 * (d.r2 - d.r2_null_mean),
                 d.z

@@ -26,7 +26,10 @@ docs of `persist::diag::contrast` and `persist::diag::separate`): event-level cl
 against the pixel reference, the two leading ones tested each given the other;
 pixel-level classes (neighbours, position) against the flexible base. "Depends": above
 all 99 permutations and explaining at least `MIN_R2_EVENT` (event-level) or `MIN_R2`
-(pixel-level) of the residual's sum of squares beyond their mean. Right kind: the
+(pixel-level) of the residual's sum of squares beyond their mean; the neighbours also
+when the pixel-events next to far brighter pixels carry a residual beyond their cells'
+mean at `|z|` of at least `MIN_SHARP_Z` (shown as "next to far brighter pixels", the
+mean in units of the cells' spread). Right kind: the
 hidden class's contrast class (soak: illumination_time; capacity:
 earlier_illuminations; temperature: temperature; blooming and ipc:
 neighbour_excess_fluence; populations: position; shape, a decay shape that depends on

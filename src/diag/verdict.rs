@@ -259,7 +259,7 @@ fn dependence_sentence(w: &contrast::Dependence, outpredicted: &str, uncalibrate
     format!(
         "the residual of {} depends on {} (it explains {:.1} % of the residual's sum \
          of squares inside the fluence x time cells, {:.1} % at most over {} \
-         permutations; z {:.1}), but {why}: the missing physics may be of this kind in \
+         permutations; z {:.1}{}), but {why}: the missing physics may be of this kind in \
          another form. The residual by {}: {}{too_few}",
         contrast::base_name(&w.class),
         w.class,
@@ -267,6 +267,7 @@ fn dependence_sentence(w: &contrast::Dependence, outpredicted: &str, uncalibrate
         100.0 * w.r2_null_max,
         w.permutations,
         w.z,
+        sharp_clause(w),
         w.class,
         w.by_bin
             .iter()
@@ -274,6 +275,19 @@ fn dependence_sentence(w: &contrast::Dependence, outpredicted: &str, uncalibrate
             .collect::<Vec<_>>()
             .join("; ")
     )
+}
+
+/// "; the N pixel-events next to far brighter pixels ..." when they carry an excess
+/// of their own ([`contrast::SharpExcess`]).
+fn sharp_clause(w: &contrast::Dependence) -> String {
+    match w.sharp {
+        Some(x) if x.depends => format!(
+            "; the {} pixel-events next to far brighter pixels lie {:+.2} of their \
+             cells' spread from the cells' mean, z {:.1}",
+            x.blocks, x.mean, x.z
+        ),
+        _ => String::new(),
+    }
 }
 
 /// "A or B: confounded in these data. " when `class` is one of a confounded pair.
@@ -680,6 +694,17 @@ pub fn render(d: &Diagnosis) -> String {
                 x.effects.join(", "),
                 if x.depends { "  DEPENDS" } else { "" }
             );
+            if let Some(e) = x.sharp {
+                s += &format!(
+                    "  {:<26} next to far brighter pixels: {} pixel-events, {:+.2} of \
+                     their cells' spread, z {:.1}{}\n",
+                    "",
+                    e.blocks,
+                    e.mean,
+                    e.z,
+                    if e.depends { "  DEPENDS" } else { "" }
+                );
+            }
         }
     }
     if !d.joint.is_empty() {
@@ -799,6 +824,7 @@ mod tests {
             depends: true,
             above_permutations: true,
             by_bin: vec![("78 K".into(), 120, -0.4), ("82 K".into(), 120, 0.5)],
+            sharp: None,
         };
         let s = dependence_sentence(&w, "", "temperature, smooth_temperature");
         assert!(
