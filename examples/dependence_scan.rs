@@ -12,6 +12,10 @@
 //! ```sh
 //! target/release/examples/dependence_scan LAB_DIR MODEL.json LABEL EXPECT
 //! ```
+//!
+//! With `SCAN_VERBOSE` set, every class's statistic, its permutations and its residual
+//! by covariate bin (and, for the neighbours, the pixels next to far brighter ones) go
+//! to stderr.
 use persist::diag::config::Config;
 use persist::diag::contrast::{self, Bases};
 use persist::diag::data::Sequence;
