@@ -68,8 +68,8 @@
 //! test is made ([`SharpExcess`]): `D`, the summed residual of the pixel-events whose
 //! neighbours' excess exceeds their own fluence (the contrast of [`testability`]) beyond
 //! the mean of their cells, against the same permutations (of that mark among the
-//! blocks of each stratum). The class also depends when `|D|` lies beyond every
-//! permutation and `|z|` reaches [`MIN_SHARP_Z`], in either sign (blooming adds charge
+//! blocks of each stratum). The class also depends when `D` lies farther from the
+//! permutations' mean than every permutation and `|z|` reaches [`MIN_SHARP_Z`], in either sign (blooming adds charge
 //! next to the bright pixel; coupling in the read moves signal into the neighbours'
 //! measured fluence and lowers their persistence against it). Measured with
 //! examples/dependence_scan on the second generator (campaigns and single
@@ -900,7 +900,10 @@ fn sharp_excess(
 ) -> SharpExcess {
     let kept = |b: usize| x[b].is_some();
     let mut cells: BTreeMap<usize, (f64, f64)> = BTreeMap::new();
-    for (_, entries) in per_block.iter().enumerate().filter(|(b, _)| kept(*b)) {
+    for entries in (0..per_block.len())
+        .filter(|&b| kept(b))
+        .map(|b| &per_block[b])
+    {
         for &(id, a, n) in entries {
             let q = cells.entry(id).or_default();
             q.0 += a;
