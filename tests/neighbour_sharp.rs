@@ -6,8 +6,8 @@
 //! residual of the flexible base depends on `neighbour_excess_fluence` through the
 //! pixels next to the pinholes, which the pooled test alone misses (it explains 0.28 %
 //! beyond its permutations' mean, under `MIN_R2`; measured: the marked pixels +0.21 of
-//! their cells' spread, z 8.8), and `diagnose` names it; with nothing hidden the same
-//! pixels stay within the permutations (measured: z 1.8) and nothing is named. The
+//! their cells' spread, z 6.9), and `diagnose` names it; with nothing hidden the same
+//! pixels stay within the permutations (measured: z 0.8) and nothing is named. The
 //! bootstrap (19 replicas) only sets the score threshold, which names nothing.
 
 mod common;
