@@ -908,12 +908,9 @@ fn sharp_excess(
     given: Option<&[Option<i64>]>,
     seed: u64,
 ) -> SharpExcess {
-    let kept = |b: usize| x[b].is_some();
+    // `block_sums` leaves the blocks without a bin in `x` empty
     let mut cells: BTreeMap<usize, (f64, f64)> = BTreeMap::new();
-    for entries in (0..per_block.len())
-        .filter(|&b| kept(b))
-        .map(|b| &per_block[b])
-    {
+    for entries in per_block {
         for &(id, a, n) in entries {
             let q = cells.entry(id).or_default();
             q.0 += a;
@@ -931,7 +928,7 @@ fn sharp_excess(
         })
         .collect();
     let bins: Vec<Option<i64>> = (0..blocks.len())
-        .map(|b| next_to_brighter[b].filter(|_| kept(b)))
+        .map(|b| next_to_brighter[b].filter(|_| x[b].is_some()))
         .collect();
     let stat = |xs: &[Option<i64>]| -> f64 {
         (0..xs.len())
