@@ -31,15 +31,28 @@ RMS of the two diagnoses; baseline: the same on the nothing-hidden campaign of t
 same seed (default `fit` and `diagnose`; for blooming and ipc, with the pinhole grid
 that both are simulated with). Excess = RMS - baseline; halved: the excess
 after at most half the excess before (an excess before of at most 0 counts as halved
-when the excess after is at most 0 too).
+when the excess after is at most 0 too). Next to far brighter pixels: where the pinhole
+grid gives them, the mean residual of the pixel-events next to far brighter pixels
+beyond their cells' mean, in units of the cells' spread, and its z (`diagnose`'s line
+"next to far brighter pixels", against the flexible base), before -> after: what the
+candidates on the neighbours are judged on (`persist::diag::marked`), since each
+pixel's own terms in the pixel reference take in what a bright neighbour, the same in
+every illumination, does to it.
 
-| run | named | offered | before | after | baseline | excess before -> after | halved |
-|---|---|---|---|---|---|---|---|
+| run | named | offered | before | after | baseline | excess before -> after | halved | next to far brighter pixels |
+|---|---|---|---|---|---|---|---|---|
 TEXT
 
 # The pixel reference's RMS in diagnose's output ($1).
 pixel_rms() {
     sed -n 's/^pixel reference.*residual RMS \([0-9.]*\) over [0-9]* cells$/\1/p' <<< "$1"
+}
+
+# "+0.21 (z 6.9)": the pixels next to far brighter ones in diagnose's output ($1), or "-".
+marked() {
+    local m
+    m=$(sed -n "s/.*next to far brighter pixels: [0-9]* pixel-events, \([-+0-9.]*\) of their cells' spread, z \([-0-9.]*\).*/\1 (z \2)/p" <<< "$1" | head -1)
+    echo "${m:--}"
 }
 
 # The kind the verdict names ($1: diagnose's output): the missing effect's covariate,
@@ -83,6 +96,8 @@ for seed in $seeds; do
         "$persist" --log-level error fit --input "$dir" --out "$dir.json" > /dev/null
         out=$(diagnose_rms "$dir" "$dir.json")
         before=$(pixel_rms "$out")
+        marked_before=$(marked "$out")
+        marked_after=-
         kind=$(named "$out")
         command=$(offered_command "$out")
         after=-
@@ -96,18 +111,22 @@ for seed in $seeds; do
             # run as printed (the words of the command; no quoting in it)
             read -r -a words <<< "$command"
             "$persist" --log-level error "${words[@]:1}" > /dev/null
-            after=$(pixel_rms "$(diagnose_rms "$dir" "$model")")
+            out_after=$(diagnose_rms "$dir" "$model")
+            after=$(pixel_rms "$out_after")
+            marked_after=$(marked "$out_after")
         fi
         awk -v run="$row, seed $seed" -v kind="${kind:-?}" -v off="$offered" -v b="$before" \
-            -v a="$after" -v z="${baseline["pin:$(pinhole_args "$row")"]}" 'BEGIN {
+            -v a="$after" -v z="${baseline["pin:$(pinhole_args "$row")"]}" \
+            -v mk="$marked_before -> $marked_after" 'BEGIN {
                 eb = b - z
+                if (mk == "- -> -") mk = "-"
                 if (a == "-") {
-                    printf "| %s | %s | %s | %.2f | - | %.2f | %+.2f -> - | no |\n", run, kind, off, b, z, eb
+                    printf "| %s | %s | %s | %.2f | - | %.2f | %+.2f -> - | no | %s |\n", run, kind, off, b, z, eb, mk
                     exit
                 }
                 ea = a - z
                 halved = (ea <= 0.5 * eb || (eb <= 0 && ea <= 0)) ? "yes" : "no"
-                printf "| %s | %s | %s | %.2f | %.2f | %.2f | %+.2f -> %+.2f | %s |\n", run, kind, off, b, a, z, eb, ea, halved
+                printf "| %s | %s | %s | %.2f | %.2f | %.2f | %+.2f -> %+.2f | %s | %s |\n", run, kind, off, b, a, z, eb, ea, halved, mk
             }'
         rm -rf "$dir" "$dir".json "$dir".fit.json "$dir"+*.json
     done

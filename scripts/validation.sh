@@ -44,6 +44,10 @@
 #                                               baseline, seeds 1-5 ($OFFERS_SEEDS; a subset
 #                                               of forms: $OFFERS_ROWS; about 50 minutes a
 #                                               seed; not in the default set)
+#   offers_neighbours docs/validation/offers_neighbours.md  the same on the forms that
+#                                               couple neighbours (blooming, ipc, with the
+#                                               pinhole grid), seeds 1-2 (about 40 minutes;
+#                                               not in the default set)
 #   kinds  docs/validation/kinds.md             scripts/kinds_table.sh: the kind `diagnose`
 #                                               names on the second generator's campaigns,
 #                                               nothing hidden and every hidden form not
@@ -69,8 +73,8 @@ if [[ ${#pages[@]} -eq 0 ]]; then
 fi
 for p in "${pages[@]}"; do
     case $p in
-        floor|bench|matrix|verify|verify_bench|family|family128|family_heldout|reference|kinds|offers|flag_quality|long_tests) ;;
-        *) echo "validation.sh: unknown page '$p' (floor, bench, matrix, verify, verify_bench, family, family128, family_heldout, reference, kinds, offers, flag_quality, long_tests)" >&2; exit 2 ;;
+        floor|bench|matrix|verify|verify_bench|family|family128|family_heldout|reference|kinds|offers|offers_neighbours|flag_quality|long_tests) ;;
+        *) echo "validation.sh: unknown page '$p' (floor, bench, matrix, verify, verify_bench, family, family128, family_heldout, reference, kinds, offers, offers_neighbours, flag_quality, long_tests)" >&2; exit 2 ;;
     esac
 done
 
@@ -431,6 +435,22 @@ page_offers() {
             "make validation PAGES=offers (scripts/offers_table.sh; SEEDS=\"${OFFERS_SEEDS:-1 2 3 4 5}\"${OFFERS_ROWS:+; ROWS=\"$OFFERS_ROWS\"})"
         PERSIST_BIN=$persist SEEDS="${OFFERS_SEEDS:-1 2 3 4 5}" ROWS="${OFFERS_ROWS:-}" \
             WORK=$tmp/offers scripts/offers_table.sh
+    } > "$page.tmp"
+    mv "$page.tmp" "$page"
+    echo "wrote $page" >&2
+}
+
+# offers_neighbours: the offers page's table on the forms that couple neighbours.
+page_offers_neighbours() {
+    local page=$out_dir/offers_neighbours.md
+    local rows="blooming:spill blooming:field ipc:cross4 ipc:aniso8"
+    local seeds="${OFFERS_SEEDS:-1 2}"
+    echo "offers_neighbours: scripts/offers_table.sh" >&2
+    {
+        scripts/validation_header.sh "What the offered addition does next to far brighter pixels, on the second generator's campaigns" \
+            "make validation PAGES=offers_neighbours (scripts/offers_table.sh; SEEDS=\"$seeds\"; ROWS=\"$rows\")"
+        PERSIST_BIN=$persist SEEDS="$seeds" ROWS="$rows" \
+            WORK=$tmp/offers_neighbours scripts/offers_table.sh
     } > "$page.tmp"
     mv "$page.tmp" "$page"
     echo "wrote $page" >&2

@@ -167,8 +167,10 @@ pub fn offer(
         seq,
         samples,
     )?;
-    // against the model without the term (the fit's own "before" is its start)
-    let (rss0, m) = crate::measure::spread::rss_cells(own_refit, seq, samples)?;
+    // against the model without the term (the fit's own "before" is its start), on the
+    // samples it was fitted on
+    let fitted_on = super::refit::fitting_samples(&[with.as_str()], samples);
+    let (rss0, m) = crate::measure::spread::rss_cells(own_refit, seq, &fitted_on)?;
     let rss1 = f.rss_before_after().1;
     let k = f.params.iter().filter(|p| p.effect == name).count();
     let dbic = delta_bic(rss0, rss1, k, f.cells);

@@ -31,6 +31,7 @@ pub mod contrast;
 pub mod data_term;
 pub mod diagnose;
 pub mod finding;
+pub mod marked;
 pub mod offer;
 pub mod polish;
 pub mod reference;

@@ -25,6 +25,16 @@
 //! campaigns with nothing hidden the pixel reference's RMS is 0.9-1.2
 //! (docs/validation/reference_rms.md).
 //!
+//! # Effects on the neighbours
+//! A candidate acting on `neighbour_excess_fluence` (`blooming`, `ipc`,
+//! `smooth_neighbour`) is judged instead on the pixels next to far brighter ones against
+//! the flexible base ([`super::marked`], [`super::refit::Judge`]): each pixel's own
+//! terms in the pixel reference take in what a bright neighbour, the same in every
+//! illumination, does to it. It is fitted on the cells split by the neighbour contrast
+//! ([`super::refit::fitting_samples`]) and refined against that judge
+//! ([`super::polish`]); the same gate then holds (each fold gains, more than every
+//! permutation of its change).
+//!
 //! # Library effect or term
 //! When a kind is named the data-driven term along it is fitted and held out too, also
 //! beside a declared library effect. A declared effect whose held-out gain is less
@@ -158,6 +168,7 @@ mod tests {
             gain_held: g,
             permuted_gains: (0..PERMUTATIONS).map(|k| 0.02 - 0.001 * k as f64).collect(),
             permuted: super::super::refit::Permuted::Change,
+            judge: super::super::refit::Judge::PixelReference,
             too_few_arrangements: false,
         }
     }

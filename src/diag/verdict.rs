@@ -109,7 +109,8 @@ fn shape_sentence(d: &Diagnosis, params: &ModelParams, held: bool) -> String {
                 &t.command,
                 t.measure_command.as_deref(),
                 held && t.measured_with.is_some(),
-                params
+                params,
+                &t.effect
             )
         ),
         _ => format!(
@@ -124,16 +125,23 @@ fn shape_sentence(d: &Diagnosis, params: &ModelParams, held: bool) -> String {
 }
 
 /// The command that adds an effect, and how its values were come by: held at the
-/// values measured against the description and refined against the pixel reference
-/// ([`super::polish`]; `held`, `measure` the command that measures them against the
+/// values measured against the description and refined against `effect`'s judge
+/// ([`super::polish`], [`super::marked::Judge`]; `held`, `measure` the command that measures them against the
 /// description alone), or with the note on the flagging margin ([`margin_note`]).
-fn add_clause(command: &str, measure: Option<&str>, held: bool, params: &ModelParams) -> String {
+fn add_clause(
+    command: &str,
+    measure: Option<&str>,
+    held: bool,
+    params: &ModelParams,
+    effect: &str,
+) -> String {
     match measure {
         Some(m) if held => format!(
             "{command} (the effect at the values measured against the measurements' \
-             description and refined against the pixel reference, held, so the model \
-             keeps its flagging calibration; to measure it against the description \
-             alone, with its uncertainty: {m})"
+             description and refined against {}, held, so the model keeps its flagging \
+             calibration; to measure it against the description alone, with its \
+             uncertainty: {m})",
+            super::marked::Judge::of(&[effect]).phrase()
         ),
         _ => format!("{command}{}", margin_note(measure, params)),
     }
@@ -186,7 +194,8 @@ fn candidate_sentence(
             &c.command,
             c.measure_command.as_deref(),
             held && c.measured_with.is_some(),
-            params
+            params,
+            &c.effect
         )
     )
 }
@@ -244,11 +253,17 @@ fn dependence_sentence(w: &contrast::Dependence, outpredicted: &str, uncalibrate
         )
     };
     let why = if outpredicted.is_empty() {
+        let judge = if w.class == "neighbour_excess_fluence" {
+            super::refit::Judge::NextToBrighter
+        } else {
+            super::refit::Judge::PixelReference
+        };
         format!(
-            "no library effect acting on it ({}) predicts held-out data better than the \
-             pixel reference beyond {PERMUTATIONS} permutations of its change (or, for \
-             a rate hook, of the temperatures)",
-            w.effects.join(", ")
+            "no library effect acting on it ({}) predicts held-out data better than {} \
+             beyond {PERMUTATIONS} permutations of its change (or, for a rate hook, of \
+             the temperatures)",
+            w.effects.join(", "),
+            judge.phrase()
         )
     } else {
         format!(
@@ -463,23 +478,36 @@ fn offer_sentence(
     format!(
         ". Offered: {what}, which {}; add it with: {}",
         held_out_clause(&o.pixel_reference, d.pixel_reference.per_event_rms),
-        add_clause(command, measure, held && measured, params)
+        add_clause(command, measure, held && measured, params, &o.effect)
     )
 }
 
-/// What a candidate held out does to the pixel reference ([`super::refit::PixelHeldOut`]),
-/// with the floor's share ([`floor_clause`]).
+/// What a candidate held out does to its judge ([`super::refit::PixelHeldOut`]): the
+/// pixel reference, with the floor's share ([`floor_clause`]), or for a candidate on the
+/// neighbours the flexible base on the pixels next to far brighter ones
+/// ([`super::marked`]).
 fn held_out_clause(p: &super::refit::PixelHeldOut, per_event: Option<f64>) -> String {
+    use super::refit::Judge;
+    let (against, rms_of, floor) = match p.judge {
+        Judge::PixelReference => (
+            "the pixel reference alone",
+            "the pixel reference's RMS",
+            floor_clause(p, per_event),
+        ),
+        Judge::NextToBrighter => (
+            "the flexible base alone on the pixels next to far brighter ones",
+            "the RMS of their cells' z",
+            String::new(),
+        ),
+    };
     format!(
-        "predicts held-out data better than the pixel reference alone (fitted on one \
-         half, the pixel reference's RMS on the other {:.2} -> {:.2}, gain {:.2}, the \
-         largest of {PERMUTATIONS} {} {:.2}{})",
+        "predicts held-out data better than {against} (fitted on one half, {rms_of} on \
+         the other {:.2} -> {:.2}, gain {:.2}, the largest of {PERMUTATIONS} {} {:.2}{floor})",
         p.rms_before,
         p.rms_after,
         p.gain,
         p.permuted.phrase(),
         p.permuted_max(),
-        floor_clause(p, per_event),
     )
 }
 
@@ -488,6 +516,9 @@ fn held_out_clause(p: &super::refit::PixelHeldOut, per_event: Option<f64>) -> St
 /// takes away: `(before - after) / (before - per_event)`; None without the floor or
 /// with no excess over it.
 pub(super) fn floor_share(p: &super::refit::PixelHeldOut, per_event: Option<f64>) -> Option<f64> {
+    if p.judge != super::refit::Judge::PixelReference {
+        return None;
+    }
     let floor = per_event.filter(|f| f.is_finite())?;
     let excess = p.rms_before - floor;
     (excess > 0.0).then(|| (p.rms_before - p.rms_after) / excess)
@@ -547,10 +578,15 @@ fn data_term_sentence(
         });
     format!(
         ". A data-driven term along it ({}) does not predict held-out data either \
-         (dBIC {:.1}, {gain}; against the pixel reference, no refitted candidate \
-         gains held out more than every one of {PERMUTATIONS} permutations of its \
-         change): not offered",
-        t.effect, t.delta_bic
+         (dBIC {:.1}, {gain}; against {}, no refitted candidate gains held out more \
+         than every one of {PERMUTATIONS} permutations of its change): not offered",
+        t.effect,
+        t.delta_bic,
+        t.held_out
+            .as_ref()
+            .and_then(|h| h.pixel_reference.as_ref())
+            .map_or(super::refit::Judge::PixelReference, |p| p.judge)
+            .phrase()
     )
 }
 
@@ -857,6 +893,7 @@ mod tests {
             gain_held: 0.0,
             permuted_gains: Vec::new(),
             permuted: crate::diag::refit::Permuted::Change,
+            judge: crate::diag::refit::Judge::PixelReference,
             too_few_arrangements: false,
         };
         let small = held(1.88, 1.80);

@@ -1,0 +1,189 @@
+//! The judge of a candidate acting on the neighbours (`neighbour_excess_fluence`):
+//! the pixels next to far brighter ones against the flexible base.
+//!
+//! # Why not the pixel reference
+//! The pixel reference ([`super::base::predict_scaled`]) gives each pixel its own
+//! amplitude, decay shape and response in fluence. A pixel beside a pinhole sees the
+//! same bright neighbour in every illumination, so what the neighbour does to it
+//! (charge spilled in, traps exposed by its field, signal coupled in the read) is a
+//! factor of that pixel, and the pixel's own terms take it in: on the second
+//! generator's `blooming:field` campaign (64 x 64, seed 1) the pixel reference's RMS
+//! is 1.13, the nothing-hidden campaign's about the same, while the pixels next to the
+//! pinholes lie +0.21 of their cells' spread above the flexible base (z 6.9,
+//! [`super::contrast::SharpExcess`]). A candidate along the neighbours is therefore
+//! judged where the kind was named: against the flexible base ([`super::base::predict`],
+//! a response per fluence and a decay per time shared by every pixel), on the
+//! pixel-events whose neighbours' excess over saturation exceeds their own fluence.
+//!
+//! # The cells
+//! Each sample's standardised residual of the flexible base beyond the mean of its
+//! (fluence, time, event) cell ([`super::contrast::base_residual`]); the marked samples
+//! (`neighbour_contrast` 1, [`crate::measure::eval::bin_of`]) grouped by (event,
+//! fluence, time); a group's `z` is its residuals' sum over the square root of their
+//! number (unit variance each, up to the clip). A candidate that predicts what the
+//! neighbours do brings these `z` towards 0; the gate ([`super::refit::held_out`])
+//! compares its held-out gain with those of its change moved to other pixels, on the
+//! same cells.
+//!
+//! Invariants: the cells depend on the samples, the mark and which predictions are
+//! finite, never on the measurements' values; a group has at least [`MIN_MARKED`]
+//! samples; nothing here fits but the flexible base.
+
+use super::base::View;
+use super::data::Sequence;
+use super::eval::{self, Samples};
+use std::collections::BTreeMap;
+
+/// The fewest marked samples a cell of the judge holds.
+pub const MIN_MARKED: usize = 4;
+
+/// What a held-out check is judged against ([`super::refit::PixelHeldOut::judge`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Judge {
+    /// The pixel reference ([`super::base::predict_scaled`]) over every cell.
+    PixelReference,
+    /// The flexible base on the pixels next to far brighter ones (module docs): for a candidate acting on the neighbours, which each
+    /// pixel's own terms in the pixel reference would take in.
+    NextToBrighter,
+}
+
+impl Judge {
+    /// The judge of the candidates `names`.
+    pub fn of(names: &[&str]) -> Judge {
+        if acts_on_neighbours(names) {
+            Judge::NextToBrighter
+        } else {
+            Judge::PixelReference
+        }
+    }
+
+    /// "the pixel reference", as the verdict says it.
+    pub fn phrase(self) -> &'static str {
+        match self {
+            Judge::PixelReference => "the pixel reference",
+            Judge::NextToBrighter => "the flexible base on the pixels next to far brighter ones",
+        }
+    }
+}
+
+/// Whether the candidates `names` (`--with` arguments allowed) act on the neighbours:
+/// their library definition's covariate is `neighbour_excess_fluence`.
+pub fn acts_on_neighbours(names: &[&str]) -> bool {
+    names.iter().any(|n| {
+        crate::model::effects::lookup(n.split(':').next().unwrap_or(n))
+            .is_some_and(|d| d.covariate == "neighbour_excess_fluence")
+    })
+}
+
+/// The marked cells of `pred` over `s` (module docs), keyed by (event, fluence bin,
+/// time bin); the flexible base fitted on `s` with `view`'s clock and readout.
+pub fn cells(
+    seq: &Sequence,
+    view: &View,
+    s: &Samples,
+    pred: &[f64],
+) -> Vec<(Vec<i64>, eval::GroupStat)> {
+    let flexible = super::base::predict(seq, view, s, pred);
+    marked_cells(s, &super::contrast::base_residual(s, &flexible, true))
+}
+
+/// The normalised residual RMS of `m`'s prediction over the marked cells of `s`
+/// ([`cells`]); NaN without a cell.
+pub fn rms(
+    m: &crate::model::params::ModelParams,
+    seq: &Sequence,
+    s: &Samples,
+) -> crate::error::Result<f64> {
+    let pred = eval::predict(m, seq, s, false)?.current;
+    let cells = cells(seq, &View::of_model(m, seq), s, &pred);
+    Ok(eval::rms(&cells))
+}
+
+/// The marked samples' residuals `e` (per sample, NaN unusable) grouped into cells.
+fn marked_cells(s: &Samples, e: &[f64]) -> Vec<(Vec<i64>, eval::GroupStat)> {
+    let np = s.npix().max(1);
+    let mut sums: BTreeMap<Vec<i64>, (f64, usize)> = BTreeMap::new();
+    for (i, &v) in e.iter().enumerate() {
+        if !v.is_finite() || eval::bin_of(s, "neighbour_contrast", i) != Some(1) {
+            continue;
+        }
+        let (Some(f), Some(t)) = (eval::bin_of(s, "fluence", i), eval::bin_of(s, "time", i)) else {
+            continue;
+        };
+        let q = sums.entry(vec![s.event[i / np] as i64, f, t]).or_default();
+        q.0 += v;
+        q.1 += 1;
+    }
+    sums.into_iter()
+        .filter(|(_, (_, n))| *n >= MIN_MARKED)
+        .map(|(key, (sum, n))| {
+            let stat = eval::GroupStat {
+                n,
+                measured_p95_e_per_s: f64::NAN,
+                predicted_p95_e_per_s: f64::NAN,
+                measured_median_e_per_s: f64::NAN,
+                sigma_e_per_s: f64::NAN,
+                z: sum / (n as f64).sqrt(),
+            };
+            (key, stat)
+        })
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Eight pixels in one row after one illumination, every fluence 1e4 e-; pixels 0-5
+    /// have neighbours 1e6 e- over saturation (marked), 6-7 none.
+    fn row() -> Samples {
+        let np = 8;
+        Samples {
+            cells: eval::Cells::Illumination,
+            statistic: eval::CellStatistic::Levels,
+            stride: 0,
+            pixels: (0..np).map(|x| (0, x)).collect(),
+            exposures: vec![0],
+            measured: vec![1.0; np],
+            noise: vec![0.01],
+            shot_var_per_e_per_s: vec![0.0],
+            noise_scale: Default::default(),
+            spread_rel: vec![0.0; np],
+            fluence_e: vec![1e4; np],
+            neighbour_excess_e: (0..np).map(|x| if x < 6 { 1e6 } else { 0.0 }).collect(),
+            t_since_s: vec![100.0],
+            event: vec![0],
+            illumination_time_s: vec![481.0],
+            temperature_k: vec![80.0],
+            earlier_illuminations: vec![0.0],
+            radius: vec![0.5; np],
+        }
+    }
+
+    /// A group's `z` is its marked residuals' sum over the root of their number; the
+    /// unmarked samples and those without a residual do not count, and a group under
+    /// [`MIN_MARKED`] is left out.
+    #[test]
+    fn marked_cells_sum_the_marked_residuals_per_event_fluence_and_time() {
+        let s = row();
+        let e = [0.5, 0.5, f64::NAN, 0.5, 0.5, 0.5, 9.0, 9.0];
+        let cells = marked_cells(&s, &e);
+        assert_eq!(cells.len(), 1);
+        let (key, c) = &cells[0];
+        assert_eq!(key[0], 0);
+        assert_eq!(c.n, 5);
+        assert!((c.z - 2.5 / 5f64.sqrt()).abs() < 1e-12);
+        let few = [0.5, f64::NAN, f64::NAN, 0.5, 0.5, f64::NAN, 9.0, 9.0];
+        assert!(marked_cells(&s, &few).is_empty());
+    }
+
+    /// Only effects on `neighbour_excess_fluence` are judged here.
+    #[test]
+    fn the_neighbour_effects_are_judged_on_the_marked_pixels() {
+        assert!(acts_on_neighbours(&["blooming:fraction=0.001"]));
+        assert!(acts_on_neighbours(&["smooth_neighbour"]));
+        assert!(acts_on_neighbours(&["ipc"]));
+        assert!(!acts_on_neighbours(&["soak", "capacity"]));
+    }
+}
