@@ -101,8 +101,8 @@ pub(super) fn fitting_samples<'a>(
 /// `base` (the model, its own effects refitted as [`Refit`] says) with the candidate
 /// effects `names` (`--with` arguments: one, or a pair in the joint check) fitted on `samples` together
 /// with `own`; `start` holds the candidates at the values to start from (else their
-/// defaults). The candidates' fitted values are then refined against the pixel
-/// reference ([`super::polish`]). Fitted on [`fitting_samples`].
+/// defaults). The candidates' fitted values are then refined against their judge
+/// ([`super::polish`], [`Judge`]). Fitted on [`fitting_samples`].
 pub(super) fn fit_candidate(
     base: &ModelParams,
     own: &[String],
