@@ -17,7 +17,7 @@
 //!
 //! # The cells
 //! Each sample's standardised residual of the flexible base beyond the mean of its
-//! (fluence, time, event) cell ([`super::contrast::base_residual`]); the marked samples
+//! (fluence, time, event) cell (`super::contrast::base_residual`); the marked samples
 //! (`neighbour_contrast` 1, [`crate::measure::eval::bin_of`]) grouped by (event,
 //! fluence, time); a group's `z` is its residuals' sum over the square root of their
 //! number (unit variance each, up to the clip). A candidate that predicts what the

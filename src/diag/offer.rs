@@ -31,7 +31,7 @@
 //! the flexible base ([`super::marked`], [`super::refit::Judge`]): each pixel's own
 //! terms in the pixel reference take in what a bright neighbour, the same in every
 //! illumination, does to it. It is fitted on the cells split by the neighbour contrast
-//! ([`super::refit::fitting_samples`]) and refined against that judge
+//! (`super::refit::fitting_samples`) and refined against that judge
 //! ([`super::polish`]); the same gate then holds (each fold gains, more than every
 //! permutation of its change).
 //!
