@@ -135,7 +135,15 @@ awk -F' [|] ' '
     /^[|] [a-z]+:/ {
         h++; if ($3 != "nothing") o++; if ($8 ~ /^yes/) y++
         split($7, e, " "); if (e[1] + 0 <= 0) z++
+        # the pixels next to far brighter ones: "+0.29 (z 11.0) -> +0.09 (z 2.4) |"
+        split($9, m, " ")
+        if (m[1] != "-" && m[1] != "|") {
+            n++
+            b = m[1] + 0; a = m[5] + 0
+            if (m[5] != "-" && (a < 0 ? -a : a) <= 0.5 * (b < 0 ? -b : b)) mh++
+        }
     }
     END {
         printf "\nHidden: an addition offered in %d of %d runs; the excess over the nothing-hidden baseline halved in %d of %d. With no excess before (the pixel reference at or below the baseline): %d of %d.\n", o, h, y, h, z, h
+        if (n > 0) printf "Next to far brighter pixels (where the pinhole grid gives them): their excess beyond their cells halved in %d of %d runs.\n", mh, n
     }' "$work/rows.md"
