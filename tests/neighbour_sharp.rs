@@ -83,12 +83,7 @@ fn blooming_next_to_pinholes_is_named_and_declared_and_nothing_is_named_without_
         .unwrap();
     assert_eq!(first["class"], "neighbour_excess_fluence");
     // the library effect declared, judged on the pixels next to the pinholes
-    let declared: Vec<&serde_json::Value> = hidden["ranking"]
-        .as_array()
-        .unwrap()
-        .iter()
-        .filter(|c| c["significant"] == true)
-        .collect();
+    let declared = common::declared(&hidden);
     assert_eq!(declared.len(), 1, "{declared:?}");
     assert_eq!(declared[0]["effect"], "blooming");
     let judged = &declared[0]["held_out"]["pixel_reference"];

@@ -110,12 +110,7 @@ fn a_rate_effect_hidden_under_the_descriptions_misfit_is_declared_with_its_sign(
         "warn",
     ]);
     let d = common::read_json(p("d.json"));
-    let declared: Vec<&serde_json::Value> = d["ranking"]
-        .as_array()
-        .unwrap()
-        .iter()
-        .filter(|c| c["significant"] == true)
-        .collect();
+    let declared = common::declared(&d);
     assert_eq!(declared.len(), 1, "{declared:?}");
     let c = declared[0];
     assert_eq!(c["effect"], "temperature", "{c}");

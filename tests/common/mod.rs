@@ -228,6 +228,16 @@ pub fn log_events(path: &Path, msg: &str) -> Vec<serde_json::Value> {
         .collect()
 }
 
+/// The candidates a `diagnose` JSON declares (`significant`), in ranking order.
+pub fn declared(diagnosis: &serde_json::Value) -> Vec<&serde_json::Value> {
+    diagnosis["ranking"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter(|c| c["significant"] == true)
+        .collect()
+}
+
 /// A JSON file (a model, a fit report, a summary), parsed; it must exist and parse.
 pub fn read_json(path: impl AsRef<Path>) -> serde_json::Value {
     serde_json::from_str(&std::fs::read_to_string(path).unwrap()).unwrap()
