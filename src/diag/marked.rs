@@ -8,7 +8,7 @@
 //! (charge spilled in, traps exposed by its field, signal coupled in the read) is a
 //! factor of that pixel, and the pixel's own terms take it in: on the second
 //! generator's `blooming:field` campaign (64 x 64, seed 1) the pixel reference's RMS
-//! is 1.13, the nothing-hidden campaign's about the same, while the pixels next to the
+//! is 1.13, the nothing-hidden campaign's 1.11, while the pixels next to the
 //! pinholes lie +0.21 of their cells' spread above the flexible base (z 6.9,
 //! [`super::contrast::SharpExcess`]). A candidate along the neighbours is therefore
 //! judged where the kind was named: against the flexible base ([`super::base::predict`],
@@ -43,8 +43,9 @@ pub const MIN_MARKED: usize = 4;
 pub enum Judge {
     /// The pixel reference ([`super::base::predict_scaled`]) over every cell.
     PixelReference,
-    /// The flexible base on the pixels next to far brighter ones (module docs): for a candidate acting on the neighbours, which each
-    /// pixel's own terms in the pixel reference would take in.
+    /// The flexible base on the pixels next to far brighter ones (module docs): for a
+    /// candidate acting on the neighbours, which each pixel's own terms in the pixel
+    /// reference would take in.
     NextToBrighter,
 }
 
