@@ -426,34 +426,34 @@ page_kinds() {
     echo "wrote $page" >&2
 }
 
-# offers: what the offered addition does to the pixel reference (its own script).
-page_offers() {
-    local page=$out_dir/offers.md
-    echo "offers: scripts/offers_table.sh" >&2
+# An offers page ($1, under $out_dir): scripts/offers_table.sh with seeds $4 and rows $5
+# (empty: every form), titled $2, its command in the header $3.
+offers_page() {
+    local page=$out_dir/$1
+    echo "$1: scripts/offers_table.sh" >&2
     {
-        scripts/validation_header.sh "What the offered addition does, on the second generator's campaigns" \
-            "make validation PAGES=offers (scripts/offers_table.sh; SEEDS=\"${OFFERS_SEEDS:-1 2 3 4 5}\"${OFFERS_ROWS:+; ROWS=\"$OFFERS_ROWS\"})"
-        PERSIST_BIN=$persist SEEDS="${OFFERS_SEEDS:-1 2 3 4 5}" ROWS="${OFFERS_ROWS:-}" \
-            WORK=$tmp/offers scripts/offers_table.sh
+        scripts/validation_header.sh "$2" "$3"
+        PERSIST_BIN=$persist SEEDS="$4" ROWS="$5" WORK=$tmp/${1%.md} scripts/offers_table.sh
     } > "$page.tmp"
     mv "$page.tmp" "$page"
     echo "wrote $page" >&2
 }
 
-# offers_neighbours: the offers page's table on the forms that couple neighbours.
+# offers: what the offered addition does to the pixel reference.
+page_offers() {
+    local seeds="${OFFERS_SEEDS:-1 2 3 4 5}"
+    offers_page offers.md "What the offered addition does, on the second generator's campaigns" \
+        "make validation PAGES=offers (scripts/offers_table.sh; SEEDS=\"$seeds\"${OFFERS_ROWS:+; ROWS=\"$OFFERS_ROWS\"})" \
+        "$seeds" "${OFFERS_ROWS:-}"
+}
+
+# offers_neighbours: the same on the forms that couple neighbours.
 page_offers_neighbours() {
-    local page=$out_dir/offers_neighbours.md
-    local rows="blooming:spill blooming:field ipc:cross4 ipc:aniso8"
-    local seeds="${OFFERS_SEEDS:-1 2}"
-    echo "offers_neighbours: scripts/offers_table.sh" >&2
-    {
-        scripts/validation_header.sh "What the offered addition does next to far brighter pixels, on the second generator's campaigns" \
-            "make validation PAGES=offers_neighbours (scripts/offers_table.sh; SEEDS=\"$seeds\"; ROWS=\"$rows\")"
-        PERSIST_BIN=$persist SEEDS="$seeds" ROWS="$rows" \
-            WORK=$tmp/offers_neighbours scripts/offers_table.sh
-    } > "$page.tmp"
-    mv "$page.tmp" "$page"
-    echo "wrote $page" >&2
+    local seeds="${OFFERS_SEEDS:-1 2}" rows="blooming:spill blooming:field ipc:cross4 ipc:aniso8"
+    offers_page offers_neighbours.md \
+        "What the offered addition does next to far brighter pixels, on the second generator's campaigns" \
+        "make validation PAGES=offers_neighbours (scripts/offers_table.sh; SEEDS=\"$seeds\"; ROWS=\"$rows\")" \
+        "$seeds" "$rows"
 }
 
 # long_tests: the ignored tests, in release, each test's result and each binary's time.
