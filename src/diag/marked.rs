@@ -59,6 +59,15 @@ impl Judge {
         }
     }
 
+    /// The judge of the candidates acting on `covariate` (a dependence's class).
+    pub fn of_covariate(covariate: &str) -> Judge {
+        if covariate == NEIGHBOURS {
+            Judge::NextToBrighter
+        } else {
+            Judge::PixelReference
+        }
+    }
+
     /// "the pixel reference", as the verdict says it.
     pub fn phrase(self) -> &'static str {
         match self {
@@ -68,12 +77,15 @@ impl Judge {
     }
 }
 
+/// The covariate of the effects judged on the pixels next to far brighter ones.
+pub const NEIGHBOURS: &str = "neighbour_excess_fluence";
+
 /// Whether the candidates `names` (`--with` arguments allowed) act on the neighbours:
-/// their library definition's covariate is `neighbour_excess_fluence`.
+/// their library definition's covariate is [`NEIGHBOURS`].
 pub fn acts_on_neighbours(names: &[&str]) -> bool {
     names.iter().any(|n| {
         crate::model::effects::lookup(n.split(':').next().unwrap_or(n))
-            .is_some_and(|d| d.covariate == "neighbour_excess_fluence")
+            .is_some_and(|d| d.covariate == NEIGHBOURS)
     })
 }
 

@@ -83,8 +83,10 @@ struct Slot {
     hi: f64,
 }
 
-/// The fitted parameters of the effects `names` (`--with` arguments) in `m` that the
-/// pixel reference can see ([`super::contrast::seen_by_pixel_reference`]).
+/// The fitted parameters of the effects `names` (`--with` arguments) in `m` that
+/// `judge` can see: the pixel reference those acting on how a pixel's illuminations
+/// differ ([`super::contrast::seen_by_pixel_reference`]), the pixels next to far
+/// brighter ones those acting on the neighbours ([`super::marked::acts_on_neighbours`]).
 fn slots(m: &ModelParams, names: &[&str], judge: Judge) -> Vec<Slot> {
     let wanted = |e: &str| names.iter().any(|n| n.split(':').next() == Some(e));
     m.effects

@@ -692,7 +692,6 @@ pub fn held_out(
         let after_current = eval::predict(&fitted, seq, &ts, false)?.current;
         let after = spread::model_cell_z(&fitted, &ts, &after_current);
         let after_view = View::of_model(&fitted, seq);
-        let clock_moved = after_view.clock != before_view.clock;
         let judged = Judged {
             ts: &ts,
             before: (&before_view, &before_current),
@@ -706,7 +705,7 @@ pub fn held_out(
             Judge::PixelReference => judged.pixel_reference(seq)?,
             Judge::NextToBrighter => judged.next_to_brighter(seq),
         };
-        let permuted = if clock_moved {
+        let permuted = if judged.clock_moved() {
             Permuted::Temperature
         } else {
             Permuted::Change

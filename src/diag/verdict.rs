@@ -126,8 +126,9 @@ fn shape_sentence(d: &Diagnosis, params: &ModelParams, held: bool) -> String {
 
 /// The command that adds an effect, and how its values were come by: held at the
 /// values measured against the description and refined against `effect`'s judge
-/// ([`super::polish`], [`super::marked::Judge`]; `held`, `measure` the command that measures them against the
-/// description alone), or with the note on the flagging margin ([`margin_note`]).
+/// ([`super::polish`], [`super::marked::Judge`]; `held`, `measure` the command that
+/// measures them against the description alone), or with the note on the flagging
+/// margin ([`margin_note`]).
 fn add_clause(
     command: &str,
     measure: Option<&str>,
@@ -253,11 +254,7 @@ fn dependence_sentence(w: &contrast::Dependence, outpredicted: &str, uncalibrate
         )
     };
     let why = if outpredicted.is_empty() {
-        let judge = if w.class == "neighbour_excess_fluence" {
-            super::refit::Judge::NextToBrighter
-        } else {
-            super::refit::Judge::PixelReference
-        };
+        let judge = super::marked::Judge::of_covariate(&w.class);
         format!(
             "no library effect acting on it ({}) predicts held-out data better than {} \
              beyond {PERMUTATIONS} permutations of its change (or, for a rate hook, of \
