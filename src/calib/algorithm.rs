@@ -9,8 +9,11 @@
 //!    (the report's `neighbour_dominated_left_out`): the paper's `A_k` is a pixel's
 //!    response to its own fluence, and what couples neighbours (blooming, inter-pixel
 //!    capacitance) would otherwise raise the 95th percentile of the dim bins, which the
-//!    model's spatial effects then cannot take back (docs/validation/diagnose_matrix.md). A smooth illumination has no such pixel; one-pixel pinholes have four
-//!    each.
+//!    model's spatial effects then cannot take back (docs/validation/diagnose_matrix.md).
+//!    A smooth illumination has no such pixel; one-pixel pinholes have four each. With
+//!    spatial effects in the model ([`calibrate_with`]), so are the pixels whose fluence
+//!    hooks leave them less than half their measured fluence
+//!    ([`knots::spatial_factor`], [`knots::OWN_SHARE_MIN`]), at any fluence.
 //! 2. Per bin, the measured current of the first dark integration (image minus the
 //!    dark level, [`dark`]: the background pixels' ([`crate::measure::data`]) when at
 //!    least `min_pixels` pixels stayed below 3000 e-, else, when every pixel was lit as
@@ -464,7 +467,9 @@ pub fn calibrate_with(
         if !(v.is_finite() && *v > 0.0 && usable((y, x))) {
             continue;
         }
-        if dominated[(y, x)] {
+        // left out as neighbour-dominated: by the measured fluences, or by the model's
+        // fluence hooks (NaN in `w`, knots::spatial_factor)
+        if dominated[(y, x)] || w.is_some_and(|w| w[(y, x)].is_nan()) {
             left_out += 1;
             continue;
         }

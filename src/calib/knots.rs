@@ -212,11 +212,21 @@ pub fn unit_a0(terms: &[crate::model::params::Term], ramp: &CalibRamp) -> Option
         .filter(|a| a.is_finite() && *a > 0.0)
 }
 
+/// The least share of its measured fluence that a pixel's fluence hooks may leave it for
+/// the calibration to measure its own response there ([`spatial_factor`]).
+pub const OWN_SHARE_MIN: f64 = 0.5;
+
 /// Per pixel of the calibration illumination, `w` of the module docs ("Spatial
 /// effects"): the first dark's charge per unit amplitude with the model's fluence hooks
 /// and its response hooks that are neither per pixel nor filling, over the charge
 /// without them. None when no effect has such a hook or every `w` is 1; pixels without
-/// a finite positive ratio get 1.
+/// a finite positive ratio get 1. NaN marks a pixel whose fluence hooks leave it less
+/// than [`OWN_SHARE_MIN`] of its measured fluence (next to a pinhole under inter-pixel
+/// capacitance, most of what it measured is its neighbour's): its first dark shows its
+/// neighbours' persistence through the model's coupling, not its own response, and the
+/// ratio then carries every error of the model's amplitude at the neighbour's fluence
+/// (above the largest knot, where no bin measures it). The calibration leaves such
+/// pixels out of its bins as neighbour-dominated.
 pub fn spatial_factor(
     model: &ModelParams,
     seq: &Sequence,
@@ -265,6 +275,9 @@ pub fn spatial_factor(
         })
         .collect();
     let w = Array2::from_shape_fn((ny, nx), |(y, x)| {
+        if adjusted[[y, x]] < OWN_SHARE_MIN * fluence[[y, x]] {
+            return f64::NAN;
+        }
         // summed in the same order, so that an unchanged pixel gives exactly 1
         let a = response.amplitude_e(fluence[[y, x]]);
         let plain: f64 = (0..n).map(|m| a * q[m]).sum();
