@@ -37,10 +37,15 @@ beyond their cells' mean, in units of the cells' spread, and its z (`diagnose`'s
 "next to far brighter pixels", against the flexible base), before -> after: what the
 candidates on the neighbours are judged on (`persist::diag::marked`), since each
 pixel's own terms in the pixel reference take in what a bright neighbour, the same in
-every illumination, does to it.
+every illumination, does to it. Field: the share of one illumination's residual that
+a map of another's, smoothed over 4 px, predicts (`diagnose`'s line "spatial
+coherence", R^2; at most 0.20 counts as no field), before -> after: a field over the
+array (a trap density that follows the position) shows there, and candidates on the
+position are judged by tile of the array against the flexible base, which each
+pixel's own amplitude in the pixel reference takes in too.
 
-| run | named | offered | before | after | baseline | excess before -> after | halved | next to far brighter pixels |
-|---|---|---|---|---|---|---|---|---|
+| run | named | offered | before | after | baseline | excess before -> after | halved | next to far brighter pixels | field |
+|---|---|---|---|---|---|---|---|---|---|
 TEXT
 
 # The pixel reference's RMS in diagnose's output ($1).
@@ -53,6 +58,13 @@ marked() {
     local m
     m=$(sed -n "s/.*next to far brighter pixels: [0-9]* pixel-events, \([-+0-9.]*\) of their cells' spread, z \([-0-9.]*\).*/\1 (z \2)/p" <<< "$1" | head -1)
     echo "${m:--}"
+}
+
+# The spatial coherence's R^2 at 4 px in diagnose's output ($1), or "-".
+field() {
+    local r
+    r=$(sed -n 's/^spatial coherence: .* predicts R^2 \([0-9.]*\)\/.*/\1/p' <<< "$1" | head -1)
+    echo "${r:--}"
 }
 
 # The kind the verdict names ($1: diagnose's output): the missing effect's covariate,
@@ -98,6 +110,8 @@ for seed in $seeds; do
         before=$(pixel_rms "$out")
         marked_before=$(marked "$out")
         marked_after=-
+        field_before=$(field "$out")
+        field_after=-
         kind=$(named "$out")
         command=$(offered_command "$out")
         after=-
@@ -114,19 +128,20 @@ for seed in $seeds; do
             out_after=$(diagnose_rms "$dir" "$model")
             after=$(pixel_rms "$out_after")
             marked_after=$(marked "$out_after")
+            field_after=$(field "$out_after")
         fi
         awk -v run="$row, seed $seed" -v kind="${kind:-?}" -v off="$offered" -v b="$before" \
             -v a="$after" -v z="${baseline["pin:$(pinhole_args "$row")"]}" \
-            -v mk="$marked_before -> $marked_after" 'BEGIN {
+            -v mk="$marked_before -> $marked_after" -v fd="$field_before -> $field_after" 'BEGIN {
                 eb = b - z
                 if (mk == "- -> -") mk = "-"
                 if (a == "-") {
-                    printf "| %s | %s | %s | %.2f | - | %.2f | %+.2f -> - | no | %s |\n", run, kind, off, b, z, eb, mk
+                    printf "| %s | %s | %s | %.2f | - | %.2f | %+.2f -> - | no | %s | %s |\n", run, kind, off, b, z, eb, mk, fd
                     exit
                 }
                 ea = a - z
                 halved = (ea <= 0.5 * eb || (eb <= 0 && ea <= 0)) ? "yes" : "no"
-                printf "| %s | %s | %s | %.2f | %.2f | %.2f | %+.2f -> %+.2f | %s | %s |\n", run, kind, off, b, a, z, eb, ea, halved, mk
+                printf "| %s | %s | %s | %.2f | %.2f | %.2f | %+.2f -> %+.2f | %s | %s | %s |\n", run, kind, off, b, a, z, eb, ea, halved, mk, fd
             }'
         rm -rf "$dir" "$dir".json "$dir".fit.json "$dir"+*.json
     done
@@ -142,8 +157,15 @@ awk -F' [|] ' '
             b = m[1] + 0; a = m[5] + 0
             if (m[5] != "-" && (a < 0 ? -a : a) <= 0.5 * (b < 0 ? -b : b)) mh++
         }
+        # the field: "0.73 -> 0.25 |"
+        split($10, f, " ")
+        if (f[1] != "-" && f[1] + 0 > 0.2) {
+            nf++
+            if (f[3] != "-" && f[3] + 0 <= 0.2) fg++
+        }
     }
     END {
         printf "\nHidden: an addition offered in %d of %d runs; the excess over the nothing-hidden baseline halved in %d of %d. With no excess before (the pixel reference at or below the baseline): %d of %d.\n", o, h, y, h, z, h
         if (n > 0) printf "Next to far brighter pixels (where the pinhole grid gives them): their excess beyond their cells halved in %d of %d runs.\n", mh, n
+        if (nf > 0) printf "A field shared by neighbouring pixels (R^2 above 0.20) before in %d runs; none left after in %d of them.\n", nf, fg + 0
     }' "$work/rows.md"

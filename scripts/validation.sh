@@ -40,9 +40,10 @@
 #                                               `diagnose` offers, run as printed, does to
 #                                               the pixel reference's RMS on the second
 #                                               generator's hidden campaigns (every form
-#                                               not held aside), against the nothing-hidden
-#                                               baseline, seeds 1-5 ($OFFERS_SEEDS; a subset
-#                                               of forms: $OFFERS_ROWS; about 50 minutes a
+#                                               not held aside that does not couple
+#                                               neighbours), against the nothing-hidden
+#                                               baseline, seeds 1-2 ($OFFERS_SEEDS; a subset
+#                                               of forms: $OFFERS_ROWS; about 40 minutes a
 #                                               seed; not in the default set)
 #   offers_neighbours docs/validation/offers_neighbours.md  the same on the forms that
 #                                               couple neighbours (blooming, ipc, with the
@@ -440,11 +441,13 @@ offers_page() {
 }
 
 # offers: what the offered addition does to the pixel reference.
+# Every form but those that couple neighbours (offers_neighbours), seeds 1-2.
 page_offers() {
-    local seeds="${OFFERS_SEEDS:-1 2 3 4 5}"
+    local seeds="${OFFERS_SEEDS:-1 2}"
+    local rows="${OFFERS_ROWS:-soak:capture soak:diffusion capacity:ceiling capacity:langmuir temperature:arrhenius populations:smooth shape:fill_depth}"
     offers_page offers.md "What the offered addition does, on the second generator's campaigns" \
-        "make validation PAGES=offers (scripts/offers_table.sh; SEEDS=\"$seeds\"${OFFERS_ROWS:+; ROWS=\"$OFFERS_ROWS\"})" \
-        "$seeds" "${OFFERS_ROWS:-}"
+        "make validation PAGES=offers (scripts/offers_table.sh; SEEDS=\"$seeds\"; ROWS=\"$rows\")" \
+        "$seeds" "$rows"
 }
 
 # offers_neighbours: the same on the forms that couple neighbours.

@@ -223,7 +223,7 @@ fn list_s(v: &[f64]) -> String {
 }
 
 /// The 4 x 4 tile of a pixel.
-fn tile(seq: &Sequence, (y, x): (usize, usize)) -> i64 {
+pub(super) fn tile(seq: &Sequence, (y, x): (usize, usize)) -> i64 {
     ((y * 4 / seq.ny.max(1)) * 4 + x * 4 / seq.nx.max(1)) as i64
 }
 

@@ -1,5 +1,7 @@
-//! The judge of a candidate acting on the neighbours (`neighbour_excess_fluence`):
-//! the pixels next to far brighter ones against the flexible base.
+//! The judges of the candidates the pixel reference cannot see, against the flexible
+//! base: a candidate acting on the neighbours (`neighbour_excess_fluence`) on the pixels
+//! next to far brighter ones, a candidate acting on the position (`position`) by tile
+//! of the array.
 //!
 //! # Why not the pixel reference
 //! The pixel reference ([`super::base::predict_scaled`]) gives each pixel its own
@@ -10,24 +12,27 @@
 //! generator's `blooming:field` campaign (64 x 64, seed 1) the pixel reference's RMS
 //! is 1.13, the nothing-hidden campaign's 1.11, while the pixels next to the
 //! pinholes lie +0.21 of their cells' spread above the flexible base (z 6.9,
-//! [`super::contrast::SharpExcess`]). A candidate along the neighbours is therefore
-//! judged where the kind was named: against the flexible base ([`super::base::predict`],
-//! a response per fluence and a decay per time shared by every pixel), on the
-//! pixel-events whose neighbours' excess over saturation exceeds their own fluence.
+//! [`super::contrast::SharpExcess`]). A field of trap density over the array is such a
+//! factor too. A candidate of these kinds is therefore judged where the kind was
+//! named: against the flexible base ([`super::base::predict`], a response per fluence
+//! and a decay per time shared by every pixel), on the pixel-events whose neighbours'
+//! excess over saturation exceeds their own fluence, or on every pixel-event, grouped
+//! by the 4 x 4 tile of the array the position's dependence is tested on.
 //!
 //! # The cells
 //! Each sample's standardised residual of the flexible base beyond the mean of its
-//! (fluence, time, event) cell (`super::contrast::base_residual`); the marked samples
-//! (`neighbour_contrast` 1, [`crate::measure::eval::bin_of`]) grouped by (event,
-//! fluence, time); a group's `z` is its residuals' sum over the square root of their
-//! number (unit variance each, up to the clip). A candidate that predicts what the
-//! neighbours do brings these `z` towards 0; the gate ([`super::refit::held_out`])
-//! compares its held-out gain with those of its change moved to other pixels, on the
-//! same cells.
+//! (fluence, time, event) cell (`super::contrast::base_residual`); the samples grouped
+//! by (group, event, fluence, time), the group the tile ([`Judge::Position`]) or, for
+//! [`Judge::NextToBrighter`], the marked samples alone (`neighbour_contrast` 1,
+//! [`crate::measure::eval::bin_of`]); a group's `z` is its residuals' sum over the
+//! square root of their number (unit variance each, up to the clip). A candidate that
+//! predicts what the neighbours, or the place on the array, do brings these `z`
+//! towards 0; the gate ([`super::refit::held_out`]) compares its held-out gain with
+//! those of its change moved to other pixels, on the same cells.
 //!
-//! Invariants: the cells depend on the samples, the mark and which predictions are
-//! finite, never on the measurements' values; a group has at least [`MIN_MARKED`]
-//! samples; nothing here fits but the flexible base.
+//! Invariants: the cells depend on the samples, the mark, the tiles and which
+//! predictions are finite, never on the measurements' values; a group has at least
+//! [`MIN_MARKED`] samples; nothing here fits but the flexible base.
 
 use super::base::View;
 use super::data::Sequence;
@@ -47,13 +52,18 @@ pub enum Judge {
     /// candidate acting on the neighbours, which each pixel's own terms in the pixel
     /// reference would take in.
     NextToBrighter,
+    /// The flexible base by tile of the array (module docs): for a candidate acting on
+    /// the position, which each pixel's own amplitude in the pixel reference takes in.
+    Position,
 }
 
 impl Judge {
     /// The judge of the candidates `names`.
     pub fn of(names: &[&str]) -> Judge {
-        if acts_on_neighbours(names) {
+        if acts_on(names, NEIGHBOURS) {
             Judge::NextToBrighter
+        } else if acts_on(names, POSITION) {
+            Judge::Position
         } else {
             Judge::PixelReference
         }
@@ -61,10 +71,10 @@ impl Judge {
 
     /// The judge of the candidates acting on `covariate` (a dependence's class).
     pub fn of_covariate(covariate: &str) -> Judge {
-        if covariate == NEIGHBOURS {
-            Judge::NextToBrighter
-        } else {
-            Judge::PixelReference
+        match covariate {
+            NEIGHBOURS => Judge::NextToBrighter,
+            POSITION => Judge::Position,
+            _ => Judge::PixelReference,
         }
     }
 
@@ -73,6 +83,7 @@ impl Judge {
         match self {
             Judge::PixelReference => "the pixel reference",
             Judge::NextToBrighter => "the flexible base on the pixels next to far brighter ones",
+            Judge::Position => "the flexible base by tile of the array",
         }
     }
 }
@@ -80,51 +91,93 @@ impl Judge {
 /// The covariate of the effects judged on the pixels next to far brighter ones.
 pub const NEIGHBOURS: &str = "neighbour_excess_fluence";
 
+/// The covariate of the effects judged by tile of the array.
+pub const POSITION: &str = "position";
+
 /// Whether the candidates `names` (`--with` arguments allowed) act on the neighbours:
 /// their library definition's covariate is [`NEIGHBOURS`].
 pub fn acts_on_neighbours(names: &[&str]) -> bool {
+    acts_on(names, NEIGHBOURS)
+}
+
+/// Whether one of the candidates `names` (`--with` arguments allowed) is a library
+/// effect whose covariate is `covariate`.
+pub fn acts_on(names: &[&str], covariate: &str) -> bool {
     names.iter().any(|n| {
         crate::model::effects::lookup(n.split(':').next().unwrap_or(n))
-            .is_some_and(|d| d.covariate == NEIGHBOURS)
+            .is_some_and(|d| d.covariate == covariate)
     })
 }
 
-/// The marked cells of `pred` over `s` (module docs), keyed by (event, fluence bin,
-/// time bin); the flexible base fitted on `s` with `view`'s clock and readout.
+/// The cells of `judge` (one of the flexible base's: [`Judge::NextToBrighter`] or
+/// [`Judge::Position`]) for `pred` over `s` (module docs), keyed by (group, event,
+/// fluence bin, time bin); the flexible base fitted on `s` with `view`'s clock and
+/// readout. Empty for [`Judge::PixelReference`].
 pub fn cells(
+    judge: Judge,
     seq: &Sequence,
     view: &View,
     s: &Samples,
     pred: &[f64],
 ) -> Vec<(Vec<i64>, eval::GroupStat)> {
+    let np = s.npix().max(1);
+    let group = |i: usize| -> Option<i64> {
+        match judge {
+            Judge::PixelReference => None,
+            Judge::NextToBrighter => marked(s, i),
+            Judge::Position => Some(super::contrast::tile(seq, s.pixels[i % np])),
+        }
+    };
+    if judge == Judge::PixelReference {
+        return Vec::new();
+    }
     let flexible = super::base::predict(seq, view, s, pred);
-    marked_cells(s, &super::contrast::base_residual(s, &flexible, true))
+    grouped_cells(
+        s,
+        &super::contrast::base_residual(s, &flexible, true),
+        group,
+    )
 }
 
-/// The normalised residual RMS of `m`'s prediction over the marked cells of `s`
+/// The normalised residual RMS of `m`'s prediction over the cells of `judge` on `s`
 /// ([`cells`]); NaN without a cell.
 pub fn rms(
+    judge: Judge,
     m: &crate::model::params::ModelParams,
     seq: &Sequence,
     s: &Samples,
 ) -> crate::error::Result<f64> {
     let pred = eval::predict(m, seq, s, false)?.current;
-    let cells = cells(seq, &View::of_model(m, seq), s, &pred);
+    let cells = cells(judge, seq, &View::of_model(m, seq), s, &pred);
     Ok(eval::rms(&cells))
 }
 
-/// The marked samples' residuals `e` (per sample, NaN unusable) grouped into cells.
-fn marked_cells(s: &Samples, e: &[f64]) -> Vec<(Vec<i64>, eval::GroupStat)> {
+/// The group of sample `i` on the pixels next to far brighter ones: 0 when marked
+/// (`neighbour_contrast` 1), else none.
+fn marked(s: &Samples, i: usize) -> Option<i64> {
+    (eval::bin_of(s, "neighbour_contrast", i) == Some(1)).then_some(0)
+}
+
+/// The residuals `e` (per sample, NaN unusable) of the samples `group` gives a group
+/// (None: no group), grouped into cells by (group, event, fluence bin, time bin).
+fn grouped_cells(
+    s: &Samples,
+    e: &[f64],
+    group: impl Fn(usize) -> Option<i64>,
+) -> Vec<(Vec<i64>, eval::GroupStat)> {
     let np = s.npix().max(1);
     let mut sums: BTreeMap<Vec<i64>, (f64, usize)> = BTreeMap::new();
     for (i, &v) in e.iter().enumerate() {
-        if !v.is_finite() || eval::bin_of(s, "neighbour_contrast", i) != Some(1) {
+        if !v.is_finite() {
             continue;
         }
+        let Some(g) = group(i) else { continue };
         let (Some(f), Some(t)) = (eval::bin_of(s, "fluence", i), eval::bin_of(s, "time", i)) else {
             continue;
         };
-        let q = sums.entry(vec![s.event[i / np] as i64, f, t]).or_default();
+        let q = sums
+            .entry(vec![g, s.event[i / np] as i64, f, t])
+            .or_default();
         q.0 += v;
         q.1 += 1;
     }
@@ -181,14 +234,27 @@ mod tests {
     fn marked_cells_sum_the_marked_residuals_per_event_fluence_and_time() {
         let s = row();
         let e = [0.5, 0.5, f64::NAN, 0.5, 0.5, 0.5, 9.0, 9.0];
-        let cells = marked_cells(&s, &e);
+        let cells = grouped_cells(&s, &e, |i| marked(&s, i));
         assert_eq!(cells.len(), 1);
         let (key, c) = &cells[0];
-        assert_eq!(key[0], 0);
+        assert_eq!(key[..2], [0, 0]);
         assert_eq!(c.n, 5);
         assert!((c.z - 2.5 / 5f64.sqrt()).abs() < 1e-12);
         let few = [0.5, f64::NAN, f64::NAN, 0.5, 0.5, f64::NAN, 9.0, 9.0];
-        assert!(marked_cells(&s, &few).is_empty());
+        assert!(grouped_cells(&s, &few, |i| marked(&s, i)).is_empty());
+    }
+
+    /// Every sample counts in its own group's cell (a tile, for the position): two
+    /// groups of four pixels, each its own sum over the root of its number.
+    #[test]
+    fn grouped_cells_keep_each_group_apart() {
+        let s = row();
+        let e = [1.0, 1.0, 1.0, 1.0, -0.5, -0.5, -0.5, -0.5];
+        let cells = grouped_cells(&s, &e, |i| Some(i64::from(i >= 4)));
+        assert_eq!(cells.len(), 2);
+        assert_eq!((cells[0].0[0], cells[1].0[0]), (0, 1));
+        assert!((cells[0].1.z - 2.0).abs() < 1e-12);
+        assert!((cells[1].1.z + 1.0).abs() < 1e-12);
     }
 
     /// Only effects on `neighbour_excess_fluence` are judged here.
@@ -198,5 +264,8 @@ mod tests {
         assert!(acts_on_neighbours(&["smooth_neighbour"]));
         assert!(acts_on_neighbours(&["ipc"]));
         assert!(!acts_on_neighbours(&["soak", "capacity"]));
+        assert_eq!(Judge::of(&["populations"]), Judge::Position);
+        assert_eq!(Judge::of_covariate(POSITION), Judge::Position);
+        assert_eq!(Judge::of(&["soak"]), Judge::PixelReference);
     }
 }

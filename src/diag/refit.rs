@@ -574,27 +574,25 @@ impl Judged<'_> {
         })
     }
 
-    /// Against the flexible base on the pixels next to far brighter ones
-    /// ([`super::marked`]), fitted on the test half on each prediction (a fit cheap
-    /// enough to repeat for every permutation, so the candidate's own change is the
-    /// permutations' footing).
-    fn next_to_brighter(&self, seq: &Sequence) -> JudgedSums {
+    /// Against the flexible base on the cells of `judge` ([`super::marked`]: the
+    /// pixels next to far brighter ones, or the tiles of the array), fitted on the test
+    /// half on each prediction (a fit cheap enough to repeat for every permutation, so
+    /// the candidate's own change is the permutations' footing).
+    fn flexible(&self, seq: &Sequence, judge: Judge) -> JudgedSums {
         let ts = self.ts;
         let (before_view, before_current) = self.before;
         let (after_view, after_current) = self.after;
-        let marked_before = super::marked::cells(seq, before_view, ts, before_current);
-        let real = HeldOutSums::of(
-            &marked_before,
-            &super::marked::cells(seq, after_view, ts, after_current),
-        );
+        let cells =
+            |view: &View, current: &[f64]| super::marked::cells(judge, seq, view, ts, current);
+        let judged_before = cells(before_view, before_current);
+        let real = HeldOutSums::of(&judged_before, &cells(after_view, after_current));
         let null = match real {
             Some(r) if r.after < r.before => {
                 let mut rng = self.rng();
                 (0..PERMUTATIONS)
                     .map(|_| {
                         let moved = permuted_change(ts, before_current, after_current, &mut rng);
-                        let cells = super::marked::cells(seq, after_view, ts, &moved);
-                        HeldOutSums::of(&marked_before, &cells)
+                        HeldOutSums::of(&judged_before, &cells(after_view, &moved))
                     })
                     .collect()
             }
@@ -703,7 +701,7 @@ pub fn held_out(
         };
         let (real, held, null) = match judge {
             Judge::PixelReference => judged.pixel_reference(seq)?,
-            Judge::NextToBrighter => judged.next_to_brighter(seq),
+            Judge::NextToBrighter | Judge::Position => judged.flexible(seq, judge),
         };
         let permuted = if judged.clock_moved() {
             Permuted::Temperature

@@ -496,6 +496,11 @@ fn held_out_clause(p: &super::refit::PixelHeldOut, per_event: Option<f64>) -> St
             "the RMS of their cells' z",
             String::new(),
         ),
+        Judge::Position => (
+            "the flexible base alone by tile of the array",
+            "the RMS of the tiles' cells' z",
+            String::new(),
+        ),
     };
     format!(
         "predicts held-out data better than {against} (fitted on one half, {rms_of} on \
