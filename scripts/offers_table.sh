@@ -108,7 +108,9 @@ for seed in $seeds; do
         "$persist" --log-level error fit --input "$dir" --out "$dir.json" > /dev/null
         out=$(diagnose_rms "$dir" "$dir.json")
         before=$(pixel_rms "$out")
-        marked_before=$(marked "$out")
+        # the pixels next to far brighter ones: where the pinhole grid gives them
+        marked_before=-
+        [[ -n $(pinhole_args "$row") ]] && marked_before=$(marked "$out")
         marked_after=-
         field_before=$(field "$out")
         field_after=-
@@ -127,7 +129,7 @@ for seed in $seeds; do
             "$persist" --log-level error "${words[@]:1}" > /dev/null
             out_after=$(diagnose_rms "$dir" "$model")
             after=$(pixel_rms "$out_after")
-            marked_after=$(marked "$out_after")
+            [[ -n $(pinhole_args "$row") ]] && marked_after=$(marked "$out_after")
             field_after=$(field "$out_after")
         fi
         awk -v run="$row, seed $seed" -v kind="${kind:-?}" -v off="$offered" -v b="$before" \
