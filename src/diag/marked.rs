@@ -120,6 +120,9 @@ pub fn cells(
     s: &Samples,
     pred: &[f64],
 ) -> Vec<(Vec<i64>, eval::GroupStat)> {
+    if judge == Judge::PixelReference {
+        return Vec::new();
+    }
     let np = s.npix().max(1);
     let group = |i: usize| -> Option<i64> {
         match judge {
@@ -128,9 +131,6 @@ pub fn cells(
             Judge::Position => Some(super::contrast::tile(seq, s.pixels[i % np])),
         }
     };
-    if judge == Judge::PixelReference {
-        return Vec::new();
-    }
     let flexible = super::base::predict(seq, view, s, pred);
     grouped_cells(
         s,
