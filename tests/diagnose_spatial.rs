@@ -3,9 +3,15 @@
 //! that a map of one illumination's residual carries to another; without them there is
 //! none. Neither the cells nor a library effect see such a field, so this is how
 //! `diagnose` says that the residual matches no library effect, and where it is;
-//! `compare` reports the same per model. A position effect (the model's `populations`)
-//! is declared only where the field is (regression: it was declared on the 32 x 32
-//! campaign without the hidden effect).
+//! `compare` reports the same per model. The model's `populations`, a quadratic surface
+//! over the array, is not declared on patches a few pixels across (the simulator's
+//! default correlation length, 8 px): held out against the flexible base by tile of
+//! the array (`persist::diag::marked`), the surface the description fits makes the
+//! tiles worse and the refinement ends at its null (measured: gain 0.014, permutations'
+//! largest 0.059), while the description's own held-out gain passes (0.58): that gain
+//! is the spread of each pooled cell, not where the field lies. Nor is it declared
+//! without the field (regression: it was declared on the 32 x 32 campaign without the
+//! hidden effect).
 //! 32 x 32 laboratory campaigns, seed 1, `persist fit`'s default calibration. Measured
 //! at this size: best R^2 0.06 without, 0.46 with the effect.
 
@@ -63,7 +69,7 @@ fn spatial(extra: &[&str]) -> (serde_json::Value, String) {
 }
 
 #[test]
-fn hidden_populations_are_a_field_shared_by_neighbours_and_only_then_declared() {
+fn hidden_populations_are_a_field_shared_by_neighbours_that_the_surface_does_not_predict() {
     let (with, text) = spatial(&["--effect", "populations"]);
     let c = &with["spatial"];
     assert_eq!(c["events"], 5, "{c}");
@@ -72,7 +78,8 @@ fn hidden_populations_are_a_field_shared_by_neighbours_and_only_then_declared() 
     let best = c["best_r2"].as_f64().unwrap();
     assert!(best > 0.3, "{c}");
     assert!(text.contains("a field shared by neighbours"), "{text}");
-    // and the model's populations (a position effect) is declared on it
+    // the model's populations (a surface over the array) is judged by tile and not
+    // declared on patches of 8 px (module docs)
     let pop = |d: &serde_json::Value| {
         d["ranking"]
             .as_array()
@@ -82,7 +89,10 @@ fn hidden_populations_are_a_field_shared_by_neighbours_and_only_then_declared() 
             .unwrap()
             .clone()
     };
-    assert_eq!(pop(&with)["significant"], true, "{}", pop(&with));
+    let p = pop(&with);
+    assert_eq!(p["held_out"]["pixel_reference"]["judge"], "position", "{p}");
+    assert_eq!(p["held_out"]["passes"], true, "{p}");
+    assert_eq!(p["significant"], false, "{p}");
 
     let (without, text) = spatial(&[]);
     let c0 = &without["spatial"];
