@@ -108,7 +108,7 @@ fn run_masked(
 
 /// The diagnostics advance only their sampled pixels (`StepContext::active_pixels`):
 /// what those pixels predict must not depend on whether the others are advanced, for
-/// every effect, the spatial ones (blooming, ipc) and the position-dependent one
+/// every effect, the spatial ones (blooming, ipc with and without its diagonals) and the position-dependent one
 /// (populations) included.
 #[test]
 fn active_pixels_predict_bit_identically_to_the_whole_array() {
@@ -123,6 +123,11 @@ fn active_pixels_predict_bit_identically_to_the_whole_array() {
         ("blooming", serde_json::json!({"fraction": 0.1})),
         ("short_tau_boost", serde_json::json!({"factor": 2.0})),
         ("ipc", serde_json::json!({"alpha": 0.02})),
+        // the diagonal neighbours are two 4-neighbour steps away (its reach)
+        (
+            "ipc",
+            serde_json::json!({"alpha": 0.02, "alpha_split": 0.005, "alpha_diag": 0.003}),
+        ),
         ("populations", serde_json::json!({"gx": 0.3, "gyy": -0.2})),
     ] {
         // with an accumulator beside (capacity), so that path runs too

@@ -256,6 +256,9 @@ pub fn run(
                 p.effect, p.name, p.value, p.sigma
             );
         }
+        for m in &f.measured {
+            s += &format!("  {m}\n");
+        }
         if let Some(c) = &f.c_n {
             s += "  C_n fitted / start:";
             for p in &c.shape {

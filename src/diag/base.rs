@@ -1180,7 +1180,7 @@ pub(super) mod tests {
             fluence,
             overflow: None,
         };
-        let ipc = crate::model::effects::ipc::Ipc { alpha: 0.02 };
+        let ipc = crate::model::effects::ipc::Ipc::isotropic(0.02);
         let kernel = ipc.readout_kernel();
         let mut kn = Vec::new();
         coupled_knots(&m, &kernel, 0, 1, &mut kn);
