@@ -4,7 +4,8 @@
 //! `knots::OWN_SHARE_MIN`). On the second generator's campaign with anisotropic
 //! inter-pixel capacitance next to the pinhole grid (`persist simulate family
 //! --hidden ipc:aniso8 --pinholes on`, 64 x 64, seed 2), a pinhole's row neighbours
-//! measure 5e5-6e5 e- through the coupling alone; the isotropic `ipc` hands that
+//! measure 5e5-6e5 e- through the coupling alone; the isotropic `ipc` (its kernel's
+//! shape held: `alpha_split=0,alpha_diag=0`) hands that
 //! fluence back to the pinhole and predicts their first dark from the pinhole's
 //! amplitude, which the knots put at the largest knot (no bin measures 3e7 e-). Their
 //! measured current over that prediction is no sample of their own response: kept in
@@ -46,7 +47,7 @@ fn pinhole_neighbours_under_ipc_do_not_raise_the_knots() {
         "--out",
         &with,
         "--with",
-        "ipc:alpha=0.02308",
+        "ipc:alpha=0.02308,alpha_split=0,alpha_diag=0",
     ]);
     let (p, w) = (knots(&plain), knots(&with));
     assert!(w.len() > 20, "{w:?}");
