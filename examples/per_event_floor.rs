@@ -11,7 +11,8 @@
 //! ```
 //!
 //! `EXTRA_WITH="name:k=v,...;name2:..."` adds effects (the `--with` form) to the
-//! description first.
+//! description first. `JUDGE=position` also prints the RMS of the tiles' cells, the
+//! judge of candidates on the position (`persist::diag::marked`), at each model.
 use persist::diag::config::Config;
 use persist::diag::data::Sequence;
 use persist::diag::eval::{self, Samples};
@@ -27,6 +28,11 @@ fn rms(m: &ModelParams, seq: &Sequence, s: &Samples) -> (f64, Option<f64>) {
     let view = persist::diag::base::View::of_model(m, seq);
     let all = persist::diag::base::predict_scaled(seq, &view, s, &base.current, &response);
     let floor = persist::diag::base::per_event_rms(seq, &view, s, &base.current, &response);
+    if std::env::var("JUDGE").as_deref() == Ok("position") {
+        let tiles = persist::diag::marked::rms(persist::diag::marked::Judge::Position, m, seq, s)
+            .expect("tiles");
+        println!("  tiles' RMS (the position's judge) {tiles:.3}");
+    }
     (eval::rms(&all.cells(s)), floor.map(|f| f.0))
 }
 
