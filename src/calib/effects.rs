@@ -941,7 +941,6 @@ fn fit_with_inner(
     let mut params = params;
     params.extend(coupling_params);
     params.extend(spread_params.into_iter().flat_map(|(p, _)| p));
-
     let c_n = fit_cn.then(|| {
         let terms: Vec<FittedCn> = (n_effect_slots..problem.slots.len())
             .zip(&c_start)
@@ -1072,9 +1071,10 @@ fn is_held(arg: &str) -> Result<bool> {
 /// the second generator's `ipc:aniso8` campaign, 64 x 64, seed 2: the kernel measured
 /// at `alpha` 0.0175, `alpha_split` 0.0075, `alpha_diag` 0.0041, the generator's 0.0175,
 /// 0.0075, 0.004; `alpha` fitted from there ends at 0.0019). Returns the measured
-/// parameters for the report and a sentence for the fit's termination: what was
-/// measured, from how many sources, or why the kernel stays four-neighbour, isotropic
-/// and fitted.
+/// parameters for the report and a sentence for [`EffectFit::measured`]: what was
+/// measured, from how many sources in which exposures, or why nothing was (the shape
+/// then stays as the model states it, by default four-neighbour and isotropic, and
+/// `alpha` is fitted).
 fn measure_coupling(
     m: &mut ModelParams,
     specs: &[(String, Vec<(String, f64)>)],
@@ -1094,8 +1094,9 @@ fn measure_coupling(
         return (
             Vec::new(),
             Some(format!(
-                "ipc: fewer than {} isolated bright pixels in the illuminations, the kernel \
-                 stays four-neighbour and isotropic",
+                "ipc: fewer than {} isolated bright pixels in the illuminations to measure \
+                 the kernel on; its shape stays as the model states it (by default \
+                 four-neighbour and isotropic) and alpha is fitted",
                 crate::measure::coupling::MIN_SOURCES
             )),
         );

@@ -42,9 +42,11 @@
 //!   `alpha_x = alpha + alpha_split`, `alpha_y = alpha - alpha_split` (each at least 0).
 //! - `alpha_diag` (default 0, bounds [0, 0.02]): `alpha_d`.
 //!
-//! `alpha_split` and `alpha_diag` are not fitted: `fit --with ipc` measures them with
-//! `alpha`'s start from the illuminated images' isolated bright pixels
-//! ([`crate::measure::coupling`]) and keeps the defaults where the data hold too few.
+//! `alpha_split` and `alpha_diag` are not fitted: `fit --with ipc` measures them, and
+//! `alpha`, on the illuminated images' isolated bright pixels
+//! ([`crate::measure::coupling`]), the classic single-pixel method, and holds them;
+//! where the data hold too few such pixels the shape stays as given and `alpha` is
+//! fitted.
 //! `alpha` 0 is bit-identical to no effect; a model file that names `alpha` alone is
 //! the isotropic four-neighbour kernel. Covariate: neighbour excess fluence.
 
