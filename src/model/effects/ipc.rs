@@ -37,7 +37,7 @@
 //!
 //! Parameters:
 //! - `alpha` (default 0.01, bounds [0, 0.05], null 0): the mean coupling to a nearest
-//!   neighbour, `(alpha_x + alpha_y) / 2`; fitted.
+//!   neighbour, `(alpha_x + alpha_y) / 2`; fitted where it is not measured (below).
 //! - `alpha_split` (default 0, bounds [-0.05, 0.05]): half the difference,
 //!   `alpha_x = alpha + alpha_split`, `alpha_y = alpha - alpha_split` (each at least 0).
 //! - `alpha_diag` (default 0, bounds [0, 0.02]): `alpha_d`.
