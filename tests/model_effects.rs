@@ -108,8 +108,8 @@ fn run_masked(
 
 /// The diagnostics advance only their sampled pixels (`StepContext::active_pixels`):
 /// what those pixels predict must not depend on whether the others are advanced, for
-/// every effect, the spatial ones (blooming, ipc with and without its diagonals) and the position-dependent one
-/// (populations) included.
+/// every effect, the spatial ones (blooming, ipc with and without its diagonals) and
+/// the position-dependent one (populations) included.
 #[test]
 fn active_pixels_predict_bit_identically_to_the_whole_array() {
     let temps: Vec<f64> = (0..8).map(|k| 79.0 + 0.5 * k as f64).collect();

@@ -1108,15 +1108,14 @@ fn measure_coupling(
             .find(|p| p.name == k)
             .expect("declared")
     };
-    let alpha = 0.5 * (c.alpha_x + c.alpha_y);
-    let values = [
-        (
-            "alpha_split",
-            0.5 * (c.alpha_x - c.alpha_y),
-            0.5 * c.sigma_x.hypot(c.sigma_y),
-        ),
-        ("alpha_diag", c.alpha_d, c.sigma_d),
-    ];
+    // `alpha` and `alpha_split` are half the sum and half the difference of the same two
+    let sigma_half = 0.5 * c.sigma_x.hypot(c.sigma_y);
+    let mut values = Vec::new();
+    if !pinned("alpha") {
+        values.push(("alpha", 0.5 * (c.alpha_x + c.alpha_y), sigma_half));
+    }
+    values.push(("alpha_split", 0.5 * (c.alpha_x - c.alpha_y), sigma_half));
+    values.push(("alpha_diag", c.alpha_d, c.sigma_d));
     let mut out = Vec::new();
     for (k, v, sigma) in values {
         let s = spec(k);
@@ -1130,24 +1129,6 @@ fn measure_coupling(
             lo: s.lo,
             hi: s.hi,
         });
-    }
-    if !pinned("alpha") {
-        let s = spec("alpha");
-        let v = alpha.clamp(s.lo, s.hi);
-        m.effects[e]
-            .params
-            .insert("alpha".into(), serde_json::json!(v));
-        out.insert(
-            0,
-            FittedParam {
-                effect: NAME.into(),
-                name: "alpha".into(),
-                value: v,
-                sigma: 0.5 * c.sigma_x.hypot(c.sigma_y),
-                lo: s.lo,
-                hi: s.hi,
-            },
-        );
     }
     let note = format!(
         "ipc's kernel measured on {} isolated bright pixels of exposures {:?}: alpha_x \

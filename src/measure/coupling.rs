@@ -66,14 +66,28 @@ pub fn source_ratios(f: &Array2<f64>) -> Vec<[f64; 3]> {
     for y in 2..ny - 2 {
         for x in 2..nx - 2 {
             let c = f[[y, x]];
-            if !c.is_finite() {
+            // a source is brighter than each of its 8 neighbours (their excess is at
+            // most ISOLATION of its own): most pixels end here, before any median
+            let at =
+                |dy: isize, dx: isize| f[[y.wrapping_add_signed(dy), x.wrapping_add_signed(dx)]];
+            let neighbours = [
+                (0, -1),
+                (0, 1),
+                (-1, 0),
+                (1, 0),
+                (-1, -1),
+                (-1, 1),
+                (1, -1),
+                (1, 1),
+            ];
+            if !c.is_finite() || !neighbours.iter().all(|&(dy, dx)| at(dy, dx) < c) {
                 continue;
             }
             ring.clear();
             for dy in -2isize..=2 {
                 for dx in -2isize..=2 {
                     if dy.abs() == 2 || dx.abs() == 2 {
-                        ring.push(f[[y.wrapping_add_signed(dy), x.wrapping_add_signed(dx)]]);
+                        ring.push(at(dy, dx));
                     }
                 }
             }
@@ -88,9 +102,7 @@ pub fn source_ratios(f: &Array2<f64>) -> Vec<[f64; 3]> {
             if !(e > 0.0 && e >= MIN_SNR * spread && far <= RING_ISOLATION * e) {
                 continue;
             }
-            let ex = |dy: isize, dx: isize| {
-                f[[y.wrapping_add_signed(dy), x.wrapping_add_signed(dx)]] - b
-            };
+            let ex = |dy: isize, dx: isize| at(dy, dx) - b;
             let row = [ex(0, -1), ex(0, 1)];
             let col = [ex(-1, 0), ex(1, 0)];
             let diag = [ex(-1, -1), ex(-1, 1), ex(1, -1), ex(1, 1)];
@@ -106,7 +118,8 @@ pub fn source_ratios(f: &Array2<f64>) -> Vec<[f64; 3]> {
 }
 
 /// The coupling from the sources' ratios (module docs); `None` below [`MIN_SOURCES`].
-pub fn from_ratios(ratios: &[[f64; 3]]) -> Option<(f64, [f64; 3], [f64; 3])> {
+/// Returns the weights `[alpha_x, alpha_y, alpha_d]` and their standard errors.
+pub fn from_ratios(ratios: &[[f64; 3]]) -> Option<([f64; 3], [f64; 3])> {
     if ratios.len() < MIN_SOURCES {
         return None;
     }
@@ -122,7 +135,7 @@ pub fn from_ratios(ratios: &[[f64; 3]]) -> Option<(f64, [f64; 3], [f64; 3])> {
     let (rd, sd) = stat(2);
     let c = 1.0 / (1.0 + 2.0 * rx + 2.0 * ry + 4.0 * rd);
     c.is_finite()
-        .then_some((c, [rx * c, ry * c, rd * c], [sx * c, sy * c, sd * c]))
+        .then_some(([rx * c, ry * c, rd * c], [sx * c, sy * c, sd * c]))
 }
 
 /// The coupling measured on `seq`'s illuminated exposures (module docs).
@@ -136,7 +149,7 @@ pub fn measure(seq: &Sequence) -> Option<Coupling> {
         }
         ratios.extend(r);
     }
-    let (_, a, s) = from_ratios(&ratios)?;
+    let (a, s) = from_ratios(&ratios)?;
     Some(Coupling {
         alpha_x: a[0],
         alpha_y: a[1],
@@ -168,7 +181,7 @@ mod tests {
         let measured = couple(&f, &Kernel::new(ax, ay, ad));
         let r = source_ratios(&measured);
         assert_eq!(r.len(), 16);
-        let (_, a, s) = from_ratios(&r).unwrap();
+        let (a, s) = from_ratios(&r).unwrap();
         for (got, want) in a.iter().zip([ax, ay, ad]) {
             assert!((got - want).abs() < 1e-9, "{a:?}");
         }
