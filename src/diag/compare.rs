@@ -108,6 +108,92 @@ pub struct ModelSummary {
     /// Whether the cells' pixels move together, and the cells' RMS if the statistic
     /// knew how much ([`super::spread`]).
     pub spread: super::spread::SpreadCheck,
+    /// Every model after the first: its flags at 0.1 e-/s with its knots scaled to the
+    /// first model's coverage ([`at_coverage_of`]); None for the first model, or when
+    /// no factor in [`MATCH_RANGE`] reaches it.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub flags_at_first_coverage: Option<MatchedFlags>,
+}
+
+/// The threshold, e-/s, at which [`at_coverage_of`] matches coverages: the flags'.
+pub const MATCH_THRESHOLD_E_PER_S: f64 = 0.1;
+
+/// The knots' factors [`at_coverage_of`] searches (smallest, largest).
+pub const MATCH_RANGE: (f64, f64) = (0.25, 4.0);
+
+/// A model's flags with its knots scaled so that it misses no more of the samples
+/// measured above the threshold than another model does: two models compared at one
+/// coverage, where the over-flagging says which predicts better (at a coverage of its
+/// own, a model's over-flagging also carries its margin's choice).
+#[derive(Debug, Clone, Copy, Serialize, PartialEq)]
+pub struct MatchedFlags {
+    /// The factor on the model's knots (amplitudes), the smallest found that reaches
+    /// the target.
+    pub knot_factor: f64,
+    /// The other model's missed samples: the target.
+    pub target_missed: usize,
+    /// The flags at that factor.
+    pub quality: FlagQuality,
+}
+
+/// The flag quality at `thr` of `params` with its knots times `factor`: the stage's
+/// flags (early release included) when `thr` is the model's flag threshold, else the
+/// predictions above `thr`, as in [`summarise`].
+fn flags_at_factor(
+    params: &crate::model::ModelParams,
+    seq: &Sequence,
+    samples: &Samples,
+    factor: f64,
+    thr: f64,
+) -> Result<FlagQuality> {
+    let mut p = params.clone();
+    for k in p.amplitude_knots.iter_mut() {
+        k.amplitude_e *= factor;
+    }
+    let stage = thr == p.thresholds.high_e_per_s;
+    let pr = eval::predict(&p, seq, samples, stage)?;
+    let flags = stage.then_some(pr.flagged.as_slice());
+    Ok(eval::flag_quality(samples, &pr.current, flags, thr))
+}
+
+/// [`MatchedFlags`] of `params` at `thr` against `target_missed`: bisection in
+/// `ln factor` over [`MATCH_RANGE`] for the smallest factor whose flags miss at most
+/// the target (missing falls as the knots rise; where early release makes it not
+/// quite monotonic, the factor found is one that reaches the target). None when the
+/// largest factor does not.
+pub fn at_coverage_of(
+    params: &crate::model::ModelParams,
+    seq: &Sequence,
+    samples: &Samples,
+    thr: f64,
+    target_missed: usize,
+) -> Result<Option<MatchedFlags>> {
+    let at = |f: f64| flags_at_factor(params, seq, samples, f, thr);
+    let (mut lo, mut hi) = (MATCH_RANGE.0.ln(), MATCH_RANGE.1.ln());
+    let mut best = at(hi.exp())?;
+    if best.missed > target_missed {
+        return Ok(None);
+    }
+    let low = at(lo.exp())?;
+    if low.missed <= target_missed {
+        (hi, best) = (lo, low);
+    } else {
+        // a factor within 0.01 % of the smallest that reaches the target
+        while hi - lo > 1e-4 {
+            let mid = 0.5 * (lo + hi);
+            let q = at(mid.exp())?;
+            if q.missed <= target_missed {
+                (hi, best) = (mid, q);
+            } else {
+                lo = mid;
+            }
+        }
+    }
+    Ok(Some(MatchedFlags {
+        knot_factor: hi.exp(),
+        target_missed,
+        quality: best,
+    }))
 }
 
 /// Flag quality over the samples of the touched pixels (module docs).
@@ -329,7 +415,15 @@ pub fn summarise_touched(
             flag_quality_touched: fqt,
             spatial: super::spatial::coherence(seq, params)?,
             spread,
+            flags_at_first_coverage: None,
         });
+    }
+    let key = format!("{MATCH_THRESHOLD_E_PER_S}");
+    if let Some(first) = out.first().and_then(|m| m.flag_quality.get(&key)).copied() {
+        for (m, (_, params)) in out.iter_mut().zip(models).skip(1) {
+            m.flags_at_first_coverage =
+                at_coverage_of(params, seq, samples, MATCH_THRESHOLD_E_PER_S, first.missed)?;
+        }
     }
     Ok(out)
 }

@@ -103,6 +103,9 @@ pub fn run_with(
         }
         s += "\n";
         s += &coverage_line(&m.flag_quality);
+        if let Some(f) = &m.flags_at_first_coverage {
+            s += &matched_line(f, &summary.models[0]);
+        }
         let sp = &m.spread;
         s += &format!(
             "    pixels moving together: score {:.1} (about N(0, 1) for independent pixels)",
@@ -149,6 +152,27 @@ pub fn run_with(
     }
     s += &format!("report {}", out.join("report.html").display());
     Ok(s)
+}
+
+/// A model's flags at the first model's coverage ([`super::compare::at_coverage_of`]),
+/// beside the first model's over-flagging.
+fn matched_line(f: &super::compare::MatchedFlags, first: &super::compare::ModelSummary) -> String {
+    let q = &f.quality;
+    let thr = q.threshold_e_per_s;
+    let first_over = first
+        .flag_quality
+        .get(&format!("{thr}"))
+        .map_or(0, |q| q.over_flagged);
+    format!(
+        "    at the first model's coverage at {thr} e-/s (knots x {:.4}): {} missed ({} for \
+         the first), over-flagged {:.2} % ({} samples; {} for the first)\n",
+        f.knot_factor,
+        q.missed,
+        f.target_missed,
+        100.0 * q.over_flag_fraction,
+        q.over_flagged,
+        first_over
+    )
 }
 
 /// The flags' coverage and over-flagging at 0.1 and 0.01 e-/s, as `persist fit` calibrates
