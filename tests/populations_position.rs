@@ -5,11 +5,11 @@
 //! position and `diagnose` names it; the library effect `populations` is declared,
 //! judged against the flexible base by tile of the array (`persist::diag::marked`),
 //! which each pixel's own amplitude in the pixel reference would take in (measured when
-//! written: held-out RMS of the tiles' cells 2.69 -> 1.55, gain 0.43, permutations'
-//! largest 0.14). The command it prints, run as printed, takes more than half of the
-//! field the residual shares between neighbouring pixels (measured: R^2 at 4 px 0.73 ->
-//! 0.25; nothing hidden 0.03) and the flagging model's residual falls (`fit`'s line
-//! "residual RMS": 19.1 -> 9.5).
+//! written: held-out RMS of the tiles' cells 2.74 -> 1.28, gain 0.53, permutations'
+//! largest 0.12). The command it prints, run as printed, leaves no field shared
+//! between neighbouring pixels (R^2 at 4 px below 0.20, the line's own threshold;
+//! measured: 0.73 -> 0.09, nothing hidden 0.03) and the flagging model's residual falls
+//! (`fit`'s line "residual RMS": 19.1 -> 8.1).
 
 mod common;
 
@@ -32,7 +32,7 @@ fn field_r2(text: &str) -> f64 {
 }
 
 #[test]
-fn a_field_of_trap_density_is_declared_by_tile_and_the_printed_command_halves_it() {
+fn a_field_of_trap_density_is_declared_by_tile_and_the_printed_command_removes_it() {
     let tmp = tempfile::tempdir().unwrap();
     let d = tmp.path().join("pop");
     let d = d.to_str().unwrap();
@@ -66,5 +66,5 @@ fn a_field_of_trap_density_is_declared_by_tile_and_the_printed_command_halves_it
     let after_model = words[words.iter().position(|w| *w == "--out").unwrap() + 1];
     let after = persist_ok(&["diagnose", "--input", d, "--model", after_model]);
     let after = field_r2(&after);
-    assert!(after < 0.5 * before, "R^2 {before} -> {after}");
+    assert!(after < 0.2, "R^2 {before} -> {after}");
 }

@@ -549,8 +549,27 @@ impl Dependence {
 
 /// The standardised residual of the flexible base (module docs), per sample (NaN where
 /// unusable), cells split by event when `by_event`.
-#[allow(clippy::needless_range_loop)] // i indexes the samples' parallel columns
 pub(super) fn base_residual(s: &Samples, pred: &[f64], by_event: bool) -> Vec<f64> {
+    cell_residual(s, pred, by_event, false)
+}
+
+/// The factors a cell's level may take in [`scaled_residual`]: beyond them a cell's
+/// predictions say too little of its measurements to scale them.
+pub(super) const CELL_SCALE_RANGE: (f64, f64) = (0.2, 5.0);
+
+/// [`base_residual`] of the predictions scaled per (fluence, time, event) cell by the
+/// least-squares factor through the origin, `sum m p / sum p^2` (clamped to
+/// [`CELL_SCALE_RANGE`]): a factor on the level, where the additive offset takes in a
+/// level misfit only as a shift. A field over the array scales what it multiplies: with
+/// the level off by a factor `k` in a cell, an offset leaves `k` of the field's
+/// variation to be matched, a factor none.
+pub(super) fn scaled_residual(s: &Samples, pred: &[f64], by_event: bool) -> Vec<f64> {
+    cell_residual(s, pred, by_event, true)
+}
+
+/// [`base_residual`], or [`scaled_residual`] when `scaled`.
+#[allow(clippy::needless_range_loop)] // i indexes the samples' parallel columns
+fn cell_residual(s: &Samples, pred: &[f64], by_event: bool, scaled: bool) -> Vec<f64> {
     let np = s.npix();
     let mut cells: BTreeMap<(i64, i64, usize), Vec<usize>> = BTreeMap::new();
     for i in 0..s.len() {
@@ -569,7 +588,19 @@ pub(super) fn base_residual(s: &Samples, pred: &[f64], by_event: bool) -> Vec<f6
         if idx.len() < 4 {
             continue;
         }
-        let d: Vec<f64> = idx.iter().map(|&i| s.measured[i] - pred[i]).collect();
+        let k = if scaled {
+            let (mp, pp) = idx.iter().fold((0.0, 0.0), |(a, b), &i| {
+                (a + s.measured[i] * pred[i], b + pred[i] * pred[i])
+            });
+            if pp > 0.0 {
+                (mp / pp).clamp(CELL_SCALE_RANGE.0, CELL_SCALE_RANGE.1)
+            } else {
+                1.0
+            }
+        } else {
+            1.0
+        };
+        let d: Vec<f64> = idx.iter().map(|&i| s.measured[i] - k * pred[i]).collect();
         let med = median(&d);
         let dev: Vec<f64> = d.iter().map(|x| (x - med).abs()).collect();
         let noise = median(&idx.iter().map(|&i| s.noise[i / np]).collect::<Vec<_>>());

@@ -44,13 +44,19 @@
 //!
 //! # Effects on the position
 //! The effects acting on `position` (`populations`) are refined against the flexible base
-//! by tile of the array ([`super::marked`]), also on one illumination, from the better of
-//! the fitted values and the effect's null: the cells the description is fitted on pool
-//! every pixel of a fluence and time, so a field over the array shows there only as the
-//! spread of each cell, not where it lies. Measured on the second generator's
-//! `populations:smooth` campaign (64 x 64, seed 1; brighter towards larger `y`): fitted
-//! against the description `populations` takes `gy` -0.20 and the tiles' RMS rises from
-//! 2.69 to 3.40 even after the search; at `gy` +0.3 alone, 1.66.
+//! by tile of the array ([`super::marked`]), also on one illumination, from the best of
+//! the fitted values, the effect's null and the surface measured at the null: the cells
+//! the description is fitted on pool every pixel of a fluence and time, so a field over
+//! the array shows there only as the spread of each cell, not where it lies. The
+//! surface (`populations`' five coefficients) is measured directly: per pixel the
+//! median of `ln(measured / flexible base)` over its samples well above the noise, a
+//! quadratic in position fitted to those medians by least squares. Measured on the
+//! second generator's `populations:smooth` campaign (64 x 64, seed 1; density `1 + 0.4
+//! v + ...`, brighter towards larger `y`): fitted against the description
+//! `populations` takes `gy` -0.20; the surface is `gx` -0.06, `gy` 0.40, `gxx` 0.13,
+//! `gxy` 0.04, `gyy` -0.13, where the tiles' RMS is 1.28 (2.75 at the null; 1.66 at
+//! `gy` 0.40 alone). A pattern search from the null, one parameter at a time within
+//! [`MAX_EVALS`], found `gy` 0.25 alone.
 //!
 //! # Invariants
 //! - The judge's RMS on the samples at the values returned is at most its RMS at the
@@ -195,6 +201,73 @@ fn null(m: &ModelParams, s: &Slot) -> Option<f64> {
     def.params.iter().find(|p| p.name == s.name)?.null
 }
 
+/// The samples whose flexible base predicts at least this many times their noise
+/// count in [`surface_at`].
+pub const SURFACE_MIN_SNR: f64 = 10.0;
+
+/// The surface of `populations` measured on `samples` against the flexible base of
+/// `m` (the model at the surface's null; module docs, "Effects on the position"): per
+/// pixel the median of `ln(measured / flexible base)` over its samples the base
+/// predicts at least [`SURFACE_MIN_SNR`] times their noise, and the quadratic in
+/// `(u, v)` with a constant (the knots' level) fitted to those medians by least
+/// squares; its five other coefficients, each within its bounds, in the order of
+/// `slots`. `None` when the slots are not the surface's five coefficients or fewer
+/// than 12 pixels have a median.
+fn surface_at(
+    m: &ModelParams,
+    slots: &[Slot],
+    seq: &Sequence,
+    samples: &Samples,
+) -> Result<Option<Vec<f64>>> {
+    const TERMS: [&str; 5] = ["gx", "gy", "gxx", "gxy", "gyy"];
+    let Some(index) = slots
+        .iter()
+        .map(|s| TERMS.iter().position(|t| *t == s.name))
+        .collect::<Option<Vec<usize>>>()
+    else {
+        return Ok(None);
+    };
+    let pred = eval::predict(m, seq, samples, false)?.current;
+    let flexible = super::base::predict(seq, &View::of_model(m, seq), samples, &pred);
+    let np = samples.npix().max(1);
+    let mut per_pixel = vec![Vec::new(); np];
+    for (i, (&b, &y)) in flexible.iter().zip(&samples.measured).enumerate() {
+        if b.is_finite() && y.is_finite() && y > 0.0 && b >= SURFACE_MIN_SNR * samples.noise[i / np]
+        {
+            per_pixel[i % np].push((y / b).ln());
+        }
+    }
+    let coord = |v: usize, n: usize| (v as f64 - (n as f64 - 1.0) / 2.0) / (n as f64 / 2.0);
+    let mut ata = nalgebra::SMatrix::<f64, 6, 6>::zeros();
+    let mut atb = nalgebra::SVector::<f64, 6>::zeros();
+    let mut n = 0;
+    for (p, logs) in per_pixel.iter().enumerate() {
+        let r = crate::stats::median(logs);
+        if !r.is_finite() {
+            continue;
+        }
+        let (y, x) = samples.pixels[p];
+        let (u, v) = (coord(x, seq.nx), coord(y, seq.ny));
+        let row = nalgebra::SVector::<f64, 6>::from([1.0, u, v, u * u, u * v, v * v]);
+        ata += row * row.transpose();
+        atb += row * r;
+        n += 1;
+    }
+    if n < 12 {
+        return Ok(None);
+    }
+    let Some(c) = ata.lu().solve(&atb) else {
+        return Ok(None);
+    };
+    Ok(Some(
+        slots
+            .iter()
+            .zip(index)
+            .map(|(s, k)| c[k + 1].clamp(s.lo, s.hi))
+            .collect(),
+    ))
+}
+
 fn value(m: &ModelParams, s: &Slot) -> Option<f64> {
     m.effects[s.effect].params.get(s.name)?.as_f64()
 }
@@ -245,10 +318,19 @@ pub fn polish(
         best: start,
         evals: 1,
     };
-    // module docs, "Effects on the position": from the better of the fit and the null
+    // module docs, "Effects on the position": from the best of the fit, the null and
+    // the surface measured at the null
     if judge == Judge::Position {
-        if let Some(nulls) = slots.iter().map(|s| null(&fitted, s)).collect() {
+        if let Some(nulls) = slots
+            .iter()
+            .map(|s| null(&fitted, s))
+            .collect::<Option<Vec<_>>>()
+        {
+            let surface = surface_at(&at(&nulls)?, &slots, seq, samples)?;
             search.try_point(nulls, &rms)?;
+            if let Some(y) = surface {
+                search.try_point(y, &rms)?;
+            }
         }
     }
     for level in 0..LEVELS {
