@@ -202,7 +202,7 @@ fn null(m: &ModelParams, s: &Slot) -> Option<f64> {
 }
 
 /// The samples whose flexible base predicts at least this many times their noise
-/// count in [`surface_at`].
+/// count in the surface `polish` measures at the null (module docs).
 pub const SURFACE_MIN_SNR: f64 = 10.0;
 
 /// The surface of `populations` measured on `samples` against the flexible base of
