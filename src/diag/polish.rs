@@ -238,25 +238,19 @@ fn surface_at(
         }
     }
     let coord = |v: usize, n: usize| (v as f64 - (n as f64 - 1.0) / 2.0) / (n as f64 / 2.0);
-    let mut ata = nalgebra::SMatrix::<f64, 6, 6>::zeros();
-    let mut atb = nalgebra::SVector::<f64, 6>::zeros();
-    let mut n = 0;
-    for (p, logs) in per_pixel.iter().enumerate() {
-        let r = crate::stats::median(logs);
-        if !r.is_finite() {
-            continue;
-        }
-        let (y, x) = samples.pixels[p];
-        let (u, v) = (coord(x, seq.nx), coord(y, seq.ny));
-        let row = nalgebra::SVector::<f64, 6>::from([1.0, u, v, u * u, u * v, v * v]);
-        ata += row * row.transpose();
-        atb += row * r;
-        n += 1;
-    }
-    if n < 12 {
-        return Ok(None);
-    }
-    let Some(c) = ata.lu().solve(&atb) else {
+    let points: Vec<(f64, f64, f64)> = per_pixel
+        .iter()
+        .zip(&samples.pixels)
+        .map(|(logs, &(y, x))| {
+            (
+                coord(x, seq.nx),
+                coord(y, seq.ny),
+                crate::stats::median(logs),
+            )
+        })
+        .filter(|p| p.2.is_finite())
+        .collect();
+    let Some(c) = quadratic_fit(&points) else {
         return Ok(None);
     };
     Ok(Some(
@@ -266,6 +260,23 @@ fn surface_at(
             .map(|(s, k)| c[k + 1].clamp(s.lo, s.hi))
             .collect(),
     ))
+}
+
+/// The least-squares quadratic `c0 + c1 u + c2 v + c3 u^2 + c4 u v + c5 v^2` through
+/// the points `(u, v, r)`; None with fewer than 12 points or a singular system.
+fn quadratic_fit(points: &[(f64, f64, f64)]) -> Option<[f64; 6]> {
+    if points.len() < 12 {
+        return None;
+    }
+    let mut ata = nalgebra::SMatrix::<f64, 6, 6>::zeros();
+    let mut atb = nalgebra::SVector::<f64, 6>::zeros();
+    for &(u, v, r) in points {
+        let row = nalgebra::SVector::<f64, 6>::from([1.0, u, v, u * u, u * v, v * v]);
+        ata += row * row.transpose();
+        atb += row * r;
+    }
+    let c = ata.lu().solve(&atb)?;
+    Some([c[0], c[1], c[2], c[3], c[4], c[5]])
 }
 
 fn value(m: &ModelParams, s: &Slot) -> Option<f64> {
@@ -377,6 +388,27 @@ mod tests {
             lo,
             hi,
         }
+    }
+
+    /// The generator's surface of `populations:smooth` on a grid (`1 + 0.4 v + 0.25 (u^2
+    /// - 1/3)`, its log up to second order) comes back exactly; too few points give none.
+    #[test]
+    fn a_quadratic_through_a_grid_gives_back_its_coefficients() {
+        let c = [0.1, -0.06, 0.4, 0.13, 0.04, -0.13];
+        let f = |u: f64, v: f64| {
+            c[0] + c[1] * u + c[2] * v + c[3] * u * u + c[4] * u * v + c[5] * v * v
+        };
+        let grid: Vec<(f64, f64, f64)> = (0..25)
+            .map(|k| {
+                let (u, v) = (f64::from(k % 5) / 2.0 - 1.0, f64::from(k / 5) / 2.0 - 1.0);
+                (u, v, f(u, v))
+            })
+            .collect();
+        let got = quadratic_fit(&grid).unwrap();
+        for (g, w) in got.iter().zip(c) {
+            assert!((g - w).abs() < 1e-9, "{got:?}");
+        }
+        assert!(quadratic_fit(&grid[..11]).is_none());
     }
 
     /// A walk stops at the first step that does not lower the RMS and never leaves the
