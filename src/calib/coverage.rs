@@ -484,9 +484,7 @@ pub fn apply(
             break;
         }
         let m = margin(&after).ok_or_else(no_margin)?;
-        for k in p.amplitude_knots.iter_mut() {
-            k.amplitude_e *= m;
-        }
+        p.scale_knots(m);
         knot_factor *= m;
         after = measure_model(&p, seq, &samples, cfg)?;
     }

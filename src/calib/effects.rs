@@ -315,9 +315,7 @@ impl Problem<'_> {
             let _ = super::knots::rescale(s_from, &mut m, ramp);
         }
         if knot_scale != 1.0 {
-            m.amplitude_knots
-                .iter_mut()
-                .for_each(|k| k.amplitude_e *= knot_scale);
+            m.scale_knots(knot_scale);
         }
         Some(m)
     }

@@ -147,9 +147,7 @@ fn flags_at_factor(
     thr: f64,
 ) -> Result<FlagQuality> {
     let mut p = params.clone();
-    for k in p.amplitude_knots.iter_mut() {
-        k.amplitude_e *= factor;
-    }
+    p.scale_knots(factor);
     let stage = thr == p.thresholds.high_e_per_s;
     let pr = eval::predict(&p, seq, samples, stage)?;
     let flags = stage.then_some(pr.flagged.as_slice());

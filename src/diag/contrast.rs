@@ -567,6 +567,19 @@ pub(super) fn scaled_residual(s: &Samples, pred: &[f64], by_event: bool) -> Vec<
     cell_residual(s, pred, by_event, true)
 }
 
+/// The least-squares factor through the origin of a cell's samples `idx`,
+/// `sum m p / sum p^2`, clamped to [`CELL_SCALE_RANGE`]; 1 without a positive `sum p^2`.
+fn cell_factor(s: &Samples, pred: &[f64], idx: &[usize]) -> f64 {
+    let (mp, pp) = idx.iter().fold((0.0, 0.0), |(a, b), &i| {
+        (a + s.measured[i] * pred[i], b + pred[i] * pred[i])
+    });
+    if pp > 0.0 {
+        (mp / pp).clamp(CELL_SCALE_RANGE.0, CELL_SCALE_RANGE.1)
+    } else {
+        1.0
+    }
+}
+
 /// [`base_residual`], or [`scaled_residual`] when `scaled`.
 #[allow(clippy::needless_range_loop)] // i indexes the samples' parallel columns
 fn cell_residual(s: &Samples, pred: &[f64], by_event: bool, scaled: bool) -> Vec<f64> {
@@ -589,14 +602,7 @@ fn cell_residual(s: &Samples, pred: &[f64], by_event: bool, scaled: bool) -> Vec
             continue;
         }
         let k = if scaled {
-            let (mp, pp) = idx.iter().fold((0.0, 0.0), |(a, b), &i| {
-                (a + s.measured[i] * pred[i], b + pred[i] * pred[i])
-            });
-            if pp > 0.0 {
-                (mp / pp).clamp(CELL_SCALE_RANGE.0, CELL_SCALE_RANGE.1)
-            } else {
-                1.0
-            }
+            cell_factor(s, pred, idx)
         } else {
             1.0
         };

@@ -236,9 +236,6 @@ mod tests {
         }
     }
 
-    /// A group's `z` is its marked residuals' sum over the root of their number; the
-    /// unmarked samples and those without a residual do not count, and a group under
-    /// [`MIN_MARKED`] is left out.
     /// One cell whose measurements follow a field `1 + g_x` over the row at half the
     /// prediction's level: the scaled residual of the prediction with the right field
     /// is 0 everywhere; with the field at half its size it is not, and an offset per
@@ -266,6 +263,9 @@ mod tests {
         assert!(half < 1e-12 && right > 1.0, "{right} {half}");
     }
 
+    /// A group's `z` is its marked residuals' sum over the root of their number; the
+    /// unmarked samples and those without a residual do not count, and a group under
+    /// [`MIN_MARKED`] is left out.
     #[test]
     fn marked_cells_sum_the_marked_residuals_per_event_fluence_and_time() {
         let s = row();

@@ -210,19 +210,19 @@ pub const SURFACE_MIN_SNR: f64 = 10.0;
 /// pixel the median of `ln(measured / flexible base)` over its samples the base
 /// predicts at least [`SURFACE_MIN_SNR`] times their noise, and the quadratic in
 /// `(u, v)` with a constant (the knots' level) fitted to those medians by least
-/// squares; its five other coefficients, each within its bounds, in the order of
-/// `slots`. `None` when the slots are not the surface's five coefficients or fewer
-/// than 12 pixels have a median.
+/// squares; its other coefficients, each within its bounds, in the order of `slots`.
+/// `None` when a slot is not one of the surface's coefficients or fewer than 12 pixels
+/// have a median.
 fn surface_at(
     m: &ModelParams,
     slots: &[Slot],
     seq: &Sequence,
     samples: &Samples,
 ) -> Result<Option<Vec<f64>>> {
-    const TERMS: [&str; 5] = ["gx", "gy", "gxx", "gxy", "gyy"];
+    use crate::model::effects::populations::{coordinate, COEFFICIENTS};
     let Some(index) = slots
         .iter()
-        .map(|s| TERMS.iter().position(|t| *t == s.name))
+        .map(|s| COEFFICIENTS.iter().position(|t| *t == s.name))
         .collect::<Option<Vec<usize>>>()
     else {
         return Ok(None);
@@ -237,14 +237,13 @@ fn surface_at(
             per_pixel[i % np].push((y / b).ln());
         }
     }
-    let coord = |v: usize, n: usize| (v as f64 - (n as f64 - 1.0) / 2.0) / (n as f64 / 2.0);
     let points: Vec<(f64, f64, f64)> = per_pixel
         .iter()
         .zip(&samples.pixels)
         .map(|(logs, &(y, x))| {
             (
-                coord(x, seq.nx),
-                coord(y, seq.ny),
+                coordinate(x, seq.nx),
+                coordinate(y, seq.ny),
                 crate::stats::median(logs),
             )
         })

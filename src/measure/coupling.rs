@@ -56,6 +56,18 @@ pub struct Coupling {
 }
 
 /// The neighbours' shares `(r_x, r_y, r_d)` of each source of one fluence map.
+/// The offsets `(dy, dx)` of a pixel's 8 neighbours.
+const NEIGHBOURS: [(isize, isize); 8] = [
+    (0, -1),
+    (0, 1),
+    (-1, 0),
+    (1, 0),
+    (-1, -1),
+    (-1, 1),
+    (1, -1),
+    (1, 1),
+];
+
 pub fn source_ratios(f: &Array2<f64>) -> Vec<[f64; 3]> {
     let (ny, nx) = f.dim();
     let mut out = Vec::new();
@@ -70,17 +82,7 @@ pub fn source_ratios(f: &Array2<f64>) -> Vec<[f64; 3]> {
             // most ISOLATION of its own): most pixels end here, before any median
             let at =
                 |dy: isize, dx: isize| f[[y.wrapping_add_signed(dy), x.wrapping_add_signed(dx)]];
-            let neighbours = [
-                (0, -1),
-                (0, 1),
-                (-1, 0),
-                (1, 0),
-                (-1, -1),
-                (-1, 1),
-                (1, -1),
-                (1, 1),
-            ];
-            if !c.is_finite() || !neighbours.iter().all(|&(dy, dx)| at(dy, dx) < c) {
+            if !c.is_finite() || !NEIGHBOURS.iter().all(|&(dy, dx)| at(dy, dx) < c) {
                 continue;
             }
             ring.clear();

@@ -492,6 +492,13 @@ impl ModelParams {
         sha256_hex(self.canonical_json().as_bytes())
     }
 
+    /// Every knot's amplitude times `factor` (the flags' margin, a fitted knot scale).
+    pub fn scale_knots(&mut self, factor: f64) {
+        for k in self.amplitude_knots.iter_mut() {
+            k.amplitude_e *= factor;
+        }
+    }
+
     /// The largest amplitude of the knot table (used for transients and unknown fluence).
     pub fn max_amplitude_e(&self) -> f64 {
         self.amplitude_knots

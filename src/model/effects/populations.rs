@@ -53,6 +53,15 @@ const fn coef(name: &'static str, doc: &'static str) -> ParamSpec {
     }
 }
 
+/// The surface's coefficients, in the order of `Populations::new`.
+pub const COEFFICIENTS: [&str; 5] = ["gx", "gy", "gxx", "gxy", "gyy"];
+
+/// A pixel's coordinate `v` of `n` along one axis, normalised as in the module docs:
+/// about -1 at one edge, +1 at the other.
+pub fn coordinate(v: usize, n: usize) -> f64 {
+    (v as f64 - (n as f64 - 1.0) / 2.0) / (n as f64 / 2.0)
+}
+
 pub const DEF: EffectDef = EffectDef {
     name: "populations",
     summary: "trap density across the array: log A *= quadratic in position; the pixels' \
@@ -77,11 +86,17 @@ pub const DEF: EffectDef = EffectDef {
             fitted: false,
             doc: "pixels: the correlation's Gaussian length (module docs)",
         },
-        coef("gx", "log amplitude per half array width in x (u)"),
-        coef("gy", "log amplitude per half array height in y (v)"),
-        coef("gxx", "coefficient of u^2 in log amplitude"),
-        coef("gxy", "coefficient of u v in log amplitude"),
-        coef("gyy", "coefficient of v^2 in log amplitude"),
+        coef(
+            COEFFICIENTS[0],
+            "log amplitude per half array width in x (u)",
+        ),
+        coef(
+            COEFFICIENTS[1],
+            "log amplitude per half array height in y (v)",
+        ),
+        coef(COEFFICIENTS[2], "coefficient of u^2 in log amplitude"),
+        coef(COEFFICIENTS[3], "coefficient of u v in log amplitude"),
+        coef(COEFFICIENTS[4], "coefficient of v^2 in log amplitude"),
     ],
     build: |p| {
         let mut e = Populations::new([
@@ -135,10 +150,9 @@ impl Populations {
 
     /// The amplitude scale map `[ny, nx]` (module docs).
     pub fn scale(&self, ny: usize, nx: usize) -> Array2<f64> {
-        let c = |v: usize, n: usize| (v as f64 - (n as f64 - 1.0) / 2.0) / (n as f64 / 2.0);
         let [gx, gy, gxx, gxy, gyy] = self.g;
         Array2::from_shape_fn((ny, nx), |(y, x)| {
-            let (u, v) = (c(x, nx), c(y, ny));
+            let (u, v) = (coordinate(x, nx), coordinate(y, ny));
             (gx * u + gy * v + gxx * u * u + gxy * u * v + gyy * v * v).exp()
         })
     }
