@@ -53,6 +53,18 @@
 //!    predictions, until every bin reaches the target (at most [`MAX_ROUNDS`] rounds:
 //!    a model with effects that saturate is not exactly linear in its knots).
 //!
+//! # The margin's spread
+//! The margin is the largest of the used bins' required scales, each one order
+//! statistic of its bin's predictions: another sample of the same detector's units would
+//! give another margin. [`margin_spread`] resamples each used bin's units with
+//! replacement and reports the 16th and 84th percentiles of the margins; `persist fit`
+//! prints them beside the knots' factor. The maximum over bins makes the spread lean
+//! upwards (resampled, another bin often asks for more). Measured on the second
+//! generator's `ipc:aniso8` campaign (64 x 64, seed 2, pinholes): knots x 0.861, spread
+//! x 0.861-1.039; with `--with ipc` x 0.865, spread x 0.865-1.033. Two models' margins
+//! closer than their spread do not say which predicts better: at one coverage they do
+//! (`persist compare`'s line "at the first model's coverage").
+//!
 //! # The tail
 //! A laboratory sequence of 1.5 h of darks says nothing about time constants of hours or
 //! days. Beyond the last covered time bin the decay keeps the calibration's shape (the
@@ -218,34 +230,52 @@ pub struct BinCoverage {
     pub used: bool,
 }
 
-/// The bins of the module docs at the predictions as they are.
-pub fn measure(input: CoverageInput, cfg: &CoverageConfig) -> Vec<BinCoverage> {
+/// The units measured above each threshold (module docs, "Rule"), keyed by (threshold
+/// index, time bin, band): each unit's mean prediction and median time.
+type Groups = std::collections::BTreeMap<(usize, i64, usize), Vec<(f64, f64)>>;
+
+/// [`Groups`] of `input`.
+fn groups(input: &CoverageInput, cfg: &CoverageConfig) -> Groups {
     let bin_of = |t: f64| (t.log10() * cfg.bins_per_decade).floor() as i64;
-    let units = unit_means(&input, bin_of);
-    let mut out = Vec::new();
-    for &thr in &cfg.thresholds_e_per_s {
-        let mut by_bin: std::collections::BTreeMap<(i64, usize), Vec<(f64, f64)>> =
-            Default::default();
+    let units = unit_means(input, bin_of);
+    let mut out = Groups::new();
+    for (j, &thr) in cfg.thresholds_e_per_s.iter().enumerate() {
         for u in &units {
             let m = u.measured_e_per_s;
             if m > thr + cfg.noise_sigmas * u.noise_e_per_s {
                 let band = BANDS.iter().rposition(|&lo| m >= lo * thr).unwrap_or(0);
-                by_bin
-                    .entry((u.bin, band))
+                out.entry((j, u.bin, band))
                     .or_default()
                     .push((u.predicted_e_per_s, u.t_median_s));
             }
         }
-        for ((b, band), v) in by_bin {
-            let edge = |k: i64| 10f64.powf(k as f64 / cfg.bins_per_decade);
+    }
+    out
+}
+
+/// The factor on `n` units' predictions `p` that flags a share `coverage` of them above
+/// `thr`: `thr / p_(k)`, `k = floor((1 - coverage) n)` of the sorted predictions, just
+/// above it (the flag is `prediction > threshold`); None when `p_(k)` is not positive.
+/// Reorders `p`.
+fn required_scale(p: &mut [f64], thr: f64, coverage: f64) -> Option<f64> {
+    let n = p.len();
+    let k = (((1.0 - coverage) * n as f64).floor() as usize).min(n.checked_sub(1)?);
+    let (_, pk, _) = p.select_nth_unstable_by(k, f64::total_cmp);
+    (*pk > 0.0).then(|| thr / *pk * (1.0 + 1e-9))
+}
+
+/// The bins of the module docs at the predictions as they are.
+pub fn measure(input: CoverageInput, cfg: &CoverageConfig) -> Vec<BinCoverage> {
+    let edge = |k: i64| 10f64.powf(k as f64 / cfg.bins_per_decade);
+    groups(&input, cfg)
+        .into_iter()
+        .map(|((j, b, band), v)| {
+            let thr = cfg.thresholds_e_per_s[j];
             let mut p: Vec<f64> = v.iter().map(|x| x.0).collect();
-            p.sort_by(f64::total_cmp);
             let times: Vec<f64> = v.iter().map(|x| x.1).collect();
             let n = p.len();
             let flagged = p.iter().filter(|&&x| x > thr).count();
-            let k = ((1.0 - cfg.coverage) * n as f64).floor() as usize;
-            let pk = p[k.min(n - 1)];
-            out.push(BinCoverage {
+            BinCoverage {
                 threshold_e_per_s: thr,
                 band_lo: BANDS[band],
                 t_lo_s: edge(b),
@@ -254,14 +284,55 @@ pub fn measure(input: CoverageInput, cfg: &CoverageConfig) -> Vec<BinCoverage> {
                 measured_above: n,
                 flagged,
                 coverage: flagged as f64 / n as f64,
-                // just above: the flag is `prediction > threshold`
-                required_scale: (pk > 0.0).then(|| thr / pk * (1.0 + 1e-9)),
+                required_scale: required_scale(&mut p, thr, cfg.coverage),
                 used: n >= cfg.min_samples,
-            });
-        }
-    }
-    out
+            }
+        })
+        .collect()
 }
+
+/// How many resamples [`margin_spread`] draws.
+pub const SPREAD_RESAMPLES: usize = 200;
+
+/// How far [`margin`] moves with the sample of units it was measured on: the margin
+/// of [`SPREAD_RESAMPLES`] resamples of `input`'s units, each used bin's units drawn
+/// again with replacement (as many as it holds; the bins that are used stay those of
+/// `input`), their 16th and 84th percentiles (`+inf` for a resample whose bin has no
+/// positive prediction to scale). A factor on the predictions: on the knots when the
+/// predictions scale with them. The resamples come from a fixed seed, so the same
+/// input gives the same spread. None when `input` has no margin. Units are taken as
+/// independent; a pixel's units in neighbouring time bins are not, so the spread is a
+/// lower bound.
+pub fn margin_spread(input: CoverageInput, cfg: &CoverageConfig) -> Option<(f64, f64)> {
+    use rand::{Rng, SeedableRng};
+    let used: Vec<(f64, Vec<f64>)> = groups(&input, cfg)
+        .into_iter()
+        .filter(|(_, v)| v.len() >= cfg.min_samples)
+        .map(|((j, _, _), v)| (cfg.thresholds_e_per_s[j], v.iter().map(|x| x.0).collect()))
+        .collect();
+    if used.is_empty() {
+        return None;
+    }
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(SPREAD_SEED);
+    let mut draw = Vec::new();
+    let mut margins: Vec<f64> = (0..SPREAD_RESAMPLES)
+        .map(|_| {
+            used.iter()
+                .map(|(thr, p)| {
+                    draw.clear();
+                    draw.extend((0..p.len()).map(|_| p[rng.random_range(0..p.len())]));
+                    required_scale(&mut draw, *thr, cfg.coverage).unwrap_or(f64::INFINITY)
+                })
+                .fold(0.0, f64::max)
+        })
+        .collect();
+    margins.sort_by(f64::total_cmp);
+    let at = |q: f64| margins[((q * SPREAD_RESAMPLES as f64) as usize).min(SPREAD_RESAMPLES - 1)];
+    Some((at(0.16), at(0.84)))
+}
+
+/// The seed of [`margin_spread`]'s resamples.
+const SPREAD_SEED: u64 = 95;
 
 /// The factor on the knots that brings every used bin to the target: the largest
 /// required scale. None when no bin is used, or a used bin has no prediction to scale.
@@ -317,6 +388,9 @@ pub struct CoverageReport {
     /// The knots' factor (margin step), and the amplification it makes of the
     /// calibration's: `amplification * knot_factor`.
     pub knot_factor: f64,
+    /// The knots' factor's spread with the sample of laboratory units, 16th and 84th
+    /// percentiles ([`margin_spread`] at the final predictions, times `knot_factor`).
+    pub knot_factor_spread: Option<(f64, f64)>,
     pub amplification: f64,
     /// Coverage reached, per threshold and time bin.
     pub after: Vec<BinCoverage>,
@@ -340,9 +414,13 @@ impl CoverageReport {
     /// time bin, and where the time constants come from.
     pub fn describe(&self) -> String {
         let mut s = format!(
-            "  coverage {:.0} %: knots x {:.3} (amplification {:.3}){}\n",
+            "  coverage {:.0} %: knots x {:.3}{} (amplification {:.3}){}\n",
             100.0 * self.config.coverage,
             self.knot_factor,
+            self.knot_factor_spread
+                .map_or(String::new(), |(lo, hi)| format!(
+                    " (x {lo:.3}-{hi:.3} over {SPREAD_RESAMPLES} resamples of the units, 16-84 %)"
+                )),
             self.amplification,
             if self.shape.is_empty() {
                 String::new()
@@ -414,6 +492,45 @@ impl CoverageReport {
     }
 }
 
+/// A model's predictions (early release off: the flags' level) at `samples`, with the
+/// measurements, noise, times and units [`measure`] takes.
+struct Predicted<'a> {
+    samples: &'a Samples,
+    predicted_e_per_s: Vec<f64>,
+    noise_e_per_s: Vec<f64>,
+    t_since_s: Vec<f64>,
+    unit: Vec<u64>,
+}
+
+impl<'a> Predicted<'a> {
+    fn of(params: &ModelParams, seq: &Sequence, samples: &'a Samples) -> Result<Self> {
+        let pr = predict(params, seq, samples, false)?;
+        let np = samples.npix().max(1);
+        let row = |i: usize| i / np;
+        Ok(Predicted {
+            samples,
+            predicted_e_per_s: pr.current,
+            noise_e_per_s: (0..samples.len()).map(|i| samples.noise[row(i)]).collect(),
+            t_since_s: (0..samples.len())
+                .map(|i| samples.t_since_s[row(i)])
+                .collect(),
+            unit: (0..samples.len())
+                .map(|i| (samples.event[row(i)] * np + i % np) as u64)
+                .collect(),
+        })
+    }
+
+    fn input(&self) -> CoverageInput<'_> {
+        CoverageInput {
+            predicted_e_per_s: &self.predicted_e_per_s,
+            measured_e_per_s: &self.samples.measured,
+            noise_e_per_s: &self.noise_e_per_s,
+            t_since_s: &self.t_since_s,
+            unit: &self.unit,
+        }
+    }
+}
+
 /// The model's predictions (early release off: the flags' level) at `samples`, and
 /// [`measure`] on them.
 pub fn measure_model(
@@ -422,25 +539,7 @@ pub fn measure_model(
     samples: &Samples,
     cfg: &CoverageConfig,
 ) -> Result<Vec<BinCoverage>> {
-    let pr = predict(params, seq, samples, false)?;
-    let np = samples.npix().max(1);
-    let noise: Vec<f64> = (0..samples.len()).map(|i| samples.noise[i / np]).collect();
-    let t: Vec<f64> = (0..samples.len())
-        .map(|i| samples.t_since_s[i / np])
-        .collect();
-    let unit: Vec<u64> = (0..samples.len())
-        .map(|i| (samples.event[i / np] * np + i % np) as u64)
-        .collect();
-    Ok(measure(
-        CoverageInput {
-            predicted_e_per_s: &pr.current,
-            measured_e_per_s: &samples.measured,
-            noise_e_per_s: &noise,
-            t_since_s: &t,
-            unit: &unit,
-        },
-        cfg,
-    ))
+    Ok(measure(Predicted::of(params, seq, samples)?.input(), cfg))
 }
 
 /// Steps 1 and 2 of the module docs on `params`, calibrated on `seq` (every pixel
@@ -473,7 +572,8 @@ pub fn apply(
         reshape(&mut p, &shape)?;
     }
     let mut knot_factor = 1.0;
-    let mut after = measure_model(&p, seq, &samples, cfg)?;
+    let mut predicted = Predicted::of(&p, seq, &samples)?;
+    let mut after = measure(predicted.input(), cfg);
     for round in 0..MAX_ROUNDS {
         let reached = after
             .iter()
@@ -486,8 +586,11 @@ pub fn apply(
         let m = margin(&after).ok_or_else(no_margin)?;
         p.scale_knots(m);
         knot_factor *= m;
-        after = measure_model(&p, seq, &samples, cfg)?;
+        predicted = Predicted::of(&p, seq, &samples)?;
+        after = measure(predicted.input(), cfg);
     }
+    let knot_factor_spread =
+        margin_spread(predicted.input(), cfg).map(|(lo, hi)| (knot_factor * lo, knot_factor * hi));
     let used: Vec<&BinCoverage> = after.iter().filter(|b| b.used).collect();
     let covered_s = (
         used.iter().map(|b| b.t_lo_s).fold(f64::INFINITY, f64::min),
@@ -518,6 +621,7 @@ pub fn apply(
             before,
             shape,
             knot_factor,
+            knot_factor_spread,
             amplification,
             tau_constrained_s: taus.iter().copied().filter(|&t| t <= covered_s.1).collect(),
             tau_from_prior_s: taus.iter().copied().filter(|&t| t > covered_s.1).collect(),
@@ -651,6 +755,39 @@ mod tests {
         let averaged = measure(input(&p, &m, &sigma, &t, &unit), &cfg);
         assert_eq!(averaged.iter().map(|b| b.measured_above).sum::<usize>(), 0);
         assert_eq!(margin(&averaged), None);
+    }
+
+    /// The margin's spread brackets the margin the units give and narrows as they
+    /// grow: `n` units measured at 0.2 e-/s with predictions spread over a decade
+    /// (log-uniform, 0.01-0.1 e-/s), scaled by their own margin; the 16-84 % range of
+    /// the resampled margins holds 1, is about `sqrt(100)` times narrower for 4,000 units
+    /// than for 40, and is the same on a second call.
+    #[test]
+    fn the_margins_spread_brackets_it_and_narrows_with_more_units() {
+        let cfg = CoverageConfig {
+            thresholds_e_per_s: vec![0.1],
+            ..CoverageConfig::default()
+        };
+        let spread = |n: usize| {
+            let p: Vec<f64> = (0..n)
+                .map(|i| 0.01 * 10f64.powf((i as f64 + 0.5) / n as f64))
+                .collect();
+            let (m, sigma, t) = (vec![0.2; n], vec![0.01; n], vec![500.0; n]);
+            let u: Vec<u64> = (0..n as u64).collect();
+            let s = margin(&measure(input(&p, &m, &sigma, &t, &u), &cfg)).unwrap();
+            let scaled: Vec<f64> = p.iter().map(|x| x * s).collect();
+            let once = margin_spread(input(&scaled, &m, &sigma, &t, &u), &cfg).unwrap();
+            let again = margin_spread(input(&scaled, &m, &sigma, &t, &u), &cfg).unwrap();
+            assert_eq!(once, again);
+            once
+        };
+        let (few, many) = (spread(40), spread(4000));
+        for (lo, hi) in [few, many] {
+            assert!(lo <= 1.0 + 1e-6 && hi >= 1.0 - 1e-6, "{lo} {hi}");
+        }
+        let ratio = (few.1 / few.0).ln() / (many.1 / many.0).ln();
+        assert!((6.0..16.0).contains(&ratio), "{few:?} {many:?} {ratio}");
+        assert_eq!(margin_spread(input(&[], &[], &[], &[], &[]), &cfg), None);
     }
 
     #[test]
