@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Install what a fresh Debian 12 machine lacks to build persist: HDF5 and cfitsio headers and
-# pkg-config, and strace. Does nothing when they are already there.
+# pkg-config, strace and jq. Does nothing when they are already there.
 # With --chromium, also Debian's chromium (for tests/report_chromium.rs) when it is not
 # on PATH.
 set -euo pipefail
@@ -33,6 +33,12 @@ if ! command -v strace >/dev/null 2>&1; then
   echo "bootstrap: strace not found; installing Debian's strace" >&2
   if [ "$updated" -eq 0 ]; then $SUDO apt-get update -qq; updated=1; fi
   $SUDO apt-get install -y -qq strace >/dev/null
+fi
+# jq: the validation pages read the commands' JSON reports (scripts/offers_table.sh).
+if ! command -v jq >/dev/null 2>&1; then
+  echo "bootstrap: jq not found; installing Debian's jq" >&2
+  if [ "$updated" -eq 0 ]; then $SUDO apt-get update -qq; updated=1; fi
+  $SUDO apt-get install -y -qq jq >/dev/null
 fi
 # With --python (anywhere in the arguments), also what the Python package and its tests
 # need (scripts/python_test.sh) and the FITS round trip (tests/fits_roundtrip.rs): pip,

@@ -6,7 +6,8 @@
 # blooming and ipc, which couple neighbours, and their baseline with the grid of
 # one-pixel pinholes, `--pinholes on`). Default `fit` and `diagnose`;
 # then exactly the `persist fit` command the verdict prints (its first "add it with" /
-# "add both with"), and `diagnose` again on the model it writes. Prints Markdown on
+# "add both with"), `diagnose` again on the model it writes, and `persist compare` of
+# the two models' flags on the same data. Prints Markdown on
 # stdout (scripts/validation.sh offers writes it to docs/validation/offers.md).
 #
 #   PERSIST_BIN=target/release/persist WORK=/tmp/offers scripts/offers_table.sh
@@ -42,10 +43,22 @@ a map of another's, smoothed over 4 px, predicts (`diagnose`'s line "spatial
 coherence", R^2; at most 0.20 counts as no field), before -> after: a field over the
 array (a trap density that follows the position) shows there, and candidates on the
 position are judged by tile of the array against the flexible base, which each
-pixel's own amplitude in the pixel reference takes in too.
+pixel's own amplitude in the pixel reference takes in too. Decay tilt: the rise of the
+decay's log-log slope between the faintest and the brightest pixels after the first
+illumination, per decade of time, and its z (`diagnose`'s "the decay's shape depends on
+the fluence", JSON `decay_shape`; at least 0.07 depends), before -> after: a decay
+shape that depends on the fluence is a function of fluence and time, which the pixel
+reference takes in by construction, so its terms are judged there. Flags at 0.1 e-/s:
+`persist compare --input D --model M.json --model M+EFFECT.json` on the laboratory
+samples, each model at its own margin (`persist fit` re-derives it after the
+addition): the share of the samples measured above 0.1 e-/s that are flagged
+(coverage), and the share of all samples flagged while measured below it
+(over-flagged), before -> after; in brackets the added model's over-flagging with its
+knots scaled to the first model's coverage (`compare`'s line "at the first model's
+coverage").
 
-| run | named | offered | before | after | baseline | excess before -> after | halved | next to far brighter pixels | field |
-|---|---|---|---|---|---|---|---|---|---|
+| run | named | offered | before | after | baseline | excess before -> after | halved | next to far brighter pixels | field | decay tilt | flags at 0.1 e-/s: coverage; over-flagged |
+|---|---|---|---|---|---|---|---|---|---|---|---|
 TEXT
 
 # The pixel reference's RMS in diagnose's output ($1).
@@ -84,8 +97,25 @@ offered_command() {
     perl -ne 'if (/add (?:it|both) with: (persist fit .*?)(?= \(|\. |; |$)/) { print "$1\n"; exit }' <<< "$1"
 }
 
+# diagnose's output on data $1 with model $2, its JSON written to $3.
 diagnose_rms() {
-    "$persist" --log-level error diagnose --input "$1" --model "$2"
+    "$persist" --log-level error diagnose --input "$1" --model "$2" --json "$3"
+}
+
+# "0.19 (z 24)": the decay's tilt in diagnose's JSON ($1), or "-".
+tilt() {
+    jq -r 'if .decay_shape == null then "-" else
+        "\(.decay_shape.rise * 100 | round / 100) (z \(.decay_shape.rise_z | round))" end' "$1"
+}
+
+# "99.5 -> 99.5 %; 0.42 -> 0.43 % (0.41 %)": compare's flags at 0.1 e-/s of the first
+# model and the second ($1: summary.json), the second's also at the first's coverage.
+flags() {
+    jq -r '[.models[] | .flag_quality["0.1"]] as $q
+        | (.models[1].flags_at_first_coverage.quality.over_flag_fraction // null) as $m
+        | def pc: . * 1000 | round / 10;
+          def pc2: . * 10000 | round / 100;
+        "\((1 - $q[0].missed_of_measured_above) | pc) -> \((1 - $q[1].missed_of_measured_above) | pc) %; \($q[0].over_flag_fraction | pc2) -> \($q[1].over_flag_fraction | pc2) % (\(if $m == null then "-" else ($m | pc2 | tostring) + " %" end))"' "$1"
 }
 
 for seed in $seeds; do
@@ -98,8 +128,8 @@ for seed in $seeds; do
         "$persist" --log-level error simulate family --out "$base_dir" --size 64 --seed "$seed" \
             --sequence campaign $pin > /dev/null
         "$persist" --log-level error fit --input "$base_dir" --out "$base_dir.json" > /dev/null
-        baseline["pin:$pin"]=$(pixel_rms "$(diagnose_rms "$base_dir" "$base_dir.json")")
-        rm -rf "$base_dir" "$base_dir".json "$base_dir".fit.json
+        baseline["pin:$pin"]=$(pixel_rms "$(diagnose_rms "$base_dir" "$base_dir.json" "$base_dir.diag.json")")
+        rm -rf "$base_dir" "$base_dir".json "$base_dir".fit.json "$base_dir".diag.json
     done
     for row in $rows; do
         dir=$work/${row//[:+]/_}-$seed
@@ -107,7 +137,7 @@ for seed in $seeds; do
         "$persist" --log-level error simulate family --out "$dir" --size 64 --seed "$seed" \
             --sequence campaign --hidden "$row" $(pinhole_args "$row") > /dev/null
         "$persist" --log-level error fit --input "$dir" --out "$dir.json" > /dev/null
-        out=$(diagnose_rms "$dir" "$dir.json")
+        out=$(diagnose_rms "$dir" "$dir.json" "$dir.diag.json")
         before=$(pixel_rms "$out")
         # the pixels next to far brighter ones: where the pinhole grid gives them
         marked_before=-
@@ -115,6 +145,9 @@ for seed in $seeds; do
         marked_after=-
         field_before=$(field "$out")
         field_after=-
+        tilt_before=$(tilt "$dir.diag.json")
+        tilt_after=-
+        flags_row=-
         kind=$(named "$out")
         command=$(offered_command "$out")
         after=-
@@ -128,25 +161,31 @@ for seed in $seeds; do
             # run as printed (the words of the command; no quoting in it)
             read -r -a words <<< "$command"
             "$persist" --log-level error "${words[@]:1}" > /dev/null
-            out_after=$(diagnose_rms "$dir" "$model")
+            out_after=$(diagnose_rms "$dir" "$model" "$dir.after.json")
             after=$(pixel_rms "$out_after")
             [[ -n $(pinhole_args "$row") ]] && marked_after=$(marked "$out_after")
             field_after=$(field "$out_after")
+            tilt_after=$(tilt "$dir.after.json")
+            "$persist" --log-level error compare --input "$dir" --model "$dir.json" \
+                --model "$model" --report "$dir.compare" > /dev/null
+            flags_row=$(flags "$dir.compare/summary.json")
         fi
         awk -v run="$row, seed $seed" -v kind="${kind:-?}" -v off="$offered" -v b="$before" \
             -v a="$after" -v z="${baseline["pin:$(pinhole_args "$row")"]}" \
-            -v mk="$marked_before -> $marked_after" -v fd="$field_before -> $field_after" 'BEGIN {
+            -v mk="$marked_before -> $marked_after" -v fd="$field_before -> $field_after" \
+            -v tl="$tilt_before -> $tilt_after" -v fl="$flags_row" 'BEGIN {
                 eb = b - z
                 if (mk == "- -> -") mk = "-"
                 if (a == "-") {
-                    printf "| %s | %s | %s | %.2f | - | %.2f | %+.2f -> - | no | %s | %s |\n", run, kind, off, b, z, eb, mk, fd
+                    printf "| %s | %s | %s | %.2f | - | %.2f | %+.2f -> - | no | %s | %s | %s | %s |\n", run, kind, off, b, z, eb, mk, fd, tl, fl
                     exit
                 }
                 ea = a - z
                 halved = (ea <= 0.5 * eb || (eb <= 0 && ea <= 0)) ? "yes" : "no"
-                printf "| %s | %s | %s | %.2f | %.2f | %.2f | %+.2f -> %+.2f | %s | %s | %s |\n", run, kind, off, b, a, z, eb, ea, halved, mk, fd
+                printf "| %s | %s | %s | %.2f | %.2f | %.2f | %+.2f -> %+.2f | %s | %s | %s | %s | %s |\n", run, kind, off, b, a, z, eb, ea, halved, mk, fd, tl, fl
             }'
-        rm -rf "$dir" "$dir".json "$dir".fit.json "$dir"+*.json
+        rm -rf "$dir" "$dir".json "$dir".fit.json "$dir"+*.json "$dir".diag.json "$dir".after.json \
+            "$dir".compare
     done
 done | tee "$work/rows.md"
 awk -F' [|] ' '
@@ -166,9 +205,26 @@ awk -F' [|] ' '
             nf++
             if (f[3] != "-" && f[3] + 0 <= 0.2) fg++
         }
+        # the decay tilt: "0.19 (z 24) -> 0.02 (z 3)"
+        split($11, d, " ")
+        if (d[1] != "-" && d[1] + 0 >= 0.07) {
+            nd++
+            k = (d[4] == "->") ? 5 : 3
+            if (d[k] != "-" && d[k] + 0 < 0.07) dg++
+        }
+        # the flags: "99.5 -> 99.5 %; 0.42 -> 0.43 % (0.41 %)"
+        split($12, q, " ")
+        if (q[1] != "-" && q[1] != "|") {
+            nq++
+            if (q[3] - q[1] >= -1 && q[3] - q[1] <= 1) qc++
+            if (q[7] + 0 <= q[5] + 0) qo++
+            if (q[9] != "(-)" && substr(q[9], 2) + 0 <= q[5] + 0) qm++
+        }
     }
     END {
         printf "\nHidden: an addition offered in %d of %d runs; the excess over the nothing-hidden baseline halved in %d of %d. With no excess before (the pixel reference at or below the baseline): %d of %d.\n", o, h, y, h, z, h
         if (n > 0) printf "Next to far brighter pixels (where the pinhole grid gives them): their excess beyond their cells halved in %d of %d runs.\n", mh, n
         if (nf > 0) printf "A field shared by neighbouring pixels (R^2 above 0.20) before in %d runs; none left after in %d of them.\n", nf, fg + 0
+        if (nd > 0) printf "A decay tilt that depends on the fluence (at least 0.07) before in %d runs; below it after in %d of them.\n", nd, dg + 0
+        if (nq > 0) printf "Flags at 0.1 e-/s after the addition, in the %d runs with one: coverage within 1 percentage point of before in %d; over-flagging no higher at the model'"'"'s own margin in %d, and at the first model'"'"'s coverage in %d.\n", nq, qc + 0, qo + 0, qm + 0
     }' "$work/rows.md"

@@ -300,7 +300,7 @@ pub const SPREAD_RESAMPLES: usize = 200;
 /// `input`), their 16th and 84th percentiles (`+inf` for a resample whose bin has no
 /// positive prediction to scale). A factor on the predictions: on the knots when the
 /// predictions scale with them. The resamples come from a fixed seed, so the same
-/// input gives the same spread. None when `input` has no margin. Units are taken as
+/// input gives the same spread. None when no bin is used. Units are taken as
 /// independent; a pixel's units in neighbouring time bins are not, so the spread is a
 /// lower bound.
 pub fn margin_spread(input: CoverageInput, cfg: &CoverageConfig) -> Option<(f64, f64)> {
