@@ -27,7 +27,11 @@
 //!    own `fluence_x_time` terms give divided out); when it rises enough the verdict
 //!    names `fluence_x_time` and the data-driven term `smooth_shape` is fitted, held
 //!    out against the description and offered when it gains in each half
-//!    ([`super::offer::shape_term`]).
+//!    ([`super::offer::shape_term`]). When a covariate names a kind but nothing along
+//!    it is offered, and the decay's shape depends on the fluence besides, the same
+//!    term is fitted (JSON `shape_term`) and offered by the same rule, provided the
+//!    pixel reference does not lose with it held out
+//!    ([`super::offer::shape_term_beside_kind`]).
 //!
 //! The score test and its bootstrap threshold (below) are still computed and printed:
 //! they rank the testable effects, they no longer choose which are refitted (a score
@@ -406,7 +410,7 @@ pub fn diagnose(
     };
     // a kind named: the data-driven term when it predicts held-out data and no library
     // effect is declared beside it ([`super::offer`])
-    let offer = if shape_named && named {
+    let mut offer = if shape_named && named {
         super::offer::shape_term(data_term.as_ref())
     } else if named {
         super::offer::settle(&mut ranking, data_term.as_ref())
@@ -415,6 +419,25 @@ pub fn diagnose(
     };
     if let Some(t) = data_term.as_mut() {
         t.offered = offer.as_ref().is_some_and(|o| o.data_term);
+    }
+    // a kind named that nothing along it follows, and a decay shape that depends on
+    // the fluence besides: the data-driven term along the shape
+    let mut shape_term = None;
+    if named && !shape_named && offer.is_none() && decay_shape.as_ref().is_some_and(|d| d.depends) {
+        shape_term = super::data_term::offer(
+            "fluence_x_time",
+            params,
+            &own_refit,
+            &base.current,
+            seq,
+            &samples,
+            cfg,
+            (input, model_path),
+        )?;
+        offer = super::offer::shape_term_beside_kind(shape_term.as_ref());
+        if let Some(t) = shape_term.as_mut() {
+            t.offered = offer.is_some();
+        }
     }
     order_ranking(&mut ranking, cfg.decide);
     let residual = spread::model_cell_z(params, &samples, &base.current);
@@ -468,6 +491,7 @@ pub fn diagnose(
         spatial,
         data_term,
         decay_shape,
+        shape_term,
         offer,
         verdict: String::new(),
         cautions: cautions(params),

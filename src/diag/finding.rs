@@ -138,6 +138,11 @@ pub struct Diagnosis {
     /// ([`super::shape`]); None when the samples hold fewer than two fluence bins.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub decay_shape: Option<super::shape::DecayShape>,
+    /// The data-driven term along the decay's shape (`smooth_shape`), when a covariate
+    /// names a kind that nothing along it follows and [`Self::decay_shape`] depends on
+    /// the fluence besides ([`super::diagnose`], step 6).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub shape_term: Option<super::data_term::DataTerm>,
     /// What the verdict offers when it names a kind and nothing is significant: the
     /// data-driven term when it predicts held-out data against the pixel reference
     /// ([`super::offer`]).

@@ -104,6 +104,16 @@ pub fn settle(ranking: &mut [Candidate], data_term: Option<&DataTerm>) -> Option
     Some(term)
 }
 
+/// [`shape_term`] beside a named kind that nothing along it follows: offered only
+/// when the pixel reference, held out, does not lose with it either. The pixel
+/// reference takes in every function of fluence and time, so a term that only changed
+/// the decay's shape along the fluence would leave it as it was; one that makes it
+/// worse changes how the pixel's illuminations differ, the named kind's ground, and
+/// is not what the shape asks for.
+pub fn shape_term_beside_kind(data_term: Option<&DataTerm>) -> Option<Offer> {
+    shape_term(data_term).filter(|o| o.pixel_reference.gain >= 0.0)
+}
+
 /// The offer of the data-driven term along `fluence_x_time` (module docs, "A decay
 /// shape that depends on the fluence"); None when it does not gain in each fold held
 /// out against the description, its BIC does not fall enough, or it has no check
@@ -268,5 +278,48 @@ mod tests {
         let mut none = vec![candidate("capacity", None)];
         assert!(settle(&mut none, Some(&term(0.3))).unwrap().data_term);
         assert_eq!(settle(&mut none, Some(&term(0.01))), None);
+    }
+
+    /// A shape term gaining in both halves against the description (dBIC -50), with
+    /// the pixel reference's held-out gain `pixel`.
+    fn shape(pixel: f64) -> DataTerm {
+        let mut t = term(pixel);
+        t.class = "fluence_x_time".into();
+        t.effect = "smooth_shape".into();
+        t.delta_bic = -50.0;
+        let fold = |e: u64| super::super::refit::Fold {
+            split: "events",
+            fit_events: vec![e],
+            test_events: vec![e + 1],
+            test_cells: 10,
+            rms_before: 2.0,
+            rms_after: 1.5,
+            moved_cells: 10,
+            rms_before_moved: 2.0,
+            rms_after_moved: 1.5,
+        };
+        if let Some(h) = t.held_out.as_mut() {
+            h.folds = vec![fold(0), fold(2)];
+        }
+        t
+    }
+
+    /// Beside a named kind, the shape term is offered by the shape's rule only when the
+    /// pixel reference does not lose with it held out; alone, the pixel reference does
+    /// not judge it.
+    #[test]
+    fn beside_a_kind_the_shape_term_needs_the_pixel_reference_not_to_lose() {
+        assert!(shape_term(Some(&shape(-0.03))).is_some());
+        assert_eq!(shape_term_beside_kind(Some(&shape(-0.03))), None);
+        let o = shape_term_beside_kind(Some(&shape(0.0))).unwrap();
+        assert!(o.data_term && o.effect == "smooth_shape");
+        assert!(shape_term_beside_kind(Some(&shape(0.05))).is_some());
+        // the shape's own rule still holds: a fold that loses is not offered
+        let mut t = shape(0.05);
+        if let Some(h) = t.held_out.as_mut() {
+            h.folds[1].rms_after = 2.5;
+        }
+        assert_eq!(shape_term_beside_kind(Some(&t)), None);
+        assert_eq!(shape_term_beside_kind(None), None);
     }
 }

@@ -209,7 +209,10 @@ pub fn diagnose_with(
             c.measure_command = Some(m);
         }
     }
-    if let Some(t) = d.data_term.as_mut() {
+    for t in [d.data_term.as_mut(), d.shape_term.as_mut()]
+        .into_iter()
+        .flatten()
+    {
         if let Some(m) = hold(&mut t.command, &t.measured_with) {
             t.measure_command = Some(m);
         }
