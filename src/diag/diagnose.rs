@@ -394,9 +394,9 @@ pub fn diagnose(
         && cfg.decide == Decide::Contrast
         && !joint.first().is_some_and(|j| j.significant);
     let named_class = winner.map_or("fluence_x_time", |w| w.class.as_str());
-    let mut data_term = if named {
+    let term_along = |class: &str| {
         super::data_term::offer(
-            named_class,
+            class,
             params,
             &own_refit,
             &base.current,
@@ -404,7 +404,10 @@ pub fn diagnose(
             &samples,
             cfg,
             (input, model_path),
-        )?
+        )
+    };
+    let mut data_term = if named {
+        term_along(named_class)?
     } else {
         None
     };
@@ -424,16 +427,7 @@ pub fn diagnose(
     // the fluence besides: the data-driven term along the shape
     let mut shape_term = None;
     if named && !shape_named && offer.is_none() && decay_shape.as_ref().is_some_and(|d| d.depends) {
-        shape_term = super::data_term::offer(
-            "fluence_x_time",
-            params,
-            &own_refit,
-            &base.current,
-            seq,
-            &samples,
-            cfg,
-            (input, model_path),
-        )?;
+        shape_term = term_along("fluence_x_time")?;
         offer = super::offer::shape_term_beside_kind(shape_term.as_ref());
         if let Some(t) = shape_term.as_mut() {
             t.offered = offer.is_some();
