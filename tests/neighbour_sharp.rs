@@ -66,6 +66,7 @@ fn neighbours(j: &serde_json::Value) -> &serde_json::Value {
 }
 
 #[test]
+#[ignore = "long: make validation PAGES=long_tests"]
 fn blooming_next_to_pinholes_is_named_and_declared_and_nothing_is_named_without_it() {
     let tmp = tempfile::tempdir().unwrap();
     let hidden = diagnosis(&tmp.path().join("field"), Some("blooming:field"));

@@ -296,57 +296,6 @@ fn coupled_knots(
     }
 }
 
-/// Sparse features of sample `i`: (parameter index, value).
-fn features(
-    seq: &Sequence,
-    view: &View,
-    s: &Samples,
-    maps: &[Map],
-    i: usize,
-    out: &mut Vec<(usize, f64)>,
-) {
-    out.clear();
-    let np = s.npix();
-    let (row, px) = (i / np, i % np);
-    let k = s.exposures[row];
-    let (y, x) = s.pixels[px];
-    let clock = &view.clock;
-    let mut kn = Vec::new();
-    for m in maps.iter().filter(|m| m.illumination < k) {
-        let a = &m.illumination;
-        coupled_knots(m, &view.readout.kernel, y, x, &mut kn);
-        if kn.is_empty() {
-            continue;
-        }
-        let t = seq.t_mid_after_s(*a, k).max(0.0);
-        for (j, tau) in TAU_S.iter().enumerate() {
-            let t = if clock.is_real() {
-                t
-            } else {
-                clock.elapsed_s(seq, *a, k, j)
-            };
-            let d = (-t / tau).exp();
-            if d < 1e-9 {
-                continue;
-            }
-            for &(kk, w) in &kn {
-                out.push((kk * TAU_S.len() + j, w * d));
-            }
-        }
-    }
-    // one entry per parameter: illuminations of one pixel at neighbouring fluences share
-    // knots, and the normal equations' cost is the square of the entries
-    out.sort_unstable_by_key(|&(a, _)| a);
-    out.dedup_by(|next, kept| {
-        if next.0 == kept.0 {
-            kept.1 += next.1;
-            true
-        } else {
-            false
-        }
-    });
-}
-
 /// The base's prediction of every sample: the model's prediction `pred` plus the
 /// correction fitted on `s` (module docs); `pred` itself when the fit fails.
 pub fn predict(seq: &Sequence, view: &View, s: &Samples, pred: &[f64]) -> Vec<f64> {
@@ -415,12 +364,40 @@ struct Features {
 }
 
 impl Features {
+    /// Sample `i` (row `i / npix`, pixel `i % npix`) has, per illumination `m` before its
+    /// exposure, per term `j` of [`TAU_S`], the entries `(knot * TAU_S.len() + j, w
+    /// d_j)`: `(knot, w)` the coupled knots of `m` at the pixel ([`coupled_knots`]) and
+    /// `d_j = exp(-t_j / tau_j)` on the model's clock, left out below 1e-9. Entries of one
+    /// parameter are summed (illuminations of one pixel at neighbouring fluences share
+    /// knots, and the normal equations' cost is the square of the entries), in
+    /// ascending parameter order. The knots depend on the pixel alone and the decays on
+    /// the row alone, so each is worked out once.
     fn new(seq: &Sequence, view: &View, s: &Samples, maps: &[Map]) -> Features {
+        let np = s.npix();
+        let kernel = &view.readout.kernel;
+        let knots: Vec<Vec<Vec<(usize, f64)>>> = s
+            .pixels
+            .par_iter()
+            .map(|&(y, x)| {
+                let mut kn = Vec::new();
+                maps.iter()
+                    .map(|m| {
+                        coupled_knots(m, kernel, y, x, &mut kn);
+                        merged_by_knot(&mut kn)
+                    })
+                    .collect()
+            })
+            .collect();
+        let decays: Vec<Vec<Option<[f64; TAU_S.len()]>>> = s
+            .exposures
+            .iter()
+            .map(|&k| maps.iter().map(|m| decay_terms(seq, view, m, k)).collect())
+            .collect();
         let per: Vec<Vec<(usize, f64)>> = (0..s.len())
             .into_par_iter()
-            .map_init(Vec::new, |f, i| {
-                features(seq, view, s, maps, i, f);
-                f.clone()
+            .map_init(Vec::new, |scratch, i| {
+                let (row, px) = (i / np, i % np);
+                sample_features(&knots[px], &decays[row], scratch)
             })
             .collect();
         let mut start = Vec::with_capacity(per.len() + 1);
@@ -438,6 +415,78 @@ impl Features {
     fn of(&self, i: usize) -> &[(usize, f64)] {
         &self.entries[self.start[i]..self.start[i + 1]]
     }
+}
+
+/// `kn` sorted by knot with the weights of one knot summed.
+fn merged_by_knot(kn: &mut [(usize, f64)]) -> Vec<(usize, f64)> {
+    kn.sort_unstable_by(|a, b| a.0.cmp(&b.0).then(a.1.total_cmp(&b.1)));
+    let mut out: Vec<(usize, f64)> = Vec::with_capacity(kn.len());
+    for &(k, w) in kn.iter() {
+        match out.last_mut() {
+            Some(last) if last.0 == k => last.1 += w,
+            _ => out.push((k, w)),
+        }
+    }
+    out
+}
+
+/// Each term's decay `exp(-t_j / tau_j)` from illumination `m` to the middle of
+/// exposure `k` on the model's clock, 0 below 1e-9; None when `m` is not before `k`.
+fn decay_terms(seq: &Sequence, view: &View, m: &Map, k: usize) -> Option<[f64; TAU_S.len()]> {
+    let a = m.illumination;
+    if a >= k {
+        return None;
+    }
+    let t_real = seq.t_mid_after_s(a, k).max(0.0);
+    let mut d = [0.0; TAU_S.len()];
+    for (j, tau) in TAU_S.iter().enumerate() {
+        let t = if view.clock.is_real() {
+            t_real
+        } else {
+            view.clock.elapsed_s(seq, a, k, j)
+        };
+        let v = (-t / tau).exp();
+        d[j] = if v < 1e-9 { 0.0 } else { v };
+    }
+    Some(d)
+}
+
+/// One sample's entries ([`Features::new`]) from its pixel's knots per illumination
+/// and its row's decays per illumination; `scratch` holds `(knot, illumination)`.
+fn sample_features(
+    knots: &[Vec<(usize, f64)>],
+    decays: &[Option<[f64; TAU_S.len()]>],
+    scratch: &mut Vec<(usize, usize, f64)>,
+) -> Vec<(usize, f64)> {
+    scratch.clear();
+    for (m, (kn, d)) in knots.iter().zip(decays).enumerate() {
+        if d.is_some() {
+            scratch.extend(kn.iter().map(|&(k, w)| (k, m, w)));
+        }
+    }
+    scratch.sort_unstable_by_key(|&(k, m, _)| (k, m));
+    let mut out = Vec::new();
+    let mut g = 0;
+    while g < scratch.len() {
+        let knot = scratch[g].0;
+        let end = g + scratch[g..].iter().take_while(|e| e.0 == knot).count();
+        for j in 0..TAU_S.len() {
+            let mut sum = 0.0;
+            let mut any = false;
+            for &(_, m, w) in &scratch[g..end] {
+                let dj = decays[m].map_or(0.0, |d| d[j]);
+                if dj > 0.0 {
+                    sum += w * dj;
+                    any = true;
+                }
+            }
+            if any {
+                out.push((knot * TAU_S.len() + j, sum));
+            }
+        }
+        g = end;
+    }
+    out
 }
 
 /// `pred` plus the correction `coef` at every sample.
