@@ -470,20 +470,24 @@ fn sample_features(
     while g < scratch.len() {
         let knot = scratch[g].0;
         let end = g + scratch[g..].iter().take_while(|e| e.0 == knot).count();
-        for j in 0..TAU_S.len() {
-            let mut sum = 0.0;
-            let mut any = false;
-            for &(_, m, w) in &scratch[g..end] {
-                let dj = decays[m].map_or(0.0, |d| d[j]);
-                if dj > 0.0 {
-                    sum += w * dj;
-                    any = true;
+        let mut sum = [0.0; TAU_S.len()];
+        let mut any = [false; TAU_S.len()];
+        for &(_, m, w) in &scratch[g..end] {
+            let Some(d) = decays[m].as_ref() else {
+                continue;
+            };
+            for j in 0..TAU_S.len() {
+                if d[j] > 0.0 {
+                    sum[j] += w * d[j];
+                    any[j] = true;
                 }
             }
-            if any {
-                out.push((knot * TAU_S.len() + j, sum));
-            }
         }
+        out.extend(
+            (0..TAU_S.len())
+                .filter(|&j| any[j])
+                .map(|j| (knot * TAU_S.len() + j, sum[j])),
+        );
         g = end;
     }
     out
