@@ -224,6 +224,7 @@ fn paired_diagnose() -> Config {
 /// . Its specificity:
 /// [`baseline_declares_nothing_against_the_paired_reference`].
 #[test]
+#[ignore = "long: make validation PAGES=long_tests"]
 fn hidden_temperature_is_declared_against_the_paired_reference() {
     use persist::diag::eval;
     let (seq, truth) = campaign_with_truth(1, &["temperature"]);
@@ -251,6 +252,7 @@ fn hidden_temperature_is_declared_against_the_paired_reference() {
 
 /// The baseline criterion at one seed against the paired reference.
 #[test]
+#[ignore = "long: make validation PAGES=long_tests"]
 fn baseline_declares_nothing_against_the_paired_reference() {
     let seq = campaign(1, &[]);
     let d = diagnose_paired_seed_1(&paired_reference(&seq, &[]), &seq);
@@ -497,6 +499,7 @@ fn hidden_short_tau_boost_is_declared_against_the_readout_reference() {
 /// pinholes' neighbours out of its bins, so the knots below saturation are the
 /// baseline's.
 #[test]
+#[ignore = "long: make validation PAGES=long_tests"]
 fn hidden_blooming_is_declared_on_pinholes_against_the_readout_reference() {
     use persist::diag::eval::Cells;
     let (seq, without) =
