@@ -1211,6 +1211,51 @@ fn solve_spd(m: &mut [f64], mut b: Vec<f64>, n: usize) -> Option<Vec<f64>> {
 pub(super) mod tests {
     use super::*;
 
+    proptest::proptest! {
+        /// A sample's entries are, per parameter `knot * TAU_S.len() + j`, the sum over
+        /// the illuminations before it of `w d_j` (the terms not left out), in ascending
+        /// order and one entry each: the plain sum over every pair, kept in a map.
+        #[test]
+        fn sample_features_sum_every_illuminations_knots_and_decays(
+            knots in proptest::collection::vec(
+                proptest::collection::vec((0usize..8, 0.01f64..2.0), 0..5), 1..5),
+            decay_seeds in proptest::collection::vec(
+                proptest::option::of(proptest::collection::vec(0.0f64..1.0, TAU_S.len())), 4),
+        ) {
+            let decays: Vec<Option<[f64; TAU_S.len()]>> = knots
+                .iter()
+                .zip(&decay_seeds)
+                .map(|(_, d)| {
+                    d.as_ref().map(|v| {
+                        let mut a = [0.0; TAU_S.len()];
+                        // every third term left out (0), as decays below 1e-9 are
+                        for (j, x) in v.iter().enumerate() {
+                            a[j] = if j % 3 == 2 { 0.0 } else { *x + 1e-6 };
+                        }
+                        a
+                    })
+                })
+                .collect();
+            let merged: Vec<Vec<(usize, f64)>> =
+                knots.iter().map(|k| merged_by_knot(&mut k.clone())).collect();
+            let got = sample_features(&merged, &decays, &mut Vec::new());
+            let mut want: std::collections::BTreeMap<usize, f64> = Default::default();
+            for (kn, d) in knots.iter().zip(&decays) {
+                let Some(d) = d else { continue };
+                for &(k, w) in kn {
+                    for (j, dj) in d.iter().enumerate().filter(|(_, dj)| **dj > 0.0) {
+                        *want.entry(k * TAU_S.len() + j).or_default() += w * dj;
+                    }
+                }
+            }
+            proptest::prop_assert_eq!(got.len(), want.len());
+            for ((a, v), (b, u)) in got.iter().zip(&want) {
+                proptest::prop_assert_eq!(a, b);
+                proptest::prop_assert!((v - u).abs() <= 1e-12 * u.abs().max(1.0), "{} {} {}", a, v, u);
+            }
+        }
+    }
+
     #[test]
     fn cholesky_solves_a_small_system() {
         // [[4, 2], [2, 3]] x = [2, 1] -> x = [0.5, 0]
