@@ -437,15 +437,9 @@ fn decay_terms(seq: &Sequence, view: &View, m: &Map, k: usize) -> Option<[f64; T
     if a >= k {
         return None;
     }
-    let t_real = seq.t_mid_after_s(a, k).max(0.0);
     let mut d = [0.0; TAU_S.len()];
     for (j, tau) in TAU_S.iter().enumerate() {
-        let t = if view.clock.is_real() {
-            t_real
-        } else {
-            view.clock.elapsed_s(seq, a, k, j)
-        };
-        let v = (-t / tau).exp();
+        let v = (-view.clock.elapsed_s(seq, a, k, j) / tau).exp();
         d[j] = if v < 1e-9 { 0.0 } else { v };
     }
     Some(d)
@@ -466,18 +460,13 @@ fn sample_features(
     }
     scratch.sort_unstable_by_key(|&(k, m, _)| (k, m));
     let mut out = Vec::new();
-    let mut g = 0;
-    while g < scratch.len() {
-        let knot = scratch[g].0;
-        let end = g + scratch[g..].iter().take_while(|e| e.0 == knot).count();
+    for group in scratch.chunk_by(|a, b| a.0 == b.0) {
         let mut sum = [0.0; TAU_S.len()];
         let mut any = [false; TAU_S.len()];
-        for &(_, m, w) in &scratch[g..end] {
-            let Some(d) = decays[m].as_ref() else {
-                continue;
-            };
-            for j in 0..TAU_S.len() {
-                if d[j] > 0.0 {
+        for &(_, m, w) in group {
+            // gathered above only where the illumination has decays
+            if let Some(d) = &decays[m] {
+                for j in (0..TAU_S.len()).filter(|&j| d[j] > 0.0) {
                     sum[j] += w * d[j];
                     any[j] = true;
                 }
@@ -486,9 +475,8 @@ fn sample_features(
         out.extend(
             (0..TAU_S.len())
                 .filter(|&j| any[j])
-                .map(|j| (knot * TAU_S.len() + j, sum[j])),
+                .map(|j| (group[0].0 * TAU_S.len() + j, sum[j])),
         );
-        g = end;
     }
     out
 }
@@ -1222,10 +1210,10 @@ pub(super) mod tests {
             decay_seeds in proptest::collection::vec(
                 proptest::option::of(proptest::collection::vec(0.0f64..1.0, TAU_S.len())), 4),
         ) {
-            let decays: Vec<Option<[f64; TAU_S.len()]>> = knots
+            let decays: Vec<Option<[f64; TAU_S.len()]>> = decay_seeds
                 .iter()
-                .zip(&decay_seeds)
-                .map(|(_, d)| {
+                .take(knots.len())
+                .map(|d| {
                     d.as_ref().map(|v| {
                         let mut a = [0.0; TAU_S.len()];
                         // every third term left out (0), as decays below 1e-9 are
