@@ -198,7 +198,14 @@
 //! significant alone, the leading candidate by score (the first refitted) is refitted
 //! with each other library effect in turn, as in the single refits (same cells, same
 //! `--refit`). Each pair gets `delta_BIC` against the model (both effects' parameters
-//! counted) and against the leader alone (the partner's counted). The pair with the
+//! counted) and against the leader alone (the partner's counted), the pair and the
+//! leader fitted by least squares against the measurements' description and not
+//! refined against the pixel reference ([`super::polish`]): a change in BIC compares
+//! two minima of the same sum. Measured on the simulator's campaign with `soak` and
+//! `temperature` interacting (tests/diagnose_matrix.rs): the pair fitted to the
+//! description's RMS 1.53, refined to 3.53 (`soak`'s `capture_ratio` walked to 0,
+//! where the pixel reference's RMS is 1.222 against 1.370), a BIC change of +35 from
+//! one of -926. The pair with the
 //! lowest `delta_BIC` is held out (both effects fitted on one half of the events) when
 //! both BIC changes are below [`DBIC_MAX`]; it is significant when its held-out gain is
 //! at least [`HELD_OUT_MIN_GAIN`]. The verdict then names both and the command that
@@ -228,7 +235,7 @@ pub use super::finding::{Candidate, Diagnosis, Joint, PixelReference, Place};
 pub use super::refit::{
     delta_bic, held_out, Fold, HeldOut, DBIC_MAX, HELD_OUT_MIN_GAIN, MIN_HELD_OUT_PIXELS, MOVED_Z,
 };
-use super::refit::{fit_candidate, held_with_arg, own_effects, refit_own};
+use super::refit::{fit_candidate, fit_described, held_with_arg, own_effects, refit_own};
 pub use super::score::ALPHA;
 use super::score::{dof, make_cells, score_step, score_tests, Cells, Scored, Test};
 use super::spread;
@@ -359,7 +366,7 @@ pub fn diagnose(
     )?;
     // the leader: the first refitted (`refit` in the order of the dependence, `results`
     // in its order)
-    let leader = results.first().map(|r| (r.rank, r.rss_after));
+    let leader = results.first().map(|r| r.rank);
     let spatial = super::spatial::coherence(seq, params)?;
     for r in results {
         let c = &mut ranking[r.rank];
@@ -367,25 +374,22 @@ pub fn diagnose(
     }
     // no candidate alone (and asked): the leader refitted with each other library effect
     let joint = match leader {
-        Some((lead, lead_rss)) if cfg.joint && !ranking.iter().any(|c| c.significant) => {
-            joint_check(
-                &JointInput {
-                    params,
-                    base_current: &base.current,
-                    own_refit: &own_refit,
-                    own: &own,
-                    seq,
-                    samples: &samples,
-                    cfg,
-                    input,
-                    model_path,
-                    spatial: spatial.as_ref(),
-                },
-                &ranking[lead].effect,
-                lead_rss,
-                &names,
-            )?
-        }
+        Some(lead) if cfg.joint && !ranking.iter().any(|c| c.significant) => joint_check(
+            &JointInput {
+                params,
+                base_current: &base.current,
+                own_refit: &own_refit,
+                own: &own,
+                seq,
+                samples: &samples,
+                cfg,
+                input,
+                model_path,
+                spatial: spatial.as_ref(),
+            },
+            &ranking[lead].effect,
+            &names,
+        )?,
         _ => Vec::new(),
     };
     // a kind named: the data-driven term along it ([`super::data_term`]), which a
@@ -724,7 +728,6 @@ fn refit_candidates(
                 rms_before: f.residual_rms_normalised_before,
                 rms_after: f.residual_rms_normalised_after,
                 held_out: ho,
-                rss_after: rss1,
                 measured_with: held_with_arg(&fitted, name),
             })
         })
@@ -757,9 +760,6 @@ struct Refitted {
     rms_before: f64,
     rms_after: f64,
     held_out: Option<HeldOut>,
-    /// Its sum of squared normalised residuals after the fit (the joint check's
-    /// baseline for the leader).
-    rss_after: f64,
     /// [`Candidate::measured_with`].
     measured_with: Option<String>,
 }
@@ -816,21 +816,21 @@ struct JointInput<'a> {
     spatial: Option<&'a super::spatial::Coherence>,
 }
 
-/// The joint check (module docs, "Joint check"): `leader` (the top-scored candidate,
-/// refitted alone to `leader_rss`) refitted with each other effect of `names`; the
-/// pairs sorted by their change in BIC, the best one held out.
-fn joint_check(
-    j: &JointInput<'_>,
-    leader: &str,
-    leader_rss: f64,
-    names: &[&'static str],
-) -> Result<Vec<Joint>> {
+/// The joint check (module docs, "Joint check"): `leader` (the top-scored candidate)
+/// refitted with each other effect of `names`; the pairs sorted by their change in BIC,
+/// the best one held out. The BIC changes compare least-squares fits against the
+/// measurements' description ([`fit_described`]), the pair's and the leader's alone: a
+/// candidate's values refined against the pixel reference ([`super::polish`]) are not
+/// the description's minimum, and its RSS there would not be the fit's.
+fn joint_check(j: &JointInput<'_>, leader: &str, names: &[&'static str]) -> Result<Vec<Joint>> {
+    let (_, leader_fit) = fit_described(j.own_refit, j.own, None, &[leader], j.seq, j.samples)?;
+    let (_, leader_rss) = leader_fit.rss_before_after();
     let partners: Vec<&str> = names.iter().copied().filter(|n| *n != leader).collect();
     let mut fits: Vec<(Joint, ModelParams)> = partners
         .par_iter()
         .map(|&other| {
             let pair = [leader, other];
-            let (fitted, f) = fit_candidate(j.own_refit, j.own, None, &pair, j.seq, j.samples)?;
+            let (fitted, f) = fit_described(j.own_refit, j.own, None, &pair, j.seq, j.samples)?;
             let (rss0, rss1) = f.rss_before_after();
             let k_pair = f
                 .params

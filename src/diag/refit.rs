@@ -98,12 +98,29 @@ pub(super) fn fitting_samples<'a>(
     }
 }
 
-/// `base` (the model, its own effects refitted as [`Refit`] says) with the candidate
-/// effects `names` (`--with` arguments: one, or a pair in the joint check) fitted on `samples` together
-/// with `own`; `start` holds the candidates at the values to start from (else their
-/// defaults). The candidates' fitted values are then refined against their judge
-/// ([`super::polish`], [`Judge`]). Fitted on [`fitting_samples`].
+/// [`fit_described`], then the candidates' fitted values refined against their judge
+/// ([`super::polish`], [`Judge`]) on the same samples.
 pub(super) fn fit_candidate(
+    base: &ModelParams,
+    own: &[String],
+    start: Option<&ModelParams>,
+    names: &[&str],
+    seq: &Sequence,
+    samples: &Samples,
+) -> Result<(ModelParams, crate::calib::effects::EffectFit)> {
+    // split once: `fit_described` keeps samples already split as they are
+    let samples = fitting_samples(names, samples);
+    let (fitted, fit) = fit_described(base, own, start, names, seq, &samples)?;
+    super::polish::polish(fitted, fit, names, seq, &samples)
+}
+
+/// `base` (the model, its own effects refitted as [`Refit`] says) with the candidate
+/// effects `names` (`--with` arguments: one, or a pair in the joint check) fitted on
+/// `samples` together with `own` by least squares against the measurements'
+/// description; `start` holds the candidates at the values to start from (else their
+/// defaults). Fitted on [`fitting_samples`]. The report's RSS is the description's
+/// minimum over the values freed, what a change in BIC compares.
+pub(super) fn fit_described(
     base: &ModelParams,
     own: &[String],
     start: Option<&ModelParams>,
@@ -136,9 +153,7 @@ pub(super) fn fit_candidate(
     }
     let mut all = own.to_vec();
     all.extend(names.iter().map(|n| n.to_string()));
-    let samples = fitting_samples(names, samples);
-    let (fitted, fit) = crate::calib::effects::fit(&m, &all, seq, &samples)?;
-    super::polish::polish(fitted, fit, names, seq, &samples)
+    crate::calib::effects::fit(&m, &all, seq, &fitting_samples(names, samples))
 }
 
 /// The `--with` argument that adds effect `name` of `fitted` with every fitted
