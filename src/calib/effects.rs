@@ -566,6 +566,8 @@ pub const SMOOTH_START_VALUES: [f64; 7] = [0.0, -2.0, -1.0, -0.3, 0.3, 1.0, 2.0]
 /// The knot values of one start: `v` at every knot (`ramp` false) or `-v, 0, v`.
 fn start_knot(name: &str, v: f64, ramp: bool) -> f64 {
     match (ramp, name) {
+        // a term's other parameters (`smooth_history`'s `tau_tilt`) start at their null
+        (_, n) if !n.starts_with("at_") => 0.0,
         (false, _) | (true, "at_hi") => v,
         (true, "at_lo") => -v,
         _ => 0.0,

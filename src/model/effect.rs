@@ -335,6 +335,12 @@ pub trait Effect: Send + Sync + Debug {
     fn limit(&self, _held_e: f64, _capacity_e: f64, _saturated_e: f64) -> f64 {
         1.0
     }
+    /// `Limit` effects: how [`Effect::limit`]'s factor `k` is shared among the terms,
+    /// given each term's emission rate in this exposure: term `n` keeps `k^w_n`, `w_n`
+    /// finite and >= 0 (so its factor stays in [0, 1]). None: every term keeps `k`.
+    fn limit_exponents(&self, _rate_per_s: &[f64]) -> Option<Vec<f64>> {
+        None
+    }
     /// How the pixels' spread about the prediction is correlated between neighbours
     /// ([`SpreadCorrelation`]; `populations`). Never read by the step: it changes no
     /// prediction and no flag, only how `compare`, `fit` and `diagnose` weigh a cell's

@@ -317,6 +317,9 @@ pub(crate) fn step(
     // the charge a saturating fill leaves on every term (`limit`): the table's largest
     // amplitude, times a pixel's own factor above full well where the model has a map
     let saturated_charge_e = k.response.max_e() * charge_per_amplitude.iter().sum::<f64>();
+    // how each limiter's factor is shared among the terms (`limit_exponents`): None when
+    // every limiter gives every term the same factor
+    let exponents = limit_exponents(&limiters, &sum.rate_per_s);
     let amps = state.amplitudes_e.as_slice_mut().expect("owned state");
     let count = state.release_count.as_slice_mut().expect("owned state");
     let pending = state.pending.as_slice_mut().expect("owned state");
@@ -400,17 +403,23 @@ pub(crate) fn step(
                         _ => charge(add),
                     };
                     let saturated = saturated_charge_e * max_factor(y, x);
-                    let keep: f64 = limiters
-                        .iter()
-                        .map(|e| e.limit(held, exposed, saturated))
-                        .product();
-                    let keep = if keep.is_finite() {
-                        keep.clamp(0.0, 1.0)
+                    if let Some(w) = &exponents {
+                        limited_per_term(
+                            &limiters,
+                            w,
+                            (held, exposed, saturated),
+                            add,
+                            &mut limited,
+                        );
                     } else {
-                        1.0
-                    };
-                    for (l, v) in limited.iter_mut().zip(add) {
-                        *l = v * keep;
+                        let keep: f64 = limiters
+                            .iter()
+                            .map(|e| e.limit(held, exposed, saturated))
+                            .product();
+                        let keep = unit_factor(keep);
+                        for (l, v) in limited.iter_mut().zip(add) {
+                            *l = v * keep;
+                        }
                     }
                     add = &limited;
                 }
@@ -462,6 +471,58 @@ pub(crate) fn step(
     Ok(summary)
 }
 
+/// A limiter's factor as the step applies it: finite and in [0, 1], else 1 (no limit).
+fn unit_factor(k: f64) -> f64 {
+    if k.is_finite() {
+        k.clamp(0.0, 1.0)
+    } else {
+        1.0
+    }
+}
+
+/// Each limiter's exponent per term ([`Effect::limit_exponents`]; 1 for every term of
+/// a limiter that shares its factor alike, and for an exponent not finite or below 0);
+/// None when every limiter shares its factor alike.
+fn limit_exponents(limiters: &[&dyn Effect], rate_per_s: &[f64]) -> Option<Vec<Vec<f64>>> {
+    let per: Vec<Option<Vec<f64>>> = limiters
+        .iter()
+        .map(|e| e.limit_exponents(rate_per_s))
+        .collect();
+    if per.iter().all(Option::is_none) {
+        return None;
+    }
+    let ones = || vec![1.0; rate_per_s.len()];
+    Some(
+        per.into_iter()
+            .map(|w| match w {
+                Some(w) if w.len() == rate_per_s.len() => w
+                    .into_iter()
+                    .map(|x| if x.is_finite() && x >= 0.0 { x } else { 1.0 })
+                    .collect(),
+                _ => ones(),
+            })
+            .collect(),
+    )
+}
+
+/// `limited_n = add_n prod_e k_e^w_en` over the limiters `e`, `k_e` each one's factor
+/// ([`unit_factor`]) and `w` their exponents ([`limit_exponents`]): in [0, add_n].
+fn limited_per_term(
+    limiters: &[&dyn Effect],
+    w: &[Vec<f64>],
+    (held_e, exposed_e, saturated_e): (f64, f64, f64),
+    add: &[f64],
+    limited: &mut [f64],
+) {
+    limited.copy_from_slice(add);
+    for (e, w) in limiters.iter().zip(w) {
+        let k = unit_factor(e.limit(held_e, exposed_e, saturated_e));
+        for (l, wn) in limited.iter_mut().zip(w) {
+            *l *= k.powf(*wn);
+        }
+    }
+}
+
 /// The prediction weights and decay factors of one interval with the effects' rate and
 /// observation hooks applied: `(w_n, exp(-t_elapsed r_n'))`.
 pub fn interval_weights(
@@ -492,4 +553,81 @@ fn contiguous<T: Clone>(a: &mut Array2<T>) -> &mut [T] {
         *a = a.as_standard_layout().into_owned();
     }
     a.as_slice_mut().expect("standard layout")
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::model::effects::smooth::{Axis, Smooth};
+
+    /// A limiter with a fixed factor and fixed exponents (none: shared alike).
+    #[derive(Debug)]
+    struct Fixed(f64, Option<Vec<f64>>);
+
+    impl Effect for Fixed {
+        fn name(&self) -> &'static str {
+            "fixed"
+        }
+        fn limit(&self, _: f64, _: f64, _: f64) -> f64 {
+            self.0
+        }
+        fn limit_exponents(&self, _: &[f64]) -> Option<Vec<f64>> {
+            self.1.clone()
+        }
+    }
+
+    #[test]
+    fn a_limiters_factor_outside_zero_one_is_clamped_and_a_non_finite_one_is_none() {
+        assert_eq!(unit_factor(0.25), 0.25);
+        assert_eq!(unit_factor(1.5), 1.0);
+        assert_eq!(unit_factor(-0.5), 0.0);
+        assert_eq!(unit_factor(f64::NAN), 1.0);
+        assert_eq!(unit_factor(f64::INFINITY), 1.0);
+    }
+
+    /// Exponents: none when every limiter shares alike; 1 in place of a limiter's
+    /// missing, mis-sized, negative or non-finite ones.
+    #[test]
+    fn exponents_are_one_where_a_limiter_gives_none_or_a_bad_one() {
+        let rates = [0.1, 1e-3, 1e-5];
+        let alike = Fixed(0.5, None);
+        assert!(limit_exponents(&[&alike], &rates).is_none());
+        let bad = Fixed(0.5, Some(vec![2.0, f64::NAN, -1.0]));
+        let short = Fixed(0.5, Some(vec![2.0]));
+        let w = limit_exponents(&[&alike, &bad, &short], &rates).expect("one limiter tilts");
+        assert_eq!(w, vec![vec![1.0; 3], vec![2.0, 1.0, 1.0], vec![1.0; 3]]);
+    }
+
+    /// Each term keeps the product of the limiters' factors to its exponents: with
+    /// `smooth_history` at `exp(-2)` and `tau_tilt` 0.5, the 10 s term keeps
+    /// `exp(-20)`, the 1000 s term `exp(-2)`, the 10^5 s term `exp(-0.2)`, times a
+    /// second limiter's 0.5 alike; in [0, add] whatever the factors.
+    #[test]
+    fn each_term_keeps_the_limiters_factors_to_its_exponents() {
+        let history = Smooth {
+            axis: Axis::History,
+            u_lo: -2.0,
+            u_hi: 0.0,
+            at: [0.0, -1.0, -2.0],
+            f_sat_e: 0.0,
+            tau_tilt: 0.5,
+        };
+        let half = Fixed(0.5, None);
+        let rates = [0.1, 1e-3, 1e-5];
+        let limiters: [&dyn Effect; 2] = [&history, &half];
+        let w = limit_exponents(&limiters, &rates).expect("tilted");
+        let add = [1.0, 2.0, 4.0];
+        let mut limited = [0.0; 3];
+        // held = saturated: u = 0, the high knot, exp(-2)
+        limited_per_term(&limiters, &w, (5.0, 1.0, 5.0), &add, &mut limited);
+        for ((l, a), e) in limited.iter().zip(add).zip([-20.0, -2.0, -0.2f64]) {
+            let want = a * e.exp() * 0.5;
+            assert!((l - want).abs() < 1e-12 * a, "{limited:?}");
+        }
+        let wild = Fixed(f64::NAN, Some(vec![0.0, 3.0, 1e9]));
+        let limiters: [&dyn Effect; 2] = [&history, &wild];
+        let w = limit_exponents(&limiters, &rates).expect("tilted");
+        limited_per_term(&limiters, &w, (5.0, 1.0, 5.0), &add, &mut limited);
+        assert!(limited.iter().zip(add).all(|(l, a)| (0.0..=a).contains(l)));
+    }
 }
