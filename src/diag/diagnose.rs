@@ -366,7 +366,7 @@ pub fn diagnose(
     )?;
     // the leader: the first refitted (`refit` in the order of the dependence, `results`
     // in its order)
-    let leader = results.first().map(|r| r.rank);
+    let leader = results.first().map(|r| (r.rank, r.rss_after));
     let spatial = super::spatial::coherence(seq, params)?;
     for r in results {
         let c = &mut ranking[r.rank];
@@ -374,22 +374,24 @@ pub fn diagnose(
     }
     // no candidate alone (and asked): the leader refitted with each other library effect
     let joint = match leader {
-        Some(lead) if cfg.joint && !ranking.iter().any(|c| c.significant) => joint_check(
-            &JointInput {
-                params,
-                base_current: &base.current,
-                own_refit: &own_refit,
-                own: &own,
-                seq,
-                samples: &samples,
-                cfg,
-                input,
-                model_path,
-                spatial: spatial.as_ref(),
-            },
-            &ranking[lead].effect,
-            &names,
-        )?,
+        Some((lead, leader_rss)) if cfg.joint && !ranking.iter().any(|c| c.significant) => {
+            joint_check(
+                &JointInput {
+                    params,
+                    base_current: &base.current,
+                    own_refit: &own_refit,
+                    own: &own,
+                    seq,
+                    samples: &samples,
+                    cfg,
+                    input,
+                    model_path,
+                    spatial: spatial.as_ref(),
+                },
+                (&ranking[lead].effect, leader_rss),
+                &names,
+            )?
+        }
         _ => Vec::new(),
     };
     // a kind named: the data-driven term along it ([`super::data_term`]), which a
@@ -703,6 +705,8 @@ fn refit_candidates(
         .map(|&i| {
             let name = &ranking[i].effect;
             let (fitted, f) = fit_candidate(own_refit, own, None, &[name], seq, samples)?;
+            // the change in BIC at the least-squares fit (`f`), the held-out check at the
+            // refined values (`fitted`)
             let (rss0, rss1) = f.rss_before_after();
             // the candidate's parameters are the ones added
             let k = f.params.iter().filter(|p| &p.effect == name).count();
@@ -727,6 +731,7 @@ fn refit_candidates(
                 delta_bic: dbic,
                 rms_before: f.residual_rms_normalised_before,
                 rms_after: f.residual_rms_normalised_after,
+                rss_after: rss1,
                 held_out: ho,
                 measured_with: held_with_arg(&fitted, name),
             })
@@ -753,12 +758,16 @@ fn order_ranking(ranking: &mut [Candidate], decide: Decide) {
     });
 }
 
-/// One candidate's refit: its place in the ranking (by score) and what the refit gave.
+/// One candidate's refit: its place in the ranking (by score) and what the refit gave
+/// (the change in BIC and the RMS of its least-squares fit against the measurements'
+/// description, [`fit_candidate`]).
 struct Refitted {
     rank: usize,
     delta_bic: f64,
     rms_before: f64,
     rms_after: f64,
+    /// The description's RSS at the least-squares fit, on [`super::refit::fitting_samples`].
+    rss_after: f64,
     held_out: Option<HeldOut>,
     /// [`Candidate::measured_with`].
     measured_with: Option<String>,
@@ -819,19 +828,37 @@ struct JointInput<'a> {
 /// The joint check (module docs, "Joint check"): `leader` (the top-scored candidate)
 /// refitted with each other effect of `names`; the pairs sorted by their change in BIC,
 /// the best one held out. The BIC changes compare least-squares fits against the
-/// measurements' description ([`fit_described`]), the pair's and the leader's alone: a
-/// candidate's values refined against the pixel reference ([`super::polish`]) are not
-/// the description's minimum, and its RSS there would not be the fit's.
-fn joint_check(j: &JointInput<'_>, leader: &str, names: &[&'static str]) -> Result<Vec<Joint>> {
-    let (_, leader_fit) = fit_described(j.own_refit, j.own, None, &[leader], j.seq, j.samples)?;
-    let (_, leader_rss) = leader_fit.rss_before_after();
+/// measurements' description ([`fit_described`]), the pair's and the leader's alone
+/// (`leader.1`, its single refit's RSS): a candidate's values refined against the pixel
+/// reference ([`super::polish`]) are not the description's minimum, and its RSS there
+/// would not be the fit's. Where a partner splits the cells by the neighbour contrast
+/// and the leader alone does not ([`super::refit::fitting_samples`]), the leader is
+/// refitted on the pair's cells, so that both RSS sum over the same cells.
+fn joint_check(
+    j: &JointInput<'_>,
+    (leader, leader_rss): (&str, f64),
+    names: &[&'static str],
+) -> Result<Vec<Joint>> {
     let partners: Vec<&str> = names.iter().copied().filter(|n| *n != leader).collect();
+    let splits = |n: &[&str]| super::marked::acts_on_neighbours(n);
+    // the leader on the cells split by the neighbour contrast, when a partner splits them
+    let leader_rss_split = if !splits(&[leader]) && partners.iter().any(|o| splits(&[o])) {
+        let cells = super::refit::fitting_samples(&partners, j.samples);
+        let (_, f) = fit_described(j.own_refit, j.own, None, &[leader], j.seq, &cells)?;
+        Some(f.rss_before_after().1)
+    } else {
+        None
+    };
     let mut fits: Vec<(Joint, ModelParams)> = partners
         .par_iter()
         .map(|&other| {
             let pair = [leader, other];
             let (fitted, f) = fit_described(j.own_refit, j.own, None, &pair, j.seq, j.samples)?;
             let (rss0, rss1) = f.rss_before_after();
+            let leader_rss = match leader_rss_split {
+                Some(split) if splits(&[other]) => split,
+                _ => leader_rss,
+            };
             let k_pair = f
                 .params
                 .iter()

@@ -69,7 +69,6 @@ use super::base::{predict_scaled, View};
 use super::data::Sequence;
 use super::eval::{self, Samples};
 use super::marked::Judge;
-use crate::calib::effects::EffectFit;
 use crate::error::Result;
 use crate::model::params::ModelParams;
 use crate::model::response::Response;
@@ -282,27 +281,26 @@ fn value(m: &ModelParams, s: &Slot) -> Option<f64> {
     m.effects[s.effect].params.get(s.name)?.as_f64()
 }
 
-/// `fitted` (and its report `fit`) with the fitted parameters of the effects `names`
-/// refined against the pixel reference on `samples` (module docs); unchanged with fewer
-/// than two illumination events or nothing to refine.
+/// `fitted` with the fitted parameters of the effects `names` refined against the pixel
+/// reference on `samples` (module docs); unchanged with fewer than two illumination
+/// events or nothing to refine.
 pub fn polish(
     fitted: ModelParams,
-    mut fit: EffectFit,
     names: &[&str],
     seq: &Sequence,
     samples: &Samples,
-) -> Result<(ModelParams, EffectFit)> {
+) -> Result<ModelParams> {
     let judge = Judge::of(names);
     let slots = slots(&fitted, names, judge);
     if (judge == Judge::PixelReference && samples.events().len() < 2) || slots.is_empty() {
-        return Ok((fitted, fit));
+        return Ok(fitted);
     }
     let Some(x) = slots
         .iter()
         .map(|s| value(&fitted, s))
         .collect::<Option<Vec<f64>>>()
     else {
-        return Ok((fitted, fit));
+        return Ok(fitted);
     };
     let knots_from = crate::calib::knots::scale_of(&fitted, seq)?;
     let at = |x: &[f64]| -> Result<ModelParams> {
@@ -351,29 +349,10 @@ pub fn polish(
             }
         }
     }
-    let Search { x, best, evals } = search;
-    if best >= start {
-        return Ok((fitted, fit));
+    if search.best >= start {
+        return Ok(fitted);
     }
-    let m = at(&x)?;
-    for (s, v) in slots.iter().zip(&x) {
-        let effect = &m.effects[s.effect].name;
-        for p in fit
-            .params
-            .iter_mut()
-            .filter(|p| &p.effect == effect && p.name == s.name)
-        {
-            p.value = *v;
-        }
-    }
-    let (rss, cells) = crate::measure::spread::rss_cells(&m, seq, samples)?;
-    fit.residual_rms_normalised_after = (rss / cells.max(1) as f64).sqrt();
-    fit.termination = format!(
-        "{}; refined against {}: RMS {start:.3} -> {best:.3} ({evals} evaluations)",
-        fit.termination,
-        judge.phrase()
-    );
-    Ok((m, fit))
+    at(&search.x)
 }
 
 #[cfg(test)]

@@ -99,7 +99,9 @@ pub(super) fn fitting_samples<'a>(
 }
 
 /// [`fit_described`], then the candidates' fitted values refined against their judge
-/// ([`super::polish`], [`Judge`]) on the same samples.
+/// ([`super::polish`], [`Judge`]) on the same samples: the refined model, and the
+/// least-squares fit's report (its RSS the description's minimum, what a change in BIC
+/// compares; its values those before the refinement).
 pub(super) fn fit_candidate(
     base: &ModelParams,
     own: &[String],
@@ -111,7 +113,7 @@ pub(super) fn fit_candidate(
     // split once: `fit_described` keeps samples already split as they are
     let samples = fitting_samples(names, samples);
     let (fitted, fit) = fit_described(base, own, start, names, seq, &samples)?;
-    super::polish::polish(fitted, fit, names, seq, &samples)
+    Ok((super::polish::polish(fitted, names, seq, &samples)?, fit))
 }
 
 /// `base` (the model, its own effects refitted as [`Refit`] says) with the candidate
@@ -687,9 +689,9 @@ pub fn held_out(
         let fs = fitting_samples(names, &fs);
         let (fitted, before, before_current, before_view) = if own.is_empty() {
             let owned: Vec<String> = names.iter().map(|n| n.to_string()).collect();
-            let (fitted, fit) =
+            let (fitted, _) =
                 crate::calib::effects::fit(start.unwrap_or(params), &owned, seq, &fs)?;
-            let (fitted, _) = super::polish::polish(fitted, fit, names, seq, &fs)?;
+            let fitted = super::polish::polish(fitted, names, seq, &fs)?;
             // `params`' own prediction of the test samples: already computed
             let before = spread::model_cell_z(params, &ts, &ts_base);
             (fitted, before, ts_base, View::of_model(params, seq))
