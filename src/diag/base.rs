@@ -356,7 +356,8 @@ fn fluence_maps(seq: &Sequence, split_saturated: bool, readout: &Readout) -> Vec
 /// Every sample's sparse features ([`features`]), worked out once for the fits and
 /// corrections that share them.
 struct Features {
-    /// Sample `i`'s entries are `entries[start[i]..start[i + 1]]`.
+    /// Sample `i`'s entries are `entries[start[i]..start[i + 1]]`, one per parameter, in
+    /// ascending order of the parameter ([`sample_features`]).
     start: Vec<usize>,
     entries: Vec<(usize, f64)>,
     /// Whether the saturated pixels' response has knots of its own.
@@ -522,10 +523,14 @@ fn fit_correction(
                 }
                 let w = sc * sc / variance(s, i, sc * pred[i]).max(1e-12);
                 let y = s.measured[i] / sc - pred[i];
-                for &(a, va) in f {
-                    atb[a] += w * va * y;
-                    for &(b, vb) in f {
-                        ata[a * p + b] += w * va * vb;
+                for (q, &(a, va)) in f.iter().enumerate() {
+                    let wa = w * va;
+                    atb[a] += wa * y;
+                    // the lower triangle alone, all that `solve_spd` reads: `f` ascends
+                    // by parameter, so its first `q + 1` entries are those at or below `a`
+                    let row = &mut ata[a * p..=a * p + a];
+                    for &(b, vb) in &f[..=q] {
+                        row[b] += wa * vb;
                     }
                 }
             }
@@ -1158,7 +1163,8 @@ pub fn measure_noise_scale(scaled: &Scaled, s: &Samples) -> Option<(NoiseScale, 
 }
 
 /// Solves `m x = b` for a symmetric positive definite `m` (n x n, row major) by
-/// Cholesky; None when it is not positive definite.
+/// Cholesky; None when it is not positive definite. Reads the lower triangle of `m`
+/// (the diagonal and below) only, where it leaves the factor.
 fn solve_spd(m: &mut [f64], mut b: Vec<f64>, n: usize) -> Option<Vec<f64>> {
     for j in 0..n {
         let mut d = m[j * n + j];
@@ -1252,6 +1258,24 @@ pub(super) mod tests {
         assert!((x[0] - 0.5).abs() < 1e-12 && x[1].abs() < 1e-12, "{x:?}");
         let mut bad = vec![0.0, 1.0, 1.0, 0.0];
         assert!(solve_spd(&mut bad, vec![1.0, 1.0], 2).is_none());
+    }
+
+    /// `fit_correction` sums the lower triangle of its normal equations alone: whatever
+    /// stands above the diagonal, the solution is the same, to the bit.
+    #[test]
+    fn cholesky_reads_the_lower_triangle_only() {
+        let full = vec![4.0, 2.0, 1.0, 2.0, 5.0, 0.5, 1.0, 0.5, 3.0];
+        let mut lower = full.clone();
+        for (i, j) in [(0, 1), (0, 2), (1, 2)] {
+            lower[i * 3 + j] = f64::NAN;
+        }
+        let b = vec![1.0, -2.0, 0.25];
+        let x = solve_spd(&mut full.clone(), b.clone(), 3).unwrap();
+        let y = solve_spd(&mut lower, b, 3).unwrap();
+        assert_eq!(
+            x.iter().map(|v| v.to_bits()).collect::<Vec<_>>(),
+            y.iter().map(|v| v.to_bits()).collect::<Vec<_>>()
+        );
     }
 
     /// Through `ipc`'s readout, a pixel next to a bright one takes the bright one's
