@@ -62,8 +62,8 @@
 //! - The judge's RMS on the samples at the values returned is at most its RMS at the
 //!   values given; every value stays within its parameter's bounds.
 //! - Deterministic: the same model, samples and sequence give the same values.
-//! - The fit's report follows the values: each refined parameter's value, and the
-//!   description's residual RMS at them (its `sigma` stays the description fit's).
+//! - Only the model is refined: the least-squares fit's report stays the description's
+//!   minimum, what a change in BIC compares (`refit::fit_candidate`).
 
 use super::base::{predict_scaled, View};
 use super::data::Sequence;
