@@ -1,10 +1,15 @@
 #!/usr/bin/env bash
-# What the addition `persist diagnose` offers does to the pixel reference's RMS, on the
-# second truth generator's campaigns (`persist simulate family --sequence campaign`,
-# 64 x 64, seeds 1-5): every hidden form the family matrix runs (examples/family_matrix:
-# those not held aside) and the nothing-hidden campaign of the same seed (the baseline;
-# blooming and ipc, which couple neighbours, and their baseline with the grid of
-# one-pixel pinholes, `--pinholes on`). Default `fit` and `diagnose`;
+# What the addition `persist diagnose` offers does to the pixel reference's RMS, on
+# hidden campaigns of one of the two truth generators and the nothing-hidden campaign of
+# the same seed (the baseline). SOURCE=family (default): the second truth generator's
+# campaigns (`persist simulate family --sequence campaign`), every hidden form the family
+# matrix runs (examples/family_matrix: those not held aside); blooming and ipc, which
+# couple neighbours, and their baseline with the grid of one-pixel pinholes
+# (`--pinholes on`). SOURCE=lab: the simulator's laboratory campaign (`persist simulate
+# lab --campaign --effect ROW`), every simulator effect; blooming and ipc, and their
+# baseline, with the pinhole grid (`--spots pinholes`), `linefit_bias` with dark
+# integrations of two lengths (`--dark-lengths varied`); LAB_ARGS adds options to every
+# lab campaign (for example `--durations apart`). Default `fit` and `diagnose`;
 # then exactly the `persist fit` command the verdict prints (its first "add it with" /
 # "add both with"), `diagnose` again on the model it writes, and `persist compare` of
 # the two models' flags on the same data. Prints Markdown on
@@ -12,14 +17,65 @@
 #
 #   PERSIST_BIN=target/release/persist WORK=/tmp/offers scripts/offers_table.sh
 #   SEEDS="1 2" ROWS="soak:capture" scripts/offers_table.sh     (a subset)
+#   SOURCE=lab SEEDS=1 ROWS="soak temperature" SIZE=64 scripts/offers_table.sh
 set -euo pipefail
 persist=$(realpath "${PERSIST_BIN:-target/release/persist}")
 work=${WORK:-$(mktemp -d)}
 seeds=${SEEDS:-1 2 3 4 5}
+size=${SIZE:-64}
+source_kind=${SOURCE:-family}
 # shellcheck source=scripts/family_forms.sh
 source "$(dirname "$0")/family_forms.sh"
-rows=${ROWS:-$FAMILY_FORMS}
+case $source_kind in
+    family) default_rows=$FAMILY_FORMS ;;
+    lab) default_rows="soak capacity temperature short_tau_boost populations linefit_bias blooming ipc" ;;
+    *) echo "offers_table.sh: SOURCE must be family or lab, not '$source_kind'" >&2; exit 2 ;;
+esac
+rows=${ROWS:-$default_rows}
 mkdir -p "$work"
+
+# The options that simulate a row ($1; `none` for the baseline) besides its hidden
+# effect: the pinhole grid for the effects that couple neighbours, and for the lab
+# source the dark lengths `linefit_bias` needs and LAB_ARGS. The baselines are keyed by
+# them (one nothing-hidden campaign per set of options).
+sim_options() {
+    case $source_kind in
+        family) pinhole_args "$1" ;;
+        lab)
+            local o=${LAB_ARGS:-}
+            case $1 in
+                blooming* | ipc*) o="$o --spots pinholes" ;;
+                linefit_bias*) o="$o --dark-lengths varied" ;;
+            esac
+            echo "$o"
+            ;;
+    esac
+}
+
+# Simulate row $3 (`none`: nothing hidden) with options $4 into $1, seed $2.
+simulate() {
+    local hidden=()
+    case $source_kind in
+        family)
+            [[ $3 != none ]] && hidden=(--hidden "$3")
+            # shellcheck disable=SC2086
+            "$persist" --log-level error simulate family --out "$1" --size "$size" --seed "$2" \
+                --sequence campaign "${hidden[@]}" $4 > /dev/null
+            ;;
+        lab)
+            [[ $3 != none ]] && hidden=(--effect "$3")
+            # shellcheck disable=SC2086
+            "$persist" --log-level error simulate lab --out "$1" --size "$size" --seed "$2" \
+                --campaign "${hidden[@]}" $4 > /dev/null
+            ;;
+    esac
+}
+
+case $source_kind in
+    family) echo "Data: the second truth generator's campaigns (\`persist simulate family --sequence campaign\`, $size x $size), one hidden form each." ;;
+    lab) echo "Data: the simulator's laboratory campaign (\`persist simulate lab --campaign${LAB_ARGS:+ $LAB_ARGS}\`, $size x $size), one hidden effect each (\`--effect NAME\` at its defaults; blooming and ipc with \`--spots pinholes\`, linefit_bias with \`--dark-lengths varied\`)." ;;
+esac
+echo
 
 cat <<'TEXT'
 The addition `persist diagnose` offers, run as printed, against the pixel reference
@@ -121,27 +177,23 @@ flags() {
 for seed in $seeds; do
     # the baseline of each pinhole option the rows use, keyed "pin:OPTION"
     declare -A baseline=()
-    mapfile -t pins < <(for row in $rows; do printf '%s\n' "$(pinhole_args "$row")"; done | sort -u)
+    mapfile -t pins < <(for row in $rows; do printf '%s\n' "$(sim_options "$row")"; done | sort -u)
     for pin in "${pins[@]}"; do
         base_dir=$work/none-$seed
-        # shellcheck disable=SC2086
-        "$persist" --log-level error simulate family --out "$base_dir" --size 64 --seed "$seed" \
-            --sequence campaign $pin > /dev/null
+        simulate "$base_dir" "$seed" none "$pin"
         "$persist" --log-level error fit --input "$base_dir" --out "$base_dir.json" > /dev/null
         baseline["pin:$pin"]=$(pixel_rms "$(diagnose_rms "$base_dir" "$base_dir.json" "$base_dir.diag.json")")
         rm -rf "$base_dir" "$base_dir".json "$base_dir".fit.json "$base_dir".diag.json
     done
     for row in $rows; do
         dir=$work/${row//[:+]/_}-$seed
-        # shellcheck disable=SC2046
-        "$persist" --log-level error simulate family --out "$dir" --size 64 --seed "$seed" \
-            --sequence campaign --hidden "$row" $(pinhole_args "$row") > /dev/null
+        simulate "$dir" "$seed" "$row" "$(sim_options "$row")"
         "$persist" --log-level error fit --input "$dir" --out "$dir.json" > /dev/null
         out=$(diagnose_rms "$dir" "$dir.json" "$dir.diag.json")
         before=$(pixel_rms "$out")
         # the pixels next to far brighter ones: where the pinhole grid gives them
         marked_before=-
-        [[ -n $(pinhole_args "$row") ]] && marked_before=$(marked "$out")
+        [[ $(sim_options "$row") == *pin* ]] && marked_before=$(marked "$out")
         marked_after=-
         field_before=$(field "$out")
         field_after=-
@@ -163,7 +215,7 @@ for seed in $seeds; do
             "$persist" --log-level error "${words[@]:1}" > /dev/null
             out_after=$(diagnose_rms "$dir" "$model" "$dir.after.json")
             after=$(pixel_rms "$out_after")
-            [[ -n $(pinhole_args "$row") ]] && marked_after=$(marked "$out_after")
+            [[ $(sim_options "$row") == *pin* ]] && marked_after=$(marked "$out_after")
             field_after=$(field "$out_after")
             tilt_after=$(tilt "$dir.after.json")
             "$persist" --log-level error compare --input "$dir" --model "$dir.json" \
@@ -171,7 +223,7 @@ for seed in $seeds; do
             flags_row=$(flags "$dir.compare/summary.json")
         fi
         awk -v run="$row, seed $seed" -v kind="${kind:-?}" -v off="$offered" -v b="$before" \
-            -v a="$after" -v z="${baseline["pin:$(pinhole_args "$row")"]}" \
+            -v a="$after" -v z="${baseline["pin:$(sim_options "$row")"]}" \
             -v mk="$marked_before -> $marked_after" -v fd="$field_before -> $field_after" \
             -v tl="$tilt_before -> $tilt_after" -v fl="$flags_row" 'BEGIN {
                 eb = b - z
@@ -189,7 +241,7 @@ for seed in $seeds; do
     done
 done | tee "$work/rows.md"
 awk -F' [|] ' '
-    /^[|] [a-z]+:/ {
+    /^[|] [a-z_:]+, seed/ {
         h++; if ($3 != "nothing") o++; if ($8 ~ /^yes/) y++
         split($7, e, " "); if (e[1] + 0 <= 0) z++
         # the pixels next to far brighter ones: "+0.29 (z 11.0) -> +0.09 (z 2.4) |"

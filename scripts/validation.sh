@@ -49,6 +49,10 @@
 #                                               couple neighbours (blooming, ipc, with the
 #                                               pinhole grid), seeds 1-2 (about 40 minutes;
 #                                               not in the default set)
+#   offers_sim docs/validation/offers_sim.md  the same on the simulator's laboratory
+#                                               campaign (`persist simulate lab --campaign`),
+#                                               every simulator effect, seeds 1-2 (about
+#                                               90 minutes; not in the default set)
 #   kinds  docs/validation/kinds.md             scripts/kinds_table.sh: the kind `diagnose`
 #                                               names on the second generator's campaigns,
 #                                               nothing hidden and every hidden form not
@@ -74,8 +78,8 @@ if [[ ${#pages[@]} -eq 0 ]]; then
 fi
 for p in "${pages[@]}"; do
     case $p in
-        floor|bench|matrix|verify|verify_bench|family|family128|family_heldout|reference|kinds|offers|offers_neighbours|flag_quality|long_tests) ;;
-        *) echo "validation.sh: unknown page '$p' (floor, bench, matrix, verify, verify_bench, family, family128, family_heldout, reference, kinds, offers, offers_neighbours, flag_quality, long_tests)" >&2; exit 2 ;;
+        floor|bench|matrix|verify|verify_bench|family|family128|family_heldout|reference|kinds|offers|offers_neighbours|offers_sim|flag_quality|long_tests) ;;
+        *) echo "validation.sh: unknown page '$p' (floor, bench, matrix, verify, verify_bench, family, family128, family_heldout, reference, kinds, offers, offers_neighbours, offers_sim, flag_quality, long_tests)" >&2; exit 2 ;;
     esac
 done
 
@@ -427,14 +431,16 @@ page_kinds() {
     echo "wrote $page" >&2
 }
 
-# An offers page ($1, under $out_dir): scripts/offers_table.sh with seeds $4 and rows $5
-# (empty: every form), titled $2, its command in the header $3.
+# An offers page ($1, under $out_dir): scripts/offers_table.sh with seeds $4, rows $5
+# (empty: every form) and source $6 (default family), titled $2, its command in the
+# header $3.
 offers_page() {
     local page=$out_dir/$1
     echo "$1: scripts/offers_table.sh" >&2
     {
         scripts/validation_header.sh "$2" "$3"
-        PERSIST_BIN=$persist SEEDS="$4" ROWS="$5" WORK=$tmp/${1%.md} scripts/offers_table.sh
+        PERSIST_BIN=$persist SEEDS="$4" ROWS="$5" SOURCE="${6:-family}" WORK=$tmp/${1%.md} \
+            scripts/offers_table.sh
     } > "$page.tmp"
     mv "$page.tmp" "$page"
     echo "wrote $page" >&2
@@ -457,6 +463,15 @@ page_offers_neighbours() {
         "What the offered addition does next to far brighter pixels, on the second generator's campaigns" \
         "make validation PAGES=offers_neighbours (scripts/offers_table.sh; SEEDS=\"$seeds\"; ROWS=\"$rows\")" \
         "$seeds" "$rows"
+}
+
+# offers_sim: the same on the simulator's laboratory campaign, every simulator effect.
+page_offers_sim() {
+    local seeds="${OFFERS_SEEDS:-1 2}"
+    local rows="${OFFERS_ROWS:-soak capacity temperature short_tau_boost populations linefit_bias blooming ipc}"
+    offers_page offers_sim.md "What the offered addition does, on the simulator's campaigns" \
+        "make validation PAGES=offers_sim (scripts/offers_table.sh; SOURCE=lab; SEEDS=\"$seeds\"; ROWS=\"$rows\")" \
+        "$seeds" "$rows" lab
 }
 
 # long_tests: the ignored tests, in release, each test's result and each binary's time.
