@@ -241,7 +241,7 @@ for seed in $seeds; do
     done
 done | tee "$work/rows.md"
 awk -F' [|] ' '
-    /^[|] [a-z_:]+, seed/ {
+    /^[|] [^|]+, seed [0-9]+ [|]/ {
         h++; if ($3 != "nothing") o++; if ($8 ~ /^yes/) y++
         split($7, e, " "); if (e[1] + 0 <= 0) z++
         # the pixels next to far brighter ones: "+0.29 (z 11.0) -> +0.09 (z 2.4) |"
