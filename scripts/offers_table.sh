@@ -28,7 +28,7 @@ source_kind=${SOURCE:-family}
 source "$(dirname "$0")/family_forms.sh"
 case $source_kind in
     family) default_rows=$FAMILY_FORMS ;;
-    lab) default_rows="soak capacity temperature short_tau_boost populations linefit_bias blooming ipc" ;;
+    lab) default_rows=$LAB_EFFECTS ;;
     *) echo "offers_table.sh: SOURCE must be family or lab, not '$source_kind'" >&2; exit 2 ;;
 esac
 rows=${ROWS:-$default_rows}
@@ -175,25 +175,26 @@ flags() {
 }
 
 for seed in $seeds; do
-    # the baseline of each pinhole option the rows use, keyed "pin:OPTION"
+    # the baseline of each set of options the rows use, keyed "opts:OPTIONS"
     declare -A baseline=()
-    mapfile -t pins < <(for row in $rows; do printf '%s\n' "$(sim_options "$row")"; done | sort -u)
-    for pin in "${pins[@]}"; do
+    mapfile -t option_sets < <(for row in $rows; do printf '%s\n' "$(sim_options "$row")"; done | sort -u)
+    for opts in "${option_sets[@]}"; do
         base_dir=$work/none-$seed
-        simulate "$base_dir" "$seed" none "$pin"
+        simulate "$base_dir" "$seed" none "$opts"
         "$persist" --log-level error fit --input "$base_dir" --out "$base_dir.json" > /dev/null
-        baseline["pin:$pin"]=$(pixel_rms "$(diagnose_rms "$base_dir" "$base_dir.json" "$base_dir.diag.json")")
+        baseline["opts:$opts"]=$(pixel_rms "$(diagnose_rms "$base_dir" "$base_dir.json" "$base_dir.diag.json")")
         rm -rf "$base_dir" "$base_dir".json "$base_dir".fit.json "$base_dir".diag.json
     done
     for row in $rows; do
         dir=$work/${row//[:+]/_}-$seed
-        simulate "$dir" "$seed" "$row" "$(sim_options "$row")"
+        opts=$(sim_options "$row")
+        simulate "$dir" "$seed" "$row" "$opts"
         "$persist" --log-level error fit --input "$dir" --out "$dir.json" > /dev/null
         out=$(diagnose_rms "$dir" "$dir.json" "$dir.diag.json")
         before=$(pixel_rms "$out")
         # the pixels next to far brighter ones: where the pinhole grid gives them
         marked_before=-
-        [[ $(sim_options "$row") == *pin* ]] && marked_before=$(marked "$out")
+        [[ $opts == *pin* ]] && marked_before=$(marked "$out")
         marked_after=-
         field_before=$(field "$out")
         field_after=-
@@ -215,7 +216,7 @@ for seed in $seeds; do
             "$persist" --log-level error "${words[@]:1}" > /dev/null
             out_after=$(diagnose_rms "$dir" "$model" "$dir.after.json")
             after=$(pixel_rms "$out_after")
-            [[ $(sim_options "$row") == *pin* ]] && marked_after=$(marked "$out_after")
+            [[ $opts == *pin* ]] && marked_after=$(marked "$out_after")
             field_after=$(field "$out_after")
             tilt_after=$(tilt "$dir.after.json")
             "$persist" --log-level error compare --input "$dir" --model "$dir.json" \
@@ -223,7 +224,7 @@ for seed in $seeds; do
             flags_row=$(flags "$dir.compare/summary.json")
         fi
         awk -v run="$row, seed $seed" -v kind="${kind:-?}" -v off="$offered" -v b="$before" \
-            -v a="$after" -v z="${baseline["pin:$(sim_options "$row")"]}" \
+            -v a="$after" -v z="${baseline["opts:$opts"]}" \
             -v mk="$marked_before -> $marked_after" -v fd="$field_before -> $field_after" \
             -v tl="$tilt_before -> $tilt_after" -v fl="$flags_row" 'BEGIN {
                 eb = b - z

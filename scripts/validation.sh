@@ -468,7 +468,9 @@ page_offers_neighbours() {
 # offers_sim: the same on the simulator's laboratory campaign, every simulator effect.
 page_offers_sim() {
     local seeds="${OFFERS_SEEDS:-1 2}"
-    local rows="${OFFERS_ROWS:-soak capacity temperature short_tau_boost populations linefit_bias blooming ipc}"
+    # shellcheck source=scripts/family_forms.sh
+    source scripts/family_forms.sh
+    local rows="${OFFERS_ROWS:-$LAB_EFFECTS}"
     offers_page offers_sim.md "What the offered addition does, on the simulator's campaigns" \
         "make validation PAGES=offers_sim (scripts/offers_table.sh; SOURCE=lab; SEEDS=\"$seeds\"; ROWS=\"$rows\")" \
         "$seeds" "$rows" lab
