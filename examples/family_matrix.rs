@@ -18,7 +18,14 @@
 //! binary; default: `persist` beside this example's directory), `--out FILE`
 //! (default `docs/validation/diagnostics_family.md`; JSON lines beside it),
 //! `--fit-args "..."` (added to every `fit`, for comparing a non-default calibration;
-//! the page's command line records it).
+//! the page's command line records it), `--resume FILE` (below).
+//!
+//! With `--resume FILE` every finished run is also appended to FILE, keyed by the code
+//! that produced it (the git tree ids of `src/`, `Cargo.toml`, `Cargo.lock` and this
+//! example) and by the settings (size, darks, fit arguments); a later call with the same
+//! FILE takes the runs of the same key from it instead of running them again, so a
+//! matrix of hours can be run in parts. Runs are never reused from a tree whose code has
+//! uncommitted changes, and the page says how many runs it took from FILE.
 //!
 //! A row is `none` or `CLASS:FORM`, then optionally `@single` or `@campaign` (default:
 //! `single` for `none`, `campaign` otherwise) and `+dark` (with dark pixels). Blooming
@@ -448,7 +455,7 @@ fn walk_h5(dir: &Path) -> Vec<PathBuf> {
     v
 }
 
-#[derive(Default, Debug, Clone, serde::Serialize)]
+#[derive(Default, Debug, Clone, serde::Serialize, serde::Deserialize)]
 struct Run {
     row: String,
     seed: u64,
@@ -691,6 +698,57 @@ fn f3(x: Option<f64>) -> String {
         .map_or("-".into(), |v| format!("{v:.3}"))
 }
 
+/// The paths whose committed trees identify the code behind a run (`--resume`).
+const CODE_PATHS: [&str; 4] = [
+    "src",
+    "Cargo.toml",
+    "Cargo.lock",
+    "examples/family_matrix.rs",
+];
+
+/// The key of the code that produces a run: the git object ids of [`CODE_PATHS`] at
+/// HEAD, or None when the repository cannot say or those paths have uncommitted changes.
+fn code_key() -> Option<String> {
+    let git = |a: &[&str]| {
+        Command::new("git")
+            .args(a)
+            .output()
+            .ok()
+            .filter(|o| o.status.success())
+            .map(|o| String::from_utf8_lossy(&o.stdout).trim().to_string())
+    };
+    let mut status = vec!["status", "--porcelain", "--"];
+    status.extend(CODE_PATHS);
+    if !git(&status)?.is_empty() {
+        return None;
+    }
+    let ids: Option<Vec<String>> = CODE_PATHS
+        .iter()
+        .map(|p| git(&["rev-parse", &format!("HEAD:{p}")]))
+        .collect();
+    Some(ids?.join(","))
+}
+
+/// One line of the `--resume` file.
+#[derive(serde::Serialize, serde::Deserialize)]
+struct Stored {
+    code: String,
+    settings: String,
+    run: Run,
+}
+
+/// The runs of `file` produced by `code` with `settings`, by (row, seed); a missing file
+/// is none, an unreadable line is skipped.
+fn stored_runs(file: &Path, code: &str, settings: &str) -> BTreeMap<(String, u64), Run> {
+    std::fs::read_to_string(file)
+        .unwrap_or_default()
+        .lines()
+        .filter_map(|l| serde_json::from_str::<Stored>(l).ok())
+        .filter(|s| s.code == code && s.settings == settings)
+        .map(|s| ((s.run.row.clone(), s.run.seed), s.run))
+        .collect()
+}
+
 fn main() {
     let args: Vec<String> = std::env::args().skip(1).collect();
     let size: usize = arg(&args, "--size").map_or(64, |s| s.parse().expect("--size"));
@@ -749,10 +807,38 @@ fn main() {
     if let Some(p) = out.parent() {
         std::fs::create_dir_all(p).expect("output directory");
     }
+    let resume = arg(&args, "--resume").map(PathBuf::from);
+    let code = resume.as_ref().and_then(|_| code_key());
+    let settings = format!("size {size}, darks {darks}, fit {:?}", ctx.fit_args);
+    let mut stored = match (&resume, &code) {
+        (Some(f), Some(c)) => stored_runs(f, c, &settings),
+        (Some(f), None) => {
+            eprintln!(
+                "--resume {}: the code ({}) has uncommitted changes or is not a git checkout; nothing is reused or stored",
+                f.display(),
+                CODE_PATHS.join(", ")
+            );
+            BTreeMap::new()
+        }
+        _ => BTreeMap::new(),
+    };
+    let mut reused = 0;
     let mut lines = String::new();
     for row in &rows {
         for seed in first..first + seeds {
-            let r = one(&ctx, row, seed, &mut cache);
+            let r = match stored.remove(&(row.name(), seed)) {
+                Some(r) => {
+                    reused += 1;
+                    r
+                }
+                None => {
+                    let r = one(&ctx, row, seed, &mut cache);
+                    if let (Some(f), Some(c)) = (&resume, &code) {
+                        append_stored(f, c, &settings, &r);
+                    }
+                    r
+                }
+            };
             eprintln!(
                 "{} seed {seed}: fit {} | first {:?} | kind {:?} | untestable {:?} | excess {} -> {} | missed {} -> {} | {:.0} s{}",
                 r.row,
@@ -774,11 +860,35 @@ fn main() {
             lines.push('\n');
             std::fs::write(&jsonl, &lines).expect("write jsonl");
             runs.push(r);
-            write_table(&args, &rows, &runs, &out, &jsonl, size, first, seeds);
+            write_table(
+                &args, &rows, &runs, reused, &out, &jsonl, size, first, seeds,
+            );
         }
     }
-    write_table(&args, &rows, &runs, &out, &jsonl, size, first, seeds);
+    write_table(
+        &args, &rows, &runs, reused, &out, &jsonl, size, first, seeds,
+    );
     eprintln!("wrote {}", out.display());
+}
+
+/// Append one finished run to the `--resume` file (one line, flushed before the next
+/// run starts, so a stopped matrix keeps every run it finished).
+fn append_stored(file: &Path, code: &str, settings: &str, run: &Run) {
+    use std::io::Write as _;
+    let line = serde_json::to_string(&Stored {
+        code: code.into(),
+        settings: settings.into(),
+        run: run.clone(),
+    })
+    .expect("json");
+    let mut f = std::fs::OpenOptions::new()
+        .create(true)
+        .append(true)
+        .open(file)
+        .unwrap_or_else(|e| panic!("--resume {}: {e}", file.display()));
+    writeln!(f, "{line}")
+        .and_then(|()| f.sync_all())
+        .unwrap_or_else(|e| panic!("--resume {}: {e}", file.display()));
 }
 
 /// The Markdown page (rewritten after every run, so a long matrix can be stopped).
@@ -787,6 +897,7 @@ fn write_table(
     args: &[String],
     rows: &[Row],
     runs: &[Run],
+    reused: usize,
     out: &Path,
     jsonl: &Path,
     size: usize,
@@ -999,5 +1110,13 @@ fn write_table(
         jsonl.display()
     )
     .unwrap();
+    if reused > 0 {
+        writeln!(
+            md,
+            "{reused} of these runs were taken from the `--resume` file: produced earlier by the same code ({}) with the same settings.",
+            CODE_PATHS.join(", ")
+        )
+        .unwrap();
+    }
     std::fs::write(out, md).expect("write the table");
 }
