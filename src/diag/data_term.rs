@@ -27,7 +27,9 @@ use super::command::{fit_command, measure_command};
 use super::config::Config;
 use super::data::Sequence;
 use super::eval::Samples;
-use super::refit::{delta_bic, fit_candidate, held_out, held_with_arg, own_effects, HeldOut};
+use super::refit::{
+    delta_bic, fit_candidate, held_out, held_with_arg, own_effects, Footing, HeldOut,
+};
 use crate::error::Result;
 use crate::model::effect::EffectDef;
 use crate::model::effects::smooth;
@@ -135,21 +137,18 @@ pub fn held(class: &str, params: &ModelParams) -> Option<&'static EffectDef> {
     smooth::for_covariate(class).filter(|d| params.effects.iter().any(|e| e.name == d.name))
 }
 
-/// Fit and hold out the term following `class` against `params` (its own effects
-/// refitted as `cfg.refit` says, `own_refit` those fitted on all samples);
-/// None when no term follows that class's covariate, or the model already holds it
-/// (its own effects are refitted with every candidate).
-#[allow(clippy::too_many_arguments)] // the diagnosis' own context, passed through
+/// Fit and hold out the term following `class` against the footing's model (its own
+/// effects refitted as the footing's `refit` says, `own_refit` those fitted on all
+/// samples); None when no term follows that class's covariate, or the model already
+/// holds it (its own effects are refitted with every candidate).
 pub fn offer(
     class: &str,
-    params: &ModelParams,
+    footing: &Footing,
     own_refit: &ModelParams,
-    base_current: &[f64],
-    seq: &Sequence,
-    samples: &Samples,
     cfg: &Config,
     (input, model_path): (&Path, &Path),
 ) -> Result<Option<DataTerm>> {
+    let (params, seq, samples) = (footing.params, footing.seq, footing.samples);
     if held(class, params).is_some() {
         return Ok(None);
     }
@@ -174,15 +173,7 @@ pub fn offer(
     let rss1 = f.rss_before_after().1;
     let k = f.params.iter().filter(|p| p.effect == name).count();
     let dbic = delta_bic(rss0, rss1, k, f.cells);
-    let ho = held_out(
-        params,
-        base_current,
-        Some(&fitted),
-        &[with.as_str()],
-        seq,
-        samples,
-        cfg.refit,
-    )?;
+    let ho = held_out(footing, Some(&fitted), &[with.as_str()])?;
     Ok(Some(DataTerm {
         class: class.to_string(),
         effect: name.clone(),

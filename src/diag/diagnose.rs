@@ -235,7 +235,7 @@ pub use super::finding::{Candidate, Diagnosis, Joint, PixelReference, Place};
 pub use super::refit::{
     delta_bic, held_out, Fold, HeldOut, DBIC_MAX, HELD_OUT_MIN_GAIN, MIN_HELD_OUT_PIXELS, MOVED_Z,
 };
-use super::refit::{fit_candidate, fit_described, held_with_arg, own_effects, refit_own};
+use super::refit::{fit_candidate, fit_described, held_with_arg, own_effects, refit_own, Footing};
 pub use super::score::ALPHA;
 use super::score::{dof, make_cells, score_step, score_tests, Cells, Scored, Test};
 use super::spread;
@@ -355,15 +355,9 @@ pub fn diagnose(
     } else {
         refit_own(params, &own, seq, &samples)?
     };
-    let results = refit_candidates(
-        &refit,
-        &ranking,
-        (params, &own_refit, &own),
-        &base.current,
-        seq,
-        &samples,
-        (cfg.refit, cfg.decide),
-    )?;
+    // what every held-out check stands on, its folds' comparisons shared
+    let footing = Footing::new(params, &base.current, seq, &samples, cfg.refit);
+    let results = refit_candidates(&refit, &ranking, (&own_refit, &own), &footing, cfg.decide)?;
     // the leader: the first refitted (`refit` in the order of the dependence, `results`
     // in its order)
     let leader = results.first().map(|r| (r.rank, r.rss_after));
@@ -378,7 +372,7 @@ pub fn diagnose(
             joint_check(
                 &JointInput {
                     params,
-                    base_current: &base.current,
+                    footing: &footing,
                     own_refit: &own_refit,
                     own: &own,
                     seq,
@@ -401,16 +395,7 @@ pub fn diagnose(
         && !joint.first().is_some_and(|j| j.significant);
     let named_class = winner.map_or("fluence_x_time", |w| w.class.as_str());
     let term_along = |class: &str| {
-        super::data_term::offer(
-            class,
-            params,
-            &own_refit,
-            &base.current,
-            seq,
-            &samples,
-            cfg,
-            (input, model_path),
-        )
+        super::data_term::offer(class, &footing, &own_refit, cfg, (input, model_path))
     };
     let mut data_term = if named {
         term_along(named_class)?
@@ -693,13 +678,11 @@ fn chosen_for_refit(
 fn refit_candidates(
     chosen: &[usize],
     ranking: &[Candidate],
-    model: (&ModelParams, &ModelParams, &[String]),
-    base_current: &[f64],
-    seq: &Sequence,
-    samples: &Samples,
-    (refit, decide): (Refit, Decide),
+    (own_refit, own): (&ModelParams, &[String]),
+    footing: &Footing,
+    decide: Decide,
 ) -> Result<Vec<Refitted>> {
-    let (params, own_refit, own) = model;
+    let (seq, samples) = (footing.seq, footing.samples);
     chosen
         .par_iter()
         .map(|&i| {
@@ -714,15 +697,7 @@ fn refit_candidates(
             // with the contrast decision every refitted candidate is held out: the
             // offer is judged there against the pixel reference ([`super::offer`])
             let ho = if dbic < DBIC_MAX || decide == Decide::Contrast {
-                held_out(
-                    params,
-                    base_current,
-                    Some(&fitted),
-                    &[name],
-                    seq,
-                    samples,
-                    refit,
-                )?
+                held_out(footing, Some(&fitted), &[name])?
             } else {
                 None
             };
@@ -814,7 +789,7 @@ impl Refitted {
 /// What the joint check shares with the single refits.
 struct JointInput<'a> {
     params: &'a ModelParams,
-    base_current: &'a [f64],
+    footing: &'a Footing<'a>,
     own_refit: &'a ModelParams,
     own: &'a [String],
     seq: &'a Sequence,
@@ -885,15 +860,7 @@ fn joint_check(
     if let Some((best, fitted)) = fits.first_mut() {
         if best.delta_bic < DBIC_MAX && best.delta_bic_over_leader < DBIC_MAX {
             let pair = [best.effects[0].as_str(), best.effects[1].as_str()];
-            best.held_out = held_out(
-                j.params,
-                j.base_current,
-                Some(fitted),
-                &pair,
-                j.seq,
-                j.samples,
-                j.cfg.refit,
-            )?;
+            best.held_out = held_out(j.footing, Some(fitted), &pair)?;
             best.significant = best.held_out.as_ref().is_none_or(|h| h.passes)
                 && pair.iter().all(|e| {
                     crate::model::effects::lookup(e)

@@ -16,6 +16,8 @@ use super::spread;
 use crate::error::Result;
 use crate::model::params::ModelParams;
 use serde::Serialize;
+use std::borrow::Cow;
+use std::sync::OnceLock;
 
 /// The refit must lower the BIC by more than this ("very strong" evidence).
 pub const DBIC_MAX: f64 = -10.0;
@@ -511,10 +513,13 @@ fn permuted_temperatures(seq: &Sequence) -> Vec<Vec<Option<f64>>> {
 struct Judged<'a> {
     ts: &'a Samples,
     before: (&'a View, &'a [f64]),
+    /// The pixel reference fitted on the prediction without the candidate, shared by
+    /// every candidate held out on the same fold ([`Footing`]).
+    before_scaled: &'a OnceLock<super::base::Scaled>,
     after: (&'a View, &'a [f64]),
     fitted: &'a ModelParams,
     response: &'a crate::model::response::Response,
-    arrangements: &'a std::sync::OnceLock<Vec<Vec<Option<f64>>>>,
+    arrangements: &'a OnceLock<Vec<Vec<Option<f64>>>>,
     seed: u64,
 }
 
@@ -542,8 +547,9 @@ impl Judged<'_> {
         let (ts, response) = (self.ts, self.response);
         let (before_view, before_current) = self.before;
         let (after_view, after_current) = self.after;
-        let scaled_before =
-            super::base::predict_scaled(seq, before_view, ts, before_current, response);
+        let scaled_before = self.before_scaled.get_or_init(|| {
+            super::base::predict_scaled(seq, before_view, ts, before_current, response)
+        });
         let pixel_before = scaled_before.cells(ts);
         let real = HeldOutSums::of(
             &pixel_before,
@@ -570,7 +576,7 @@ impl Judged<'_> {
             }
             Some(r) if r.after < r.before => {
                 let held = |current: &[f64]| {
-                    super::base::predict_scaled_held(seq, ts, current, response, &scaled_before)
+                    super::base::predict_scaled_held(seq, ts, current, response, scaled_before)
                         .cells(ts)
                 };
                 let held_before = held(before_current);
@@ -619,25 +625,105 @@ impl Judged<'_> {
     }
 }
 
+/// What every held-out check of one diagnosis stands on: the model diagnosed, its
+/// prediction of the samples (early release off, [`eval::predict`]), the samples and
+/// what a refit frees; and, per way of splitting the samples and per fold, what a
+/// candidate is compared with there (the model's own effects refitted on the fit half,
+/// their prediction of the test half and the pixel reference fitted on it), computed by
+/// the first check that needs it and shared by the others.
+///
+/// # Invariants
+/// - A fold's comparison depends only on the fields and on the fold (the split, the
+///   cells the fit half is fitted on, the half), and the computation is deterministic,
+///   so sharing it changes no number a check reports.
+pub struct Footing<'a> {
+    pub params: &'a ModelParams,
+    pub base_current: &'a [f64],
+    pub seq: &'a Sequence,
+    pub samples: &'a Samples,
+    pub refit: Refit,
+    /// Per [`Footing::slot`].
+    before: [OnceLock<Before>; 8],
+}
+
+impl<'a> Footing<'a> {
+    pub fn new(
+        params: &'a ModelParams,
+        base_current: &'a [f64],
+        seq: &'a Sequence,
+        samples: &'a Samples,
+        refit: Refit,
+    ) -> Self {
+        Footing {
+            params,
+            base_current,
+            seq,
+            samples,
+            refit,
+            before: Default::default(),
+        }
+    }
+
+    /// The slot of a fold: split by pixels or by events, fitted on the neighbours'
+    /// cells or the samples' own ([`fitting_samples`]), the half `h` it is fitted on.
+    fn slot(by_pixels: bool, neighbour_cells: bool, h: usize) -> usize {
+        4 * usize::from(by_pixels) + 2 * usize::from(neighbour_cells) + h.min(1)
+    }
+}
+
+/// A fold's comparison without the candidate ([`Footing`]).
+struct Before {
+    /// The model's own effects refitted on the fit half; None: the model itself.
+    model: Option<ModelParams>,
+    /// Its cells' z on the test half.
+    cells: Vec<(Vec<i64>, eval::GroupStat)>,
+    /// Its prediction of the test half.
+    current: Vec<f64>,
+    view: View,
+    /// The pixel reference fitted on `current`, when a judge needs it.
+    scaled: OnceLock<super::base::Scaled>,
+}
+
+impl Before {
+    fn new(
+        model: Option<ModelParams>,
+        cells: Vec<(Vec<i64>, eval::GroupStat)>,
+        current: Vec<f64>,
+        view: View,
+    ) -> Self {
+        Before {
+            model,
+            cells,
+            current,
+            view,
+            scaled: OnceLock::new(),
+        }
+    }
+}
+
 /// Held-out check of the effects `names` (one candidate, or a pair in the joint check;
 /// module docs): the halves are the events alternately, or the sampled pixels
 /// alternately with one event or when an event half lacks a value of the effects'
 /// event-level covariate (`halves_span`, over [`EVENT_LEVEL`]); None when split by
 /// pixels with fewer than `2 MIN_HELD_OUT_PIXELS` pixels.
 /// `start`: a model holding the effect at the values to start the fits from (the
-/// full refit), else its defaults. `base_current`: `params`' prediction at `samples`
-/// (early release off, [`eval::predict`]), which the test halves' "before" reuse when
-/// `refit` is [`Refit::Candidate`] (with [`Refit::Full`] "before" is the model's own
-/// effects refitted on the fit half).
+/// full refit), else its defaults. The test halves' "before" is the footing's
+/// `base_current` when its `refit` is [`Refit::Candidate`] (with [`Refit::Full`], the
+/// model's own effects refitted on the fit half), computed once per fold for every
+/// check on the same footing ([`Footing`]).
 pub fn held_out(
-    params: &ModelParams,
-    base_current: &[f64],
+    footing: &Footing,
     start: Option<&ModelParams>,
     names: &[&str],
-    seq: &Sequence,
-    samples: &Samples,
-    refit: Refit,
 ) -> Result<Option<HeldOut>> {
+    let Footing {
+        params,
+        base_current,
+        seq,
+        samples,
+        refit,
+        ..
+    } = *footing;
     let own = own_effects(params, refit);
     let events = samples.events();
     // the two halves: illumination events alternately when each half holds every value
@@ -679,7 +765,7 @@ pub fn held_out(
     };
     // a rate hook's permutations: the temperatures' arrangements, the same in both
     // folds, drawn when a candidate moves the clock
-    let arrangements = std::sync::OnceLock::new();
+    let arrangements = OnceLock::new();
     // the user's model's response weighs the illuminations in both pixel references
     let response = crate::model::response::Response::new(&params.amplitude_knots);
     let judge = Judge::of(names);
@@ -687,29 +773,43 @@ pub fn held_out(
     let fold = |h: usize| -> Result<(Option<HeldOutSums>, PixelFold)> {
         let (fs, ts, ts_base) = split(h);
         let fs = fitting_samples(names, &fs);
-        let (fitted, before, before_current, before_view) = if own.is_empty() {
+        let slot = &footing.before[Footing::slot(by_pixels, matches!(fs, Cow::Owned(_)), h)];
+        let before = match slot.get() {
+            Some(b) => b,
+            None => {
+                let b = if own.is_empty() {
+                    // `params`' own prediction of the test samples: already computed
+                    let cells = spread::model_cell_z(params, &ts, &ts_base);
+                    Before::new(None, cells, ts_base, View::of_model(params, seq))
+                } else {
+                    // the model's own effects refitted on the fit half's samples
+                    // (from values fitted on all samples)
+                    let base = refit_own(params, &own, seq, &fs)?;
+                    let current = eval::predict(&base, seq, &ts, false)?.current;
+                    let cells = spread::model_cell_z(&base, &ts, &current);
+                    let view = View::of_model(&base, seq);
+                    Before::new(Some(base), cells, current, view)
+                };
+                slot.get_or_init(|| b)
+            }
+        };
+        let fitted = if own.is_empty() {
             let owned: Vec<String> = names.iter().map(|n| n.to_string()).collect();
             let (fitted, _) =
                 crate::calib::effects::fit(start.unwrap_or(params), &owned, seq, &fs)?;
-            let fitted = super::polish::polish(fitted, names, seq, &fs)?;
-            // `params`' own prediction of the test samples: already computed
-            let before = spread::model_cell_z(params, &ts, &ts_base);
-            (fitted, before, ts_base, View::of_model(params, seq))
+            super::polish::polish(fitted, names, seq, &fs)?
         } else {
-            // the model's own effects refitted on the fit half's samples, alone and
-            // with the candidate (both fits start from values fitted on all samples)
-            let base = refit_own(params, &own, seq, &fs)?;
-            let (fitted, _) = fit_candidate(&base, &own, start, names, seq, &fs)?;
-            let current = eval::predict(&base, seq, &ts, false)?.current;
-            let before = spread::model_cell_z(&base, &ts, &current);
-            (fitted, before, current, View::of_model(&base, seq))
+            // the candidate with the model's own effects, refitted as they were alone
+            let base = before.model.as_ref().unwrap_or(params);
+            fit_candidate(base, &own, start, names, seq, &fs)?.0
         };
         let after_current = eval::predict(&fitted, seq, &ts, false)?.current;
         let after = spread::model_cell_z(&fitted, &ts, &after_current);
         let after_view = View::of_model(&fitted, seq);
         let judged = Judged {
             ts: &ts,
-            before: (&before_view, &before_current),
+            before: (&before.view, &before.current),
+            before_scaled: &before.scaled,
             after: (&after_view, &after_current),
             fitted: &fitted,
             response: &response,
@@ -726,7 +826,7 @@ pub fn held_out(
             Permuted::Change
         };
         Ok((
-            HeldOutSums::of(&before, &after),
+            HeldOutSums::of(&before.cells, &after),
             PixelFold {
                 permuted,
                 real,
@@ -942,6 +1042,35 @@ mod tests {
         );
     }
 
+    /// A footing shared by several checks gives each the numbers it gives alone: on the
+    /// campaign of `a_rate_hook_gains_...` (measured with `temperature` at 0.25 eV),
+    /// `temperature` held out on a fresh footing and after `capacity` and `soak` on a
+    /// shared one, with the model's own effects refitted (`refill` fitted) and without.
+    #[test]
+    fn a_shared_footing_changes_no_number() {
+        use super::super::base::tests::{campaign_at, measured_as, model_with_temperature};
+        let seq = campaign_at(&[78.0, 82.0, 80.0]);
+        let mut model = ModelParams::default();
+        model.effects.push(EffectSpec {
+            name: "refill".into(),
+            params: [("beta".to_string(), serde_json::json!(0.8))]
+                .into_iter()
+                .collect(),
+            fixed: Default::default(),
+        });
+        let (s, base) = measured_as(&seq, &model_with_temperature(0.25), &model);
+        for refit in [Refit::Candidate, Refit::Full] {
+            let json = |f: &Footing, name: &str| {
+                serde_json::to_string(&held_out(f, None, &[name]).unwrap()).unwrap()
+            };
+            let alone = json(&Footing::new(&model, &base, &seq, &s, refit), "temperature");
+            let shared = Footing::new(&model, &base, &seq, &s, refit);
+            let others = [json(&shared, "capacity"), json(&shared, "soak")];
+            assert_eq!(json(&shared, "temperature"), alone, "{refit:?}");
+            assert!(others.iter().all(|o| *o != alone), "{refit:?}");
+        }
+    }
+
     /// A rate hook where the temperatures have too few arrangements: a campaign of
     /// three illuminations at 78, 82 and 80 K (`base::tests::campaign_at`, 5 other
     /// arrangements), measured as the default model with `temperature` at 0.25 eV plus
@@ -954,17 +1083,10 @@ mod tests {
         let seq = campaign_at(&[78.0, 82.0, 80.0]);
         let model = ModelParams::default();
         let (s, base) = measured_as(&seq, &model_with_temperature(0.25), &model);
-        let h = held_out(
-            &model,
-            &base,
-            None,
-            &["temperature"],
-            &seq,
-            &s,
-            Refit::Candidate,
-        )
-        .unwrap()
-        .expect("a held-out check");
+        let footing = Footing::new(&model, &base, &seq, &s, Refit::Candidate);
+        let h = held_out(&footing, None, &["temperature"])
+            .unwrap()
+            .expect("a held-out check");
         let p = h.pixel_reference.expect("the pixel reference held out");
         assert_eq!(p.permuted, Permuted::Temperature);
         assert!(p.fold_gains.iter().all(|&g| g > 0.0), "{p:?}");
