@@ -674,7 +674,7 @@ fn chosen_for_refit(
 
 /// Each chosen candidate refitted (in parallel, each fit its own computation) from
 /// `own_refit` (the model with `own`, its effects freed, refitted alone), and held out
-/// when its change in BIC passes. `model.0` is the model diagnosed.
+/// on `footing` (the model diagnosed, its samples) when its change in BIC passes.
 fn refit_candidates(
     chosen: &[usize],
     ranking: &[Candidate],
