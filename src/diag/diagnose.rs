@@ -371,12 +371,9 @@ pub fn diagnose(
         Some((lead, leader_rss)) if cfg.joint && !ranking.iter().any(|c| c.significant) => {
             joint_check(
                 &JointInput {
-                    params,
                     footing: &footing,
                     own_refit: &own_refit,
                     own: &own,
-                    seq,
-                    samples: &samples,
                     cfg,
                     input,
                     model_path,
@@ -788,12 +785,10 @@ impl Refitted {
 
 /// What the joint check shares with the single refits.
 struct JointInput<'a> {
-    params: &'a ModelParams,
+    /// The model diagnosed, its samples and its held-out folds.
     footing: &'a Footing<'a>,
     own_refit: &'a ModelParams,
     own: &'a [String],
-    seq: &'a Sequence,
-    samples: &'a Samples,
     cfg: &'a Config,
     input: &'a Path,
     model_path: &'a Path,
@@ -814,12 +809,13 @@ fn joint_check(
     (leader, leader_rss): (&str, f64),
     names: &[&'static str],
 ) -> Result<Vec<Joint>> {
+    let (params, seq, samples) = (j.footing.params, j.footing.seq, j.footing.samples);
     let partners: Vec<&str> = names.iter().copied().filter(|n| *n != leader).collect();
     let splits = |n: &[&str]| super::marked::acts_on_neighbours(n);
     // the leader on the cells split by the neighbour contrast, when a partner splits them
     let leader_rss_split = if !splits(&[leader]) && partners.iter().any(|o| splits(&[o])) {
-        let cells = super::refit::fitting_samples(&partners, j.samples);
-        let (_, f) = fit_described(j.own_refit, j.own, None, &[leader], j.seq, &cells)?;
+        let cells = super::refit::fitting_samples(&partners, samples);
+        let (_, f) = fit_described(j.own_refit, j.own, None, &[leader], seq, &cells)?;
         Some(f.rss_before_after().1)
     } else {
         None
@@ -828,7 +824,7 @@ fn joint_check(
         .par_iter()
         .map(|&other| {
             let pair = [leader, other];
-            let (fitted, f) = fit_described(j.own_refit, j.own, None, &pair, j.seq, j.samples)?;
+            let (fitted, f) = fit_described(j.own_refit, j.own, None, &pair, seq, samples)?;
             let (rss0, rss1) = f.rss_before_after();
             let leader_rss = match leader_rss_split {
                 Some(split) if splits(&[other]) => split,
@@ -849,8 +845,8 @@ fn joint_check(
                     rms_after: f.residual_rms_normalised_after,
                     held_out: None,
                     significant: false,
-                    command: fit_command(j.input, j.model_path, j.params, &pair, j.cfg),
-                    measure_command: measure_command(j.input, j.model_path, j.params, &pair, j.cfg),
+                    command: fit_command(j.input, j.model_path, params, &pair, j.cfg),
+                    measure_command: measure_command(j.input, j.model_path, params, &pair, j.cfg),
                 },
                 fitted,
             ))
