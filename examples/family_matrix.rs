@@ -40,8 +40,10 @@
 //!    first (the first significant candidate of the ranking), and the candidates the
 //!    output calls untestable (any candidate or list entry marked so);
 //! 4. if something is declared: `persist fit --input D --out M2.json --with EFFECT`;
-//! 5. `persist compare --input D --model M.json [--model M2.json]`: each model's
-//!    normalised residual RMS; the excess is that minus the RMS of the baseline's own
+//! 5. `persist compare --input D --model M.json [--model M2.json]`: each model's pixel
+//!    reference's normalised residual RMS (`compare`'s `pixel_reference`, the line
+//!    `diagnose` prints as "pixel reference"); the excess is that minus the same of the
+//!    baseline's own
 //!    fit on the baseline (same seed, nothing hidden; when `diagnose` tested against a
 //!    description of the measurements, the same printed `fit` command on the baseline's
 //!    data); "halved" when the excess after `fit --with` is at most half the excess
@@ -328,9 +330,12 @@ fn read_diagnosis(v: &serde_json::Value) -> (Option<String>, Vec<String>, Vec<St
     (declared.first().cloned(), declared, untestable)
 }
 
+/// The pixel reference's residual RMS of model `k` in `compare`'s summary.
 fn rms_of(summary: &serde_json::Value, k: usize) -> Option<f64> {
     summary
-        .pointer(&format!("/models/{k}/residual_rms_normalised"))
+        .pointer(&format!(
+            "/models/{k}/pixel_reference/residual_rms_normalised"
+        ))
         .and_then(|v| v.as_f64())
 }
 
@@ -349,7 +354,7 @@ fn compare(ctx: &Ctx, data: &Path, models: &[&Path], report: &Path) -> Result<Ve
     persist(ctx, &refs)?;
     let s = read_json(&report.join("summary.json")).ok_or("no summary.json")?;
     (0..models.len())
-        .map(|k| rms_of(&s, k).ok_or_else(|| "no residual_rms_normalised".to_string()))
+        .map(|k| rms_of(&s, k).ok_or_else(|| "no pixel_reference".to_string()))
         .collect()
 }
 
@@ -474,7 +479,7 @@ struct Run {
     rms_baseline: Option<f64>,
     excess_before: Option<f64>,
     excess_after: Option<f64>,
-    /// `1 - RMS(baseline) / RMS(before)`: the share of the description's residual RMS
+    /// `1 - RMS(baseline) / RMS(before)`: the share of the pixel reference's residual RMS
     /// that the hidden effect accounts for.
     hidden_share: Option<f64>,
     halved: Option<bool>,
@@ -952,7 +957,7 @@ fn write_table(
     .unwrap();
     writeln!(
         md,
-        "Data: `persist simulate family` ({size} x {size}, seeds {first}..{}, see `persist::trapgen` for the physics and the forms). Every run uses the default commands only (`examples/family_matrix.rs` docs): `fit`, `diagnose`, then the `fit` commands `diagnose` prints for the effect declared first, or, with nothing declared, for the data-driven term it offers (column \"added\"). Kind named: the declared effect's contrast class, or else the covariate the verdict says the residual depends on (\"of this kind in another form\"). Excess RMS: the normalised residual RMS (`compare`) minus the baseline's (same seed, nothing hidden, its own fit), of the measurements' description `diagnose` tested against when it fitted one (the baseline fitted with the same printed command). Hidden share: `1 - RMS(baseline) / RMS(before)`, the share of that RMS the hidden effect accounts for, about the most a candidate capturing it exactly could gain over all cells; \"declared where share >= gate\": the runs where it reaches `diagnose`'s held-out gate ({HELD_OUT_MIN_GAIN}), and in how many of them the class was declared first. Missed: the fraction of samples of touched pixels with a true persistence current of at least 0.1 e-/s that `persist run` did not flag; over-flagged: of those truly below it, the fraction flagged. Diagnose s: the wall time of `diagnose` alone, with its defaults (this machine; other work may run beside it).\n",
+        "Data: `persist simulate family` ({size} x {size}, seeds {first}..{}, see `persist::trapgen` for the physics and the forms). Every run uses the default commands only (`examples/family_matrix.rs` docs): `fit`, `diagnose`, then the `fit` commands `diagnose` prints for the effect declared first, or, with nothing declared, for the data-driven term it offers (column \"added\"). Kind named: the declared effect's contrast class, or else the covariate the verdict says the residual depends on (\"of this kind in another form\"). Excess RMS: the pixel reference's normalised residual RMS (`compare`'s \"pixel reference\", the reference `diagnose` judges its offers against) minus the baseline's (same seed, nothing hidden, its own fit), of the measurements' description `diagnose` tested against when it fitted one (the baseline fitted with the same printed command). Hidden share: `1 - RMS(baseline) / RMS(before)`, the share of that RMS the hidden effect accounts for, about the most a candidate capturing it exactly could gain over all cells; \"declared where share >= gate\": the runs where it reaches `diagnose`'s held-out gate ({HELD_OUT_MIN_GAIN}), and in how many of them the class was declared first. Missed: the fraction of samples of touched pixels with a true persistence current of at least 0.1 e-/s that `persist run` did not flag; over-flagged: of those truly below it, the fraction flagged. Diagnose s: the wall time of `diagnose` alone, with its defaults (this machine; other work may run beside it).\n",
         first + seeds - 1
     )
     .unwrap();

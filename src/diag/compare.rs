@@ -113,6 +113,13 @@ pub struct ModelSummary {
     /// no factor in [`MATCH_RANGE`] reaches it.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub flags_at_first_coverage: Option<MatchedFlags>,
+    /// The pixel reference of the model's prediction, as `persist diagnose` reports it
+    /// on its default samples ([`super::finding::PixelReference::fit`]): what is left
+    /// when the flexible base and each pixel's own terms have taken in every function of
+    /// fluence and time since illumination, so that an addition that makes it fall
+    /// predicts what the reference could not. Set by `persist compare`; None elsewhere.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub pixel_reference: Option<super::finding::PixelReference>,
 }
 
 /// The threshold, e-/s, at which [`at_coverage_of`] matches coverages: the flags'.
@@ -414,6 +421,7 @@ pub fn summarise_touched(
             spatial: super::spatial::coherence(seq, params)?,
             spread,
             flags_at_first_coverage: None,
+            pixel_reference: None,
         });
     }
     let key = format!("{MATCH_THRESHOLD_E_PER_S}");

@@ -4,9 +4,12 @@
 //! comparison's types, and the comparison do not import each other.
 
 use super::compare::{definitions, summarise_touched, touched_pixels, Options, Summary, STRIDE};
+use super::config::Config;
 use super::data::Sequence;
 use super::eval::Samples;
+use super::finding::PixelReference;
 use crate::error::{Error, ErrorKind, Result};
+use crate::model::params::ModelParams;
 use std::path::Path;
 
 /// `persist compare`.
@@ -48,12 +51,15 @@ pub fn run_with(
         )?),
         None => None,
     };
-    let ms = summarise_touched(
+    let mut ms = summarise_touched(
         &seq,
         &samples,
         &loaded,
         touched.as_ref().map(|t| t.0.as_slice()),
     )?;
+    for (m, (_, params)) in ms.iter_mut().zip(&loaded) {
+        m.pixel_reference = Some(pixel_reference(&seq, params, opts)?);
+    }
     let summary = Summary {
         input: input.display().to_string(),
         definitions: definitions(samples.cells, samples.statistic, seq.background),
@@ -102,6 +108,9 @@ pub fn run_with(
             );
         }
         s += "\n";
+        if let Some(r) = &m.pixel_reference {
+            s += &pixel_reference_line(r);
+        }
         s += &coverage_line(&m.flag_quality);
         if let Some(f) = &m.flags_at_first_coverage {
             s += &matched_line(f, &summary.models[0]);
@@ -152,6 +161,39 @@ pub fn run_with(
     }
     s += &format!("report {}", out.join("report.html").display());
     Ok(s)
+}
+
+/// The pixel reference of `params`' prediction on `persist diagnose`'s default samples
+/// ([`Config`]'s pixels and seed; the cells and their statistic `opts`'), so that its
+/// RMS is the one `diagnose` prints for the same model.
+fn pixel_reference(seq: &Sequence, params: &ModelParams, opts: &Options) -> Result<PixelReference> {
+    let cfg = Config::default();
+    let mut samples = Samples::random(seq, cfg.pixels, cfg.seed)
+        .with_cells(opts.cells)
+        .with_statistic(opts.cell_statistic);
+    let pred = super::eval::predict(params, seq, &samples, false)?;
+    let view = super::base::View::of_model(params, seq);
+    let response = crate::model::response::Response::new(&params.amplitude_knots);
+    Ok(PixelReference::fit(seq, &view, &mut samples, &pred.current, &response).0)
+}
+
+/// The line of a model's pixel reference.
+fn pixel_reference_line(r: &PixelReference) -> String {
+    let per_event = r.per_event_rms.map_or(String::new(), |e| {
+        format!("; fitted to each illumination event alone {e:.2}")
+    });
+    let noise = r
+        .noise_scale
+        .map_or("; noise as measured".to_string(), |n| {
+            format!(
+                "; noise variances x{:.2} (read), x{:.2} (shot)",
+                n.read_var, n.shot_var
+            )
+        });
+    format!(
+        "    pixel reference: residual RMS {:.2} over {} cells{per_event}{noise}\n",
+        r.residual_rms_normalised, r.cells
+    )
 }
 
 /// A model's flags at the first model's coverage ([`super::compare::at_coverage_of`]),

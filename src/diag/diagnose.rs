@@ -288,8 +288,9 @@ pub fn diagnose(
     // the bases' decay on the model's clock
     let view = super::base::View::of_model(params, seq);
     let response = crate::model::response::Response::new(&params.amplitude_knots);
-    // the pixel reference's noise, measured on its residuals once, for every candidate
-    let noise_scale = super::base::scale_noise(seq, &view, &mut samples, &base.current, &response);
+    // the pixel reference, its noise measured on its residuals once, for every candidate
+    let (pixel_reference, scaled) =
+        PixelReference::fit(seq, &view, &mut samples, &base.current, &response);
     let samples = samples;
     let events = samples.events().len();
     let (statistic, statistic_reason) = cfg.statistic.resolve(events);
@@ -299,14 +300,6 @@ pub fn diagnose(
     // what the residuals of the flexible base and of the pixel reference depend on, by
     // permutation
     let flexible = super::base::predict(seq, &view, &samples, &base.current);
-    let scaled = super::base::predict_scaled(seq, &view, &samples, &base.current, &response);
-    let pixel_reference = PixelReference {
-        per_event_rms: super::base::per_event_rms(seq, &view, &samples, &base.current, &response)
-            .map(|r| r.0),
-        noise_scale: noise_scale.map(|n| n.0),
-        noise_scale_samples: noise_scale.map_or(0, |n| n.1),
-        ..PixelReference::of(&scaled.cells(&samples))
-    };
     let bases = contrast::Bases {
         flexible: &flexible,
         pixel_reference: &scaled.prediction,

@@ -182,6 +182,31 @@ pub struct PixelReference {
 }
 
 impl PixelReference {
+    /// The pixel reference of the model's prediction `pred` over `samples`, as
+    /// `persist diagnose` reports it: the noise scales measured on its residuals
+    /// ([`super::base::scale_noise`], set into `samples` for every later fit on them),
+    /// the fit with them ([`super::base::predict_scaled`]), its cells' RMS and the same
+    /// fitted to each illumination event alone ([`super::base::per_event_rms`]).
+    /// `view` is the model's clock and `response` its amplitude per fluence.
+    pub fn fit(
+        seq: &super::data::Sequence,
+        view: &super::base::View,
+        samples: &mut eval::Samples,
+        pred: &[f64],
+        response: &crate::model::response::Response,
+    ) -> (PixelReference, super::base::Scaled) {
+        use super::base;
+        let noise_scale = base::scale_noise(seq, view, samples, pred, response);
+        let scaled = base::predict_scaled(seq, view, samples, pred, response);
+        let reference = PixelReference {
+            per_event_rms: base::per_event_rms(seq, view, samples, pred, response).map(|r| r.0),
+            noise_scale: noise_scale.map(|n| n.0),
+            noise_scale_samples: noise_scale.map_or(0, |n| n.1),
+            ..PixelReference::of(&scaled.cells(samples))
+        };
+        (reference, scaled)
+    }
+
     pub(super) fn of(cells: &[(Vec<i64>, eval::GroupStat)]) -> PixelReference {
         let mut worst: Vec<eval::GroupStat> = cells.iter().map(|c| c.1).collect();
         worst.sort_by(|a, b| b.z.abs().total_cmp(&a.z.abs()));
