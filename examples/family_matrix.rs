@@ -51,7 +51,8 @@
 //!    hidden share, `1 - RMS(baseline) / RMS(before)`, is the share of the residual RMS
 //!    the hidden effect accounts for: about the most a candidate that captured it
 //!    exactly could gain, held out, over all cells; the runs where it reaches
-//!    `diagnose`'s held-out gate are counted apart;
+//!    `diagnose`'s held-out gate are counted apart. The same RMS of M.json and M2.json
+//!    themselves (the flagging models) is given beside it;
 //! 6. `persist run` with each model; the missed-flag fraction at 0.1 e-/s over the
 //!    touched pixels: a pixel is touched when its true persistence differs from the
 //!    baseline's by more than 0.01 e-/s at any exposure; a sample (touched pixel, any
@@ -483,6 +484,11 @@ struct Run {
     /// that the hidden effect accounts for.
     hidden_share: Option<f64>,
     halved: Option<bool>,
+    /// The pixel reference's RMS of the flagging models themselves (`fit`'s default
+    /// model, and the one the printed command writes), whatever `diagnose` tested
+    /// against.
+    flagging_before: Option<f64>,
+    flagging_after: Option<f64>,
     touched_pixels: Option<usize>,
     missed_before: Option<f64>,
     missed_after: Option<f64>,
@@ -643,6 +649,18 @@ fn one(ctx: &Ctx, row: &Row, seed: u64, cache: &mut BTreeMap<Vec<String>, Option
     if let Ok(v) = compare(ctx, &d, &models, &d.with_extension("compare")) {
         r.rms_before = v.first().copied();
         r.rms_after = v.get(1).copied();
+    }
+    let flagging: Vec<&Path> = std::iter::once(m.as_path()).chain(m2.as_deref()).collect();
+    let flagging = match described {
+        None => Ok(vec![r.rms_before, r.rms_after]
+            .into_iter()
+            .flatten()
+            .collect()),
+        Some(_) => compare(ctx, &d, &flagging, &d.with_extension("compare_flagging")),
+    };
+    if let Ok(v) = flagging {
+        r.flagging_before = v.first().copied();
+        r.flagging_after = v.get(1).copied();
     }
     if row.hidden.is_some() {
         if let Ok(b) = simulate(ctx, &row.baseline(), pin, seed) {
@@ -957,13 +975,13 @@ fn write_table(
     .unwrap();
     writeln!(
         md,
-        "Data: `persist simulate family` ({size} x {size}, seeds {first}..{}, see `persist::trapgen` for the physics and the forms). Every run uses the default commands only (`examples/family_matrix.rs` docs): `fit`, `diagnose`, then the `fit` commands `diagnose` prints for the effect declared first, or, with nothing declared, for the data-driven term it offers (column \"added\"). Kind named: the declared effect's contrast class, or else the covariate the verdict says the residual depends on (\"of this kind in another form\"). Excess RMS: the pixel reference's normalised residual RMS (`compare`'s \"pixel reference\", the reference `diagnose` judges its offers against) minus the baseline's (same seed, nothing hidden, its own fit), of the measurements' description `diagnose` tested against when it fitted one (the baseline fitted with the same printed command). Hidden share: `1 - RMS(baseline) / RMS(before)`, the share of that RMS the hidden effect accounts for, about the most a candidate capturing it exactly could gain over all cells; \"declared where share >= gate\": the runs where it reaches `diagnose`'s held-out gate ({HELD_OUT_MIN_GAIN}), and in how many of them the class was declared first. Missed: the fraction of samples of touched pixels with a true persistence current of at least 0.1 e-/s that `persist run` did not flag; over-flagged: of those truly below it, the fraction flagged. Diagnose s: the wall time of `diagnose` alone, with its defaults (this machine; other work may run beside it).\n",
+        "Data: `persist simulate family` ({size} x {size}, seeds {first}..{}, see `persist::trapgen` for the physics and the forms). Every run uses the default commands only (`examples/family_matrix.rs` docs): `fit`, `diagnose`, then the `fit` commands `diagnose` prints for the effect declared first, or, with nothing declared, for the data-driven term it offers (column \"added\"). Kind named: the declared effect's contrast class, or else the covariate the verdict says the residual depends on (\"of this kind in another form\"). Excess RMS: the pixel reference's normalised residual RMS (`compare`'s \"pixel reference\", the reference `diagnose` judges its offers against) minus the baseline's (same seed, nothing hidden, its own fit), of the measurements' description `diagnose` tested against when it fitted one (the baseline fitted with the same printed command). Hidden share: `1 - RMS(baseline) / RMS(before)`, the share of that RMS the hidden effect accounts for, about the most a candidate capturing it exactly could gain over all cells; \"declared where share >= gate\": the runs where it reaches `diagnose`'s held-out gate ({HELD_OUT_MIN_GAIN}), and in how many of them the class was declared first. Flagging model's pixel reference: the same RMS of `fit`'s default model and of the model the printed command writes (the models that flag), and in how many runs it fell. Missed: the fraction of samples of touched pixels with a true persistence current of at least 0.1 e-/s that `persist run` did not flag; over-flagged: of those truly below it, the fraction flagged. Diagnose s: the wall time of `diagnose` alone, with its defaults (this machine; other work may run beside it).\n",
         first + seeds - 1
     )
     .unwrap();
     writeln!(
         md,
-        "| row | runs | fit ok | diagnose ran | class named first | kind named first | kind (each run) | declared first (each run) | untestable answers | added (each run) | excess RMS before -> after (median) | hidden share of RMS (each run) | declared where share >= gate | halved | missed@0.1 touched before -> after (median) | over-flagged@0.1 touched before -> after (median) | diagnose s (median, max) |\n|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"
+        "| row | runs | fit ok | diagnose ran | class named first | kind named first | kind (each run) | declared first (each run) | untestable answers | added (each run) | excess RMS before -> after (median) | hidden share of RMS (each run) | declared where share >= gate | halved | flagging model's pixel reference before -> after (median; fell in) | missed@0.1 touched before -> after (median) | over-flagged@0.1 touched before -> after (median) | diagnose s (median, max) |\n|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"
     )
     .unwrap();
     for row in rows {
@@ -1045,7 +1063,7 @@ fn write_table(
         let halved_of = rs.iter().filter(|r| r.halved.is_some()).count();
         writeln!(
             md,
-            "| {} | {n} | {} | {} | {} | {} | {} | {} | {} | {} | {} -> {} | {} | {} | {} | {} -> {} | {} -> {} | {} |",
+            "| {} | {n} | {} | {} | {} | {} | {} | {} | {} | {} | {} -> {} | {} | {} | {} | {} -> {} ({}) | {} -> {} | {} -> {} | {} |",
             row.name(),
             rs.iter().filter(|r| r.fit_ok).count(),
             rs.iter()
@@ -1079,6 +1097,16 @@ fn write_table(
                 "-".into()
             } else {
                 format!("{halved} of {halved_of}")
+            },
+            f3(med(&|r| r.flagging_before)),
+            f3(med(&|r| r.flagging_after)),
+            {
+                let pairs: Vec<(f64, f64)> = rs
+                    .iter()
+                    .filter_map(|r| r.flagging_before.zip(r.flagging_after))
+                    .collect();
+                let fell = pairs.iter().filter(|(b, a)| a < b).count();
+                format!("{fell} of {}", pairs.len())
             },
             f3(med(&|r| r.missed_before)),
             f3(med(&|r| r.missed_after)),
