@@ -111,10 +111,13 @@ addition): the share of the samples measured above 0.1 e-/s that are flagged
 (coverage), and the share of all samples flagged while measured below it
 (over-flagged), before -> after; in brackets the added model's over-flagging with its
 knots scaled to the first model's coverage (`compare`'s line "at the first model's
-coverage").
+coverage"). Flagging model's pixel reference: `compare`'s "pixel reference" of the two
+flagging models themselves (the default `fit`'s and the one the printed command
+writes), before -> after, where the columns before and after are of the models
+`diagnose` tested against (the measurements' descriptions).
 
-| run | named | offered | before | after | baseline | excess before -> after | halved | next to far brighter pixels | field | decay tilt | flags at 0.1 e-/s: coverage; over-flagged |
-|---|---|---|---|---|---|---|---|---|---|---|---|
+| run | named | offered | before | after | baseline | excess before -> after | halved | next to far brighter pixels | field | decay tilt | flags at 0.1 e-/s: coverage; over-flagged | flagging model's pixel reference |
+|---|---|---|---|---|---|---|---|---|---|---|---|---|
 TEXT
 
 # The pixel reference's RMS in diagnose's output ($1).
@@ -151,6 +154,13 @@ named() {
 # The first `persist fit` command the verdict offers ($1), empty when none.
 offered_command() {
     perl -ne 'if (/add (?:it|both) with: (persist fit .*?)(?= \(|\. |; |$)/) { print "$1\n"; exit }' <<< "$1"
+}
+
+# "2.26 -> 4.64": the pixel reference's RMS of the first model and the second in
+# compare's summary.json ($1).
+flagging_rms() {
+    jq -r '[.models[] | .pixel_reference.residual_rms_normalised * 100 | round / 100]
+        | "\(.[0]) -> \(.[1])"' "$1"
 }
 
 # diagnose's output on data $1 with model $2, its JSON written to $3.
@@ -201,6 +211,7 @@ for seed in $seeds; do
         tilt_before=$(tilt "$dir.diag.json")
         tilt_after=-
         flags_row=-
+        flagging_row=-
         kind=$(named "$out")
         command=$(offered_command "$out")
         after=-
@@ -222,20 +233,21 @@ for seed in $seeds; do
             "$persist" --log-level error compare --input "$dir" --model "$dir.json" \
                 --model "$model" --report "$dir.compare" > /dev/null
             flags_row=$(flags "$dir.compare/summary.json")
+            flagging_row=$(flagging_rms "$dir.compare/summary.json")
         fi
         awk -v run="$row, seed $seed" -v kind="${kind:-?}" -v off="$offered" -v b="$before" \
             -v a="$after" -v z="${baseline["opts:$opts"]}" \
             -v mk="$marked_before -> $marked_after" -v fd="$field_before -> $field_after" \
-            -v tl="$tilt_before -> $tilt_after" -v fl="$flags_row" 'BEGIN {
+            -v tl="$tilt_before -> $tilt_after" -v fl="$flags_row" -v fm="$flagging_row" 'BEGIN {
                 eb = b - z
                 if (mk == "- -> -") mk = "-"
                 if (a == "-") {
-                    printf "| %s | %s | %s | %.2f | - | %.2f | %+.2f -> - | no | %s | %s | %s | %s |\n", run, kind, off, b, z, eb, mk, fd, tl, fl
+                    printf "| %s | %s | %s | %.2f | - | %.2f | %+.2f -> - | no | %s | %s | %s | %s | %s |\n", run, kind, off, b, z, eb, mk, fd, tl, fl, fm
                     exit
                 }
                 ea = a - z
                 halved = (ea <= 0.5 * eb || (eb <= 0 && ea <= 0)) ? "yes" : "no"
-                printf "| %s | %s | %s | %.2f | %.2f | %.2f | %+.2f -> %+.2f | %s | %s | %s | %s | %s |\n", run, kind, off, b, a, z, eb, ea, halved, mk, fd, tl, fl
+                printf "| %s | %s | %s | %.2f | %.2f | %.2f | %+.2f -> %+.2f | %s | %s | %s | %s | %s | %s |\n", run, kind, off, b, a, z, eb, ea, halved, mk, fd, tl, fl, fm
             }'
         rm -rf "$dir" "$dir".json "$dir".fit.json "$dir"+*.json "$dir".diag.json "$dir".after.json \
             "$dir".compare
@@ -273,6 +285,9 @@ awk -F' [|] ' '
             if (q[7] + 0 <= q[5] + 0) qo++
             if (q[9] != "(-)" && substr(q[9], 2) + 0 <= q[5] + 0) qm++
         }
+        # the pixel reference of the flagging models: "2.26 -> 4.64"
+        split($13, g, " ")
+        if (g[1] != "-" && g[1] != "|") { ng++; if (g[3] + 0 < g[1] + 0) gf++ }
     }
     END {
         printf "\nHidden: an addition offered in %d of %d runs; the excess over the nothing-hidden baseline halved in %d of %d. With no excess before (the pixel reference at or below the baseline): %d of %d.\n", o, h, y, h, z, h
@@ -280,4 +295,5 @@ awk -F' [|] ' '
         if (nf > 0) printf "A field shared by neighbouring pixels (R^2 above 0.20) before in %d runs; none left after in %d of them.\n", nf, fg + 0
         if (nd > 0) printf "A decay tilt that depends on the fluence (at least 0.07) before in %d runs; below it after in %d of them.\n", nd, dg + 0
         if (nq > 0) printf "Flags at 0.1 e-/s after the addition, in the %d runs with one: coverage within 1 percentage point of before in %d; over-flagging no higher at the model'"'"'s own margin in %d, and at the first model'"'"'s coverage in %d.\n", nq, qc + 0, qo + 0, qm + 0
+        if (ng > 0) printf "The flagging model'"'"'s own pixel reference fell after the addition in %d of %d runs.\n", gf + 0, ng
     }' "$work/rows.md"
