@@ -642,26 +642,27 @@ fn one(ctx: &Ctx, row: &Row, seed: u64, cache: &mut BTreeMap<Vec<String>, Option
     let printed = |line: &Option<String>| line.as_ref().and_then(|l| run_printed(ctx, l).ok());
     let described =
         printed(&suggested.reference_fit).map(|a| (a, printed(&suggested.measure_command)));
+    let models_as_given: Vec<&Path> = std::iter::once(m.as_path()).chain(m2.as_deref()).collect();
     let models: Vec<&Path> = match &described {
         Some((a, b)) => std::iter::once(a.as_path()).chain(b.as_deref()).collect(),
-        None => std::iter::once(m.as_path()).chain(m2.as_deref()).collect(),
+        None => models_as_given.clone(),
     };
     if let Ok(v) = compare(ctx, &d, &models, &d.with_extension("compare")) {
         r.rms_before = v.first().copied();
         r.rms_after = v.get(1).copied();
     }
-    let flagging: Vec<&Path> = std::iter::once(m.as_path()).chain(m2.as_deref()).collect();
-    let flagging = match described {
-        None => Ok(vec![r.rms_before, r.rms_after]
-            .into_iter()
-            .flatten()
-            .collect()),
-        Some(_) => compare(ctx, &d, &flagging, &d.with_extension("compare_flagging")),
+    // the flagging models themselves: the models just compared, unless those were
+    // the descriptions
+    (r.flagging_before, r.flagging_after) = match described {
+        None => (r.rms_before, r.rms_after),
+        Some(_) => compare(
+            ctx,
+            &d,
+            &models_as_given,
+            &d.with_extension("compare_flagging"),
+        )
+        .map_or((None, None), |v| (v.first().copied(), v.get(1).copied())),
     };
-    if let Ok(v) = flagging {
-        r.flagging_before = v.first().copied();
-        r.flagging_after = v.get(1).copied();
-    }
     if row.hidden.is_some() {
         if let Ok(b) = simulate(ctx, &row.baseline(), pin, seed) {
             r.rms_baseline = baseline_rms(ctx, &b, suggested.reference_fit.as_deref(), cache);

@@ -57,8 +57,9 @@ pub fn run_with(
         &loaded,
         touched.as_ref().map(|t| t.0.as_slice()),
     )?;
+    let reference_samples = diagnose_samples(&seq, opts);
     for (m, (_, params)) in ms.iter_mut().zip(&loaded) {
-        m.pixel_reference = Some(pixel_reference(&seq, params, opts)?);
+        m.pixel_reference = Some(pixel_reference(&seq, params, &reference_samples)?);
     }
     let summary = Summary {
         input: input.display().to_string(),
@@ -163,14 +164,24 @@ pub fn run_with(
     Ok(s)
 }
 
-/// The pixel reference of `params`' prediction on `persist diagnose`'s default samples
-/// ([`Config`]'s pixels and seed; the cells and their statistic `opts`'), so that its
-/// RMS is the one `diagnose` prints for the same model.
-fn pixel_reference(seq: &Sequence, params: &ModelParams, opts: &Options) -> Result<PixelReference> {
+/// `persist diagnose`'s default samples ([`Config`]'s pixels and seed; the cells and
+/// their statistic `opts`'), drawn once for every model's pixel reference.
+fn diagnose_samples(seq: &Sequence, opts: &Options) -> Samples {
     let cfg = Config::default();
-    let mut samples = Samples::random(seq, cfg.pixels, cfg.seed)
+    Samples::random(seq, cfg.pixels, cfg.seed)
         .with_cells(opts.cells)
-        .with_statistic(opts.cell_statistic);
+        .with_statistic(opts.cell_statistic)
+}
+
+/// The pixel reference of `params`' prediction on `samples` ([`diagnose_samples`]), so
+/// that its RMS is the one `diagnose` prints for the same model. The noise scales are
+/// measured for each model, as `diagnose` does, on a copy of the samples.
+fn pixel_reference(
+    seq: &Sequence,
+    params: &ModelParams,
+    samples: &Samples,
+) -> Result<PixelReference> {
+    let mut samples = samples.clone();
     let pred = super::eval::predict(params, seq, &samples, false)?;
     let view = super::base::View::of_model(params, seq);
     let response = crate::model::response::Response::new(&params.amplitude_knots);
