@@ -92,6 +92,77 @@ pub(super) fn measure_command(
     Some(fit_command(input, &out, &readout, names, cfg))
 }
 
+/// The effects by which the measurements' description reads the on-board slope
+/// ([`crate::calib::readout`]), held at the readout's values.
+const READOUT_EFFECTS: [&str; 2] = ["chord", "linefit_bias"];
+
+/// The model an addition measured against the description `described` goes into, when
+/// the user's model `params` is calibrated with the paper's (flagging) preset and the
+/// data hold two illumination events or more (`events`): `params` with the
+/// description's on-board slope ([`READOUT_EFFECTS`], held at its values) and its decay
+/// terms (rates, first time, offset), the flagging margin kept. `None` otherwise: the
+/// addition goes into the model as it is.
+///
+/// On campaigns the flagging calibration takes in an addition that acts on the decay's
+/// clock only with them (docs/diagnostics.md, "The flagging model after an addition"):
+/// in the README's walk (hidden `temperature`) the flagging model's pixel reference
+/// goes 2.26 -> 4.64 with the effect alone and 2.26 -> 1.10 with them. On a single
+/// illumination they do not help: the second generator's, hidden `shape:fill_depth`,
+/// seed 2, with the offered `smooth_shape`, `compare`'s residual 4.11 -> 3.97 without
+/// them and 4.11 -> 6.43 with, over-flagging at the first model's coverage 205 -> 204
+/// and 205 -> 212 samples.
+pub(super) fn flagging_base(
+    params: &ModelParams,
+    described: &ModelParams,
+    events: usize,
+) -> Option<ModelParams> {
+    let c = calibration_or_fit_default(params);
+    let d = described.calibration.as_ref()?;
+    if events < 2 || !crate::calib::Preset::Paper.matches(&c) {
+        return None;
+    }
+    let mut base = params.clone();
+    base.effects.extend(
+        described
+            .effects
+            .iter()
+            .filter(|e| READOUT_EFFECTS.contains(&e.name.as_str()))
+            .filter(|e| !params.effects.iter().any(|p| p.name == e.name))
+            .cloned(),
+    );
+    base.calibration = Some(crate::model::params::Calibration {
+        t_min_s: d.t_min_s,
+        decay_offset_s: d.decay_offset_s,
+        rates_per_s: d.rates_per_s.clone(),
+        ..c
+    });
+    Some(base)
+}
+
+/// The verdict's sentence on a command built on [`flagging_base`].
+pub(super) fn flagging_base_note(described: &ModelParams) -> String {
+    let slope: Vec<&str> = described
+        .effects
+        .iter()
+        .map(|e| e.name.as_str())
+        .filter(|n| READOUT_EFFECTS.contains(n))
+        .collect();
+    let terms = described
+        .calibration
+        .as_ref()
+        .map_or(0, |c| c.rates_per_s.len());
+    format!(
+        ". The flagging model's command also carries the description's on-board slope \
+         ({}) and its {terms} decay terms: the paper's calibration takes in an addition \
+         that acts on the decay's clock only with them",
+        if slope.is_empty() {
+            "none measured".to_string()
+        } else {
+            slope.join(", ")
+        }
+    )
+}
+
 /// The calibration the model records, or `fit`'s defaults (the paper's) for a model
 /// without the record.
 pub(super) fn calibration_or_fit_default(
@@ -332,5 +403,60 @@ mod tests {
         c.t_min_s = 2.0;
         assert_eq!(preset_of(&c), None);
         assert!(calibration_args(Some(&c)).contains(" --amplification 1 --t-min-s 2"));
+    }
+
+    /// On two illumination events or more, an addition to a model at the paper's preset
+    /// goes in with the description's on-board slope, held, and its decay terms; the
+    /// flagging margin stays. On one event, or for a model calibrated otherwise: as it is.
+    #[test]
+    fn a_flagging_model_takes_the_description_s_slope_and_terms_on_campaigns() {
+        use crate::calib::Preset;
+        let user = ModelParams {
+            calibration: Some(Preset::Paper.config().record()),
+            effects: vec![EffectSpec::named("refill")],
+            ..ModelParams::default()
+        };
+        let mut described = user.clone();
+        described.calibration = Some(Preset::Readout.config().record());
+        for name in ["chord", "linefit_bias"] {
+            let mut e = EffectSpec::named(name);
+            e.params.insert("strength".into(), 1.0.into());
+            e.params.insert("first_read_s".into(), 1.5.into());
+            e.fixed = vec!["strength".into(), "first_read_s".into()];
+            described.effects.push(e);
+        }
+        assert!(flagging_base(&user, &described, 1).is_none());
+        let base = flagging_base(&user, &described, 2).unwrap();
+        let c = base.calibration.as_ref().unwrap();
+        assert_eq!(c.rates_per_s.len(), 13);
+        assert_eq!((c.t_min_s, c.decay_offset_s), (1.0, 0.2));
+        assert_eq!(c.amplification, Preset::Paper.config().amplification);
+        assert_eq!(c.coverage, Preset::Paper.config().record().coverage);
+        let cmd = fit_command(
+            Path::new("lab"),
+            Path::new("m.json"),
+            &base,
+            &["temperature:activation_ev=0.25"],
+            &Config::default(),
+        );
+        assert!(
+            cmd.starts_with(
+                "persist fit --input lab --out m+temperature.json \
+                 --with chord:strength=1,first_read_s=1.5 \
+                 --with linefit_bias:strength=1,first_read_s=1.5 \
+                 --with temperature:activation_ev=0.25 --t-min-s 1 --decay-offset-s 0.2 \
+                 --rates-per-s 1,0.398"
+            ),
+            "{cmd}"
+        );
+        assert!(
+            !cmd.contains("--preset") && !cmd.contains("--amplification"),
+            "{cmd}"
+        );
+        // a model at the measured level goes in as it is
+        let mut measured = user.clone();
+        measured.calibration = Some(Preset::Readout.config().record());
+        assert!(flagging_base(&measured, &described, 2).is_none());
+        assert!(flagging_base_note(&described).contains("(chord, linefit_bias) and its 13"));
     }
 }

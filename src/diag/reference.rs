@@ -196,12 +196,15 @@ pub fn diagnose_with(
     let described_path = model_path.with_extension("measured.json");
     let mut d = diagnose::diagnose(&described, seq, cfg, input, &described_path)?;
     // each effect measured against the description goes into the user's model at the
-    // values measured, held; the command that measures them is kept beside it
+    // values measured, held (a flagging model with the description's slope and decay
+    // terms: `command::flagging_base`); the command that measures them is kept beside it
+    let flagging = command::flagging_base(params, &described, d.events);
+    let into = flagging.as_ref().unwrap_or(params);
     let hold = |command: &mut String, measured_with: &Option<String>| {
         let held = measured_with.as_ref()?;
         Some(std::mem::replace(
             command,
-            command::fit_command(input, model_path, params, &[held.as_str()], cfg),
+            command::fit_command(input, model_path, into, &[held.as_str()], cfg),
         ))
     };
     for c in d.ranking.iter_mut() {
@@ -218,6 +221,14 @@ pub fn diagnose_with(
         }
     }
     d.verdict = verdict::verdict(&d, &described, true);
+    let any_held = d.ranking.iter().any(|c| c.measure_command.is_some())
+        || [d.data_term.as_ref(), d.shape_term.as_ref()]
+            .into_iter()
+            .flatten()
+            .any(|t| t.measure_command.is_some());
+    if flagging.is_some() && any_held {
+        d.verdict += &command::flagging_base_note(&described);
+    }
     Ok(Diagnosed {
         reference: ReferenceUsed {
             kind,
