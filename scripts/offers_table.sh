@@ -146,7 +146,7 @@ named() {
         if (/^missing effect: \S+ \(the evidence is in the residual against (\w+)/) { print "$1\n"; exit }
         if (/(\w+) or (\w+): confounded in these data\./) { print "$1 / $2\n"; exit }
         if (/^no library effect is significant alone, but (\S+) and (\S+) are together/) { print "$1 + $2\n"; exit }
-        if (/^the residual of .* depends on (\w+) /) { print "$1\n"; exit }
+        if (/^the residual of .*? depends on (\w+) /) { print "$1\n"; exit }
         if (/^the decay.s shape depends on the fluence \((\w+)\)/) { print "$1\n"; exit }
         if (/^no library effect is significant; /) { print "nothing\n"; exit }' <<< "$1"
 }
