@@ -123,10 +123,7 @@ pub(super) fn flagging_base(
     }
     let mut base = params.clone();
     base.effects.extend(
-        described
-            .effects
-            .iter()
-            .filter(|e| READOUT_EFFECTS.contains(&e.name.as_str()))
+        readout_effects(described)
             .filter(|e| !params.effects.iter().any(|p| p.name == e.name))
             .cloned(),
     );
@@ -139,13 +136,20 @@ pub(super) fn flagging_base(
     Some(base)
 }
 
-/// The verdict's sentence on a command built on [`flagging_base`].
-pub(super) fn flagging_base_note(described: &ModelParams) -> String {
-    let slope: Vec<&str> = described
+/// The description's effects that read the on-board slope ([`READOUT_EFFECTS`]).
+fn readout_effects(
+    described: &ModelParams,
+) -> impl Iterator<Item = &crate::model::params::EffectSpec> {
+    described
         .effects
         .iter()
+        .filter(|e| READOUT_EFFECTS.contains(&e.name.as_str()))
+}
+
+/// The verdict's sentence on a command built on [`flagging_base`].
+pub(super) fn flagging_base_note(described: &ModelParams) -> String {
+    let slope: Vec<&str> = readout_effects(described)
         .map(|e| e.name.as_str())
-        .filter(|n| READOUT_EFFECTS.contains(n))
         .collect();
     let terms = described
         .calibration

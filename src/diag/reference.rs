@@ -207,9 +207,11 @@ pub fn diagnose_with(
             command::fit_command(input, model_path, into, &[held.as_str()], cfg),
         ))
     };
+    let mut any_held = false;
     for c in d.ranking.iter_mut() {
         if let Some(m) = hold(&mut c.command, &c.measured_with) {
             c.measure_command = Some(m);
+            any_held = true;
         }
     }
     for t in [d.data_term.as_mut(), d.shape_term.as_mut()]
@@ -218,14 +220,10 @@ pub fn diagnose_with(
     {
         if let Some(m) = hold(&mut t.command, &t.measured_with) {
             t.measure_command = Some(m);
+            any_held = true;
         }
     }
     d.verdict = verdict::verdict(&d, &described, true);
-    let any_held = d.ranking.iter().any(|c| c.measure_command.is_some())
-        || [d.data_term.as_ref(), d.shape_term.as_ref()]
-            .into_iter()
-            .flatten()
-            .any(|t| t.measure_command.is_some());
     if flagging.is_some() && any_held {
         d.verdict += &command::flagging_base_note(&described);
     }
