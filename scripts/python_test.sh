@@ -3,9 +3,12 @@
 # checkout, install it into the current Python, check that it imports, and run its
 # pytest suite (python/tests; it also runs docs/python_example.py).
 # scripts/bootstrap.sh --python installs maturin, numpy, h5py, pytest and matplotlib.
-# The build is a release build in python/target (a crate of its own, with its own lock).
+# The build is a release build (a crate of its own, with its own lock) in the main
+# crate's target directory, so that the dependencies `cargo test --release` built with
+# the same features are reused; the wheel goes to python/target/wheels.
 set -euo pipefail
 cd "$(dirname "$0")/.."
+export CARGO_TARGET_DIR="${CARGO_TARGET_DIR:-$PWD/target}"
 start=$(date +%s)
 # A wheel (what a release would publish), then installed from that file.
 rm -f python/target/wheels/persist-*.whl

@@ -1165,28 +1165,40 @@ pub fn measure_noise_scale(scaled: &Scaled, s: &Samples) -> Option<(NoiseScale, 
 /// Solves `m x = b` for a symmetric positive definite `m` (n x n, row major) by
 /// Cholesky; None when it is not positive definite. Reads the lower triangle of `m`
 /// (the diagonal and below) only, where it leaves the factor.
+///
+/// The factor of a row is zero before the row's first non-zero entry (its envelope),
+/// so the sums start there: the terms left out are exact zeros, and the result is the
+/// dense factorisation's. The base's normal equations are mostly envelope where knots
+/// or the saturated pixels' own response go unused.
 fn solve_spd(m: &mut [f64], mut b: Vec<f64>, n: usize) -> Option<Vec<f64>> {
+    let first: Vec<usize> = (0..n)
+        .map(|i| (0..i).find(|&k| m[i * n + k] != 0.0).unwrap_or(i))
+        .collect();
     for j in 0..n {
-        let mut d = m[j * n + j];
-        for k in 0..j {
-            d -= m[j * n + k] * m[j * n + k];
+        let row_j = j * n;
+        let mut d = m[row_j + j];
+        for k in first[j]..j {
+            d -= m[row_j + k] * m[row_j + k];
         }
         if d <= 0.0 || !d.is_finite() {
             return None;
         }
         let d = d.sqrt();
-        m[j * n + j] = d;
+        m[row_j + j] = d;
         for i in j + 1..n {
+            if first[i] > j {
+                continue;
+            }
             let mut v = m[i * n + j];
-            for k in 0..j {
-                v -= m[i * n + k] * m[j * n + k];
+            for k in first[i].max(first[j])..j {
+                v -= m[i * n + k] * m[row_j + k];
             }
             m[i * n + j] = v / d;
         }
     }
     for i in 0..n {
         let mut v = b[i];
-        for k in 0..i {
+        for k in first[i]..i {
             v -= m[i * n + k] * b[k];
         }
         b[i] = v / m[i * n + i];
@@ -1194,7 +1206,9 @@ fn solve_spd(m: &mut [f64], mut b: Vec<f64>, n: usize) -> Option<Vec<f64>> {
     for i in (0..n).rev() {
         let mut v = b[i];
         for k in i + 1..n {
-            v -= m[k * n + i] * b[k];
+            if first[k] <= i {
+                v -= m[k * n + i] * b[k];
+            }
         }
         b[i] = v / m[i * n + i];
     }
@@ -1276,6 +1290,34 @@ pub(super) mod tests {
             x.iter().map(|v| v.to_bits()).collect::<Vec<_>>(),
             y.iter().map(|v| v.to_bits()).collect::<Vec<_>>()
         );
+    }
+
+    /// A system whose rows start late (zeros before their first entry, the envelope the
+    /// factorisation skips) is solved: `m x = b` to rounding, on a 5 x 5 matrix with a
+    /// decoupled block, an unused parameter (a ridge alone) and a row coupled back
+    /// across the block.
+    #[test]
+    fn cholesky_solves_a_system_whose_rows_start_late() {
+        let n = 5;
+        #[rustfmt::skip]
+        let full = vec![
+            4.0, 1.0, 0.0, 0.0, 0.5,
+            1.0, 3.0, 0.0, 0.0, 0.0,
+            0.0, 0.0, 1e-6, 0.0, 0.0,
+            0.0, 0.0, 0.0, 2.0, 0.7,
+            0.5, 0.0, 0.0, 0.7, 5.0,
+        ];
+        let b = vec![1.0, -1.0, 2e-6, 0.5, 3.0];
+        let x = solve_spd(&mut full.clone(), b.clone(), n).unwrap();
+        for i in 0..n {
+            let mx: f64 = (0..n).map(|j| full[i * n + j] * x[j]).sum();
+            assert!(
+                (mx - b[i]).abs() < 1e-12 * (1.0 + b[i].abs()),
+                "row {i}: {mx} vs {}",
+                b[i]
+            );
+        }
+        assert!((x[2] - 2.0).abs() < 1e-9, "{x:?}");
     }
 
     /// Through `ipc`'s readout, a pixel next to a bright one takes the bright one's
