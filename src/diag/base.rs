@@ -513,7 +513,7 @@ fn fit_correction(
     let partial: Vec<(Vec<f64>, Vec<f64>)> = fit
         .par_chunks(chunk)
         .map(|chunk| {
-            let mut ata = vec![0.0; p * p];
+            let mut ata = vec![0.0; p * (p + 1) / 2];
             let mut atb = vec![0.0; p];
             for &i in chunk {
                 let f = feat.of(i);
@@ -526,9 +526,10 @@ fn fit_correction(
                 for (q, &(a, va)) in f.iter().enumerate() {
                     let wa = w * va;
                     atb[a] += wa * y;
-                    // the lower triangle alone, all that `solve_spd` reads: `f` ascends
-                    // by parameter, so its first `q + 1` entries are those at or below `a`
-                    let row = &mut ata[a * p..=a * p + a];
+                    // the lower triangle alone, packed by rows (all that `solve_spd`
+                    // reads): `f` ascends by parameter, so its first `q + 1` entries are
+                    // those at or below `a`
+                    let row = &mut ata[a * (a + 1) / 2..=a * (a + 1) / 2 + a];
                     for &(b, vb) in &f[..=q] {
                         row[b] += wa * vb;
                     }
@@ -537,13 +538,16 @@ fn fit_correction(
             (ata, atb)
         })
         .collect();
-    let (mut ata, mut atb) = (vec![0.0; p * p], vec![0.0; p]);
+    let (mut ata, mut atb) = (vec![0.0; p * (p + 1) / 2], vec![0.0; p]);
     for (a, b) in partial {
         ata.iter_mut().zip(a).for_each(|(x, y)| *x += y);
         atb.iter_mut().zip(b).for_each(|(x, y)| *x += y);
     }
-    let trace: f64 = (0..p).map(|j| ata[j * p + j]).sum::<f64>() / p as f64;
-    let mut m = ata;
+    let mut m = vec![0.0; p * p];
+    for a in 0..p {
+        m[a * p..=a * p + a].copy_from_slice(&ata[a * (a + 1) / 2..=a * (a + 1) / 2 + a]);
+    }
+    let trace: f64 = (0..p).map(|j| m[j * p + j]).sum::<f64>() / p as f64;
     for j in 0..p {
         m[j * p + j] += 1e-6 * trace.max(1e-300);
     }
