@@ -1172,8 +1172,8 @@ pub fn measure_noise_scale(scaled: &Scaled, s: &Samples) -> Option<(NoiseScale, 
 ///
 /// The factor of a row is zero before the row's first non-zero entry (its envelope),
 /// so the sums start there: the terms left out are exact zeros, and the result is the
-/// dense factorisation's. The base's normal equations are mostly envelope where knots
-/// or the saturated pixels' own response go unused.
+/// dense factorisation's. In the base's normal equations the knots and the saturated
+/// pixels' own response that no sample uses leave rows empty before the diagonal.
 fn solve_spd(m: &mut [f64], mut b: Vec<f64>, n: usize) -> Option<Vec<f64>> {
     let first: Vec<usize> = (0..n)
         .map(|i| (0..i).find(|&k| m[i * n + k] != 0.0).unwrap_or(i))
