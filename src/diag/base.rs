@@ -529,7 +529,7 @@ fn fit_correction(
                     // the lower triangle alone, packed by rows (all that `solve_spd`
                     // reads): `f` ascends by parameter, so its first `q + 1` entries are
                     // those at or below `a`
-                    let row = &mut ata[a * (a + 1) / 2..=a * (a + 1) / 2 + a];
+                    let row = &mut ata[packed_row(a)];
                     for &(b, vb) in &f[..=q] {
                         row[b] += wa * vb;
                     }
@@ -545,13 +545,19 @@ fn fit_correction(
     }
     let mut m = vec![0.0; p * p];
     for a in 0..p {
-        m[a * p..=a * p + a].copy_from_slice(&ata[a * (a + 1) / 2..=a * (a + 1) / 2 + a]);
+        m[a * p..=a * p + a].copy_from_slice(&ata[packed_row(a)]);
     }
     let trace: f64 = (0..p).map(|j| m[j * p + j]).sum::<f64>() / p as f64;
     for j in 0..p {
         m[j * p + j] += 1e-6 * trace.max(1e-300);
     }
     solve_spd(&mut m, atb, p)
+}
+
+/// Row `a` of a lower triangle packed by rows: its entries `(a, 0) ..= (a, a)`.
+fn packed_row(a: usize) -> std::ops::RangeInclusive<usize> {
+    let start = a * (a + 1) / 2;
+    start..=start + a
 }
 
 /// Alternations of the scaled base's fit ([`predict_scaled`]).
@@ -1190,9 +1196,6 @@ fn solve_spd(m: &mut [f64], mut b: Vec<f64>, n: usize) -> Option<Vec<f64>> {
         let d = d.sqrt();
         m[row_j + j] = d;
         for i in j + 1..n {
-            if first[i] > j {
-                continue;
-            }
             let mut v = m[i * n + j];
             for k in first[i].max(first[j])..j {
                 v -= m[i * n + k] * m[row_j + k];
@@ -1210,9 +1213,7 @@ fn solve_spd(m: &mut [f64], mut b: Vec<f64>, n: usize) -> Option<Vec<f64>> {
     for i in (0..n).rev() {
         let mut v = b[i];
         for k in i + 1..n {
-            if first[k] <= i {
-                v -= m[k * n + i] * b[k];
-            }
+            v -= m[k * n + i] * b[k];
         }
         b[i] = v / m[i * n + i];
     }
