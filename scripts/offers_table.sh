@@ -111,7 +111,8 @@ addition): the share of the samples measured above 0.1 e-/s that are flagged
 (coverage), and the share of all samples flagged while measured below it
 (over-flagged), before -> after; in brackets the added model's over-flagging with its
 knots scaled to the first model's coverage (`compare`'s line "at the first model's
-coverage"). Flagging model's pixel reference: `compare`'s "pixel reference" of the two
+coverage"), and its over-flagged samples minus the first model's +- the standard error
+of that difference, paired by pixel (a rise within twice it is within the noise). Flagging model's pixel reference: `compare`'s "pixel reference" of the two
 flagging models themselves (the default `fit`'s and the one the printed command
 writes), before -> after, where the columns before and after are of the models
 `diagnose` tested against (the measurements' descriptions).
@@ -174,14 +175,18 @@ tilt() {
         "\(.decay_shape.rise * 100 | round / 100) (z \(.decay_shape.rise_z | round))" end' "$1"
 }
 
-# "99.5 -> 99.5 %; 0.42 -> 0.43 % (0.41 %)": compare's flags at 0.1 e-/s of the first
-# model and the second ($1: summary.json), the second's also at the first's coverage.
+# "99.5 -> 99.5 %; 0.42 -> 0.43 % (0.41 %, -12 +- 9.8)": compare's flags at 0.1 e-/s of
+# the first model and the second ($1: summary.json), the second's also at the first's
+# coverage, with its over-flagged samples minus the first's and the standard error of
+# that difference, paired by pixel.
 flags() {
     jq -r '[.models[] | .flag_quality["0.1"]] as $q
-        | (.models[1].flags_at_first_coverage.quality.over_flag_fraction // null) as $m
+        | .models[1].flags_at_first_coverage as $f
         | def pc: . * 1000 | round / 10;
           def pc2: . * 10000 | round / 100;
-        "\((1 - $q[0].missed_of_measured_above) | pc) -> \((1 - $q[1].missed_of_measured_above) | pc) %; \($q[0].over_flag_fraction | pc2) -> \($q[1].over_flag_fraction | pc2) % (\(if $m == null then "-" else ($m | pc2 | tostring) + " %" end))"' "$1"
+          def paired: .over_flagged_vs_first
+            | "\(if .difference > 0 then "+" else "" end)\(.difference) +- \(.standard_error * 10 | round / 10)";
+        "\((1 - $q[0].missed_of_measured_above) | pc) -> \((1 - $q[1].missed_of_measured_above) | pc) %; \($q[0].over_flag_fraction | pc2) -> \($q[1].over_flag_fraction | pc2) % (\(if $f == null then "-" else ($f.quality.over_flag_fraction | pc2 | tostring) + " %, " + ($f | paired) end))"' "$1"
 }
 
 for seed in $seeds; do

@@ -208,7 +208,7 @@ fn pixel_reference_line(r: &PixelReference) -> String {
 }
 
 /// A model's flags at the first model's coverage ([`super::compare::at_coverage_of`]),
-/// beside the first model's over-flagging.
+/// beside the first model's over-flagging and the difference's noise, paired by pixel.
 fn matched_line(f: &super::compare::MatchedFlags, first: &super::compare::ModelSummary) -> String {
     let q = &f.quality;
     let thr = q.threshold_e_per_s;
@@ -216,15 +216,27 @@ fn matched_line(f: &super::compare::MatchedFlags, first: &super::compare::ModelS
         .flag_quality
         .get(&format!("{thr}"))
         .map_or(0, |q| q.over_flagged);
+    let d = &f.over_flagged_vs_first;
+    let verdict = if d.rises_beyond_noise() {
+        "higher beyond the noise"
+    } else if -(d.difference as f64) > 2.0 * d.standard_error {
+        "lower beyond the noise"
+    } else {
+        "within the noise"
+    };
     format!(
         "    at the first model's coverage at {thr} e-/s (knots x {:.4}): {} missed ({} for \
-         the first), over-flagged {:.2} % ({} samples; {} for the first)\n",
+         the first), over-flagged {:.2} % ({} samples; {} for the first: {:+}, standard \
+         error {:.1} from the {} pixels whose counts differ, {verdict})\n",
         f.knot_factor,
         q.missed,
         f.target_missed,
         100.0 * q.over_flag_fraction,
         q.over_flagged,
-        first_over
+        first_over,
+        d.difference,
+        d.standard_error,
+        d.pixels_differing,
     )
 }
 

@@ -23,8 +23,8 @@ pub use group::{
     p95_sigma_median, paired_z, CellStatistic, GroupStat,
 };
 pub use quality::{
-    flag_quality, flag_quality_by_cell, flag_quality_of, flag_quality_of_samples, pixels_of,
-    touched_samples, FlagQuality,
+    flag_quality, flag_quality_by_cell, flag_quality_of, flag_quality_of_samples,
+    over_flagged_by_pixel, pixels_of, touched_samples, FlagQuality,
 };
 pub use runner::{predict, predict_at_temperatures, predict_in, Layout, Prediction, GATHERED_COLS};
 pub use samples::{Cells, NoiseScale, Samples};

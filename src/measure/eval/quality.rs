@@ -129,6 +129,40 @@ pub fn flag_quality_by_cell(
     g.into_iter().map(|(k, c)| (k, c.quality(thr))).collect()
 }
 
+/// Sample `i` is flagged: `flagged[i]`, or its prediction above `thr` when no flags are
+/// given.
+fn is_flagged(pred: &[f64], flagged: Option<&[bool]>, thr: f64, i: usize) -> bool {
+    flagged.map_or(pred[i] > thr, |f| f[i])
+}
+
+/// Sample `i` is over-flagged at `thr` (module docs): flagged and measured below
+/// `thr - 2 sigma_k` (a measurement that is not finite is not).
+fn is_over_flagged(
+    s: &Samples,
+    pred: &[f64],
+    flagged: Option<&[bool]>,
+    thr: f64,
+    i: usize,
+) -> bool {
+    is_flagged(pred, flagged, thr, i) && s.measured[i] < thr - 2.0 * s.noise[i / s.npix()]
+}
+
+/// Per sampled pixel ([`Samples::pixels`], in that order), how many of its samples are
+/// over-flagged at `thr`, counted as in [`flag_quality`]: what a comparison of two
+/// models' over-flagging pairs by pixel, since a pixel's samples are not independent.
+pub fn over_flagged_by_pixel(
+    s: &Samples,
+    pred: &[f64],
+    flagged: Option<&[bool]>,
+    thr: f64,
+) -> Vec<u32> {
+    let mut n = vec![0u32; s.npix()];
+    for i in 0..s.len() {
+        n[i % s.npix()] += is_over_flagged(s, pred, flagged, thr, i) as u32;
+    }
+    n
+}
+
 /// The counts behind a [`FlagQuality`] (module docs: missed is measured above
 /// `thr + 2 sigma_k` and not flagged; over-flagged is flagged and measured below
 /// `thr - 2 sigma_k`).
@@ -150,19 +184,13 @@ impl FlagCounts {
             return;
         }
         self.samples += 1;
-        let sig = s.noise[i / s.npix()];
-        let f = match flagged {
-            Some(f) => f[i],
-            None => pred[i] > thr,
-        };
+        let f = is_flagged(pred, flagged, thr, i);
         self.flagged += f as usize;
-        if m > thr + 2.0 * sig {
+        if m > thr + 2.0 * s.noise[i / s.npix()] {
             self.above += 1;
             self.missed += !f as usize;
         }
-        if f && m < thr - 2.0 * sig {
-            self.over += 1;
-        }
+        self.over += is_over_flagged(s, pred, flagged, thr, i) as usize;
     }
 
     fn quality(&self, thr: f64) -> FlagQuality {
