@@ -167,7 +167,9 @@
 //! permutations of the candidate's predicted change, on the same halves
 //! ([`super::refit::PixelHeldOut::beats_permutations`]): a gate calibrated on the data,
 //! with a chance of at most 1 in 20 when the change carries nothing about where it
-//! applies. The reference is not the description: on the second generator's campaigns
+//! applies; and that gain is at least [`super::refit::PIXEL_HELD_OUT_MIN_GAIN`] (1 % of
+//! the reference's RMS), below which a gain beyond chance is still too small to change
+//! a flag ([`super::refit::PixelHeldOut::predicts_held_out`]). The reference is not the description: on the second generator's campaigns
 //! with nothing hidden the pixel reference's RMS is 0.9-1.2, the description's 7-15
 //! (docs/validation/reference_rms.md), so a fixed gain against the description rewards
 //! whatever absorbs its misfit. The change in BIC and the gain against the description
@@ -754,8 +756,8 @@ impl Refitted {
 
     /// The gates (module docs, "Refit, change in BIC, held-out check"). With the
     /// contrast decision: the held-out check against the pixel reference, each fold
-    /// gaining and the pooled gain above every permutation of the candidate's change
-    /// ([`super::refit::PixelHeldOut::beats_permutations`]), calibrated on these data;
+    /// gaining and the pooled gain above every permutation of the candidate's change and
+    /// the least that counts ([`super::refit::PixelHeldOut::predicts_held_out`]);
     /// the change in BIC alone where no held-out check could be made (too few sampled
     /// pixels). With the score decision, and where the pixel reference could not be
     /// held out (the halves' cells differ, as with few sampled pixels): the change in
@@ -769,7 +771,7 @@ impl Refitted {
                     ..
                 }),
                 Decide::Contrast,
-            ) => p.beats_permutations(),
+            ) => p.predicts_held_out(),
             (Some(h), _) => self.delta_bic < DBIC_MAX && h.passes,
             (None, _) => self.delta_bic < DBIC_MAX,
         }

@@ -68,9 +68,9 @@ use super::refit::PixelHeldOut;
 
 /// Whether a held-out check against the pixel reference supports an offer: each fold
 /// gains and the pooled gain exceeds that of every permutation of the candidate's
-/// predicted change ([`PixelHeldOut::beats_permutations`]).
+/// predicted change and the least that counts ([`PixelHeldOut::predicts_held_out`]).
 fn passes(p: &PixelHeldOut) -> bool {
-    p.beats_permutations()
+    p.predicts_held_out()
 }
 
 /// The share of the data-driven term's held-out gain a library effect that passes must

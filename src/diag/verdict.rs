@@ -282,9 +282,10 @@ fn dependence_sentence(w: &contrast::Dependence, outpredicted: &str, uncalibrate
         format!(
             "no library effect acting on it ({}) predicts held-out data better than {} \
              beyond {PERMUTATIONS} permutations of its change (or, for a rate hook, of \
-             the temperatures)",
+             the temperatures) by at least {:.0} % of its RMS",
             w.effects.join(", "),
-            judge.phrase()
+            judge.phrase(),
+            100.0 * super::refit::PIXEL_HELD_OUT_MIN_GAIN
         )
     } else {
         format!(
@@ -605,14 +606,16 @@ fn data_term_sentence(
     format!(
         ". A data-driven term along it ({}) does not predict held-out data either \
          (dBIC {:.1}, {gain}; against {}, no refitted candidate gains held out more \
-         than every one of {PERMUTATIONS} permutations of its change): not offered",
+         than every one of {PERMUTATIONS} permutations of its change by at least {:.0} % \
+         of its RMS): not offered",
         t.effect,
         t.delta_bic,
         t.held_out
             .as_ref()
             .and_then(|h| h.pixel_reference.as_ref())
             .map_or(super::refit::Judge::PixelReference, |p| p.judge)
-            .phrase()
+            .phrase(),
+        100.0 * super::refit::PIXEL_HELD_OUT_MIN_GAIN
     )
 }
 
