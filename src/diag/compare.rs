@@ -251,8 +251,8 @@ pub fn at_coverage_of(
 /// amplitudes of pixels measured below the threshold, and near the noise floor of the
 /// misses (samples measured above the threshold whose truth is below it) a few samples
 /// come and go. Measured on the second generator's `soak:capture` campaign (64 x 64,
-/// seed 3) with the soak effect added: 96 missed at x 1, 126 at x 4, 90 at x 4.7. A
-/// bisection over the whole range can then settle on a factor far above the smallest.
+/// seed 3) with the soak effect added: 96 missed at x 1, 91 at x 1.5, 110 at x 2, 117
+/// at x 4, 90 at x 4.7. A bisection over the whole range can then settle on a factor far above the smallest.
 /// So the log grid of [`MATCH_GRID_STEPS`] steps is walked up from the smallest factor,
 /// and the first grid point that reaches the target is refined by bisection in `ln
 /// factor` against the grid point below it, to 0.01 %. A dip narrower than one grid
