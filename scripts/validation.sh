@@ -21,8 +21,9 @@
 #                                               $VERIFY_BENCH_ARGS`: `persist verify` on full
 #                                               frames and one detector-day (about 8 minutes)
 #   family  docs/validation/diagnostics_family.md  examples/family_matrix $FAMILY_ARGS
-#                                               (default --size 64 --seeds 5: about an hour
-#                                               on a quiet machine; not in the default set)
+#                                               (default --size 64 --seeds 5: about 5 h
+#                                               alone, --resume FILE runs it in parts; not
+#                                               in the default set)
 #   family128  docs/validation/diagnostics_family_128.md  the same at 128 x 128, single
 #                                               illuminations with nothing hidden
 #                                               ($FAMILY128_ARGS; minutes; not in the default set)
