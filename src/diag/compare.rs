@@ -182,9 +182,17 @@ impl PairedDifference {
         }
     }
 
-    /// The difference is more than twice its standard error above zero.
-    pub fn rises_beyond_noise(&self) -> bool {
-        self.difference as f64 > 2.0 * self.standard_error
+    /// "higher beyond the noise" or "lower beyond the noise" when the difference is
+    /// more than twice its standard error from zero, else "within the noise".
+    pub fn against_noise(&self) -> &'static str {
+        let d = self.difference as f64;
+        if d > 2.0 * self.standard_error {
+            "higher beyond the noise"
+        } else if -d > 2.0 * self.standard_error {
+            "lower beyond the noise"
+        } else {
+            "within the noise"
+        }
     }
 }
 
@@ -397,6 +405,8 @@ pub fn summarise_touched(
     touched: Option<&[bool]>,
 ) -> Result<Vec<ModelSummary>> {
     let mut out = Vec::new();
+    // the first model's flags at the threshold the others are matched at
+    let mut first: Option<FactorFlags> = None;
     for (path, params) in models {
         // residuals (early release off) and flags (the model's setting) side by side
         let (pr, fl) = rayon::join(
@@ -457,10 +467,14 @@ pub fn summarise_touched(
         ths.dedup();
         for t in ths {
             let flags = (t == high).then_some(fl.flagged.as_slice());
-            fq.insert(
-                format!("{t}"),
-                eval::flag_quality(samples, &pr.current, flags, t),
-            );
+            let quality = eval::flag_quality(samples, &pr.current, flags, t);
+            if out.is_empty() && t == MATCH_THRESHOLD_E_PER_S {
+                first = Some(FactorFlags {
+                    quality,
+                    over_by_pixel: eval::over_flagged_by_pixel(samples, &pr.current, flags, t),
+                });
+            }
+            fq.insert(format!("{t}"), quality);
             fqc.insert(
                 format!("{t}"),
                 eval::flag_quality_by_cell(samples, &pr.current, flags, t)
@@ -510,15 +524,10 @@ pub fn summarise_touched(
             pixel_reference: None,
         });
     }
-    let key = format!("{MATCH_THRESHOLD_E_PER_S}");
-    let evaluated = out
-        .first()
-        .is_some_and(|m| m.flag_quality.contains_key(&key));
-    if let (Some((_, first)), true) = (models.first(), evaluated && models.len() > 1) {
-        let thr = MATCH_THRESHOLD_E_PER_S;
-        let first = flags_at_factor(first, seq, samples, 1.0, thr)?;
+    if let Some(first) = &first {
         for (m, (_, params)) in out.iter_mut().zip(models).skip(1) {
-            m.flags_at_first_coverage = at_coverage_of(params, seq, samples, thr, &first)?;
+            m.flags_at_first_coverage =
+                at_coverage_of(params, seq, samples, MATCH_THRESHOLD_E_PER_S, first)?;
         }
     }
     Ok(out)

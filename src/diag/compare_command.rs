@@ -217,13 +217,7 @@ fn matched_line(f: &super::compare::MatchedFlags, first: &super::compare::ModelS
         .get(&format!("{thr}"))
         .map_or(0, |q| q.over_flagged);
     let d = &f.over_flagged_vs_first;
-    let verdict = if d.rises_beyond_noise() {
-        "higher beyond the noise"
-    } else if -(d.difference as f64) > 2.0 * d.standard_error {
-        "lower beyond the noise"
-    } else {
-        "within the noise"
-    };
+    let verdict = d.against_noise();
     format!(
         "    at the first model's coverage at {thr} e-/s (knots x {:.4}): {} missed ({} for \
          the first), over-flagged {:.2} % ({} samples; {} for the first: {:+}, standard \

@@ -169,9 +169,9 @@
 //! with a chance of at most 1 in 20 when the change carries nothing about where it
 //! applies; and that gain is at least [`super::refit::PIXEL_HELD_OUT_MIN_GAIN`] (1 % of
 //! the reference's RMS), below which a gain beyond chance is still too small to change
-//! a flag ([`super::refit::PixelHeldOut::predicts_held_out`]). The reference is not the description: on the second generator's campaigns
-//! with nothing hidden the pixel reference's RMS is 0.9-1.2, the description's 7-15
-//! (docs/validation/reference_rms.md), so a fixed gain against the description rewards
+//! a flag ([`super::refit::PixelHeldOut::predicts_held_out`]). The reference is not
+//! the description: on the second generator's campaigns with nothing hidden the pixel
+//! reference's RMS is 0.9-1.2, the description's 7-15 (docs/validation/reference_rms.md), so a fixed gain against the description rewards
 //! whatever absorbs its misfit. The change in BIC and the gain against the description
 //! are computed and printed; they gate only without a held-out check (the change in
 //! BIC), with `--decide score`, and where the pixel reference could not be held out

@@ -135,16 +135,11 @@ fn is_flagged(pred: &[f64], flagged: Option<&[bool]>, thr: f64, i: usize) -> boo
     flagged.map_or(pred[i] > thr, |f| f[i])
 }
 
-/// Sample `i` is over-flagged at `thr` (module docs): flagged and measured below
-/// `thr - 2 sigma_k` (a measurement that is not finite is not).
-fn is_over_flagged(
-    s: &Samples,
-    pred: &[f64],
-    flagged: Option<&[bool]>,
-    thr: f64,
-    i: usize,
-) -> bool {
-    is_flagged(pred, flagged, thr, i) && s.measured[i] < thr - 2.0 * s.noise[i / s.npix()]
+/// Sample `i`, flagged or not (`flagged`), is over-flagged at `thr` (module docs):
+/// flagged and measured below `thr - 2 sigma_k` (a measurement that is not finite is
+/// not).
+fn is_over_flagged(s: &Samples, flagged: bool, thr: f64, i: usize) -> bool {
+    flagged && s.measured[i] < thr - 2.0 * s.noise[i / s.npix()]
 }
 
 /// Per sampled pixel ([`Samples::pixels`], in that order), how many of its samples are
@@ -158,7 +153,7 @@ pub fn over_flagged_by_pixel(
 ) -> Vec<u32> {
     let mut n = vec![0u32; s.npix()];
     for i in 0..s.len() {
-        n[i % s.npix()] += is_over_flagged(s, pred, flagged, thr, i) as u32;
+        n[i % s.npix()] += is_over_flagged(s, is_flagged(pred, flagged, thr, i), thr, i) as u32;
     }
     n
 }
@@ -190,7 +185,7 @@ impl FlagCounts {
             self.above += 1;
             self.missed += !f as usize;
         }
-        self.over += is_over_flagged(s, pred, flagged, thr, i) as usize;
+        self.over += is_over_flagged(s, f, thr, i) as usize;
     }
 
     fn quality(&self, thr: f64) -> FlagQuality {
